@@ -1,0 +1,35 @@
+# ctrplan: the two commands are `make demo` and `make test`.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+# The CPU build of torch. Where the PyTorch CPU wheel index is reachable, use e.g.
+#   make test TORCH_INDEX="--extra-index-url https://download.pytorch.org/whl/cpu"
+TORCH_REQ ?= torch==2.13.0+cpu
+TORCH_INDEX ?=
+PYTEST_ARGS ?=
+
+.PHONY: demo test install lint bench clean
+
+$(VENV)/.installed: pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q $(TORCH_INDEX) "$(TORCH_REQ)"
+	$(PY) -m pip install -q -e ".[dev,ray]"
+	touch $@
+
+install: $(VENV)/.installed
+
+demo: install
+	$(VENV)/bin/ctrplan demo --out demo_out
+
+test: install
+	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+lint: install
+	$(VENV)/bin/ruff check ctrplan tests benchmarks examples
+
+bench: install
+	$(VENV)/bin/ctrplan bench --out benchmarks/results
+
+clean:
+	rm -rf $(VENV) demo_out .pytest_cache

@@ -1,0 +1,72 @@
+"""The ``ctrplan`` command line.
+
+Each sub-command lives in :mod:`ctrplan.commands` as a module with ``register(subparsers)``,
+which adds its parser and sets ``func(args) -> int``. Bad input raises
+:class:`~ctrplan.errors.InputError`; here it becomes one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import logging
+import sys
+
+from ctrplan import __version__
+from ctrplan.errors import InputError
+
+#: Sub-command modules in ``ctrplan.commands``, in the order shown by ``--help``.
+COMMANDS = (
+    "shape", "simulate", "train", "check", "scene", "plan", "plan_batch", "view",
+    "diagnose", "demo", "bench",
+)
+
+log = logging.getLogger("ctrplan")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="ctrplan",
+        description="Motion planning for concentric tube robots inside anatomy.",
+    )
+    parser.add_argument("--version", action="version", version=f"ctrplan {__version__}")
+    verbosity = parser.add_mutually_exclusive_group()
+    verbosity.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    verbosity.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only, no progress bars")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        modname = f"ctrplan.commands.{name}"
+        if importlib.util.find_spec(modname) is None:
+            continue
+        importlib.import_module(modname).register(sub)
+    return parser
+
+
+def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
+    level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
+    logging.basicConfig(level=level, format="%(message)s", stream=sys.stderr, force=True)
+    from ctrplan import progress
+
+    progress.set_enabled(not quiet)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    configure_logging(args.verbose, args.quiet)
+    try:
+        return int(args.func(args) or 0)
+    except InputError as exc:
+        print(f"ctrplan {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"ctrplan {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Sub-commands of the ``ctrplan`` command line (one module each, see :mod:`ctrplan.cli`)."""

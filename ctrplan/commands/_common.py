@@ -1,0 +1,29 @@
+"""Helpers shared by the sub-commands: argument types, model resolution, output checks."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ctrplan.errors import InputError
+
+
+def add_robot_arg(p: argparse.ArgumentParser, required: bool = True) -> None:
+    p.add_argument("--robot", required=required, default=None if required else "seed1",
+                   help="shipped robot name (seed1, two_tube_nylon) or robot YAML path")
+
+
+def add_model_arg(p: argparse.ArgumentParser, default: str = "physics") -> None:
+    p.add_argument("--model", default=default,
+                   help="physics (torsionally compliant), rigid, learned (shipped default network) "
+                        "or a model file written by 'ctrplan train'")
+
+
+def output_path(path: str, suffixes: tuple[str, ...], field: str = "--out") -> Path:
+    """Check an output path's suffix and that its folder can be created."""
+    p = Path(path)
+    if suffixes and p.suffix.lower() not in suffixes:
+        raise InputError(field, "", f"{path!r} must end in one of {', '.join(suffixes)}")
+    if p.exists() and p.is_dir():
+        raise InputError(field, "", f"{path!r} is a folder, expected a file")
+    return p

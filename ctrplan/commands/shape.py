@@ -1,0 +1,53 @@
+"""``ctrplan shape``: backbones of configurations from a CSV."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from ctrplan.commands._common import add_model_arg, add_robot_arg, output_path
+from ctrplan.errors import InputError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("shape", help="compute backbones of configurations",
+                       description="Compute the backbone of each configuration in a CSV. "
+                                   "Writes NPZ (points (B,M,3) mm, s (B,M) mm, ok (B,)) or CSV "
+                                   "(one row per configuration: ok, p1_x..pM_z).")
+    add_robot_arg(p)
+    p.add_argument("--configs", required=True, help="configuration CSV (alpha1..alphaN,beta1..betaN)")
+    add_model_arg(p)
+    p.add_argument("--points", type=int, default=20, help="points per backbone, base to tip (default 20)")
+    p.add_argument("--out", required=True, help="output .npz or .csv")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ctrplan.io import atomic_path, write_csv_atomic
+    from ctrplan.robot import load_robot, read_configs
+    from ctrplan.shape.models import load_model
+
+    out = output_path(args.out, (".npz", ".csv"))
+    if args.points < 2:
+        raise InputError("--points", "", f"must be >= 2, got {args.points}")
+    robot = load_robot(args.robot)
+    q = read_configs(args.configs, robot)
+    model = load_model(args.model, robot)
+    shape = model.shape(q, points=args.points)
+    if out.suffix.lower() == ".npz":
+        with atomic_path(out) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, points=shape.points, s=shape.s, ok=shape.ok, radius=shape.radius)
+    else:
+        m = args.points
+        header = ["ok"] + [f"p{k + 1}_{c}" for k in range(m) for c in "xyz"]
+        rows = [[int(ok)] + pts.reshape(-1).tolist() for ok, pts in zip(shape.ok, shape.points)]
+        write_csv_atomic(out, header, rows)
+    bad = int((~shape.ok).sum())
+    import logging
+
+    logging.getLogger("ctrplan").info(
+        "wrote %d backbones (%d points each, model %s) to %s%s", len(q), args.points,
+        model.name, out, f"; {bad} did not converge (ok=0)" if bad else "")
+    return 0

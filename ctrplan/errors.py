@@ -1,0 +1,32 @@
+"""Error types shared by every stage.
+
+Bad user input raises :class:`InputError`, which always names the file (or "<argument>")
+and the field that is wrong. The command line turns it into a one-line message and exit code 2.
+"""
+
+from __future__ import annotations
+
+
+class CtrplanError(Exception):
+    """Base class for errors raised by ctrplan."""
+
+
+class InputError(CtrplanError, ValueError):
+    """Malformed or invalid user input (a file, a field, an argument).
+
+    Parameters
+    ----------
+    source : str
+        The file path (or a label such as ``"--target"``) that holds the bad value.
+    field : str
+        The field, column or key that is wrong (``""`` if the whole file is bad).
+    message : str
+        What is wrong, in one line.
+    """
+
+    def __init__(self, source: str, field: str, message: str):
+        self.source = str(source)
+        self.field = str(field)
+        self.message = " ".join(str(message).split())
+        where = self.source if not self.field else f"{self.source}: {self.field}"
+        super().__init__(f"{where}: {self.message}")

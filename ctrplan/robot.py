@@ -1,0 +1,333 @@
+"""Tubes, robots, joint constraints, YAML I/O and configuration sampling.
+
+Conventions (fixed by DESIGN.md): lengths mm, angles rad, curvature 1/mm, Young's modulus MPa.
+Tube index 0 (tube "1" in files) is the innermost. A configuration is
+``q = [alpha_1..alpha_n, beta_1..beta_n]``, batch first ``(B, 2n)``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field, fields
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ctrplan.errors import InputError
+from ctrplan.io import load_yaml, parse_float_columns, read_csv_table, write_csv_atomic
+
+#: Slack (mm) allowed on the joint constraints, for round-off in files and interpolation.
+CONSTRAINT_TOL_MM = 1e-9
+
+SHIPPED_ROBOTS = ("seed1", "two_tube_nylon")
+
+
+@dataclass(frozen=True)
+class Tube:
+    """One pre-curved elastic tube.
+
+    Lengths in mm, ``curvature`` in 1/mm (the precurvature of the curved distal section, which
+    bends the tube toward +x of its own frame), ``youngs_modulus`` in MPa (N/mm^2).
+    """
+
+    od: float
+    id: float
+    straight_length: float
+    curved_length: float
+    curvature: float
+    youngs_modulus: float
+    poisson_ratio: float
+
+    @property
+    def length(self) -> float:
+        """Total length ``L = straight + curved`` (mm)."""
+        return self.straight_length + self.curved_length
+
+    @property
+    def second_moment(self) -> float:
+        """Area second moment of the annulus, mm^4."""
+        return math.pi / 64.0 * (self.od**4 - self.id**4)
+
+    @property
+    def bending_stiffness(self) -> float:
+        """EI in N mm^2."""
+        return self.youngs_modulus * self.second_moment
+
+    @property
+    def torsional_stiffness(self) -> float:
+        """GJ in N mm^2 with G = E / (2 (1 + nu)) and J = 2 I."""
+        shear = self.youngs_modulus / (2.0 * (1.0 + self.poisson_ratio))
+        return shear * 2.0 * self.second_moment
+
+
+_TUBE_FIELDS = tuple(f.name for f in fields(Tube))
+
+
+@dataclass(frozen=True)
+class Robot:
+    """A set of concentric tubes, innermost first, with joint limits.
+
+    ``beta_min`` optionally narrows each tube's translation range (mm, <= 0); by default a tube
+    may be retracted until its curved section starts at the constraint plane.
+    """
+
+    name: str
+    tubes: tuple[Tube, ...]
+    beta_min: tuple[float, ...] | None = None
+    source: str = field(default="<memory>", compare=False)
+
+    def __post_init__(self) -> None:
+        _validate_tubes(self.tubes, self.source)
+        if self.beta_min is not None and len(self.beta_min) != len(self.tubes):
+            raise InputError(self.source, "beta_min", f"needs {len(self.tubes)} values, one per tube")
+
+    # ------------------------------------------------------------------ basic properties
+    @property
+    def n(self) -> int:
+        """Number of tubes."""
+        return len(self.tubes)
+
+    @property
+    def dof(self) -> int:
+        """Length of a configuration vector, ``2 n``."""
+        return 2 * self.n
+
+    def array(self, name: str) -> np.ndarray:
+        """Per-tube property as an ``(n,)`` array (any Tube attribute or property)."""
+        return np.array([getattr(t, name) for t in self.tubes], dtype=float)
+
+    @property
+    def lengths(self) -> np.ndarray:
+        return self.array("length")
+
+    @property
+    def column_names(self) -> list[str]:
+        """Configuration column names ``alpha1..alphaN, beta1..betaN`` (files are 1-based)."""
+        return [f"alpha{i + 1}" for i in range(self.n)] + [f"beta{i + 1}" for i in range(self.n)]
+
+    def beta_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-tube box bounds ``(lo, hi)`` on beta implied by the constraints (mm)."""
+        lo = -self.array("straight_length")
+        if self.beta_min is not None:
+            lo = np.maximum(lo, np.asarray(self.beta_min, dtype=float))
+        hi = np.zeros(self.n)
+        return lo, hi
+
+    def retracted(self) -> np.ndarray:
+        """A valid 'retracted' start configuration ``(2n,)``: all alpha 0, tubes pulled back
+        as far as the constraints allow (the innermost tube's tip as close to the plane as
+        possible while still nested)."""
+        lo, _ = self.beta_bounds()
+        L = self.lengths
+        beta = np.zeros(self.n)
+        # Outermost first: fully retracted, then each inner tube as far back as allowed while
+        # reaching at least as far as the tube around it.
+        beta[-1] = max(lo[-1], -L[-1])
+        for i in range(self.n - 2, -1, -1):
+            beta[i] = max(lo[i], beta[i + 1] + L[i + 1] - L[i])
+            beta[i] = min(beta[i], beta[i + 1])
+        q = np.concatenate([np.zeros(self.n), beta])
+        if not self.is_valid(q[None])[0]:
+            raise InputError(self.source, "tubes", "the joint constraints admit no configuration")
+        return q
+
+    # ------------------------------------------------------------------ constraints
+    def constraint_violations(self, q: np.ndarray) -> np.ndarray:
+        """Signed constraint values ``(B, C)``; a configuration is valid when all are >= 0.
+
+        q : (B, 2n) float, rad and mm.
+        """
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        n = self.n
+        beta = q[:, n:]
+        L = self.lengths
+        lo, hi = self.beta_bounds()
+        cols = [hi - beta, beta - lo]                      # beta_i <= 0, beta_i >= lower
+        if n > 1:
+            cols.append(beta[:, 1:] - beta[:, :-1])         # beta_i <= beta_(i+1)
+            cols.append((beta[:, :-1] + L[:-1]) - (beta[:, 1:] + L[1:]))  # inner reaches further
+        cols.append((beta[:, -1:] + L[-1]))                 # outermost tube leaves the plane
+        return np.concatenate(cols, axis=1)
+
+    def is_valid(self, q: np.ndarray) -> np.ndarray:
+        """``(B,)`` bool: finite and inside the joint constraints. q : (B, 2n)."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        if q.shape[1] != self.dof:
+            raise ValueError(f"q has {q.shape[1]} columns, robot {self.name!r} needs {self.dof}")
+        finite = np.all(np.isfinite(q), axis=1)
+        with np.errstate(invalid="ignore"):
+            ok = np.all(self.constraint_violations(q) >= -CONSTRAINT_TOL_MM, axis=1)
+        return finite & ok
+
+    def sample(self, n: int, seed: int | np.random.Generator | None = 0) -> np.ndarray:
+        """``(n, 2n_tubes)`` configurations uniform over the valid set.
+
+        Alphas are uniform on (-pi, pi]; betas are uniform over the constraint polytope
+        (rejection sampling from its bounding box, which is exact).
+        """
+        rng = np.random.default_rng(seed)
+        lo, hi = self.beta_bounds()
+        out: list[np.ndarray] = []
+        have = 0
+        while have < n:
+            m = max(64, 2 * (n - have))
+            beta = rng.uniform(lo, hi, size=(m, self.n))
+            alpha = -rng.uniform(-math.pi, math.pi, size=(m, self.n))  # maps [-pi, pi) -> (-pi, pi]
+            q = np.concatenate([alpha, beta], axis=1)
+            q = q[self.is_valid(q)]
+            out.append(q)
+            have += len(q)
+        return np.concatenate(out, axis=0)[:n]
+
+    def tip_length(self, q: np.ndarray) -> np.ndarray:
+        """Backbone arc length from the constraint plane to the tip, ``(B,)`` mm."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        return np.max(q[:, self.n:] + self.lengths, axis=1)
+
+    # ------------------------------------------------------------------ I/O
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {
+            "name": self.name,
+            "tubes": [{k: float(getattr(t, k)) for k in _TUBE_FIELDS} for t in self.tubes],
+        }
+        if self.beta_min is not None:
+            d["beta_min"] = [float(b) for b in self.beta_min]
+        return d
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the robot YAML (units noted in a header comment)."""
+        import yaml
+
+        from ctrplan.io import write_text_atomic
+
+        text = (
+            "# ctrplan robot: lengths mm, curvature 1/mm, youngs_modulus MPa; tubes innermost first\n"
+            + yaml.safe_dump(self.to_dict(), sort_keys=False)
+        )
+        write_text_atomic(path, text)
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Wrap angles to (-pi, pi]."""
+    a = np.asarray(a, dtype=float)
+    return math.pi - np.mod(math.pi - a, 2.0 * math.pi)
+
+
+def _validate_tubes(tubes: tuple[Tube, ...], source: str) -> None:
+    if len(tubes) == 0:
+        raise InputError(source, "tubes", "a robot needs at least one tube")
+    for i, t in enumerate(tubes):
+        where = f"tubes[{i}]"
+        for k in _TUBE_FIELDS:
+            v = getattr(t, k)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
+                raise InputError(source, f"{where}.{k}", f"must be a finite number, got {v!r}")
+        if t.od <= 0:
+            raise InputError(source, f"{where}.od", f"must be > 0, got {t.od}")
+        if not 0 <= t.id < t.od:
+            raise InputError(source, f"{where}.id", f"must satisfy 0 <= id < od ({t.od}), got {t.id}")
+        if t.straight_length < 0:
+            raise InputError(source, f"{where}.straight_length", f"must be >= 0, got {t.straight_length}")
+        if t.curved_length < 0:
+            raise InputError(source, f"{where}.curved_length", f"must be >= 0, got {t.curved_length}")
+        if t.length <= 0:
+            raise InputError(source, f"{where}", "straight_length + curved_length must be > 0")
+        if t.youngs_modulus <= 0:
+            raise InputError(source, f"{where}.youngs_modulus", f"must be > 0, got {t.youngs_modulus}")
+        if not 0 <= t.poisson_ratio < 0.5:
+            raise InputError(source, f"{where}.poisson_ratio", f"must be in [0, 0.5), got {t.poisson_ratio}")
+        if i > 0 and not tubes[i - 1].od < t.id:
+            raise InputError(
+                source, f"{where}.id",
+                f"must exceed the OD of the tube inside it ({tubes[i - 1].od} mm), got {t.id}",
+            )
+
+
+def robot_from_dict(data: Any, source: str = "<memory>") -> Robot:
+    """Build a :class:`Robot` from parsed YAML; unknown keys are errors."""
+    if not isinstance(data, dict):
+        raise InputError(source, "", "expected a mapping with 'name' and 'tubes'")
+    unknown = set(data) - {"name", "tubes", "beta_min", "units", "notes", "source"}
+    if unknown:
+        raise InputError(source, sorted(unknown)[0], "unknown key")
+    name = data.get("name", Path(source).stem)
+    if not isinstance(name, str) or not name:
+        raise InputError(source, "name", "must be a non-empty string")
+    raw = data.get("tubes")
+    if not isinstance(raw, list) or not raw:
+        raise InputError(source, "tubes", "must be a non-empty list of tubes (innermost first)")
+    tubes = []
+    for i, t in enumerate(raw):
+        if not isinstance(t, dict):
+            raise InputError(source, f"tubes[{i}]", "must be a mapping")
+        unknown = set(t) - set(_TUBE_FIELDS)
+        if unknown:
+            raise InputError(source, f"tubes[{i}].{sorted(unknown)[0]}", "unknown key")
+        missing = [k for k in _TUBE_FIELDS if k not in t]
+        if missing:
+            raise InputError(source, f"tubes[{i}].{missing[0]}", "missing")
+        vals = {}
+        for k in _TUBE_FIELDS:
+            v = t[k]
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise InputError(source, f"tubes[{i}].{k}", f"must be a number, got {v!r}")
+            vals[k] = float(v)
+        tubes.append(Tube(**vals))
+    beta_min = data.get("beta_min")
+    if beta_min is not None:
+        if not isinstance(beta_min, list) or not all(
+            isinstance(b, (int, float)) and not isinstance(b, bool) and math.isfinite(b) for b in beta_min
+        ):
+            raise InputError(source, "beta_min", "must be a list of finite numbers (mm)")
+        if any(b > 0 for b in beta_min):
+            raise InputError(source, "beta_min", "values must be <= 0 mm")
+        beta_min = tuple(float(b) for b in beta_min)
+    return Robot(name=name, tubes=tuple(tubes), beta_min=beta_min, source=source)
+
+
+def load_robot(name_or_path: str | os.PathLike | Robot) -> Robot:
+    """Load a shipped robot by name (``seed1``, ``two_tube_nylon``) or a robot YAML file."""
+    if isinstance(name_or_path, Robot):
+        return name_or_path
+    s = str(name_or_path)
+    if s in SHIPPED_ROBOTS:
+        ref = resources.files("ctrplan") / "data" / "robots" / f"{s}.yaml"
+        with resources.as_file(ref) as p:
+            data = load_yaml(p)
+            return robot_from_dict(data, source=s)
+    path = Path(s)
+    if not path.exists():
+        raise InputError(s, "", f"no such robot file, and not a shipped robot ({', '.join(SHIPPED_ROBOTS)})")
+    return robot_from_dict(load_yaml(path), source=str(path))
+
+
+def read_configs(path: str | os.PathLike, robot: Robot, check: bool = True) -> np.ndarray:
+    """Read a configuration CSV (header ``alpha1..alphaN,beta1..betaN``) as ``(B, 2n)``.
+
+    Extra columns are allowed (measured data carries tip columns). With ``check`` every row
+    must satisfy the joint constraints.
+    """
+    header, body = read_csv_table(path)
+    if not body:
+        raise InputError(str(path), "rows", "no configurations (only a header)")
+    q = parse_float_columns(path, header, body, robot.column_names)
+    if check:
+        ok = robot.is_valid(q)
+        if not ok.all():
+            k = int(np.argmin(ok))
+            viol = robot.constraint_violations(q[k:k + 1])[0]
+            raise InputError(
+                str(path), f"row {k + 2}",
+                f"violates the joint constraints of robot {robot.name!r} "
+                f"(worst constraint off by {-viol.min():.6g} mm)",
+            )
+    return q
+
+
+def write_configs(path: str | os.PathLike, robot: Robot, q: np.ndarray) -> None:
+    """Write configurations ``(B, 2n)`` as CSV with the standard header."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    write_csv_atomic(path, robot.column_names, q.tolist())

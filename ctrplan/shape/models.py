@@ -1,0 +1,40 @@
+"""Resolve a model name (``physics``, ``rigid``, ``learned`` or a file path) to a shape model."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from ctrplan.errors import InputError
+from ctrplan.robot import Robot, load_robot
+from ctrplan.shape.base import ShapeModel
+from ctrplan.shape.physics import PhysicsModel
+
+MODEL_NAMES = ("physics", "rigid", "learned")
+
+
+def load_model(spec: str | os.PathLike | ShapeModel, robot: Robot | str) -> ShapeModel:
+    """Return a shape model for ``robot``.
+
+    spec : ``"physics"`` (torsionally compliant), ``"rigid"``, ``"learned"`` (the shipped
+        default network of the robot) or the path of a model file written by ``ctrplan train``;
+        an object with ``shape``/``backbone`` is returned unchanged.
+    """
+    if not isinstance(spec, (str, os.PathLike)):
+        return spec
+    robot = load_robot(robot)
+    s = str(spec)
+    if s == "physics":
+        return PhysicsModel(robot, torsion=True)
+    if s == "rigid":
+        return PhysicsModel(robot, torsion=False)
+    if s == "learned":
+        from ctrplan.shape.learned import default_model_for
+
+        return default_model_for(robot)
+    path = Path(s)
+    if not path.exists():
+        raise InputError("--model", "", f"{s!r} is not a model name ({', '.join(MODEL_NAMES)}) or an existing file")
+    from ctrplan.shape.learned import LearnedModel
+
+    return LearnedModel.load(path, robot=robot)

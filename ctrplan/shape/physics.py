@@ -1,0 +1,132 @@
+"""Batched mechanics shape models: torsionally rigid and torsionally compliant CTRs.
+
+See :mod:`ctrplan.shape._kernel` for the equations. Both models run a whole batch in one
+compiled call; the single-configuration call is the same function with ``B = 1``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ctrplan.robot import Robot, load_robot
+from ctrplan.shape import _kernel
+from ctrplan.shape.base import Shape, check_q, radius_along
+
+
+@dataclass(frozen=True)
+class PhysicsConfig:
+    """Numerical settings of the mechanics model.
+
+    step_mm : largest RK4 step (mm); intervals between break points are cut into equal steps.
+    tol : shooting tolerance on the distal torsion boundary values uz_i(end) (1/mm).
+    max_iter : Newton iterations before a configuration is reported as not converged.
+    """
+
+    step_mm: float = 10.0
+    tol: float = 1e-10
+    max_iter: int = 30
+
+    def __post_init__(self) -> None:
+        if not self.step_mm > 0:
+            raise ValueError("step_mm must be > 0")
+        if not self.tol > 0:
+            raise ValueError("tol must be > 0")
+        if self.max_iter < 1:
+            raise ValueError("max_iter must be >= 1")
+
+
+@dataclass(frozen=True)
+class MechanicsParams:
+    """Per-configuration mechanical parameters handed to the kernel (effects modify these).
+
+    kappa, EI, ratio : (B, n) precurvature 1/mm, bending stiffness N mm^2, EI/GJ.
+    kink : (B, n, 2) rad, rotation of the backbone frame where tube j ends.
+    """
+
+    kappa: np.ndarray
+    EI: np.ndarray
+    ratio: np.ndarray
+    kink: np.ndarray
+
+
+@dataclass(frozen=True)
+class SolveInfo:
+    """Diagnostics of a physics solve: uz0 (B, n) 1/mm, iterations (B,), residual (B,) 1/mm."""
+
+    uz0: np.ndarray
+    iterations: np.ndarray
+    residual: np.ndarray
+
+
+class PhysicsModel:
+    """Mechanics shape model of a concentric tube robot.
+
+    Parameters
+    ----------
+    robot : Robot or str
+        The robot (or a shipped name / YAML path).
+    torsion : bool
+        True: torsionally compliant Cosserat-rod model (shooting on uz(0)); False: the
+        torsionally rigid ("traditional") model.
+    config : PhysicsConfig
+        Integrator and solver settings.
+    """
+
+    def __init__(self, robot: Robot | str, torsion: bool = True, config: PhysicsConfig | None = None):
+        self.robot = load_robot(robot)
+        self.torsion = bool(torsion)
+        self.config = config or PhysicsConfig()
+        self.name = "physics" if self.torsion else "rigid"
+        self.last_info: SolveInfo | None = None
+
+    def __repr__(self) -> str:
+        return f"PhysicsModel(robot={self.robot.name!r}, torsion={self.torsion})"
+
+    def with_config(self, **kw) -> PhysicsModel:
+        """A copy with some :class:`PhysicsConfig` fields changed."""
+        return PhysicsModel(self.robot, self.torsion, replace(self.config, **kw))
+
+    def base_params(self, B: int) -> MechanicsParams:
+        """The robot's nominal parameters broadcast to a batch of ``B``."""
+        r = self.robot
+        n = r.n
+        kappa = np.broadcast_to(r.array("curvature"), (B, n)).copy()
+        EI = np.broadcast_to(r.array("bending_stiffness"), (B, n)).copy()
+        ratio = np.broadcast_to(r.array("bending_stiffness") / r.array("torsional_stiffness"), (B, n)).copy()
+        return MechanicsParams(kappa=kappa, EI=EI, ratio=ratio, kink=np.zeros((B, n, 2)))
+
+    def shape(self, q: np.ndarray, points: int = 20) -> Shape:
+        """Backbones of a batch. q : (B, 2n) rad and mm; returns a :class:`Shape` in mm."""
+        q = check_q(self.robot, q)
+        return self.solve(q, points, self.base_params(len(q)))
+
+    def backbone(self, q: np.ndarray, points: int = 20) -> np.ndarray:
+        """(B, points, 3) backbone points, mm, robot base frame."""
+        return self.shape(q, points).points
+
+    def solve(self, q: np.ndarray, points: int, params: MechanicsParams,
+              uz_init: np.ndarray | None = None) -> Shape:
+        """Run the kernel with explicit per-configuration parameters (used by effects)."""
+        if points < 2:
+            raise ValueError("points must be >= 2 (base and tip)")
+        r = self.robot
+        n = r.n
+        q = np.ascontiguousarray(q, dtype=float)
+        B = len(q)
+        alpha = np.ascontiguousarray(q[:, :n])
+        beta = np.ascontiguousarray(q[:, n:])
+        x0 = np.zeros((B, n)) if uz_init is None else np.ascontiguousarray(uz_init, dtype=float)
+        pts, s, uz0, iters, resid, ok = _kernel.solve_batch(
+            alpha, beta, r.lengths, r.array("straight_length"),
+            np.ascontiguousarray(params.kappa, dtype=float),
+            np.ascontiguousarray(params.EI, dtype=float),
+            np.ascontiguousarray(params.ratio, dtype=float),
+            np.ascontiguousarray(params.kink, dtype=float),
+            self.torsion, int(points), float(self.config.step_mm), float(self.config.tol),
+            int(self.config.max_iter), x0,
+        )
+        ok = ok & np.all(np.isfinite(pts), axis=(1, 2))
+        self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid)
+        return Shape(points=pts, s=s, radius=radius_along(r, q, s), ok=ok)
