@@ -1,0 +1,1 @@
+"""Calibration: measured data, residual diagnostics, effect selection and reports."""

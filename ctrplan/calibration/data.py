@@ -1,0 +1,106 @@
+"""Measured (or simulated-measured) data: the CSV format of DESIGN.md.
+
+Columns: ``alpha1..alphaN, beta1..betaN`` (rad, mm), ``tip_x, tip_y, tip_z`` (mm, robot base
+frame unless a registration is being calibrated), optionally ``time`` (s; row order is the order
+of motion), ``sweep`` (an id grouping one continuous experiment) and backbone points
+``p1_x, p1_y, p1_z, ..., pM_z`` (mm, evenly spaced in arc length from base to tip).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from ctrplan.errors import InputError
+from ctrplan.io import parse_float_columns, read_csv_table, write_csv_atomic
+from ctrplan.robot import Robot
+
+_POINT_RE = re.compile(r"^p(\d+)_([xyz])$")
+
+
+@dataclass(frozen=True)
+class MeasuredData:
+    """A measured data set.
+
+    q : (B, 2n) rad, mm. tip : (B, 3) mm. time : (B,) s or None. sweep : (B,) str or None.
+    points : (B, M, 3) mm or None (backbone points base to tip).
+    """
+
+    q: np.ndarray
+    tip: np.ndarray
+    time: np.ndarray | None = None
+    sweep: np.ndarray | None = None
+    points: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.q.shape[0])
+
+    def subset(self, idx: np.ndarray) -> MeasuredData:
+        """Rows ``idx`` (index array or boolean mask), order kept."""
+        def pick(a):
+            return None if a is None else a[idx]
+
+        return MeasuredData(q=self.q[idx], tip=self.tip[idx], time=pick(self.time),
+                            sweep=pick(self.sweep), points=pick(self.points))
+
+    def sweeps(self) -> np.ndarray:
+        """Sweep id per row; rows without a sweep column form one sweep ``"0"``."""
+        if self.sweep is None:
+            return np.full(len(self), "0", dtype=object)
+        return self.sweep
+
+
+def read_measured(path: str | os.PathLike, robot: Robot) -> MeasuredData:
+    """Read a measured-data CSV; errors name the file and the column/row."""
+    header, body = read_csv_table(path)
+    if not body:
+        raise InputError(str(path), "rows", "no data rows (only a header)")
+    q = parse_float_columns(path, header, body, robot.column_names)
+    tip = parse_float_columns(path, header, body, ["tip_x", "tip_y", "tip_z"])
+    time = None
+    if "time" in header:
+        time = parse_float_columns(path, header, body, ["time"])[:, 0]
+    sweep = None
+    if "sweep" in header:
+        ci = header.index("sweep")
+        sweep = np.array([r[ci].strip() for r in body], dtype=object)
+    pcols = {}
+    for h in header:
+        mt = _POINT_RE.match(h)
+        if mt:
+            pcols.setdefault(int(mt.group(1)), set()).add(mt.group(2))
+    points = None
+    if pcols:
+        m = max(pcols)
+        for k in range(1, m + 1):
+            if pcols.get(k) != {"x", "y", "z"}:
+                raise InputError(str(path), f"p{k}_x/y/z", "backbone point columns must be complete p1..pM")
+        if m < 2:
+            raise InputError(str(path), "p1_x", "need at least 2 backbone points")
+        cols = [f"p{k}_{c}" for k in range(1, m + 1) for c in "xyz"]
+        points = parse_float_columns(path, header, body, cols).reshape(len(body), m, 3)
+    return MeasuredData(q=q, tip=tip, time=time, sweep=sweep, points=points)
+
+
+def write_measured(path: str | os.PathLike, robot: Robot, data: MeasuredData) -> None:
+    """Write a measured-data CSV atomically (columns in the order of DESIGN.md)."""
+    header = list(robot.column_names) + ["tip_x", "tip_y", "tip_z"]
+    parts = [data.q, data.tip]
+    if data.time is not None:
+        header.append("time")
+        parts.append(np.asarray(data.time, dtype=float)[:, None])
+    cols = np.concatenate(parts, axis=1).tolist()
+    if data.sweep is not None:
+        header.append("sweep")
+        for row, s in zip(cols, data.sweep):
+            row.append(str(s))
+    if data.points is not None:
+        m = data.points.shape[1]
+        header += [f"p{k}_{c}" for k in range(1, m + 1) for c in "xyz"]
+        flat = np.asarray(data.points, dtype=float).reshape(len(data), -1).tolist()
+        for row, f in zip(cols, flat):
+            row.extend(f)
+    write_csv_atomic(path, header, cols)
