@@ -1,0 +1,168 @@
+"""Plots and 3-D views: a static PNG (matplotlib) and a self-contained interactive HTML view
+(plotly, with plotly.js embedded so the file works offline and fetches nothing).
+
+All geometry here is in the scene frame, mm.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+ROLE_COLOURS = {"wall": "#d9a38f", "obstacle": "#c0392b"}
+ROBOT_COLOUR = "#1f4e9c"
+TIP_COLOUR = "#0b8a3c"
+TARGET_COLOUR = "#f39c12"
+
+
+@dataclass(frozen=True)
+class ViewMesh:
+    """A mesh to draw: name, role (wall/obstacle), vertices (V,3) mm, faces (F,3) int."""
+
+    name: str
+    role: str
+    vertices: np.ndarray
+    faces: np.ndarray
+
+
+def scene_meshes(scene) -> list[ViewMesh]:
+    """The meshes of a :class:`ctrplan.collision.scene.Scene` as :class:`ViewMesh` objects."""
+    return [ViewMesh(m.name, m.role, np.asarray(m.mesh.vertices), np.asarray(m.mesh.faces))
+            for m in scene.meshes]
+
+
+def _pick_frames(k: int, count: int) -> np.ndarray:
+    if k <= count:
+        return np.arange(k)
+    return np.unique(np.linspace(0, k - 1, count).round().astype(int))
+
+
+def plan_html(
+    path: str | os.PathLike,
+    meshes: Sequence[ViewMesh],
+    backbones: np.ndarray,
+    tip_path: np.ndarray | None = None,
+    target: np.ndarray | None = None,
+    title: str = "ctrplan",
+    frames: int = 12,
+) -> None:
+    """Write an interactive, self-contained HTML view.
+
+    backbones : (K, m, 3) mm, scene frame — robot shapes along the path (a subset is drawn,
+    the final one bold). tip_path : (K, 3) mm. target : (3,) mm.
+    """
+    import plotly.graph_objects as go
+
+    from ctrplan.io import write_text_atomic
+
+    traces = []
+    for mesh in meshes:
+        v, f = mesh.vertices, mesh.faces
+        traces.append(go.Mesh3d(
+            x=v[:, 0], y=v[:, 1], z=v[:, 2], i=f[:, 0], j=f[:, 1], k=f[:, 2],
+            color=ROLE_COLOURS.get(mesh.role, "#999999"),
+            opacity=0.25 if mesh.role == "wall" else 0.6, name=f"{mesh.name} ({mesh.role})",
+            showlegend=True, flatshading=True, hoverinfo="name",
+        ))
+    backbones = np.asarray(backbones, dtype=float).reshape(-1, backbones.shape[-2], 3)
+    idx = _pick_frames(len(backbones), frames)
+    for n_shown, k in enumerate(idx):
+        last = bool(k == len(backbones) - 1)
+        b = backbones[k]
+        traces.append(go.Scatter3d(
+            x=b[:, 0], y=b[:, 1], z=b[:, 2], mode="lines",
+            line={"color": ROBOT_COLOUR, "width": 9 if last else 3},
+            opacity=1.0 if last else 0.35, name="robot (final)" if last else "robot along path",
+            showlegend=last or n_shown == 0, legendgroup="final" if last else "path",
+        ))
+    if tip_path is not None and len(tip_path):
+        t = np.asarray(tip_path, dtype=float)
+        traces.append(go.Scatter3d(x=t[:, 0], y=t[:, 1], z=t[:, 2], mode="lines+markers",
+                                   line={"color": TIP_COLOUR, "width": 4}, marker={"size": 2},
+                                   name="tip path"))
+    if target is not None:
+        t = np.asarray(target, dtype=float).reshape(3)
+        traces.append(go.Scatter3d(x=[t[0]], y=[t[1]], z=[t[2]], mode="markers",
+                                   marker={"size": 6, "color": TARGET_COLOUR, "symbol": "diamond"},
+                                   name="target"))
+    fig = go.Figure(data=traces)
+    fig.update_layout(
+        title=title, scene={"aspectmode": "data", "xaxis_title": "x (mm)", "yaxis_title": "y (mm)",
+                            "zaxis_title": "z (mm)"},
+        margin={"l": 0, "r": 0, "t": 40, "b": 0}, legend={"itemsizing": "constant"},
+    )
+    # include_plotlyjs=True embeds the whole library: the file works offline and loads no URL.
+    html = fig.to_html(include_plotlyjs=True, full_html=True, config={"displaylogo": False})
+    write_text_atomic(path, html)
+
+
+def _crop_faces(v: np.ndarray, f: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_faces: int) -> np.ndarray:
+    c = v[f].mean(axis=1)
+    keep = np.all((c >= lo) & (c <= hi), axis=1)
+    f = f[keep]
+    if len(f) > max_faces:
+        f = f[np.random.default_rng(0).choice(len(f), max_faces, replace=False)]
+    return f
+
+
+def plan_png(
+    path: str | os.PathLike,
+    meshes: Sequence[ViewMesh],
+    backbones: np.ndarray,
+    tip_path: np.ndarray | None = None,
+    target: np.ndarray | None = None,
+    title: str = "ctrplan",
+    frames: int = 8,
+    crop_mm: float = 40.0,
+) -> None:
+    """Write a static PNG: anatomy near the robot (cropped), shapes along the path, target."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    from ctrplan.io import atomic_path
+
+    backbones = np.asarray(backbones, dtype=float)
+    pts = backbones.reshape(-1, 3)
+    if target is not None:
+        pts = np.vstack([pts, np.asarray(target, dtype=float).reshape(1, 3)])
+    lo = pts.min(axis=0) - crop_mm
+    hi = pts.max(axis=0) + crop_mm
+    fig = plt.figure(figsize=(8, 7), dpi=110)
+    ax = fig.add_subplot(111, projection="3d")
+    for mesh in meshes:
+        f = _crop_faces(mesh.vertices, mesh.faces, lo, hi, 6000)
+        if len(f) == 0:
+            continue
+        poly = Poly3DCollection(mesh.vertices[f], alpha=0.12 if mesh.role == "wall" else 0.45,
+                                facecolor=ROLE_COLOURS.get(mesh.role, "#999999"), edgecolor="none")
+        ax.add_collection3d(poly)
+    for k in _pick_frames(len(backbones), frames):
+        last = bool(k == len(backbones) - 1)
+        b = backbones[k]
+        ax.plot(b[:, 0], b[:, 1], b[:, 2], color=ROBOT_COLOUR, lw=3 if last else 1,
+                alpha=1.0 if last else 0.4)
+    if tip_path is not None and len(tip_path):
+        t = np.asarray(tip_path)
+        ax.plot(t[:, 0], t[:, 1], t[:, 2], color=TIP_COLOUR, lw=1.5, label="tip path")
+    if target is not None:
+        t = np.asarray(target).reshape(3)
+        ax.scatter([t[0]], [t[1]], [t[2]], color=TARGET_COLOUR, s=60, marker="D", label="target")
+    ctr = (lo + hi) / 2
+    half = (hi - lo).max() / 2
+    ax.set_xlim(ctr[0] - half, ctr[0] + half)
+    ax.set_ylim(ctr[1] - half, ctr[1] + half)
+    ax.set_zlim(ctr[2] - half, ctr[2] + half)
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_zlabel("z (mm)")
+    ax.set_title(title)
+    ax.legend(loc="upper left")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", bbox_inches="tight")
+    plt.close(fig)
