@@ -1,0 +1,328 @@
+"""Anatomy scenes: meshes with roles, the robot's entry pose and example targets.
+
+A scene is a folder with ``scene.yaml`` (format in DESIGN.md) and its mesh files. Everything is
+in the scene frame, in mm. Roles:
+
+- ``wall``: the lumen surface the robot must stay inside; touching it is a collision. A wall may
+  be open where the lumen continues beyond the model (the distal ends of the bronchi).
+- ``obstacle``: a structure the robot must not touch (vessel, nerve).
+- ``landmark``: drawn and used to pick targets (e.g. the ventricles the robot enters), never
+  collision-checked.
+
+Shipped scenes live in the repository's ``anatomy/`` folder and are loaded by name.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ctrplan.errors import InputError
+from ctrplan.io import load_yaml
+
+ROLES = ("wall", "obstacle", "landmark")
+SHIPPED_SCENES = ("airway", "neuro", "skull_base", "bronchial_tree")
+
+#: Meshes whose largest extent falls outside this range (mm) are taken as a units mistake.
+MIN_EXTENT_MM = 0.5
+MAX_EXTENT_MM = 2000.0
+
+_SCENE_KEYS = {"name", "units", "frame", "description", "meshes", "base_pose", "targets",
+               "source", "licence", "generator"}
+_MESH_KEYS = {"name", "file", "role", "description"}
+
+
+@dataclass(frozen=True)
+class SceneMesh:
+    """A named mesh of a scene: role ``wall``, ``obstacle`` or ``landmark``; mesh in mm, scene frame."""
+
+    name: str
+    role: str
+    mesh: object  # trimesh.Trimesh (kept untyped so importing this module stays light)
+    file: str = ""
+
+
+@dataclass(frozen=True)
+class Target:
+    """A named example target: position (3,) mm, scene frame."""
+
+    name: str
+    position: np.ndarray
+
+
+@dataclass(frozen=True)
+class Scene:
+    """An anatomy scene.
+
+    base_pose : (4, 4) float — the robot base frame expressed in the scene frame (points in the
+        base frame map to the scene frame by ``base_pose @ [p, 1]``).
+    """
+
+    name: str
+    path: str
+    meshes: tuple[SceneMesh, ...]
+    base_pose: np.ndarray
+    targets: tuple[Target, ...]
+    source: str = ""
+    licence: str = ""
+    frame: str = ""
+    description: str = field(default="", compare=False)
+
+    def to_scene(self, points: np.ndarray) -> np.ndarray:
+        """Points (..., 3) mm from the robot base frame to the scene frame."""
+        p = np.asarray(points, dtype=float)
+        return p @ self.base_pose[:3, :3].T + self.base_pose[:3, 3]
+
+    def to_base(self, points: np.ndarray) -> np.ndarray:
+        """Points (..., 3) mm from the scene frame to the robot base frame."""
+        p = np.asarray(points, dtype=float)
+        return (p - self.base_pose[:3, 3]) @ self.base_pose[:3, :3]
+
+    @property
+    def collision_meshes(self) -> tuple[SceneMesh, ...]:
+        """The meshes that are collision-checked (roles wall and obstacle)."""
+        return tuple(m for m in self.meshes if m.role in ("wall", "obstacle"))
+
+    def mesh(self, name: str) -> SceneMesh:
+        for m in self.meshes:
+            if m.name == name:
+                return m
+        raise KeyError(name)
+
+    def target_positions(self) -> np.ndarray:
+        """(T, 3) target positions, mm, scene frame."""
+        return np.array([t.position for t in self.targets], dtype=float).reshape(-1, 3)
+
+
+def anatomy_dir() -> Path:
+    """The repository's ``anatomy/`` folder (ctrplan is installed from a checkout)."""
+    env = os.environ.get("CTRPLAN_ANATOMY")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[2] / "anatomy"
+
+
+def list_scenes() -> list[str]:
+    """Names of the shipped scenes that are present."""
+    d = anatomy_dir()
+    return sorted(p.name for p in d.iterdir() if (p / "scene.yaml").is_file()) if d.is_dir() else []
+
+
+def load_scene(name_or_path: str | os.PathLike | Scene) -> Scene:
+    """Load a shipped scene by name or a scene folder (or its ``scene.yaml``)."""
+    if isinstance(name_or_path, Scene):
+        return name_or_path
+    s = str(name_or_path)
+    p = Path(s)
+    if p.is_file() and p.name.endswith((".yaml", ".yml")):
+        folder, yml = p.parent, p
+    elif p.is_dir():
+        folder, yml = p, p / "scene.yaml"
+    elif os.sep not in s and "/" not in s and (anatomy_dir() / s / "scene.yaml").is_file():
+        folder = anatomy_dir() / s
+        yml = folder / "scene.yaml"
+    else:
+        shipped = ", ".join(list_scenes()) or "none found"
+        raise InputError(s, "", f"no such scene folder, and not a shipped scene ({shipped})")
+    if not yml.is_file():
+        raise InputError(str(yml), "", "file not found")
+    return scene_from_dict(load_yaml(yml), yml)
+
+
+def scene_from_dict(data: object, yml: Path) -> Scene:
+    """Build and validate a :class:`Scene` from parsed ``scene.yaml`` contents."""
+    src = str(yml)
+    if not isinstance(data, dict):
+        raise InputError(src, "", "expected a mapping at the top level")
+    unknown = sorted(set(data) - _SCENE_KEYS)
+    if unknown:
+        raise InputError(src, unknown[0], f"unknown key (allowed: {', '.join(sorted(_SCENE_KEYS))})")
+    name = str(data.get("name") or yml.parent.name)
+    units = data.get("units", "mm")
+    if units != "mm":
+        raise InputError(src, "units", f"must be 'mm' (convert the meshes), got {units!r}")
+    raw_meshes = data.get("meshes")
+    if not isinstance(raw_meshes, list) or not raw_meshes:
+        raise InputError(src, "meshes", "an empty scene: list at least one mesh")
+    meshes = []
+    seen = set()
+    for k, entry in enumerate(raw_meshes):
+        where = f"meshes[{k}]"
+        if not isinstance(entry, dict):
+            raise InputError(src, where, "expected a mapping with name, file, role")
+        bad = sorted(set(entry) - _MESH_KEYS)
+        if bad:
+            raise InputError(src, f"{where}.{bad[0]}", "unknown key")
+        for key in ("name", "file", "role"):
+            if not entry.get(key):
+                raise InputError(src, f"{where}.{key}", "missing")
+        mname = str(entry["name"])
+        if mname in seen:
+            raise InputError(src, f"{where}.name", f"duplicate mesh name {mname!r}")
+        seen.add(mname)
+        role = str(entry["role"])
+        if role not in ROLES:
+            raise InputError(src, f"{where}.role", f"unknown role {role!r} (choose from {', '.join(ROLES)})")
+        path = yml.parent / str(entry["file"])
+        meshes.append(SceneMesh(name=mname, role=role, mesh=load_mesh(path), file=str(entry["file"])))
+    base_pose = _parse_pose(data.get("base_pose"), src)
+    targets = _parse_targets(data.get("targets") or [], src)
+    scene = Scene(name=name, path=str(yml.parent), meshes=tuple(meshes), base_pose=base_pose,
+                  targets=targets, source=str(data.get("source", "")),
+                  licence=str(data.get("licence", "")), frame=str(data.get("frame", "")),
+                  description=str(data.get("description", "")))
+    if not scene.collision_meshes:
+        raise InputError(src, "meshes", "no wall or obstacle mesh: nothing to check collisions against")
+    check_base_inside(scene, src)
+    return scene
+
+
+def load_mesh(path: str | os.PathLike):
+    """Load a triangle mesh (mm) with trimesh and validate it; errors name the file."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(str(path), "", "mesh file not found")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise InputError(str(path), "", f"unreadable mesh ({exc.__class__.__name__}: {exc})") from None
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise InputError(str(path), "", "not a triangle mesh")
+    validate_mesh(mesh, str(path))
+    return mesh
+
+
+def validate_mesh(mesh, source: str) -> None:
+    """Raise :class:`InputError` for an empty, non-finite, non-manifold or absurd-scale mesh."""
+    v = np.asarray(mesh.vertices, dtype=float)
+    f = np.asarray(mesh.faces)
+    if len(v) == 0 or len(f) == 0:
+        raise InputError(source, "faces", "empty mesh (no triangles)")
+    if not np.all(np.isfinite(v)):
+        raise InputError(source, "vertices", "non-finite vertex coordinates")
+    if f.min() < 0 or f.max() >= len(v):
+        raise InputError(source, "faces", "face indices out of range")
+    extent = float(np.max(v.max(axis=0) - v.min(axis=0)))
+    if not MIN_EXTENT_MM <= extent <= MAX_EXTENT_MM:
+        raise InputError(source, "vertices", f"largest extent {extent:.4g} mm is outside "
+                         f"[{MIN_EXTENT_MM}, {MAX_EXTENT_MM}] mm: is the mesh in mm?")
+    area = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    if not np.any(area > 0):
+        raise InputError(source, "faces", "all triangles are degenerate")
+    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    if np.any(counts > 2):
+        raise InputError(source, "faces", f"non-manifold: {int((counts > 2).sum())} edges shared "
+                         "by more than two triangles")
+
+
+def _parse_pose(raw: object, src: str) -> np.ndarray:
+    if not isinstance(raw, dict) or "position" not in raw or "quaternion" not in raw:
+        raise InputError(src, "base_pose", "needs position [x, y, z] and quaternion [w, x, y, z]")
+    bad = sorted(set(raw) - {"position", "quaternion"})
+    if bad:
+        raise InputError(src, f"base_pose.{bad[0]}", "unknown key")
+    pos = _vector(raw["position"], 3, src, "base_pose.position")
+    quat = _vector(raw["quaternion"], 4, src, "base_pose.quaternion")
+    norm = float(np.linalg.norm(quat))
+    if abs(norm - 1.0) > 1e-3:
+        raise InputError(src, "base_pose.quaternion", f"not a unit quaternion (norm {norm:.6g})")
+    T = np.eye(4)
+    T[:3, :3] = quaternion_to_matrix(quat / norm)
+    T[:3, 3] = pos
+    return T
+
+
+def _parse_targets(raw: object, src: str) -> tuple[Target, ...]:
+    if not isinstance(raw, list):
+        raise InputError(src, "targets", "expected a list of {name, position}")
+    out = []
+    for k, t in enumerate(raw):
+        if not isinstance(t, dict) or "position" not in t:
+            raise InputError(src, f"targets[{k}]", "expected {name, position: [x, y, z]}")
+        out.append(Target(name=str(t.get("name", f"target{k + 1}")),
+                          position=_vector(t["position"], 3, src, f"targets[{k}].position")))
+    return tuple(out)
+
+
+def _vector(raw: object, n: int, src: str, fieldname: str) -> np.ndarray:
+    try:
+        v = np.asarray(raw, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(src, fieldname, f"expected {n} numbers") from None
+    if v.shape != (n,):
+        raise InputError(src, fieldname, f"expected {n} numbers, got {np.size(v)}")
+    if not np.all(np.isfinite(v)):
+        raise InputError(src, fieldname, "not finite")
+    return v
+
+
+def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a unit quaternion ``[w, x, y, z]``."""
+    w, x, y, z = np.asarray(q, dtype=float)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``[w, x, y, z]`` (w >= 0) of a rotation matrix."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat()
+    q = np.array([w, x, y, z])
+    return q if w >= 0 else -q
+
+
+#: Fixed ray directions for the inside test (a Fibonacci sphere).
+def _directions(n: int = 96) -> np.ndarray:
+    k = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * k / n)
+    theta = np.pi * (1 + 5**0.5) * k
+    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
+
+
+def inside_walls(scene: Scene, points: np.ndarray, min_hit_fraction: float = 0.7) -> np.ndarray:
+    """(P,) bool: whether each point (P, 3) mm, scene frame, lies inside the scene's walls.
+
+    A closed (watertight) wall uses trimesh's exact containment. An open wall (a lumen that
+    continues beyond the model) has no inside in the strict sense; a point counts as inside when
+    at least ``min_hit_fraction`` of 96 rays from it hit the walls (inside a tube only the rays
+    along the axis escape; outside a convex-ish tube at most half of them can hit it).
+    """
+    import trimesh
+
+    walls = [m.mesh for m in scene.meshes if m.role == "wall"]
+    points = np.atleast_2d(np.asarray(points, dtype=float))
+    if not walls:
+        return np.ones(len(points), dtype=bool)
+    inside = np.zeros(len(points), dtype=bool)
+    for w in walls:
+        if w.is_watertight:
+            inside |= w.contains(points)
+    open_walls = [w for w in walls if not w.is_watertight]
+    if open_walls:
+        merged = trimesh.util.concatenate(open_walls)
+        dirs = _directions()
+        for i, p in enumerate(points):
+            if inside[i]:
+                continue
+            hit = merged.ray.intersects_any(np.repeat(p[None], len(dirs), axis=0), dirs)
+            inside[i] = hit.mean() >= min_hit_fraction
+    return inside
+
+
+def check_base_inside(scene: Scene, src: str) -> None:
+    """Raise :class:`InputError` if the base pose lies outside the scene's walls."""
+    if not any(m.role == "wall" for m in scene.meshes):
+        return
+    if not inside_walls(scene, scene.base_pose[:3, 3][None])[0]:
+        raise InputError(src, "base_pose.position", "lies outside the wall meshes: the robot "
+                         "must enter inside the lumen")
