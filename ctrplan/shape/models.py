@@ -35,6 +35,10 @@ def load_model(spec: str | os.PathLike | ShapeModel, robot: Robot | str) -> Shap
     path = Path(s)
     if not path.exists():
         raise InputError("--model", "", f"{s!r} is not a model name ({', '.join(MODEL_NAMES)}) or an existing file")
+    from ctrplan.shape.effects import EffectModel, is_effect_model_file
+
+    if is_effect_model_file(path):  # a calibrated model written by `ctrplan diagnose`
+        return EffectModel.load(path)
     from ctrplan.shape.learned import LearnedModel
 
     return LearnedModel.load(path, robot=robot)

@@ -1,0 +1,229 @@
+"""Write a diagnose report: report.json, report.md, PNG plots and the calibrated model files.
+
+Files in the output folder:
+
+``report.json``          DESIGN.md fields (effects, parameters, steps, error_before_mm,
+                         error_after_mm) plus conclusion, split, diagnostics and settings.
+``report.md``            a table per step (effect, fitted parameters +- uncertainty, held-out error
+                         before/after, statistic, runner-up) and the conclusion.
+``residuals_rotation.png``  tip error vs relative rotation of each tube pair, by direction.
+``residuals_insertion.png`` tip error vs insertion (tip arc length).
+``residuals_arclength.png`` backbone error vs arc length (only when shapes are measured).
+``errors_by_step.png``   held-out mean/max tip error after each step.
+``tip_paths.png``        held-out sweeps: measured tip path, base model, calibrated model.
+``calibrated.yaml``      the calibrated model (robot + base + effects): ``--model PATH``.
+``calibrated_robot.yaml`` the robot with the effects that fold into tube parameters
+                         (precurvature, stiffness) folded in: ``--robot PATH``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ctrplan.calibration.data import MeasuredData
+from ctrplan.io import atomic_path, write_json_atomic, write_text_atomic
+from ctrplan.robot import Robot, Tube, wrap_angle
+
+
+def _clean(obj):
+    """JSON-safe copy: non-finite floats become None, numpy scalars plain numbers."""
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    if hasattr(obj, "value") and not isinstance(obj, (str, bytes)):
+        return obj.value
+    return obj
+
+
+def folded_robot(robot: Robot, effects: dict[str, dict[str, float]]) -> Robot:
+    """The robot with precurvature scales and stiffness ratios folded into its tubes."""
+    tubes = []
+    n = robot.n
+    for i, t in enumerate(robot.tubes):
+        k = t.curvature * effects.get("precurvature", {}).get(f"scale{i + 1}", 1.0)
+        e = t.youngs_modulus
+        if i < n - 1:
+            e *= effects.get("stiffness", {}).get(f"ratio{i + 1}", 1.0)
+        tubes.append(Tube(t.od, t.id, t.straight_length, t.curved_length, k, e, t.poisson_ratio))
+    return Robot(name=f"{robot.name}_calibrated", tubes=tuple(tubes), beta_min=robot.beta_min)
+
+
+def _fmt(v: float | None, s: float | None = None) -> str:
+    if v is None or not math.isfinite(v):
+        return "-"
+    if s is None or not math.isfinite(s):
+        return f"{v:.4g}"
+    return f"{v:.4g} ± {s:.2g}"
+
+
+def markdown(rep) -> str:
+    lines = [f"# ctrplan diagnose: {rep.robot.name} ({rep.base} base)", "",
+             f"**Conclusion: {rep.conclusion}.**", "",
+             f"Held-out mean tip error {rep.error_before_mm:.3f} mm -> {rep.error_after_mm:.3f} mm "
+             f"(max {rep.max_before_mm:.3f} -> {rep.max_after_mm:.3f} mm).", "",
+             "Selection rule: an effect is added only when its BIC change is below "
+             f"-{rep.settings['bic_threshold']:g} (training residuals) AND it lowers the held-out "
+             f"mean tip error by at least {100 * rep.settings['min_heldout_gain']:.0f} %. "
+             f"Held-out sweeps: {', '.join(rep.test_sweeps)}.", ""]
+    for k, s in enumerate(rep.steps, 1):
+        title = f"## Step {k}: {s.effect}" if s.accepted else f"## Step {k}: nothing more justified"
+        lines += [title, ""]
+        if s.accepted:
+            lines += ["| effect | parameter | fitted ± 1 sigma | held-out before (mm) | "
+                      "held-out after (mm) | ΔBIC | held-out gain | runner-up (ΔBIC) |",
+                      "|---|---|---|---|---|---|---|---|"]
+            first = True
+            for eff, vals in s.parameters.items():
+                for p, v in vals.items():
+                    sig = s.sigma.get(eff, {}).get(p)
+                    cells = [eff, p, _fmt(v, sig)]
+                    if first:
+                        cells += [f"{s.error_before_mm:.3f}", f"{s.error_after_mm:.3f}",
+                                  f"{s.delta_bic:.1f}", f"{100 * s.heldout_gain:.1f} %",
+                                  f"{s.runner_up or '-'} ({_fmt(s.runner_up_delta_bic)})"]
+                    else:
+                        cells += [""] * 5
+                    lines.append("| " + " | ".join(cells) + " |")
+                    first = False
+            if s.ambiguous:
+                lines += ["", f"Ambiguous at this step: {s.runner_up} explains the data almost as "
+                              "well (ΔBIC within the ambiguity margin)."]
+        else:
+            lines += [f"Best remaining candidate {s.runner_up}: ΔBIC {s.delta_bic:.1f}, held-out "
+                      f"gain {100 * s.heldout_gain:.1f} % — not justified."]
+        lines += ["", "Screened candidates:", "", "| candidate | ΔBIC | held-out mean (mm) | justified |",
+                  "|---|---|---|---|"]
+        for c in s.screened:
+            lines.append(f"| {c.effect} | {c.delta_bic:.1f} | {c.test_mean_mm:.3f} | "
+                         f"{'yes' if c.justified else 'no'} |")
+        lines.append("")
+    lines += ["## Files", "", "- `calibrated.yaml`: calibrated model (`--model calibrated.yaml`)",
+              "- `calibrated_robot.yaml`: robot with precurvature/stiffness folded in (`--robot`)",
+              "- plots: `residuals_rotation.png`, `residuals_insertion.png`, `errors_by_step.png`, "
+              "`tip_paths.png`" + (", `residuals_arclength.png`" if rep.settings.get("shapes_measured") else ""),
+              ""]
+    return "\n".join(lines)
+
+
+def write_report(rep, data: MeasuredData, out: str | os.PathLike, base_pred: np.ndarray,
+                 final_pred: np.ndarray, test: np.ndarray) -> Path:
+    """Write every report file into folder ``out`` (created); returns the folder."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        from ctrplan.errors import InputError
+
+        raise InputError("--out", "", f"{str(out)!r} exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    d = rep.to_dict()
+    d["files"] = {"model": "calibrated.yaml", "robot": "calibrated_robot.yaml"}
+    write_json_atomic(out / "report.json", _clean(d))
+    write_text_atomic(out / "report.md", markdown(rep))
+    rep.model().save(out / "calibrated.yaml")
+    folded = folded_robot(rep.robot, rep.model_effects)
+    folded.save(out / "calibrated_robot.yaml")
+    _plots(rep, data, out, base_pred, final_pred, test)
+    return out
+
+
+def _save(fig, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", bbox_inches="tight")
+    plt.close(fig)
+
+
+def _plots(rep, data, out: Path, base_pred, final_pred, test) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ctrplan.calibration.diagnostics import motion_direction
+
+    robot = rep.robot
+    n = robot.n
+    sweep = data.sweeps()
+    eb = np.linalg.norm(base_pred[:, -1] - data.tip, axis=1)
+    ea = np.linalg.norm(final_pred[:, -1] - data.tip, axis=1)
+    # residual vs relative rotation, by direction of motion
+    pairs = max(1, n - 1)
+    fig, axes = plt.subplots(1, pairs, figsize=(5.5 * pairs, 4), dpi=100, squeeze=False)
+    for i in range(n - 1):
+        ax = axes[0, i]
+        rel = data.q[:, i] - data.q[:, i + 1]
+        dirn = motion_direction(rel, sweep)[:, 0]
+        x = wrap_angle(rel)
+        for sel, c, lab in ((dirn > 0, "#c0392b", "moving +"), (dirn < 0, "#1f4e9c", "moving -"),
+                            (dirn == 0, "#999999", "still")):
+            if sel.any():
+                ax.scatter(x[sel], eb[sel], s=6, c=c, alpha=0.6, label=f"base, {lab}")
+        ax.scatter(x, ea, s=4, c="#0b8a3c", alpha=0.4, marker="x", label="calibrated")
+        ax.set_xlabel(f"relative rotation alpha{i + 1} - alpha{i + 2} (rad)")
+        ax.set_ylabel("tip error (mm)")
+        ax.legend(fontsize=7)
+    if n == 1:
+        axes[0, 0].text(0.5, 0.5, "single tube: no relative rotation", ha="center")
+    fig.suptitle("Residuals vs relative rotation, split by direction of motion")
+    _save(fig, out / "residuals_rotation.png")
+    # vs insertion
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+    ins = robot.tip_length(data.q)
+    ax.scatter(ins, eb, s=6, c="#c0392b", alpha=0.5, label=f"{rep.base} base")
+    ax.scatter(ins, ea, s=6, c="#0b8a3c", alpha=0.5, label="calibrated")
+    ax.set_xlabel("insertion: tip arc length (mm)")
+    ax.set_ylabel("tip error (mm)")
+    ax.legend()
+    _save(fig, out / "residuals_insertion.png")
+    if data.points is not None and base_pred.shape[1] == data.points.shape[1]:
+        fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+        fr = np.linspace(0, 1, data.points.shape[1])
+        ax.plot(fr, np.nanmean(np.linalg.norm(base_pred - data.points, axis=2), 0), "o-",
+                c="#c0392b", label=f"{rep.base} base")
+        ax.plot(fr, np.nanmean(np.linalg.norm(final_pred - data.points, axis=2), 0), "o-",
+                c="#0b8a3c", label="calibrated")
+        ax.set_xlabel("arc length / tip arc length")
+        ax.set_ylabel("mean backbone error (mm)")
+        ax.legend()
+        _save(fig, out / "residuals_arclength.png")
+    # errors per step
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+    labels = ["base"] + [s.effect for s in rep.steps if s.accepted]
+    means = [rep.error_before_mm] + [s.error_after_mm for s in rep.steps if s.accepted]
+    maxes = [rep.max_before_mm] + [s.max_after_mm for s in rep.steps if s.accepted]
+    xs = np.arange(len(labels))
+    ax.bar(xs - 0.2, means, 0.4, label="held-out mean", color="#1f4e9c")
+    ax.bar(xs + 0.2, maxes, 0.4, label="held-out max", color="#d9a38f")
+    ax.set_xticks(xs, ["+" + lab if k else lab for k, lab in enumerate(labels)], rotation=20)
+    ax.set_ylabel("tip error (mm)")
+    ax.legend()
+    _save(fig, out / "errors_by_step.png")
+    # tip paths of the held-out sweeps
+    names = list(dict.fromkeys(sweep[test].tolist()))[:4]
+    fig, axes = plt.subplots(1, max(1, len(names)), figsize=(4.5 * max(1, len(names)), 4.2),
+                             dpi=100, squeeze=False)
+    for k, nm in enumerate(names):
+        ax = axes[0, k]
+        sel = sweep == nm
+        for arr, c, lab in ((data.tip[sel], "k", "measured"), (base_pred[sel, -1], "#c0392b", "base"),
+                            (final_pred[sel, -1], "#0b8a3c", "calibrated")):
+            ax.plot(arr[:, 0], arr[:, 1], "-", c=c, lw=1.2, label=lab)
+        ax.set_title(str(nm))
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.legend(fontsize=7)
+    fig.suptitle("Held-out tip paths (x-y)")
+    _save(fig, out / "tip_paths.png")

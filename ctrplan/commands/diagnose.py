@@ -1,0 +1,57 @@
+"""``ctrplan diagnose``: find, name and fit the effects missing from the model."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+
+from ctrplan.commands._common import add_robot_arg
+from ctrplan.errors import InputError
+
+log = logging.getLogger("ctrplan")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "diagnose", help="name the effects missing from the model and fit them",
+        description="Compare the mechanics model with measured data, screen the candidate "
+                    "effects, add an effect only when held-out error and BIC justify it, and "
+                    "write report.json, report.md, PNG plots and the calibrated model "
+                    "(calibrated.yaml for --model; calibrated_robot.yaml for --robot).")
+    add_robot_arg(p)
+    p.add_argument("--data", required=True, help="measured CSV (DESIGN.md format)")
+    p.add_argument("--base", choices=["rigid", "compliant"], default="rigid",
+                   help="base mechanics model (default rigid, the 'traditional' model)")
+    p.add_argument("--effects", default=None,
+                   help="comma-separated candidate effects (default: all)")
+    p.add_argument("--holdout", type=float, default=0.25,
+                   help="fraction of sweeps held out (default 0.25)")
+    p.add_argument("--bic-threshold", type=float, default=10.0,
+                   help="an effect must lower BIC by more than this (default 10)")
+    p.add_argument("--min-gain", type=float, default=0.10,
+                   help="and cut held-out mean tip error by at least this fraction (default 0.10)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the sweep split (default 0)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ctrplan.calibration.data import read_measured
+    from ctrplan.calibration.diagnose import diagnose
+    from ctrplan.robot import load_robot
+
+    if not 0 < args.holdout < 1:
+        raise InputError("--holdout", "", f"must be in (0, 1), got {args.holdout}")
+    robot = load_robot(args.robot)
+    data = read_measured(args.data, robot)
+    cands = None
+    if args.effects:
+        cands = [c.strip() for c in args.effects.split(",") if c.strip()]
+    rep = diagnose(robot, data, base=args.base, candidates=cands, holdout=args.holdout,
+                   seed=args.seed, bic_threshold=args.bic_threshold, min_gain=args.min_gain,
+                   out=args.out)
+    print(json.dumps({"conclusion": rep.conclusion, "effects": rep.effects,
+                      "error_before_mm": round(rep.error_before_mm, 4),
+                      "error_after_mm": round(rep.error_after_mm, 4), "out": str(args.out)}))
+    return 0

@@ -1,0 +1,83 @@
+"""``ctrplan simulate``: measured data with hidden effects (and noise) from the physics model."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+
+import numpy as np
+
+from ctrplan.commands._common import add_robot_arg, output_path
+from ctrplan.errors import InputError
+
+log = logging.getLogger("ctrplan")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "simulate", help="simulate measured data with hidden effects",
+        description="Simulate measured data (DESIGN.md measured CSV: configuration, tip, time, "
+                    "sweep, optional backbone points) from the mechanics model with hidden "
+                    "effects and Gaussian noise. Rows are in order of motion.",
+        epilog="Effects: torsion, friction, clearance, precurvature, stiffness, registration, "
+               "joint_offset; e.g. --effect clearance:length=8 --effect friction:lost1=0.1,lost2=0.1. "
+               "Experiments: feed, inner_rotation, outer_rotation, random_walk.")
+    add_robot_arg(p)
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--configs", help="configuration CSV; rows are one motion in order")
+    src.add_argument("--experiment", action="append", default=None,
+                     choices=["feed", "inner_rotation", "outer_rotation", "random_walk"],
+                     help="experiment design (repeatable; one after the other)")
+    p.add_argument("--n", type=int, default=200,
+                   help="rows: random configurations (no --configs/--experiment) or rows per "
+                        "experiment (default 200)")
+    p.add_argument("--sweeps", type=int, default=4, help="sweeps per experiment (default 4)")
+    p.add_argument("--effect", action="append", default=[], metavar="NAME[:PARAM=VALUE,...]",
+                   help="hidden effect (repeatable); unnamed parameters stay off")
+    p.add_argument("--base", choices=["rigid", "compliant"], default="rigid",
+                   help="base mechanics model of the simulated robot (default rigid)")
+    p.add_argument("--noise", type=float, default=0.0, help="noise std per coordinate, mm (default 0)")
+    p.add_argument("--points", type=int, default=0,
+                   help="also record M backbone points per row (default 0: tip only)")
+    p.add_argument("--step", type=float, default=None,
+                   help="integrator step of the simulated truth, mm (default: the model's)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (configurations and noise)")
+    p.add_argument("--out", required=True, help="output measured CSV")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ctrplan.calibration.data import write_measured
+    from ctrplan.calibration.simulate import design, simulate
+    from ctrplan.robot import load_robot, read_configs
+    from ctrplan.shape.effects import complete_effects, parse_effect_arg
+
+    out = output_path(args.out, (".csv",))
+    robot = load_robot(args.robot)
+    effects: dict[str, dict[str, float]] = {}
+    for text in args.effect:
+        name, vals = parse_effect_arg(text)
+        if name in effects:
+            raise InputError("--effect", name, "given twice")
+        effects[name] = vals
+    complete_effects(effects, robot, args.base, source="--effect")
+    if args.n < 1:
+        raise InputError("--n", "", f"must be >= 1, got {args.n}")
+    if args.points < 0 or args.points == 1:
+        raise InputError("--points", "", f"must be 0 or >= 2, got {args.points}")
+    if args.step is not None and not args.step > 0:
+        raise InputError("--step", "", f"must be > 0, got {args.step}")
+    if args.configs:
+        q = read_configs(args.configs, robot)
+        sweep = None
+    elif args.experiment:
+        q, sweep = design(robot, args.experiment, args.n, args.sweeps, args.seed)
+    else:
+        q = robot.sample(args.n, args.seed)
+        sweep = np.array([f"random{k // 50 + 1}" for k in range(len(q))], dtype=object)
+    data = simulate(robot, q, effects, args.base, sweep, args.noise, args.points, args.seed,
+                    args.step)
+    write_measured(out, robot, data)
+    log.info("wrote %d measured rows (hidden: %s; noise %g mm) to %s", len(data),
+             ", ".join(effects) or "none", args.noise, out)
+    return 0

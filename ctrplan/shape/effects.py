@@ -1,0 +1,445 @@
+"""Physical effects that extend the mechanics model, and :class:`EffectModel` that composes them.
+
+Every effect has named physical parameters with bounds and an *off* value; with all parameters
+off an :class:`EffectModel` returns exactly the base model's shapes (same kernel call, same
+inputs). Effects act at three stages of one batched :meth:`PhysicsModel.solve` call:
+
+1. joint space (``joint_offset``, ``friction``): the configuration the tubes really reach;
+2. mechanics (``precurvature``, ``stiffness``, ``torsion``, ``clearance``): per-configuration
+   :class:`~ctrplan.shape.physics.MechanicsParams` handed to the kernel;
+3. sensor (``registration``): the rigid transform from the robot base to the sensor frame.
+
+The vocabulary (DESIGN.md):
+
+``torsion``
+    Torsional compliance of the tubes. ``compliance`` scales every tube's EI/GJ; 0 is the
+    torsionally rigid ("traditional") model, 1 the nominal material (compliant model). Off: 0 on
+    a rigid base, 1 on a compliant base. Form parameter ``inner_factor`` (not fitted) scales
+    the innermost tube's compliance further.
+``friction``
+    Rotation lost in transmission, depending on the direction of motion. Each tube's actual base
+    angle follows the commanded one through a backlash (play) of half-width ``lost<i>`` rad:
+    moving up it lags by ``lost<i>``, after a reversal it stands still until the command has
+    crossed the dead band. Rows are taken in order as one continuous motion per sweep (the
+    ``time``/row order of measured data); each sweep starts settled (actual = commanded).
+    Form parameter ``presliding`` (rad, not fitted; 0 = ideal play) makes the lag build up
+    exponentially over that much rotation instead (a Dahl-type friction law).
+``clearance``
+    Where outer tube j ends, the tubes inside it tilt within the radial gap: the backbone frame
+    rotates by ``length * du`` (R <- R Exp([kx, ky, 0])), where ``du`` is the jump of the
+    (torsionally rigid) curvature vector across the tube's end. The tilt therefore depends on the
+    relative rotation of the tubes (largest when their curvatures oppose). ``length`` (mm) is the
+    length over which the inner tube already relaxes towards its own curvature inside the gap.
+    Form parameter ``limit`` (rad, not fitted; 0 = none) saturates the tilt at the angle the gap
+    allows: ``theta -> limit * tanh(theta / limit)``.
+``precurvature``
+    Per-tube scale ``scale<i>`` of the precurvature (off 1).
+``stiffness``
+    Bending stiffness of tube i relative to the outermost tube, ``ratio<i>`` for i < n (off 1;
+    only ratios change the unloaded shape).
+``registration``
+    Rigid transform sensor <- robot base: ``p_sensor = Rot(rx, ry, rz) p + (tx, ty, tz)``
+    (rotation vector in rad, translation in mm; off 0).
+``joint_offset``
+    Zero offsets of the joints: the tubes are at ``alpha_i + dalpha<i>``, ``beta_i + dbeta<i>``
+    (rad, mm; off 0).
+
+A caveat written down once: on a compliant base the clearance tilt direction uses the base
+angles alpha (the rigid model's tube angles), not the twisted angles at the tube's end.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from numba import njit
+
+from ctrplan.errors import InputError
+from ctrplan.robot import Robot, load_robot
+from ctrplan.shape.base import Shape, check_q, radius_along
+from ctrplan.shape.physics import MechanicsParams, PhysicsConfig, PhysicsModel
+
+EFFECT_NAMES = ("torsion", "friction", "clearance", "precurvature", "stiffness", "registration",
+                "joint_offset")
+BASES = ("rigid", "compliant")
+
+#: File kind written by :meth:`EffectModel.save` and recognised by ``load_model``.
+MODEL_KIND = "ctrplan-effect-model"
+
+
+@dataclass(frozen=True)
+class Param:
+    """One effect parameter: name, off value, bounds, unit, meaning; ``fit`` False for form
+    parameters that describe the effect's shape and are held fixed when fitting."""
+
+    name: str
+    off: float
+    lo: float
+    hi: float
+    unit: str
+    doc: str
+    fit: bool = True
+
+
+def effect_params(name: str, robot: Robot, base: str = "rigid") -> tuple[Param, ...]:
+    """The parameters of effect ``name`` for ``robot`` on ``base`` (``rigid``/``compliant``)."""
+    n = robot.n
+    if name == "torsion":
+        off = 1.0 if base == "compliant" else 0.0
+        return (Param("compliance", off, 0.0, 5.0, "1", "scale of EI/GJ (0 rigid, 1 nominal)"),
+                Param("inner_factor", 1.0, 0.2, 5.0, "1", "extra scale of tube 1's compliance",
+                      fit=False))
+    if name == "friction":
+        return tuple(Param(f"lost{i + 1}", 0.0, 0.0, 1.0, "rad",
+                           f"rotation lost in transmission of tube {i + 1} (backlash half-width)")
+                     for i in range(n)) + (
+            Param("presliding", 0.0, 0.0, 1.0, "rad", "rotation over which the lag builds up "
+                  "(0 = ideal backlash)", fit=False),)
+    if name == "clearance":
+        return (Param("length", 0.0, 0.0, 100.0, "mm",
+                      "tilt per unit curvature jump where an outer tube ends"),
+                Param("limit", 0.0, 0.0, 1.0, "rad", "largest tilt the gap allows (0 = none)",
+                      fit=False))
+    if name == "precurvature":
+        return tuple(Param(f"scale{i + 1}", 1.0, 0.3, 3.0, "1", f"precurvature scale of tube {i + 1}")
+                     for i in range(n))
+    if name == "stiffness":
+        return tuple(Param(f"ratio{i + 1}", 1.0, 0.2, 5.0, "1",
+                           f"bending stiffness of tube {i + 1} relative to tube {n} (nominal 1)")
+                     for i in range(n - 1))
+    if name == "registration":
+        return tuple(Param(f"t{c}", 0.0, -50.0, 50.0, "mm", f"sensor-frame translation {c}")
+                     for c in "xyz") + tuple(
+            Param(f"r{c}", 0.0, -0.5, 0.5, "rad", f"rotation vector component {c}") for c in "xyz")
+    if name == "joint_offset":
+        return tuple(Param(f"dalpha{i + 1}", 0.0, -0.5, 0.5, "rad", f"zero offset of alpha{i + 1}")
+                     for i in range(n)) + tuple(
+            Param(f"dbeta{i + 1}", 0.0, -10.0, 10.0, "mm", f"zero offset of beta{i + 1}")
+            for i in range(n))
+    raise InputError("<effect>", name, f"unknown effect; known: {', '.join(EFFECT_NAMES)}")
+
+
+def off_values(name: str, robot: Robot, base: str = "rigid") -> dict[str, float]:
+    """All parameters of an effect at their off values."""
+    return {p.name: p.off for p in effect_params(name, robot, base)}
+
+
+def complete_effects(effects: Mapping[str, Mapping[str, float]] | None, robot: Robot, base: str,
+                     source: str = "<effects>") -> dict[str, dict[str, float]]:
+    """Validate effect names/parameters and fill missing parameters with their off values.
+
+    Unknown effects or parameters, non-finite values and values outside the bounds raise
+    :class:`InputError` naming ``source`` and the field.
+    """
+    if base not in BASES:
+        raise InputError(source, "base", f"must be one of {', '.join(BASES)}, got {base!r}")
+    out: dict[str, dict[str, float]] = {}
+    for name in (effects or {}):
+        if name not in EFFECT_NAMES:
+            raise InputError(source, name, f"unknown effect; known: {', '.join(EFFECT_NAMES)}")
+        params = {p.name: p for p in effect_params(name, robot, base)}
+        vals = {k: p.off for k, p in params.items()}
+        given = effects[name] or {}
+        if not isinstance(given, Mapping):
+            raise InputError(source, name, "parameters must be a mapping NAME: VALUE")
+        for k, v in given.items():
+            if k not in params:
+                raise InputError(source, f"{name}.{k}",
+                                 f"unknown parameter; {name} has {', '.join(params) or 'none'}")
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
+                raise InputError(source, f"{name}.{k}", f"must be a number, got {v!r}")
+            v = float(v)
+            p = params[k]
+            if not math.isfinite(v) or not p.lo - 1e-12 <= v <= p.hi + 1e-12:
+                raise InputError(source, f"{name}.{k}",
+                                 f"must be finite and in [{p.lo}, {p.hi}] {p.unit}, got {v!r}")
+            vals[k] = v
+        out[name] = vals
+    return out
+
+
+def parse_effect_arg(text: str, source: str = "--effect") -> tuple[str, dict[str, float]]:
+    """Parse ``NAME`` or ``NAME:PARAM=VALUE[,PARAM=VALUE...]`` (command-line form)."""
+    name, _, rest = text.partition(":")
+    name = name.strip()
+    if name not in EFFECT_NAMES:
+        raise InputError(source, name or text, f"unknown effect; known: {', '.join(EFFECT_NAMES)}")
+    vals: dict[str, float] = {}
+    for item in filter(None, (s.strip() for s in rest.split(","))):
+        k, eq, v = item.partition("=")
+        if not eq:
+            raise InputError(source, f"{name}.{item}", "expected PARAM=VALUE")
+        try:
+            vals[k.strip()] = float(v)
+        except ValueError:
+            raise InputError(source, f"{name}.{k.strip()}", f"not a number: {v!r}") from None
+    return name, vals
+
+
+# ---------------------------------------------------------------------------- stage functions
+@njit(cache=True)
+def _backlash(x, start, lost, presliding):
+    """Actual angles (B, n) from commanded ``x`` (B, n) in row order; a new sweep starts where
+    ``start`` is True (settled, actual = commanded)."""
+    B, n = x.shape
+    y = np.empty_like(x)
+    for i in range(n):
+        d = lost[i]
+        e = 0.0  # lag: commanded - actual
+        for k in range(B):
+            if start[k]:
+                e = 0.0
+            else:
+                dx = x[k, i] - x[k - 1, i]
+                if presliding > 0.0:
+                    if dx != 0.0:
+                        target = d if dx > 0.0 else -d
+                        e = target + (e - target) * math.exp(-abs(dx) / presliding)
+                else:
+                    e = min(max(e + dx, -d), d)
+            y[k, i] = x[k, i] - e
+    return y
+
+
+def sweep_starts(B: int, sweep: np.ndarray | None) -> np.ndarray:
+    """(B,) bool: True at the first row of each sweep (rows are in order of motion)."""
+    start = np.zeros(B, dtype=bool)
+    if B:
+        start[0] = True
+    if sweep is not None and B > 1:
+        sw = np.asarray(sweep)
+        start[1:] = sw[1:] != sw[:-1]
+    return start
+
+
+def _rotvec_matrix(r: np.ndarray) -> np.ndarray:
+    th = float(np.linalg.norm(r))
+    if th == 0.0:
+        return np.eye(3)
+    k = r / th
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(th) * K + (1.0 - math.cos(th)) * K @ K
+
+
+def clearance_kinks(robot: Robot, q: np.ndarray, kappa: np.ndarray, EI: np.ndarray,
+                    length: float, limit: float = 0.0) -> np.ndarray:
+    """Kink rotation vectors (B, n, 2) rad at each tube's distal end (see module docstring).
+
+    q : (B, 2n) actual configurations; kappa, EI : (B, n) effective precurvature and stiffness.
+    """
+    n = robot.n
+    B = len(q)
+    kink = np.zeros((B, n, 2))
+    if length == 0.0 or n < 2:
+        return kink
+    alpha = q[:, :n]
+    beta = q[:, n:]
+    end = beta + robot.lengths                                   # (B, n)
+    curve = beta + robot.array("straight_length")
+    ex = -np.sin(alpha) * kappa                                  # u-vector of each tube
+    ey = np.cos(alpha) * kappa
+    for j in range(1, n):
+        sj = end[:, j:j + 1]
+        curved = curve <= sj                                     # (B, n)
+        before = end >= sj - 1e-9
+        after = end > sj + 1e-9
+        wb = np.where(before, EI, 0.0)
+        wa = np.where(after, EI, 0.0)
+        sb = wb.sum(1)
+        sa = wa.sum(1)
+        cb = np.where(curved, wb, 0.0)
+        ca = np.where(curved, wa, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            dux = np.where(sa > 0, (ca * ex).sum(1) / sa - (cb * ex).sum(1) / sb, 0.0)
+            duy = np.where(sa > 0, (ca * ey).sum(1) / sa - (cb * ey).sum(1) / sb, 0.0)
+        kx = length * dux
+        ky = length * duy
+        if limit > 0.0:
+            th = np.hypot(kx, ky)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                f = np.where(th > 0, limit * np.tanh(th / limit) / th, 1.0)
+            kx, ky = kx * f, ky * f
+        kink[:, j, 0] = kx
+        kink[:, j, 1] = ky
+    return kink
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """What goes into one kernel call: actual configurations and mechanics parameters."""
+
+    q: np.ndarray
+    params: MechanicsParams
+    torsion: bool
+
+
+def prepare(robot: Robot, base: str, effects: Mapping[str, Mapping[str, float]], q: np.ndarray,
+            sweep: np.ndarray | None = None) -> Prepared:
+    """Joint-space and mechanics stages of the effects (complete parameter dicts expected)."""
+    n = robot.n
+    q = np.array(q, dtype=float)
+    B = len(q)
+    jo = effects.get("joint_offset")
+    if jo is not None:
+        off = np.array([jo[f"dalpha{i + 1}"] for i in range(n)] + [jo[f"dbeta{i + 1}"] for i in range(n)])
+        if np.any(off != 0.0):
+            q = q + off
+    fr = effects.get("friction")
+    if fr is not None:
+        lost = np.array([fr[f"lost{i + 1}"] for i in range(n)])
+        if np.any(lost > 0.0):
+            q[:, :n] = _backlash(np.ascontiguousarray(q[:, :n]), sweep_starts(B, sweep), lost,
+                                 float(fr["presliding"]))
+    kappa = np.broadcast_to(robot.array("curvature"), (B, n)).copy()
+    EI = np.broadcast_to(robot.array("bending_stiffness"), (B, n)).copy()
+    ratio = np.broadcast_to(robot.array("bending_stiffness") / robot.array("torsional_stiffness"),
+                            (B, n)).copy()
+    pc = effects.get("precurvature")
+    if pc is not None:
+        kappa *= np.array([pc[f"scale{i + 1}"] for i in range(n)])
+    st = effects.get("stiffness")
+    if st is not None and n > 1:
+        sc = np.array([st[f"ratio{i + 1}"] for i in range(n - 1)] + [1.0])
+        EI *= sc             # a modulus change scales GJ alike, so EI/GJ stays
+    torsion = base == "compliant"
+    tor = effects.get("torsion")
+    if tor is not None:
+        c = float(tor["compliance"])
+        f = np.ones(n)
+        f[0] = float(tor["inner_factor"])
+        ratio *= c * f
+        torsion = c > 0.0
+    kink = np.zeros((B, n, 2))
+    cl = effects.get("clearance")
+    if cl is not None and cl["length"] != 0.0:
+        kink = clearance_kinks(robot, q, kappa, EI, float(cl["length"]), float(cl["limit"]))
+    return Prepared(q=q, params=MechanicsParams(kappa=kappa, EI=EI, ratio=ratio, kink=kink),
+                    torsion=torsion)
+
+
+def to_sensor(effects: Mapping[str, Mapping[str, float]], points: np.ndarray) -> np.ndarray:
+    """Registration stage: robot-base points (..., 3) -> sensor frame."""
+    rg = effects.get("registration")
+    if rg is None:
+        return points
+    t = np.array([rg["tx"], rg["ty"], rg["tz"]])
+    r = np.array([rg["rx"], rg["ry"], rg["rz"]])
+    if not np.any(t != 0.0) and not np.any(r != 0.0):
+        return points
+    return points @ _rotvec_matrix(r).T + t
+
+
+class EffectModel:
+    """A mechanics shape model with effects; implements the ShapeModel protocol.
+
+    Parameters
+    ----------
+    robot : Robot or shipped name / YAML path.
+    base : ``"rigid"`` (torsionally rigid, "traditional") or ``"compliant"``.
+    effects : ``{effect name: {param: value}}``; missing parameters take their off values.
+    config : PhysicsConfig of the kernel.
+
+    ``shape(q, points, sweep=None)`` treats the rows of ``q`` as one continuous motion in order
+    (per sweep when ``sweep`` ids are given); only ``friction`` depends on that order.
+    Shapes are in the sensor frame when ``registration`` is on (the robot base frame otherwise).
+    """
+
+    def __init__(self, robot: Robot | str, base: str = "rigid",
+                 effects: Mapping[str, Mapping[str, float]] | None = None,
+                 config: PhysicsConfig | None = None):
+        self.robot = load_robot(robot)
+        self.base = base
+        self.effects = complete_effects(effects, self.robot, base)
+        self.config = config or PhysicsConfig()
+        self._rigid = PhysicsModel(self.robot, torsion=False, config=self.config)
+        self._compliant = PhysicsModel(self.robot, torsion=True, config=self.config)
+        self.name = base + "".join(f"+{e}" for e in self.effects)
+
+    def __repr__(self) -> str:
+        return f"EffectModel(robot={self.robot.name!r}, base={self.base!r}, effects={self.effects!r})"
+
+    def with_effects(self, effects: Mapping[str, Mapping[str, float]]) -> EffectModel:
+        """A copy with other effects (same robot, base and config)."""
+        return EffectModel(self.robot, self.base, effects, self.config)
+
+    def shape(self, q: np.ndarray, points: int = 20, sweep: np.ndarray | None = None) -> Shape:
+        """Backbones of a batch (one kernel call). q : (B, 2n) rad and mm."""
+        q = check_q(self.robot, q)
+        return evaluate(self, q, points, sweep)
+
+    def backbone(self, q: np.ndarray, points: int = 20) -> np.ndarray:
+        """(B, points, 3) backbone points, mm (sensor frame with registration, else base frame)."""
+        return self.shape(q, points).points
+
+    # ------------------------------------------------------------------ files
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": MODEL_KIND, "base": self.base, "robot": self.robot.to_dict(),
+                "effects": {k: dict(v) for k, v in self.effects.items()},
+                "units": "mm, rad; see ctrplan.shape.effects"}
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the model as YAML (robot + base + effects with parameters)."""
+        import yaml
+
+        from ctrplan.io import write_text_atomic
+
+        text = ("# ctrplan calibrated model: robot, base mechanics model and effects "
+                "(lengths mm, angles rad)\n" + yaml.safe_dump(self.to_dict(), sort_keys=False))
+        write_text_atomic(path, text)
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "<memory>") -> EffectModel:
+        from ctrplan.robot import robot_from_dict
+
+        if not isinstance(data, dict) or data.get("kind") != MODEL_KIND:
+            raise InputError(source, "kind", f"not a {MODEL_KIND} file")
+        unknown = set(data) - {"kind", "base", "robot", "effects", "units", "notes"}
+        if unknown:
+            raise InputError(source, sorted(unknown)[0], "unknown key")
+        robot = robot_from_dict(data.get("robot"), source=source)
+        effects = data.get("effects") or {}
+        if not isinstance(effects, dict):
+            raise InputError(source, "effects", "must be a mapping")
+        return cls(robot, str(data.get("base", "rigid")),
+                   complete_effects(effects, robot, str(data.get("base", "rigid")), source))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> EffectModel:
+        from ctrplan.io import load_yaml
+
+        return cls.from_dict(load_yaml(path), source=str(path))
+
+
+def is_effect_model_file(path: str | os.PathLike) -> bool:
+    """True when ``path`` is a YAML file written by :meth:`EffectModel.save`."""
+    p = str(path)
+    if not p.lower().endswith((".yaml", ".yml")):
+        return False
+    try:
+        with open(p, encoding="utf-8") as fh:
+            return MODEL_KIND in fh.read(4096)
+    except OSError:
+        return False
+
+
+def evaluate(model: EffectModel, q: np.ndarray, points: int, sweep: np.ndarray | None = None,
+             effects: Mapping[str, Mapping[str, float]] | None = None) -> Shape:
+    """Shapes of ``q`` under ``model``'s robot/base with ``effects`` (default: the model's).
+
+    One kernel call for the whole batch; ``effects`` must be complete (see
+    :func:`complete_effects`).
+    """
+    eff = model.effects if effects is None else effects
+    prep = prepare(model.robot, model.base, eff, q, sweep)
+    phys = model._compliant if prep.torsion else model._rigid
+    shp = phys.solve(prep.q, points, prep.params)
+    if "registration" in eff:
+        shp = replace(shp, points=to_sensor(eff, shp.points))
+    if prep.q is not q and "joint_offset" in eff:
+        shp = replace(shp, radius=radius_along(model.robot, prep.q, shp.s))
+    return shp
