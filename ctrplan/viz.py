@@ -108,6 +108,18 @@ def _crop_faces(v: np.ndarray, f: np.ndarray, lo: np.ndarray, hi: np.ndarray, ma
     return f
 
 
+def _shaded(tri: np.ndarray, colour: str, alpha: float) -> np.ndarray:
+    """Per-face RGBA with simple Lambert shading (light from the viewer's upper left)."""
+    from matplotlib.colors import to_rgb
+
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
+    light = np.array([-0.4, -0.5, 0.77])
+    k = 0.45 + 0.55 * np.abs(n @ light)
+    rgb = np.clip(np.asarray(to_rgb(colour))[None, :] * k[:, None], 0, 1)
+    return np.concatenate([rgb, np.full((len(tri), 1), alpha)], axis=1)
+
+
 def plan_png(
     path: str | os.PathLike,
     meshes: Sequence[ViewMesh],
@@ -136,11 +148,13 @@ def plan_png(
     fig = plt.figure(figsize=(8, 7), dpi=110)
     ax = fig.add_subplot(111, projection="3d")
     for mesh in meshes:
-        f = _crop_faces(mesh.vertices, mesh.faces, lo, hi, 6000)
+        f = _crop_faces(mesh.vertices, mesh.faces, lo, hi, 20000)
         if len(f) == 0:
             continue
-        poly = Poly3DCollection(mesh.vertices[f], alpha=0.12 if mesh.role == "wall" else 0.45,
-                                facecolor=ROLE_COLOURS.get(mesh.role, "#999999"), edgecolor="none")
+        tri = mesh.vertices[f]
+        poly = Poly3DCollection(tri, facecolors=_shaded(tri, ROLE_COLOURS.get(mesh.role, "#999999"),
+                                                        0.22 if mesh.role == "wall" else 0.6),
+                                edgecolor="none")
         ax.add_collection3d(poly)
     for k in _pick_frames(len(backbones), frames):
         last = bool(k == len(backbones) - 1)
