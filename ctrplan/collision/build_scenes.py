@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from ctrplan.collision import procedural
 from ctrplan.collision.scene import (
     Scene,
     SceneMesh,
@@ -28,6 +29,7 @@ from ctrplan.collision.scene import (
     matrix_to_quaternion,
     validate_mesh,
 )
+from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
 
@@ -59,18 +61,23 @@ def pose_from(position: np.ndarray, z_axis: np.ndarray, x_hint: np.ndarray) -> n
 
 
 def decimate(mesh, faces: int):
-    """Quadric decimation to about ``faces`` triangles (fast-simplification)."""
+    """Quadric decimation to about ``faces`` triangles (fast-simplification). Where the result
+    has non-manifold edges, retries with more faces; falls back to the input mesh."""
     import fast_simplification
     import trimesh
 
-    if len(mesh.faces) <= faces:
-        return mesh
-    v, f = fast_simplification.simplify(np.asarray(mesh.vertices, dtype=np.float32),
-                                        np.asarray(mesh.faces, dtype=np.int32),
-                                        target_reduction=1.0 - faces / len(mesh.faces))
-    out = trimesh.Trimesh(v.astype(float), f, process=True)
-    out.remove_unreferenced_vertices()
-    return out
+    target = faces
+    while len(mesh.faces) > target:
+        v, f = fast_simplification.simplify(np.asarray(mesh.vertices, dtype=np.float32),
+                                            np.asarray(mesh.faces, dtype=np.int32),
+                                            target_reduction=1.0 - target / len(mesh.faces))
+        out = procedural.clean(trimesh.Trimesh(v.astype(float), f, process=True))
+        try:
+            validate_mesh(out, "decimated")
+            return out
+        except InputError:
+            target = int(target * 1.5)
+    return mesh
 
 
 def cap_small_holes(mesh, max_radius: float):
@@ -114,7 +121,7 @@ def sample_reach(robot, n: int, max_reach_mm: float, seed: int) -> np.ndarray:
 
 def pick_targets(scene: Scene, count: int = 12, seed: int = 0, samples: int = 20000,
                  margin_mm: float = 0.5, min_depth_mm: float = 20.0,
-                 max_reach_mm: float = 400.0) -> list[Target]:
+                 max_reach_mm: float = 400.0, target_filter=None) -> list[Target]:
     """Tip positions of collision-free ``seed1`` configurations (with ``margin_mm`` to spare,
     tip arc length at most ``max_reach_mm``), inside the walls, at least ``min_depth_mm`` from
     the base, spread by farthest-point sampling."""
@@ -131,6 +138,8 @@ def pick_targets(scene: Scene, count: int = 12, seed: int = 0, samples: int = 20
     tips = scene.to_scene(shape.tip[free])
     backbones = scene.to_scene(shape.points[free])
     far = np.linalg.norm(tips - scene.base_pose[:3, 3], axis=1) >= min_depth_mm
+    if target_filter is not None and far.any():
+        far[far] = target_filter(tips[far])
     tips, backbones = tips[far], backbones[far]
     if len(tips) == 0:
         raise RuntimeError(f"{scene.name}: no collision-free seed1 configuration found")
@@ -153,7 +162,7 @@ def pick_targets(scene: Scene, count: int = 12, seed: int = 0, samples: int = 20
 def write_scene(folder: Path, name: str, meshes: list[tuple[str, str, object, str]],
                 base_pose: np.ndarray, source: str, licence: str, frame: str, description: str,
                 generator: str, notice: Path | None = None, targets: int = 12, seed: int = 0,
-                max_reach_mm: float = 400.0) -> Scene:
+                max_reach_mm: float = 400.0, target_filter=None) -> Scene:
     """Write meshes (binary PLY) and scene.yaml; pick targets; copy the NOTICE."""
     folder.mkdir(parents=True, exist_ok=True)
     entries = []
@@ -168,7 +177,8 @@ def write_scene(folder: Path, name: str, meshes: list[tuple[str, str, object, st
                   targets=(), source=source, licence=licence, frame=frame)
     if not inside_walls(scene, base_pose[:3, 3][None])[0]:
         raise RuntimeError(f"{name}: base pose outside the walls")
-    tgts = pick_targets(scene, count=targets, seed=seed, max_reach_mm=max_reach_mm)
+    tgts = pick_targets(scene, count=targets, seed=seed, max_reach_mm=max_reach_mm,
+                        target_filter=target_filter)
     doc = {
         "name": name, "units": "mm", "frame": frame, "description": description,
         "meshes": entries,
@@ -239,7 +249,117 @@ def _lumen_centre(mesh, y: float) -> np.ndarray:
     return inner.mean(axis=0)
 
 
-BUILDERS = {"airway": build_airway}
+def build_neuro(src: Path, out: Path) -> Scene:
+    """MNI152 brain surface (wall) and lateral ventricles (landmark), burr hole at the right
+    Kocher's point aimed at the right frontal horn; procedural vessels as obstacles."""
+    import trimesh
+
+    mni = src / "mni152"
+    brain = decimate(trimesh.load(mni / "brain_surface_mni152.ply", process=True), 16000)
+    vents = decimate(trimesh.load(mni / "lateral_ventricles_mni152.ply", process=True), 8000)
+    # Kocher's point: brain surface nearest to a point ~3 cm right of the midline above the
+    # coronal suture; trajectory toward the right frontal horn (MNI ~ (7, 16, 9))
+    entry = trimesh.proximity.closest_point(brain, [[30.0, 15.0, 90.0]])[0][0]
+    horn = np.array([7.3, 16.5, 8.6])
+    d = (horn - entry) / np.linalg.norm(horn - entry)
+    pose = pose_from(entry + 4.0 * d, d, np.array([1.0, 0.0, 0.0]))
+    vessels = [
+        ("pericallosal_artery_right", 1.0, [[4, 40, 2], [4, 33, 22], [4, 15, 36], [4, -10, 38], [4, -35, 33]]),
+        ("pericallosal_artery_left", 1.0, [[-4, 40, 2], [-4, 33, 22], [-4, 15, 36], [-4, -10, 38], [-4, -35, 33]]),
+        ("thalamostriate_vein_right", 0.8, [[15, -18, 13], [13, -6, 11], [9, 1, 8], [5, 4, 5]]),
+        ("insular_mca_branch_right", 1.2, [[36, 22, -2], [38, 4, 6], [38, -16, 14], [36, -30, 20]]),
+    ]
+    meshes = [("brain_surface", "wall", brain, "outer brain surface (MNI152), decimated"),
+              ("lateral_ventricles", "landmark", vents, "both lateral ventricles (MNI152), decimated; "
+               "the robot may enter them (targets lie in and near them)")]
+    for name, r, ctrl in vessels:
+        path = procedural.smooth_path(np.array(ctrl, dtype=float), 40)
+        meshes.append((name, "obstacle", procedural.tube_mesh(path, r, h=0.35),
+                       f"procedural vessel, radius {r} mm (approximate course, not from imaging)"))
+    vent_mesh = vents
+
+    def near_ventricles(tips: np.ndarray) -> np.ndarray:
+        return np.abs(trimesh.proximity.signed_distance(vent_mesh, tips)) <= 12.0
+
+    return write_scene(
+        out / "neuro", "neuro", meshes, pose, MNI_SOURCE, MNI_LICENCE,
+        frame="MNI152 (RAS: x right, y anterior, z superior), mm",
+        description="Burr hole at the right Kocher's point; robot base 4 mm inside the brain "
+                    "surface, +z toward the right frontal horn (ventricular access). Vessels "
+                    "are procedural tubes placed along typical courses.",
+        generator="python -m ctrplan.collision.build_scenes neuro",
+        notice=mni / "NOTICE.md", seed=2, max_reach_mm=130.0, target_filter=near_ventricles)
+
+
+def build_skull_base(src: Path, out: Path) -> Scene:
+    """Procedural transnasal corridor to the sphenoid sinus with carotids and optic nerves."""
+    # frame: origin at the sella, x right, y anterior, z superior (mm)
+    rng = np.random.default_rng(4)
+    ctrl = np.array([[6, 98, -30], [6, 78, -25], [5, 58, -20], [4, 42, -14], [2, 28, -8]], float)
+    ctrl[1:-1] += rng.uniform(-1.0, 1.0, size=(3, 3))
+    path = procedural.smooth_path(ctrl, 50)
+    radii = np.interp(np.linspace(0, 1, len(path)), [0, 0.3, 0.55, 0.8, 1.0], [7.0, 5.5, 4.6, 5.0, 6.0])
+    centre, axes = np.array([0.0, 15.0, -5.0]), np.array([13.0, 10.0, 10.0])
+    wall = procedural.tubes_mesh(
+        [(path, radii)], h=0.6, blend=3.0,
+        extra=lambda p: procedural.ellipsoid_field(p, centre, axes),
+        extra_box=(centre - axes - 2.0, centre + axes + 2.0))
+    wall = decimate(wall, 24000)
+    obstacles = []
+    for side, sx in (("right", 1.0), ("left", -1.0)):
+        ica = np.array([[13, 6, -28], [14, 9, -12], [13, 11, -3], [13.5, 17, 5], [15, 12, 12]], float)
+        ica[:, 0] *= sx
+        obstacles.append((f"internal_carotid_{side}", "obstacle",
+                          decimate(procedural.tube_mesh(procedural.smooth_path(ica, 40), 2.4, h=0.4), 6000),
+                          "procedural internal carotid artery (cavernous segment), radius 2.4 mm"))
+        opt = np.array([[0, 15, 6], [6 * sx, 22, 6], [12 * sx, 30, 6.5]], float)
+        obstacles.append((f"optic_nerve_{side}", "obstacle",
+                          decimate(procedural.tube_mesh(procedural.smooth_path(opt, 30), 2.0, h=0.4), 4000),
+                          "procedural optic nerve / chiasm, radius 2.0 mm"))
+    t0 = path[1] - path[0]
+    pose = pose_from(path[0] + 3.0 * t0 / np.linalg.norm(t0), path[6] - path[0], np.array([1.0, 0.0, 0.0]))
+
+    def in_sinus(tips: np.ndarray) -> np.ndarray:
+        return tips[:, 1] <= 30.0
+
+    return write_scene(
+        out / "skull_base", "skull_base",
+        [("nasal_corridor", "wall", wall, "procedural right nasal corridor and sphenoid sinus "
+          "(smooth union of a tube of radius 4.6-7 mm and an ellipsoid), closed surface")] + obstacles,
+        pose, "procedural (ctrplan.collision.procedural, seed 4)", PROC_LICENCE,
+        frame="x right, y anterior, z superior; origin at the sella (mm)",
+        description="Transnasal approach to the skull base: base at the right nostril, +z along "
+                    "the nasal corridor toward the sphenoid sinus; carotid arteries and optic "
+                    "nerves bulge into the sinus.",
+        generator="python -m ctrplan.collision.build_scenes skull_base", seed=3,
+        max_reach_mm=140.0, target_filter=in_sinus)
+
+
+def build_bronchial_tree(src: Path, out: Path) -> Scene:
+    """Procedural dichotomous bronchial tree (4 generations below the trachea)."""
+    # frame: x left-right, y anterior, z superior; origin at the top of the trachea (mm)
+    tubes = procedural.branching_tree(seed=5, root=np.zeros(3), direction=np.array([0.0, 0.0, -1.0]),
+                                      length=100.0, radius=8.0, generations=4, angle_deg=35.0,
+                                      length_ratio=0.6, radius_ratio=0.78)
+    wall = decimate(procedural.tubes_mesh(tubes, h=0.7, blend=2.0), 40000)
+    pose = pose_from(np.array([0.0, 0.0, -10.0]), np.array([0.0, 0.0, -1.0]), np.array([1.0, 0.0, 0.0]))
+
+    def below_trachea(tips: np.ndarray) -> np.ndarray:
+        return tips[:, 2] <= -90.0
+
+    return write_scene(
+        out / "bronchial_tree", "bronchial_tree",
+        [("bronchial_lumen", "wall", wall, "procedural branching lumen: 31 tapered tubes "
+          "(radius 8 mm trachea to about 3 mm), smooth union, closed at the leaves")],
+        pose, "procedural (ctrplan.collision.procedural.branching_tree, seed 5)", PROC_LICENCE,
+        frame="x lateral, y anterior, z superior; origin at the top of the trachea (mm)",
+        description="Bronchoscopic approach: base in the upper trachea, +z down the lumen.",
+        generator="python -m ctrplan.collision.build_scenes bronchial_tree", seed=4,
+        max_reach_mm=260.0, target_filter=below_trachea)
+
+
+BUILDERS = {"airway": build_airway, "neuro": build_neuro, "skull_base": build_skull_base,
+            "bronchial_tree": build_bronchial_tree}
 
 
 def main(argv: list[str] | None = None) -> int:

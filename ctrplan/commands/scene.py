@@ -1,0 +1,145 @@
+"""``ctrplan scene``: list the shipped scenes, or render one (optionally with robot shapes)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+
+import numpy as np
+
+from ctrplan.commands._common import add_model_arg, output_path
+
+log = logging.getLogger("ctrplan")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("scene", help="list or render anatomy scenes",
+                       description="List the shipped anatomy scenes, or render one as a PNG "
+                                   "(matplotlib) or a self-contained HTML view (plotly, works "
+                                   "offline): meshes by role, the robot base pose, the example "
+                                   "targets and optionally robot shapes.")
+    ss = p.add_subparsers(dest="scene_command", metavar="ACTION")
+    ls = ss.add_parser("list", help="list the shipped scenes", description="List the shipped scenes.")
+    ls.set_defaults(func=run_list)
+    sh = ss.add_parser("show", help="render a scene", description="Render a scene to PNG or HTML.")
+    sh.add_argument("scene", help="shipped scene name or scene folder")
+    sh.add_argument("--out", required=True, help="output .png or .html")
+    sh.add_argument("--configs", help="configuration CSV: draw these robot shapes")
+    sh.add_argument("--robot", default="seed1", help="robot for --configs (default seed1)")
+    add_model_arg(sh)
+    sh.set_defaults(func=run_show)
+    p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
+
+
+def run_list(args: argparse.Namespace) -> int:
+    from ctrplan.collision.scene import list_scenes, load_scene
+
+    for name in list_scenes():
+        sc = load_scene(name)
+        roles = ", ".join(f"{m.name} ({m.role})" for m in sc.meshes)
+        print(f"{name}: {len(sc.targets)} targets; {roles}")
+    return 0
+
+
+def run_show(args: argparse.Namespace) -> int:
+    from ctrplan.collision.scene import load_scene
+
+    out = output_path(args.out, (".png", ".html"))
+    scene = load_scene(args.scene)
+    backbones = np.zeros((0, 2, 3))
+    if args.configs:
+        from ctrplan.robot import load_robot, read_configs
+        from ctrplan.shape.models import load_model
+
+        robot = load_robot(args.robot)
+        q = read_configs(args.configs, robot)
+        backbones = scene.to_scene(load_model(args.model, robot).backbone(q, points=40))
+    if out.suffix.lower() == ".html":
+        render_html(scene, out, backbones)
+    else:
+        render_png(scene, out, backbones)
+    log.info("wrote %s", out)
+    return 0
+
+
+def _base_axis(scene, length: float = 25.0) -> np.ndarray:
+    return scene.to_scene(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, length]]))
+
+
+def render_html(scene, out, backbones: np.ndarray) -> None:
+    """Self-contained interactive view (plotly.js embedded: no network needed)."""
+    import plotly.graph_objects as go
+
+    from ctrplan.io import write_text_atomic
+    from ctrplan.viz import ROBOT_COLOUR, ROLE_COLOURS, TARGET_COLOUR
+
+    traces = []
+    for m in scene.meshes:
+        v, f = np.asarray(m.mesh.vertices), np.asarray(m.mesh.faces)
+        traces.append(go.Mesh3d(x=v[:, 0], y=v[:, 1], z=v[:, 2], i=f[:, 0], j=f[:, 1], k=f[:, 2],
+                                color=ROLE_COLOURS.get(m.role, "#7f8c8d"),
+                                opacity=0.2 if m.role == "wall" else 0.6, name=f"{m.name} ({m.role})",
+                                showlegend=True, flatshading=True, hoverinfo="name"))
+    ax = _base_axis(scene)
+    traces.append(go.Scatter3d(x=ax[:, 0], y=ax[:, 1], z=ax[:, 2], mode="lines+markers",
+                               line={"color": "black", "width": 6}, marker={"size": 3},
+                               name="robot base (+z)"))
+    t = scene.target_positions()
+    if len(t):
+        traces.append(go.Scatter3d(x=t[:, 0], y=t[:, 1], z=t[:, 2], mode="markers+text",
+                                   text=[x.name for x in scene.targets], marker={"size": 4, "color": TARGET_COLOUR},
+                                   name="targets"))
+    for k, b in enumerate(backbones):
+        traces.append(go.Scatter3d(x=b[:, 0], y=b[:, 1], z=b[:, 2], mode="lines",
+                                   line={"color": ROBOT_COLOUR, "width": 5}, name="robot",
+                                   showlegend=k == 0, legendgroup="robot"))
+    fig = go.Figure(data=traces)
+    fig.update_layout(title=f"scene {scene.name}", margin={"l": 0, "r": 0, "t": 40, "b": 0},
+                      scene={"aspectmode": "data", "xaxis_title": "x (mm)", "yaxis_title": "y (mm)",
+                             "zaxis_title": "z (mm)"})
+    write_text_atomic(out, fig.to_html(include_plotlyjs=True, full_html=True,
+                                       config={"displaylogo": False}))
+
+
+def render_png(scene, out, backbones: np.ndarray) -> None:
+    """Static view (matplotlib, faces subsampled for speed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    from ctrplan.io import atomic_path
+    from ctrplan.viz import ROBOT_COLOUR, ROLE_COLOURS, TARGET_COLOUR
+
+    fig = plt.figure(figsize=(8, 7), dpi=110)
+    ax3 = fig.add_subplot(111, projection="3d")
+    rng = np.random.default_rng(0)
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for m in scene.meshes:
+        v, f = np.asarray(m.mesh.vertices), np.asarray(m.mesh.faces)
+        if len(f) > 5000:
+            f = f[rng.choice(len(f), 5000, replace=False)]
+        ax3.add_collection3d(Poly3DCollection(v[f], alpha=0.1 if m.role == "wall" else 0.5,
+                                              facecolor=ROLE_COLOURS.get(m.role, "#7f8c8d"),
+                                              edgecolor="none"))
+        lo, hi = np.minimum(lo, v.min(axis=0)), np.maximum(hi, v.max(axis=0))
+    ax = _base_axis(scene)
+    ax3.plot(ax[:, 0], ax[:, 1], ax[:, 2], color="black", lw=3, label="robot base (+z)")
+    t = scene.target_positions()
+    if len(t):
+        ax3.scatter(t[:, 0], t[:, 1], t[:, 2], color=TARGET_COLOUR, s=18, label="targets")
+    for k, b in enumerate(backbones):
+        ax3.plot(b[:, 0], b[:, 1], b[:, 2], color=ROBOT_COLOUR, lw=1.5, label="robot" if k == 0 else None)
+    ctr, half = (lo + hi) / 2, (hi - lo).max() / 2
+    ax3.set_xlim(ctr[0] - half, ctr[0] + half)
+    ax3.set_ylim(ctr[1] - half, ctr[1] + half)
+    ax3.set_zlim(ctr[2] - half, ctr[2] + half)
+    ax3.set_xlabel("x (mm)")
+    ax3.set_ylabel("y (mm)")
+    ax3.set_zlabel("z (mm)")
+    ax3.set_title(f"scene {scene.name}")
+    ax3.legend(loc="upper left")
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, format="png", bbox_inches="tight")
+    plt.close(fig)
