@@ -1,0 +1,117 @@
+"""Time per shape of the learned model vs the batched physics model, batch 1 .. 100,000.
+
+Both models run in the same process on ``seed1`` with 20 points per backbone and one thread
+(``torch.set_num_threads(1)``; the numba kernel is serial): the public ``backbone(q)`` call,
+conversion to float64 numpy included. The learned model is the shipped default
+(``ctrplan/data/models/seed1.pt``; an untrained network of the same size if none is shipped:
+timing does not depend on the weights). Reported per batch size: median thread-CPU time and
+wall time per shape (us) over repeats, and the speed-up learned vs physics. Thread CPU time
+is the cost on one core and does not count time the OS gives to other processes on a shared
+machine; both are reported. Usage::
+
+    python benchmarks/bench_learned.py [--quick] [--out results.json]
+
+``run(quick) -> dict`` is what ``ctrplan bench`` calls; ``table`` holds the markdown rows.
+Targets (issue 3): at batch 100,000 at most 1 us per shape and at least 100x faster than the
+batched physics model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import torch  # noqa: E402
+
+from ctrplan.robot import load_robot  # noqa: E402
+from ctrplan.shape.learned import LearnedModel, shipped_model_path  # noqa: E402
+from ctrplan.shape.physics import PhysicsModel  # noqa: E402
+
+ROBOT = "seed1"
+POINTS = 20
+SEED = 1
+
+
+def _median_time(fn, repeats: int) -> tuple[float, float]:
+    cpu: list[float] = []
+    wall: list[float] = []
+    for _ in range(repeats):
+        c0 = time.thread_time()
+        t0 = time.perf_counter()
+        fn()
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.thread_time() - c0)
+    return statistics.median(cpu), statistics.median(wall)
+
+
+def _repeats(batch: int, quick: bool) -> int:
+    if batch <= 10:
+        return 50 if quick else 300
+    if batch <= 1000:
+        return 5 if quick else 20
+    return 2 if quick else 3
+
+
+def run(quick: bool = False) -> dict:
+    torch.set_num_threads(1)
+    robot = load_robot(ROBOT)
+    path = shipped_model_path(ROBOT)
+    learned = LearnedModel.load(path, robot=robot) if path else LearnedModel(robot)
+    physics = PhysicsModel(robot)
+    batches = [1, 100, 1000, 10_000] if quick else [1, 10, 100, 1000, 10_000, 100_000]
+    q_all = robot.sample(max(batches), seed=SEED)
+    learned.backbone(q_all[:2], POINTS)                      # warm up both paths / JIT
+    learned.backbone(q_all[:1000], POINTS)
+    physics.backbone(q_all[:2], POINTS)
+    rows = []
+    for B in batches:
+        q = q_all[:B]
+        reps = _repeats(B, quick)
+        lc, lw = _median_time(lambda q=q: learned.backbone(q, POINTS), max(reps, 3))
+        preps = max(1, reps // 3) if B >= 10_000 else reps
+        pc, pw = _median_time(lambda q=q: physics.backbone(q, POINTS), preps)
+        rows.append({
+            "batch": B,
+            "learned_us_per_shape": 1e6 * lc / B, "learned_wall_us_per_shape": 1e6 * lw / B,
+            "physics_us_per_shape": 1e6 * pc / B, "physics_wall_us_per_shape": 1e6 * pw / B,
+            "speedup": pc / lc if lc > 0 else float("inf"),
+        })
+    big = rows[-1]
+    b1 = rows[0]
+    return {
+        "robot": ROBOT, "points": POINTS, "threads": torch.get_num_threads(),
+        "model": str(path) if path else "untrained network (no shipped model)",
+        "architecture": f"{learned.depth}x{learned.width}, K={learned.terms}, frame={learned.frame}",
+        "table": rows,
+        "batch1_latency_us": {"learned": b1["learned_us_per_shape"], "physics": b1["physics_us_per_shape"]},
+        "largest_batch": big["batch"],
+        "target_le_1us_at_100k": bool(big["batch"] >= 100_000 and big["learned_us_per_shape"] <= 1.0),
+        "target_ge_100x_at_100k": bool(big["batch"] >= 100_000 and big["speedup"] >= 100.0),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    res = run(quick=args.quick)
+    print(f"{'batch':>7} {'learned us':>11} {'(wall)':>8} {'physics us':>11} {'(wall)':>8} {'speed-up':>9}")
+    for r in res["table"]:
+        print(f"{r['batch']:>7} {r['learned_us_per_shape']:>11.3f} {r['learned_wall_us_per_shape']:>8.3f} "
+              f"{r['physics_us_per_shape']:>11.2f} {r['physics_wall_us_per_shape']:>8.2f} {r['speedup']:>8.0f}x")
+    if args.out:
+        with open(args.out, "w") as fh:
+            json.dump(res, fh, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

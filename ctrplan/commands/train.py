@@ -1,0 +1,159 @@
+"""``ctrplan train``: train a learned shape model, or run the evaluation sweep."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+
+from ctrplan.commands._common import add_robot_arg, output_path
+from ctrplan.errors import InputError
+
+log = logging.getLogger("ctrplan")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "train", help="train a learned shape model (or run the evaluation sweep)",
+        description="Pre-train the learned shape network on simulated shapes (uniform valid "
+                    "configurations, compliant physics model), then fine-tune it on measured "
+                    "shapes (a measured CSV with backbone columns p1_x..pM_z). Each data set is "
+                    "split 80/10/10 into train/validation/test; training minimises the sum of "
+                    "squared point distances with Adam and stops early on the validation loss. "
+                    "Writes a model file (.pt) with its metadata. With --sweep: train Sim-only, "
+                    "Real-only and Sim+Real models for several architectures and write tables "
+                    "(results.md, results.json) and plots (PNG) to the --out folder.")
+    add_robot_arg(p)
+    p.add_argument("--sim", type=int, default=None,
+                   help="simulated configurations for pre-training (default 100000; 0 = none)")
+    p.add_argument("--real", default=None,
+                   help="measured CSV with backbone points to fine-tune on (with --sweep: the "
+                        "'real' data; default there: simulated with hidden effects)")
+    p.add_argument("--real-sim", type=int, default=3000,
+                   help="--sweep without --real: rows of simulated 'real' data with hidden "
+                        "effects (default 3000)")
+    p.add_argument("--width", type=int, default=30, help="neurons per hidden layer (default 30)")
+    p.add_argument("--depth", type=int, default=3, help="hidden layers (default 3)")
+    p.add_argument("--terms", type=int, default=None, help="basis terms K per coordinate (default 7)")
+    p.add_argument("--frame", choices=("outer", "base"), default="outer",
+                   help="outer: angles relative to the outermost tube, output turned with it "
+                        "(default); base: absolute angles as in the literature")
+    p.add_argument("--epochs", type=int, default=150, help="maximum pre-training epochs (default 150)")
+    p.add_argument("--fine-epochs", type=int, default=300, help="maximum fine-tuning epochs (default 300)")
+    p.add_argument("--patience", type=int, default=20, help="early-stopping patience in epochs (default 20)")
+    p.add_argument("--lr", type=float, default=2e-3, help="Adam learning rate of pre-training (default 2e-3)")
+    p.add_argument("--batch-size", type=int, default=512, help="mini-batch size (default 512)")
+    p.add_argument("--points", type=int, default=20, help="points per simulated backbone (default 20)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (data, splits, weights)")
+    p.add_argument("--workers", type=int, default=None, help="processes for simulation (default: all cores)")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch threads for training (default 1: the fastest for these small networks)")
+    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    p.add_argument("--sweep", action="store_true", help="run the evaluation sweep; --out is a folder")
+    p.add_argument("--archs", default=None,
+                   help="--sweep architectures DEPTHxWIDTH,... (default all of {3,5,7}x{15,30,60})")
+    p.add_argument("--out", required=True, help="model file (.pt), or a folder with --sweep")
+    p.set_defaults(func=run)
+
+
+def _check(args: argparse.Namespace) -> None:
+    for name in ("width", "depth", "epochs", "batch_size", "threads", "points", "real_sim"):
+        v = getattr(args, name)
+        if v < 1:
+            raise InputError(f"--{name.replace('_', '-')}", "", f"must be >= 1, got {v}")
+    if args.fine_epochs < 0 or args.patience < 1:
+        raise InputError("--patience" if args.patience < 1 else "--fine-epochs", "", "out of range")
+    if args.sim is not None and args.sim < 0:
+        raise InputError("--sim", "", f"must be >= 0, got {args.sim}")
+    if not args.lr > 0:
+        raise InputError("--lr", "", f"must be > 0, got {args.lr}")
+    if args.workers is not None and args.workers < 1:
+        raise InputError("--workers", "", f"must be >= 1, got {args.workers}")
+    if args.terms is not None and not 1 <= args.terms <= 12:
+        raise InputError("--terms", "", f"must be in 1..12, got {args.terms}")
+    if args.device != "cpu":
+        import torch
+
+        try:
+            torch.empty(1, device=args.device)
+        except Exception as exc:
+            raise InputError("--device", "", f"{args.device!r} is not available ({exc.__class__.__name__})") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from ctrplan import progress
+    from ctrplan.robot import load_robot
+    from ctrplan.shape import basis
+    from ctrplan.shape import training as T
+
+    _check(args)
+    torch.set_num_threads(args.threads)
+    robot = load_robot(args.robot)
+    terms = args.terms or basis.DEFAULT_TERMS
+    n_sim = T.DEFAULT_SIM if args.sim is None else args.sim
+    show = progress._enabled
+    pre = T.TrainConfig(epochs=args.epochs, lr=args.lr, batch_size=args.batch_size,
+                        patience=args.patience, seed=args.seed, progress=show, label="pre-train (sim)")
+    fine = T.TrainConfig(epochs=max(1, args.fine_epochs), lr=args.lr / 4, batch_size=min(args.batch_size, 128),
+                         patience=args.patience, seed=args.seed, progress=show, label="fine-tune (real)")
+    real_only = T.TrainConfig(epochs=max(1, args.fine_epochs), lr=args.lr, batch_size=min(args.batch_size, 128),
+                              patience=args.patience, seed=args.seed, progress=show, label="train (real)")
+    t0 = time.perf_counter()
+    if args.sweep:
+        from pathlib import Path
+
+        out = Path(args.out)
+        if out.exists() and not out.is_dir():
+            raise InputError("--out", "", f"{args.out!r} exists and is not a folder (--sweep writes a folder)")
+        try:
+            archs = T.parse_archs(args.archs) if args.archs else list(T.ALL_ARCHS)
+        except ValueError as exc:
+            raise InputError("--archs", "", str(exc)) from None
+        if n_sim < 10:
+            raise InputError("--sim", "", "--sweep needs at least 10 simulated configurations")
+        sim = T.simulated_data(robot, n_sim, seed=args.seed, points=args.points, workers=args.workers,
+                               progress=show)
+        real = (T.from_measured(args.real, robot) if args.real
+                else T.real_data(robot, args.real_sim, seed=args.seed + 1, points=args.points))
+        if len(real) < 10:
+            raise InputError(args.real or "--real-sim", "rows", "need at least 10 rows of real data")
+        res = T.sweep(robot, sim, real, archs=archs, terms=terms, frame=args.frame, seed=args.seed,
+                      pre=pre, fine=fine, real_only=real_only, device=args.device, progress=show)
+        if not args.real:
+            res["data"]["hidden_effects"] = T.HiddenEffects.default(robot).to_dict()
+        res["seconds"] = time.perf_counter() - t0
+        paths = T.write_sweep(res, out)
+        print(T.sweep_markdown(res))
+        log.info("wrote %s", ", ".join(str(p) for p in paths))
+        return 0
+
+    out = output_path(args.out, (".pt",))
+    real = T.from_measured(args.real, robot) if args.real else None
+    if real is not None and len(real) < 3:
+        raise InputError(args.real, "rows", "need at least 3 rows (train/validation/test)")
+    if n_sim == 0 and real is None:
+        raise InputError("--sim", "", "nothing to train on: give --sim N > 0 and/or --real CSV")
+    if n_sim and n_sim < 10:
+        raise InputError("--sim", "", f"need at least 10 simulated configurations, got {n_sim}")
+    sim = (T.simulated_data(robot, n_sim, seed=args.seed, points=args.points, workers=args.workers,
+                            progress=show) if n_sim else None)
+    model, info = T.pretrain_finetune(
+        robot, sim, real, width=args.width, depth=args.depth, terms=terms, seed=args.seed,
+        pre=pre, fine=fine if sim is not None else real_only, device=args.device, frame=args.frame)
+    import sys
+
+    from ctrplan import __version__
+
+    model.meta.update({
+        "command": "ctrplan train " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["train"] else "ctrplan train",
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "ctrplan_version": __version__,
+    })
+    model.save(out)
+    for name, m in info["metrics"].items():
+        log.info("%s: max deviation %.3f +- %.3f mm, MSE %.4f mm^2, sum of deviations %.2f mm (n=%d)",
+                 name, m["max_dev_mean"], m["max_dev_std"], m["mse_mean"], m["sum_dev_mean"], m["n"])
+    log.info("wrote %s (%.0f s)", out, time.perf_counter() - t0)
+    return 0

@@ -1,0 +1,579 @@
+"""Training and evaluation of the learned shape model.
+
+* :func:`simulated_data` - uniform valid configurations and their physics backbones (all cores);
+* :class:`HiddenEffects` / :func:`real_data` - "real" measurements: our own simulator with
+  effects the learned model is never told about (miscalibrated precurvature, changed stiffness
+  ratios, clearance tilts at the outer tubes' ends, rotational offsets and backlash, sensor noise);
+* :func:`train` - Adam on the sum of squared point distances, early stopping on a validation set;
+  :func:`pretrain_finetune` - pre-train on simulation, fine-tune on measured shapes;
+* :func:`evaluate` - the literature's metrics (max deviation, MSE, sum of deviations along the
+  shaft) with mean +- std over a test set;
+* :func:`sweep` - Sim-only / Real-only / Sim+Real x architectures, tables and plots.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ctrplan.robot import Robot, load_robot
+from ctrplan.shape import basis
+from ctrplan.shape.learned import DEFAULT_DEPTH, DEFAULT_FRAME, DEFAULT_WIDTH, LearnedModel
+from ctrplan.shape.physics import MechanicsParams, PhysicsModel
+
+log = logging.getLogger("ctrplan")
+
+DEFAULT_SIM = 100_000
+ARCH_DEPTHS = (3, 5, 7)
+ARCH_WIDTHS = (15, 30, 60)
+
+
+# ---------------------------------------------------------------------------------- data
+@dataclass(frozen=True)
+class ShapeData:
+    """Configurations and measured/simulated backbones.
+
+    q : (N, 2n) rad, mm. points : (N, m, 3) mm, evenly spaced in arc length base to tip.
+    """
+
+    q: np.ndarray
+    points: np.ndarray
+    source: str = "<memory>"
+
+    def __len__(self) -> int:
+        return int(self.q.shape[0])
+
+    def subset(self, idx: np.ndarray) -> ShapeData:
+        return ShapeData(self.q[idx], self.points[idx], self.source)
+
+    def digest(self) -> str:
+        """sha256 of the arrays (first 16 hex digits), recorded in model metadata."""
+        h = hashlib.sha256()
+        h.update(np.ascontiguousarray(self.q, dtype=np.float64).tobytes())
+        h.update(np.ascontiguousarray(self.points, dtype=np.float64).tobytes())
+        return h.hexdigest()[:16]
+
+    def describe(self) -> dict[str, Any]:
+        return {"source": self.source, "rows": len(self), "points": int(self.points.shape[1]),
+                "sha256_16": self.digest()}
+
+
+def simulated_data(robot: Robot | str, n: int, seed: int = 0, points: int = 20,
+                   workers: int | None = None, progress: bool = True) -> ShapeData:
+    """``n`` uniform valid configurations of ``robot`` and their compliant-physics backbones
+    (rows the solver did not converge on are dropped)."""
+    from ctrplan.shape.dataset import simulate_shapes
+
+    robot = load_robot(robot)
+    q = robot.sample(int(n), seed=seed)
+    sh = simulate_shapes(PhysicsModel(robot), q, points=points, workers=workers, progress=progress)
+    ok = sh.ok
+    if not ok.all():
+        log.info("simulated data: dropped %d of %d configurations that did not converge", int((~ok).sum()), len(q))
+    return ShapeData(q[ok], sh.points[ok], source=f"physics:{robot.name}:n={n}:seed={seed}")
+
+
+@dataclass(frozen=True)
+class HiddenEffects:
+    """A "real" robot: the physics model plus effects a learned model is not told about.
+
+    kappa_scale : (n,) precurvature scale per tube (miscalibrated curvature).
+    ei_scale : (n,) bending-stiffness scale per tube (changes the EI ratios).
+    clearance_rad : tilt (rad) of the backbone where an outer tube ends, growing with how much
+        the curvature directions of that tube and the one inside it disagree:
+        ``kink_j = g (Rz(alpha_{j-1}) e_y - Rz(alpha_j) e_y)`` for j >= 1.
+    alpha_offset : (n,) rad, constant rotation offsets (zero calibration).
+    backlash_rad : rad, rotational friction: each tube lags by this much against the (unknown)
+        direction it was last turned in, drawn at random per configuration.
+    noise_mm : standard deviation of Gaussian sensor noise per coordinate (mm).
+    """
+
+    kappa_scale: tuple[float, ...]
+    ei_scale: tuple[float, ...]
+    clearance_rad: float = 0.02
+    alpha_offset: tuple[float, ...] = ()
+    backlash_rad: float = 0.02
+    noise_mm: float = 0.3
+
+    @classmethod
+    def default(cls, robot: Robot) -> HiddenEffects:
+        n = robot.n
+        return cls(
+            kappa_scale=tuple(0.9 if i % 2 == 0 else 1.1 for i in range(n)),
+            ei_scale=tuple(1.2 if i == 0 else (0.85 if i == n - 1 else 1.0) for i in range(n)),
+            clearance_rad=0.02,
+            alpha_offset=tuple(0.04 * (-1) ** i for i in range(n)),
+            backlash_rad=0.02,
+            noise_mm=0.3,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kappa_scale": list(self.kappa_scale), "ei_scale": list(self.ei_scale),
+                "clearance_rad": self.clearance_rad, "alpha_offset_rad": list(self.alpha_offset),
+                "backlash_rad": self.backlash_rad, "noise_mm": self.noise_mm}
+
+    def shapes(self, physics: PhysicsModel, q: np.ndarray, points: int,
+               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(clean points (B, m, 3), noisy points, ok (B,)) for commanded configurations q."""
+        robot = physics.robot
+        n = robot.n
+        q = np.asarray(q, dtype=float)
+        B = len(q)
+        qa = q.copy()
+        direction = rng.choice([-1.0, 1.0], size=(B, n))
+        off = np.asarray(self.alpha_offset if self.alpha_offset else [0.0] * n, dtype=float)
+        qa[:, :n] = q[:, :n] + off - direction * self.backlash_rad
+        base = physics.base_params(B)
+        kink = np.zeros((B, n, 2))
+        a = qa[:, :n]
+        for j in range(1, n):
+            kink[:, j, 0] = -self.clearance_rad * (np.sin(a[:, j - 1]) - np.sin(a[:, j]))
+            kink[:, j, 1] = self.clearance_rad * (np.cos(a[:, j - 1]) - np.cos(a[:, j]))
+        params = MechanicsParams(kappa=base.kappa * np.asarray(self.kappa_scale),
+                                 EI=base.EI * np.asarray(self.ei_scale),
+                                 ratio=base.ratio, kink=kink)
+        sh = physics.solve(qa, points, params)
+        noisy = sh.points + rng.normal(0.0, self.noise_mm, size=sh.points.shape)
+        return sh.points, noisy, sh.ok
+
+
+def real_data(robot: Robot | str, n: int, seed: int = 1, points: int = 20,
+              effects: HiddenEffects | None = None) -> ShapeData:
+    """Simulated "measured" shapes with hidden effects (noisy points), ``n`` rows."""
+    robot = load_robot(robot)
+    effects = effects or HiddenEffects.default(robot)
+    rng = np.random.default_rng(seed + 7919)
+    q = robot.sample(int(n), seed=seed)
+    _, noisy, ok = effects.shapes(PhysicsModel(robot), q, points, rng)
+    return ShapeData(q[ok], noisy[ok], source=f"hidden-effects:{robot.name}:n={n}:seed={seed}")
+
+
+def from_measured(path: str, robot: Robot) -> ShapeData:
+    """Measured shapes from a CSV with backbone columns p1_x..pM_z (DESIGN.md)."""
+    from ctrplan.calibration.data import read_measured
+    from ctrplan.errors import InputError
+
+    md = read_measured(path, robot)
+    if md.points is None:
+        raise InputError(str(path), "p1_x", "training needs backbone point columns p1_x..pM_z")
+    return ShapeData(md.q, md.points, source=str(path))
+
+
+def split(data: ShapeData, fractions: Sequence[float] = (0.8, 0.1, 0.1),
+          seed: int = 0) -> tuple[ShapeData, ShapeData, ShapeData]:
+    """Seeded random train/validation/test split (each part gets at least one row)."""
+    N = len(data)
+    if N < 3:
+        raise ValueError(f"need at least 3 rows to split, got {N}")
+    perm = np.random.default_rng(seed).permutation(N)
+    n_val = max(1, int(round(fractions[1] * N)))
+    n_test = max(1, int(round(fractions[2] * N)))
+    n_train = N - n_val - n_test
+    if n_train < 1:
+        raise ValueError(f"too few rows ({N}) for a train/validation/test split")
+    return (data.subset(perm[:n_train]), data.subset(perm[n_train:n_train + n_val]),
+            data.subset(perm[n_train + n_val:]))
+
+
+# ---------------------------------------------------------------------------------- training
+@dataclass
+class TrainConfig:
+    """Optimiser settings. ``patience``: epochs without validation improvement before stopping;
+    the learning rate halves after ``patience // 3`` such epochs."""
+
+    epochs: int = 150
+    lr: float = 2e-3
+    batch_size: int = 512
+    patience: int = 20
+    seed: int = 0
+    min_lr: float = 1e-5
+    max_seconds: float | None = None
+    progress: bool = True
+    label: str = "train"
+    history: list[dict] = field(default_factory=list)
+
+
+def _loss(model: LearnedModel, x: torch.Tensor, length: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
+    """Mean over the batch of the sum over points of squared distances (mm^2)."""
+    pred = model.points_from_features(x, length, pts.shape[1])
+    return ((pred - pts) ** 2).sum(dim=(1, 2)).mean()
+
+
+def _tensors(model: LearnedModel, data: ShapeData) -> tuple[torch.Tensor, ...]:
+    """Network inputs, tip lengths and target points of a data set, on the model's device."""
+    dev = model.device
+    with torch.no_grad():
+        q = torch.as_tensor(data.q, dtype=torch.float32, device=dev)
+        x = model.features(q)
+        length = model.tip_length_t(q)
+    pts = model.to_model_frame(data.q, data.points)
+    return x, length, torch.as_tensor(pts, dtype=torch.float32, device=dev)
+
+
+def set_normalisation(model: LearnedModel, data: ShapeData) -> None:
+    """Output normalisation from the least-squares basis coefficients of ``data``."""
+    L = model.robot.tip_length(data.q)
+    c = basis.fit(model.to_model_frame(data.q, data.points), L, model.terms).reshape(len(data), -1)
+    mean = c.mean(axis=0)
+    std = c.std(axis=0)
+    std = np.maximum(std, 1e-3 * max(float(std.max()), 1e-12))
+    model.coef_mean = torch.tensor(mean, dtype=torch.float32, device=model.device)
+    model.coef_std = torch.tensor(std, dtype=torch.float32, device=model.device)
+    model.invalidate()
+
+
+def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
+          config: TrainConfig | None = None) -> dict[str, Any]:
+    """Fit ``model`` in place; returns a summary (epochs run, best validation loss, seconds).
+
+    Adam on the mean per-configuration sum of squared point distances; the weights with the
+    best validation loss are kept (early stopping)."""
+    from ctrplan.progress import bar
+
+    cfg = config or TrainConfig()
+    torch.manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    dev = model.device
+    xtr, ltr, ptr = _tensors(model, train_data)
+    xva, lva, pva = _tensors(model, val_data)
+    try:
+        opt = torch.optim.Adam(model.net.parameters(), lr=cfg.lr, fused=True)
+    except (RuntimeError, TypeError):  # pragma: no cover - older torch / unsupported device
+        opt = torch.optim.Adam(model.net.parameters(), lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=max(1, cfg.patience // 3),
+                                                       min_lr=cfg.min_lr)
+    best = math.inf
+    best_state = copy.deepcopy(model.net.state_dict())
+    best_epoch = 0
+    stale = 0
+    N = len(train_data)
+    bs = max(1, min(cfg.batch_size, N))
+    t0 = time.perf_counter()
+    epoch = 0
+    with bar(total=cfg.epochs, desc=cfg.label, unit="epoch") as pb:
+        if not cfg.progress:
+            pb.disable = True
+        for epoch in range(1, cfg.epochs + 1):
+            model.net.train()
+            perm = torch.randperm(N, generator=gen).to(dev)
+            tot = 0.0
+            for a in range(0, N, bs):
+                idx = perm[a:a + bs]
+                loss = _loss(model, xtr[idx], ltr[idx], ptr[idx])
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                tot += float(loss.detach()) * len(idx)
+            model.net.eval()
+            with torch.no_grad():
+                val = float(_loss(model, xva, lva, pva))
+            sched.step(val)
+            cfg.history.append({"epoch": epoch, "train_loss": tot / N, "val_loss": val,
+                                "lr": opt.param_groups[0]["lr"]})
+            pb.set_postfix(val=f"{val:.3g}")
+            pb.update(1)
+            if val < best * (1 - 1e-4):
+                best, best_epoch, stale = val, epoch, 0
+                best_state = copy.deepcopy(model.net.state_dict())
+            else:
+                stale += 1
+            if stale >= cfg.patience:
+                break
+            if cfg.max_seconds is not None and time.perf_counter() - t0 > cfg.max_seconds:
+                log.info("%s: time limit reached after %d epochs", cfg.label, epoch)
+                break
+    model.net.load_state_dict(best_state)
+    model.net.eval()
+    model.invalidate()
+    summary = {"epochs_run": epoch, "best_epoch": best_epoch, "best_val_loss_mm2": best,
+               "seconds": time.perf_counter() - t0, "lr": cfg.lr, "batch_size": bs,
+               "patience": cfg.patience, "seed": cfg.seed, "rows_train": N, "rows_val": len(val_data)}
+    log.info("%s: %d epochs (best %d), validation loss %.4g mm^2, %.1f s", cfg.label, epoch,
+             best_epoch, best, summary["seconds"])
+    return summary
+
+
+def new_model(robot: Robot, width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH,
+              terms: int = basis.DEFAULT_TERMS, seed: int = 0, device: str = "cpu",
+              frame: str = DEFAULT_FRAME) -> LearnedModel:
+    return LearnedModel(robot, width=width, depth=depth, terms=terms, seed=seed, device=device,
+                        frame=frame)
+
+
+# ---------------------------------------------------------------------------------- evaluation
+def shape_errors(pred: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """Point distances (B, m), mm."""
+    return np.linalg.norm(np.asarray(pred) - np.asarray(true), axis=2)
+
+
+def evaluate(model: Any, data: ShapeData) -> dict[str, Any]:
+    """Metrics over a test set, at the data's points (20 evenly spaced in the literature):
+
+    max_dev (max distance along the shaft), mse (mean squared distance), sum_dev (sum of
+    distances), each as mean and std over configurations (mm, mm^2, mm); per_position (mean
+    distance at each point) and per_config_max (the max deviation of every configuration)."""
+    pred = model.backbone(data.q, data.points.shape[1])
+    d = shape_errors(pred, data.points)
+    if hasattr(model, "shape") and getattr(model, "name", "") in ("physics", "rigid"):
+        pass
+    mx, mse, sm = d.max(axis=1), (d ** 2).mean(axis=1), d.sum(axis=1)
+    good = np.isfinite(mx)
+    return {
+        "n": int(good.sum()),
+        "max_dev_mean": float(mx[good].mean()), "max_dev_std": float(mx[good].std()),
+        "mse_mean": float(mse[good].mean()), "mse_std": float(mse[good].std()),
+        "sum_dev_mean": float(sm[good].mean()), "sum_dev_std": float(sm[good].std()),
+        "tip_mean": float(d[good, -1].mean()),
+        "per_position": d[good].mean(axis=0).tolist(),
+        "per_config_max": mx.tolist(),
+    }
+
+
+def summary_metrics(m: dict[str, Any]) -> dict[str, Any]:
+    """The scalar part of :func:`evaluate`'s result."""
+    return {k: v for k, v in m.items() if k not in ("per_position", "per_config_max")}
+
+
+def basis_fit_table(robot: Robot | str, n: int = 5000, seed: int = 11, points: int = 20,
+                    terms: Sequence[int] = range(3, 9)) -> list[dict]:
+    """Least-squares basis fit accuracy on simulated shapes (max deviation over ``points``)."""
+    robot = load_robot(robot)
+    q = robot.sample(n, seed=seed)
+    sh = PhysicsModel(robot).shape(q, points)
+    return basis.fit_report(sh.points[sh.ok], robot.tip_length(q[sh.ok]), terms)
+
+
+# ---------------------------------------------------------------------------------- workflows
+def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData | None,
+                      width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH,
+                      terms: int = basis.DEFAULT_TERMS, seed: int = 0,
+                      pre: TrainConfig | None = None, fine: TrainConfig | None = None,
+                      device: str = "cpu", base: LearnedModel | None = None,
+                      frame: str = DEFAULT_FRAME) -> tuple[LearnedModel, dict[str, Any]]:
+    """Pre-train on ``sim`` (if given), then fine-tune on ``real`` (if given).
+
+    Each data set is split 80/10/10 (seeded); validation drives early stopping, the test parts
+    are evaluated and stored in the metadata. ``base``: start from this trained model instead
+    of pre-training (its normalisation is kept)."""
+    robot = load_robot(robot)
+    if sim is None and real is None and base is None:
+        raise ValueError("need simulated and/or measured data")
+    info: dict[str, Any] = {"data": {}, "training": {}, "metrics": {}}
+    if base is not None:
+        model = copy.deepcopy(base)
+        model.invalidate()
+        info["training"]["base"] = dict(getattr(base, "meta", {}).get("data", {}))
+    else:
+        model = new_model(robot, width, depth, terms, seed, device, frame)
+    if sim is not None:
+        s_tr, s_va, s_te = split(sim, seed=seed)
+        set_normalisation(model, s_tr)
+        pre = pre or TrainConfig(seed=seed, label="pre-train (sim)")
+        info["training"]["pretrain"] = train(model, s_tr, s_va, pre)
+        info["data"]["sim"] = sim.describe()
+        info["metrics"]["sim_test"] = summary_metrics(evaluate(model, s_te))
+    if real is not None:
+        r_tr, r_va, r_te = split(real, seed=seed + 1)
+        if sim is None and base is None:
+            set_normalisation(model, r_tr)
+        if sim is not None or base is not None:
+            fine = fine or TrainConfig(seed=seed, lr=5e-4, label="fine-tune (real)")
+        else:
+            fine = fine or TrainConfig(seed=seed, label="train (real)")
+        info["training"]["finetune" if (sim is not None or base is not None) else "real"] = train(
+            model, r_tr, r_va, fine)
+        info["data"]["real"] = real.describe()
+        info["metrics"]["real_test"] = summary_metrics(evaluate(model, r_te))
+    model.meta.update(info)
+    return model, info
+
+
+# ---------------------------------------------------------------------------------- sweep
+def parse_archs(text: str) -> list[tuple[int, int]]:
+    """``"3x15,5x30"`` -> [(depth, width), ...] (depth hidden layers of width neurons)."""
+    out = []
+    for part in str(text).split(","):
+        part = part.strip().lower()
+        if not part:
+            continue
+        d, _, w = part.partition("x")
+        if not (d.isdigit() and w.isdigit()) or int(d) < 1 or int(w) < 1:
+            raise ValueError(f"architecture {part!r} is not DEPTHxWIDTH (e.g. 3x30)")
+        out.append((int(d), int(w)))
+    if not out:
+        raise ValueError("no architectures given")
+    return out
+
+
+ALL_ARCHS = [(d, w) for d in ARCH_DEPTHS for w in ARCH_WIDTHS]
+REGIMES = ("Sim-only", "Real-only", "Sim+Real")
+
+
+def sweep(robot: Robot | str, sim: ShapeData, real: ShapeData,
+          archs: Sequence[tuple[int, int]] = tuple(ALL_ARCHS), terms: int = basis.DEFAULT_TERMS,
+          frame: str = DEFAULT_FRAME, seed: int = 0, pre: TrainConfig | None = None,
+          fine: TrainConfig | None = None, real_only: TrainConfig | None = None,
+          device: str = "cpu", progress: bool = True) -> dict[str, Any]:
+    """Sim-only, Real-only and Sim+Real training for each architecture, all evaluated on the
+    same held-out part of ``real``, next to the physics model. Returns the results (JSON-able)
+    with per-configuration errors for the plots."""
+    robot = load_robot(robot)
+    s_tr, s_va, s_te = split(sim, seed=seed)
+    r_tr, r_va, r_te = split(real, seed=seed + 1)
+
+    def cfg(base: TrainConfig | None, label: str, **kw) -> TrainConfig:
+        c = copy.deepcopy(base) if base is not None else TrainConfig(**kw)
+        c.label, c.progress, c.history = label, progress, []
+        return c
+
+    phys = PhysicsModel(robot)
+    res: dict[str, Any] = {
+        "robot": robot.name, "terms": terms, "frame": frame, "seed": seed,
+        "data": {"sim": sim.describe(), "real": real.describe(),
+                 "splits": {"sim": [len(s_tr), len(s_va), len(s_te)],
+                            "real": [len(r_tr), len(r_va), len(r_te)]}},
+        "physics": evaluate(phys, r_te), "physics_sim_test": summary_metrics(evaluate(phys, s_te)),
+        "runs": [],
+    }
+    for depth, width in archs:
+        tag = f"{depth}x{width}"
+        sim_model = new_model(robot, width, depth, terms, seed, device, frame)
+        set_normalisation(sim_model, s_tr)
+        t_sim = train(sim_model, s_tr, s_va, cfg(pre, f"{tag} sim", seed=seed))
+        fine_model = copy.deepcopy(sim_model)
+        t_fine = train(fine_model, r_tr, r_va, cfg(fine, f"{tag} sim+real", seed=seed, lr=5e-4))
+        real_model = new_model(robot, width, depth, terms, seed, device, frame)
+        set_normalisation(real_model, r_tr)
+        t_real = train(real_model, r_tr, r_va, cfg(real_only, f"{tag} real", seed=seed))
+        for regime, model, tinfo in (("Sim-only", sim_model, [t_sim]),
+                                     ("Real-only", real_model, [t_real]),
+                                     ("Sim+Real", fine_model, [t_sim, t_fine])):
+            ev = evaluate(model, r_te)
+            run = {"regime": regime, "depth": depth, "width": width, "arch": tag,
+                   "seconds": float(sum(t["seconds"] for t in tinfo)),
+                   "epochs": [t["epochs_run"] for t in tinfo], **ev}
+            if regime == "Sim-only":
+                run["sim_test"] = summary_metrics(evaluate(model, s_te))
+            res["runs"].append(run)
+            log.info("sweep %s %-9s max dev %.3f +- %.3f mm", tag, regime, ev["max_dev_mean"], ev["max_dev_std"])
+    return res
+
+
+def _pm(m: dict, key: str, fmt: str = ".3f") -> str:
+    return f"{m[key + '_mean']:{fmt}} ± {m[key + '_std']:{fmt}}"
+
+
+def sweep_markdown(res: dict[str, Any]) -> str:
+    """The sweep's tables as markdown."""
+    ph = res["physics"]
+    d = res["data"]
+    lines = [
+        f"# Learned shape model: evaluation on robot `{res['robot']}`",
+        "",
+        f"Test set: {ph['n']} held-out \"real\" configurations ({d['real']['source']}); metrics at "
+        f"{len(ph['per_position'])} points evenly spaced along the shaft, mean ± std over the test set. "
+        f"Basis terms K = {res['terms']}, frame `{res['frame']}`. Simulation: {d['sim']['rows']} rows "
+        f"(split {d['splits']['sim']}), real: {d['real']['rows']} rows (split {d['splits']['real']}).",
+        "",
+        "| model | training | arch (depth x width) | max deviation (mm) | MSE (mm²) | sum of deviations (mm) | tip error (mm) |",
+        "|---|---|---|---|---|---|---|",
+        f"| physics (compliant) | - | - | {_pm(ph, 'max_dev')} | {_pm(ph, 'mse')} | {_pm(ph, 'sum_dev', '.2f')} | {ph['tip_mean']:.3f} |",
+    ]
+    for r in res["runs"]:
+        lines.append(f"| learned | {r['regime']} | {r['arch']} | {_pm(r, 'max_dev')} | {_pm(r, 'mse')} | "
+                     f"{_pm(r, 'sum_dev', '.2f')} | {r['tip_mean']:.3f} |")
+    best = best_runs(res)
+    lines += ["", "Best architecture per training regime (by mean max deviation):", ""]
+    for regime, r in best.items():
+        gain = 100.0 * (1.0 - r["max_dev_mean"] / ph["max_dev_mean"])
+        lines.append(f"- {regime}: {r['arch']}, {r['max_dev_mean']:.3f} ± {r['max_dev_std']:.3f} mm "
+                     f"({gain:+.1f}% vs physics {ph['max_dev_mean']:.3f} mm)")
+    sims = [r for r in res["runs"] if r["regime"] == "Sim-only" and "sim_test" in r]
+    if sims:
+        ps = res["physics_sim_test"]
+        lines += ["", "Sim-only models on held-out *simulated* data (the physics model is exact there "
+                      f"up to solver tolerance: {ps['max_dev_mean']:.2g} mm):", "",
+                  "| arch | max deviation (mm) | MSE (mm²) | sum of deviations (mm) |", "|---|---|---|---|"]
+        for r in sims:
+            st = r["sim_test"]
+            lines.append(f"| {r['arch']} | {_pm(st, 'max_dev')} | {_pm(st, 'mse', '.4f')} | {_pm(st, 'sum_dev', '.2f')} |")
+    lines += ["", "Plots: `hist_max_error.png` (per-configuration max error, learned vs physics), "
+                  "`error_vs_position.png` (mean error along the shaft).", ""]
+    return "\n".join(lines)
+
+
+def best_runs(res: dict[str, Any]) -> dict[str, dict]:
+    best: dict[str, dict] = {}
+    for r in res["runs"]:
+        if r["regime"] not in best or r["max_dev_mean"] < best[r["regime"]]["max_dev_mean"]:
+            best[r["regime"]] = r
+    return best
+
+
+def sweep_plots(res: dict[str, Any], out_dir: str | Path) -> list[Path]:
+    """hist_max_error.png and error_vs_position.png for the best architecture per regime."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ctrplan.io import atomic_path
+
+    out_dir = Path(out_dir)
+    best = best_runs(res)
+    ph = res["physics"]
+    series = [("physics", ph)] + [(f"{k} ({v['arch']})", v) for k, v in best.items()]
+    paths = []
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    allv = np.concatenate([np.asarray(s["per_config_max"]) for _, s in series])
+    bins = np.linspace(0, float(np.nanpercentile(allv, 99.5)) * 1.05 + 1e-9, 40)
+    for name, s in series:
+        ax.hist(np.clip(s["per_config_max"], 0, bins[-1]), bins=bins, histtype="step", linewidth=1.6,
+                label=f"{name}: {s['max_dev_mean']:.2f} mm")
+    ax.set_xlabel("max deviation along the shaft per configuration (mm)")
+    ax.set_ylabel("configurations")
+    ax.set_title(f"{res['robot']}: learned vs physics on held-out real data")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    p = out_dir / "hist_max_error.png"
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    paths.append(p)
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for name, s in series:
+        pp = np.asarray(s["per_position"])
+        ax.plot(np.linspace(0, 1, len(pp)), pp, marker="o", markersize=3, label=name)
+    ax.set_xlabel("position along the shaft (s / tip arc length)")
+    ax.set_ylabel("mean distance to measured point (mm)")
+    ax.set_title("error vs position along the shaft")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    p = out_dir / "error_vs_position.png"
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    paths.append(p)
+    return paths
+
+
+def write_sweep(res: dict[str, Any], out_dir: str | Path) -> list[Path]:
+    """results.json, results.md and the PNG plots under ``out_dir``."""
+    from ctrplan.io import write_json_atomic, write_text_atomic
+    from ctrplan.shape.learned import _jsonable
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out_dir / "results.json", _jsonable(res))
+    write_text_atomic(out_dir / "results.md", sweep_markdown(res))
+    return [out_dir / "results.json", out_dir / "results.md"] + sweep_plots(res, out_dir)
