@@ -19,7 +19,11 @@ mesh's bounding box plus the band) the distance to the bounding box is a lower b
 
 A capsule (segment, radius r) is provably free of a mesh when, at samples along its axis spaced
 ``delta`` apart, ``lb(sample) > r + delta / 2`` (every axis point is within ``delta / 2`` of a
-sample); it provably touches it when ``ub(p) < r`` at some axis point. Anything else goes to FCL.
+sample); it provably touches it when ``ub(p) < r`` at some axis point. For a closed mesh the
+grid also stores which side (inside/outside) nodes far from the surface lie on; a capsule chain
+that starts inside a closed wall (or outside a closed obstacle) and has an axis point proven to
+lie outside it (inside the obstacle) must cross the surface, so it provably collides.
+Anything else goes to FCL.
 
 Fields are cached on disk (``$CTRPLAN_CACHE`` or ``~/.cache/ctrplan``), keyed by a hash of the
 mesh and the field parameters.
@@ -40,7 +44,7 @@ import numpy as np
 
 log = logging.getLogger("ctrplan")
 
-FIELD_VERSION = 1
+FIELD_VERSION = 2
 #: Safety added to every decision threshold (mm): covers float32 storage and FCL's tolerance.
 EPS_MM = 1e-3
 
@@ -58,7 +62,7 @@ class FieldConfig:
 
     h_mm: float = 0.5
     band_mm: float = 6.0
-    max_nodes: int = 3_000_000
+    max_nodes: int = 8_000_000
     sample_mm: float = 1.0
 
 
@@ -73,6 +77,8 @@ class DistanceField:
     box_lo: np.ndarray      # (3,) mesh bounding box
     box_hi: np.ndarray
     rho: float              # covering radius of the subdivided vertices
+    side: np.ndarray        # (nx, ny, nz) int8: +1 outside, -1 inside, 0 unknown (closed meshes)
+    watertight: bool        # whether side holds any information
     build_s: float = 0.0    # seconds it took to build (0 when read from the cache)
 
 
@@ -103,25 +109,27 @@ def field_for(mesh, config: FieldConfig = FieldConfig(), cache: bool | Path = Tr
             try:
                 with np.load(path) as z:
                     return DistanceField(origin=z["origin"], h=float(z["h"]), lb=z["lb"], ub=z["ub"],
-                                         box_lo=z["box_lo"], box_hi=z["box_hi"], rho=float(z["rho"]))
+                                         box_lo=z["box_lo"], box_hi=z["box_hi"], rho=float(z["rho"]),
+                                         side=z["side"], watertight=bool(z["watertight"]))
             except (OSError, ValueError, KeyError) as exc:  # a corrupt cache entry is rebuilt
                 log.warning("ignoring unreadable field cache %s (%s)", path, exc)
-    field = build_field(v, f, config)
+    field = build_field(v, f, config, watertight=bool(mesh.is_watertight))
     if folder is not None:
         try:
             folder.mkdir(parents=True, exist_ok=True)
             tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
             np.savez(tmp, origin=field.origin, h=field.h, lb=field.lb, ub=field.ub,
-                     box_lo=field.box_lo, box_hi=field.box_hi, rho=field.rho)
+                     box_lo=field.box_lo, box_hi=field.box_hi, rho=field.rho, side=field.side,
+                     watertight=field.watertight)
             os.replace(tmp, path)
         except OSError as exc:  # a read-only cache only costs time
             log.warning("could not write field cache in %s (%s)", folder, exc)
     return field
 
 
-def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = FieldConfig()) -> DistanceField:
+def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = FieldConfig(),
+                watertight: bool = False) -> DistanceField:
     """Build the bounds grid of one mesh (see the module docstring)."""
-    import trimesh
     from scipy import ndimage
 
     t0 = time.perf_counter()
@@ -133,10 +141,8 @@ def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = F
     ext = hi - lo
     h = max(config.h_mm, float(np.prod(ext) / config.max_nodes) ** (1 / 3))
     shape = tuple(int(math.ceil(e / h)) + 1 for e in ext)
-    # surface samples: the vertices after subdividing every edge to at most h / 2
-    sv, sf = trimesh.remesh.subdivide_to_size(v, f, max_edge=h / 2.0, max_iter=20)
-    tri = sv[sf]
-    e_max = max(float(np.linalg.norm(tri[:, i] - tri[:, (i + 1) % 3], axis=1).max()) for i in range(3))
+    # surface samples: a barycentric lattice on every triangle with sub-edges at most h / 2
+    sv, e_max = surface_samples(v, f, h / 2.0)
     rho = e_max / math.sqrt(3.0)
     # mark the grid node nearest to each sample; keep one sample per marked node
     node = np.clip(np.rint((sv - lo) / h).astype(np.int64), 0, np.array(shape) - 1)
@@ -157,16 +163,80 @@ def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = F
     # lower bound: the nearest surface point x has a sample within rho, whose node is within
     # h*sqrt(3)/2 of it, so dist <= d + rho + h*sqrt(3)/2
     lb = np.maximum(dist - rho - h * math.sqrt(3.0) / 2.0, 0.0).astype(np.float32)
+    del dist
+    side = _sides(lb, h, lo, v, f) if watertight else np.zeros(shape, dtype=np.int8)
     field = DistanceField(origin=lo, h=float(h), lb=lb, ub=ub, box_lo=box_lo, box_hi=box_hi,
-                          rho=rho, build_s=time.perf_counter() - t0)
+                          rho=rho, side=side, watertight=watertight,
+                          build_s=time.perf_counter() - t0)
     log.debug("distance field: %s nodes, h %.3f mm, %d samples, rho %.3f mm, %.2f s",
               shape, h, len(sv), rho, field.build_s)
     return field
 
 
+def surface_samples(v: np.ndarray, f: np.ndarray, max_edge: float) -> tuple[np.ndarray, float]:
+    """Points covering a mesh: on each triangle the lattice ``(i a + j b + k c) / n`` with
+    ``n = ceil(longest edge / max_edge)``, whose sub-triangles are copies of the triangle
+    scaled by ``1 / n``. Returns (points (S, 3), longest sub-triangle edge)."""
+    tri = np.ascontiguousarray(v[f], dtype=float)
+    edges = np.stack([np.linalg.norm(tri[:, i] - tri[:, (i + 1) % 3], axis=1) for i in range(3)], axis=1)
+    longest = edges.max(axis=1)
+    n = np.maximum(np.ceil(longest / max_edge), 1).astype(np.int64)
+    counts = (n + 1) * (n + 2) // 2
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    out = np.empty((int(offsets[-1]), 3))
+    _lattice(tri, n, offsets, out)
+    return out, float((longest / n).max())
+
+
+@nb.njit(cache=True)
+def _lattice(tri, n, offsets, out):
+    for t in range(tri.shape[0]):
+        m = n[t]
+        o = offsets[t]
+        for i in range(m + 1):
+            for j in range(m + 1 - i):
+                k = m - i - j
+                for d in range(3):
+                    out[o, d] = (i * tri[t, 0, d] + j * tri[t, 1, d] + k * tri[t, 2, d]) / m
+                o += 1
+
+
+def _sides(lb: np.ndarray, h: float, lo: np.ndarray, v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Inside/outside of a closed mesh at the grid nodes far enough from it to be sure.
+
+    Two face-adjacent nodes with ``lb > h / 2`` are joined by a segment that no surface point
+    comes near (each half lies in a surface-free ball), so the connected components of such
+    nodes (6-connectivity) each lie on one side. A component touching the grid's border is
+    outside (the border is outside the mesh's bounding box); every other component takes the
+    side of one of its nodes by trimesh's ray-parity containment test.
+    """
+    import trimesh
+    from scipy import ndimage
+
+    safe = lb > h / 2.0
+    labels, n = ndimage.label(safe)
+    side_of = np.zeros(n + 1, dtype=np.int8)
+    border = np.unique(np.concatenate([labels[[0, -1], :, :].ravel(), labels[:, [0, -1], :].ravel(),
+                                       labels[:, :, [0, -1]].ravel()]))
+    side_of[border] = 1
+    rest = np.setdiff1d(np.arange(1, n + 1), border)
+    if len(rest):
+        # one node per component: the first in raster order
+        flat = labels.ravel()
+        order = np.argsort(flat, kind="stable")
+        starts = np.searchsorted(flat[order], rest)
+        reps = np.stack(np.unravel_index(order[starts], labels.shape), axis=1) * h + lo
+        mesh = trimesh.Trimesh(v, f, process=False)
+        side_of[rest] = np.where(mesh.contains(reps), -1, 1)
+    side_of[0] = 0
+    return side_of[labels]
+
+
 @nb.njit(cache=True, fastmath=False)
-def _bounds_at(lb, ub, origin, h, box_lo, box_hi, x, y, z):
-    """(lower, upper) bound of the distance at one point."""
+def _bounds_at(lb, ub, side, origin, h, box_lo, box_hi, x, y, z):
+    """(lower bound, upper bound, side) of the distance at one point; side is +1 (outside),
+    -1 (inside) or 0 (unknown): a corner c with a known side whose surface-free ball
+    (radius lb_c) contains the point passes its side on."""
     nx, ny, nz = lb.shape
     fx = (x - origin[0]) / h
     fy = (y - origin[1]) / h
@@ -178,9 +248,11 @@ def _bounds_at(lb, ub, origin, h, box_lo, box_hi, x, y, z):
         dx = max(box_lo[0] - x, 0.0, x - box_hi[0])
         dy = max(box_lo[1] - y, 0.0, y - box_hi[1])
         dz = max(box_lo[2] - z, 0.0, z - box_hi[2])
-        return math.sqrt(dx * dx + dy * dy + dz * dz), np.inf
+        # outside the grid is outside the bounding box, hence outside the mesh
+        return math.sqrt(dx * dx + dy * dy + dz * dz), np.inf, 1
     lo_b = -np.inf
     up_b = np.inf
+    sd = 0
     for di in range(2):
         cx = origin[0] + (i + di) * h - x
         for dj in range(2):
@@ -188,22 +260,26 @@ def _bounds_at(lb, ub, origin, h, box_lo, box_hi, x, y, z):
             for dk in range(2):
                 cz = origin[2] + (k + dk) * h - z
                 dist = math.sqrt(cx * cx + cy * cy + cz * cz)
-                lv = lb[i + di, j + dj, k + dk] - dist
+                lc = lb[i + di, j + dj, k + dk]
+                lv = lc - dist
                 uv = ub[i + di, j + dj, k + dk] + dist
                 if lv > lo_b:
                     lo_b = lv
                 if uv < up_b:
                     up_b = uv
-    return lo_b, up_b
+                if lv > 0.0 and side[i + di, j + dj, k + dk] != 0:
+                    sd = side[i + di, j + dj, k + dk]
+    return lo_b, up_b, sd
 
 
 @nb.njit(cache=True)
-def _capsule_bounds(a, b, r, active, lb, ub, origin, h, box_lo, box_hi, sample_mm, eps,
-                    clear_out, depth_out):
+def _capsule_bounds(a, b, r, active, lb, ub, side, bad_side, origin, h, box_lo, box_hi,
+                    sample_mm, eps, clear_out, depth_out):
     """For each active configuration: clear_out = lower bound of the clearance (min over the
     capsules of axis distance minus radius minus half the sample spacing), depth_out = lower
-    bound of the penetration depth (max of r - ub over axis samples). Stops a configuration at
-    the first sample that proves a collision (depth > eps)."""
+    bound of the penetration depth: max of r - ub over axis samples, and lb + r at a sample
+    proven to lie on ``bad_side`` (+1: outside a wall the robot starts inside; -1: inside an
+    obstacle; 0: no side information). Stops a configuration at the first proof (depth > eps)."""
     B, K = r.shape
     for bi in range(B):
         if not active[bi]:
@@ -224,12 +300,14 @@ def _capsule_bounds(a, b, r, active, lb, ub, origin, h, box_lo, box_hi, sample_m
             rk = r[bi, kk]
             for s in range(n):
                 t = s / (n - 1)
-                lo_b, up_b = _bounds_at(lb, ub, origin, h, box_lo, box_hi,
-                                        ax + t * vx, ay + t * vy, az + t * vz)
+                lo_b, up_b, sd = _bounds_at(lb, ub, side, origin, h, box_lo, box_hi,
+                                            ax + t * vx, ay + t * vy, az + t * vz)
                 c = lo_b - rk - half
                 if c < clear:
                     clear = c
                 d = rk - up_b
+                if bad_side != 0 and sd == bad_side:
+                    d = max(d, lo_b + rk)
                 if d > depth:
                     depth = d
                 if depth > eps:
@@ -242,25 +320,31 @@ def _capsule_bounds(a, b, r, active, lb, ub, origin, h, box_lo, box_hi, sample_m
 
 
 def capsule_bounds(field: DistanceField, a: np.ndarray, b: np.ndarray, r: np.ndarray,
-                   active: np.ndarray, clear: np.ndarray, depth: np.ndarray, sample_mm: float) -> None:
+                   active: np.ndarray, clear: np.ndarray, depth: np.ndarray, sample_mm: float,
+                   bad_side: int = 0) -> None:
     """Update ``clear`` (B,) and ``depth`` (B,) in place for the ``active`` configurations.
 
-    a, b : (B, K, 3) capsule axis ends, mm, scene frame; r : (B, K) radii, mm.
+    a, b : (B, K, 3) capsule axis ends, mm, scene frame; r : (B, K) radii, mm. bad_side : the
+    side of a closed mesh whose points prove a collision (see :func:`_capsule_bounds`).
     """
-    _capsule_bounds(a, b, r, active, field.lb, field.ub, field.origin, field.h, field.box_lo,
+    _capsule_bounds(a, b, r, active, field.lb, field.ub, field.side,
+                    int(bad_side) if field.watertight else 0, field.origin, field.h, field.box_lo,
                     field.box_hi, float(sample_mm), EPS_MM, clear, depth)
 
 
 @nb.njit(cache=True)
-def _point_bounds(p, lb, ub, origin, h, box_lo, box_hi, lo_out, up_out):
+def _point_bounds(p, lb, ub, side, origin, h, box_lo, box_hi, lo_out, up_out, side_out):
     for i in range(p.shape[0]):
-        lo_out[i], up_out[i] = _bounds_at(lb, ub, origin, h, box_lo, box_hi, p[i, 0], p[i, 1], p[i, 2])
+        lo_out[i], up_out[i], side_out[i] = _bounds_at(lb, ub, side, origin, h, box_lo, box_hi,
+                                                       p[i, 0], p[i, 1], p[i, 2])
 
 
-def point_bounds(field: DistanceField, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(lower, upper) bounds of the distance from points (P, 3) mm to the mesh."""
+def point_bounds(field: DistanceField, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lower bound, upper bound, side) of the distance from points (P, 3) mm to the mesh."""
     p = np.ascontiguousarray(np.asarray(points, dtype=float).reshape(-1, 3))
     lo = np.empty(len(p))
     up = np.empty(len(p))
-    _point_bounds(p, field.lb, field.ub, field.origin, field.h, field.box_lo, field.box_hi, lo, up)
-    return lo, up
+    sd = np.empty(len(p), dtype=np.int8)
+    _point_bounds(p, field.lb, field.ub, field.side, field.origin, field.h, field.box_lo,
+                  field.box_hi, lo, up, sd)
+    return lo, up, sd

@@ -320,9 +320,12 @@ def inside_walls(scene: Scene, points: np.ndarray, min_hit_fraction: float = 0.7
 
 
 def check_base_inside(scene: Scene, src: str) -> None:
-    """Raise :class:`InputError` if the base pose lies outside the scene's walls."""
-    if not any(m.role == "wall" for m in scene.meshes):
-        return
-    if not inside_walls(scene, scene.base_pose[:3, 3][None])[0]:
+    """Raise :class:`InputError` if the base pose lies outside the scene's walls or inside a
+    closed obstacle."""
+    base = scene.base_pose[:3, 3][None]
+    for m in scene.meshes:
+        if m.role == "obstacle" and m.mesh.is_watertight and m.mesh.contains(base)[0]:
+            raise InputError(src, "base_pose.position", f"lies inside the obstacle {m.name!r}")
+    if any(m.role == "wall" for m in scene.meshes) and not inside_walls(scene, base)[0]:
         raise InputError(src, "base_pose.position", "lies outside the wall meshes: the robot "
                          "must enter inside the lumen")

@@ -78,6 +78,13 @@ class CollisionWorld:
         self._fields = None
         self._cache = cache
         self.pose = np.asarray(self.scene.base_pose, dtype=float)
+        # Side proofs (field module): a point outside a closed wall that contains the base, or
+        # inside a closed obstacle, proves a collision of the chain that starts at the base.
+        base = self.pose[:3, 3][None]
+        self._bad_side = [
+            (1 if m.role == "wall" and m.mesh.is_watertight and bool(m.mesh.contains(base)[0])
+             else -1 if m.role == "obstacle" and m.mesh.is_watertight else 0)
+            for m in meshes]
 
     # ------------------------------------------------------------------ geometry
     def capsules(self, shape: Shape) -> Capsules:
@@ -150,7 +157,8 @@ class CollisionWorld:
         act = np.array(active, dtype=bool)
         for j, field in enumerate(self.fields):
             before = depth.copy()
-            capsule_bounds(field, a, b, r, act, clear, depth, self.field_config.sample_mm)
+            capsule_bounds(field, a, b, r, act, clear, depth, self.field_config.sample_mm,
+                           self._bad_side[j])
             hit = (depth > EPS_MM) & (before <= EPS_MM)
             self._contact_idx[hit] = j
             act &= ~hit
