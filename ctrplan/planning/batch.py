@@ -1,0 +1,326 @@
+"""Batch planning over many scenes and targets: jobs, resumable runs, pools, Ray, summaries.
+
+A job is one :func:`~ctrplan.planning.plan.plan_to_target` call. Its id is readable
+(``<scene>__<target>__s<seed>``) plus a short hash of everything that defines it, so a rerun
+with the same settings skips jobs whose JSON already exists and a changed setting makes new
+jobs. Results go to ``<out>/jobs/<id>.json`` (written atomically by the driver as each job
+finishes), ``<out>/jobs.csv`` (one row per job) and ``<out>/summary.csv`` (success rate and
+planning-time percentiles per scene, then all scenes).
+
+Workers: in-process (``workers=1``), a local process pool (``workers>1``, spawned processes,
+each caching its models, scenes and collision worlds), or Ray (``ray_address``: a cluster
+address, or ``"local"`` to start a local instance).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import re
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ctrplan.errors import InputError
+
+log = logging.getLogger("ctrplan")
+
+#: ``--targets examples``: every example target of the shipped scenes.
+EXAMPLES = "examples"
+
+
+@dataclass(frozen=True)
+class Job:
+    """One planning problem. target : (x, y, z) mm, scene frame."""
+
+    scene: str
+    target_name: str
+    target: tuple[float, float, float]
+    seed: int = 0
+    robot: str = "seed1"
+    model: str = "learned"
+    planner: str = "rrtconnect"
+    time_limit: float = 5.0
+    tolerance_mm: float = 1.0
+
+    @property
+    def id(self) -> str:
+        spec = json.dumps(asdict(self), sort_keys=True)
+        digest = hashlib.sha1(spec.encode()).hexdigest()[:8]
+        return f"{_safe(Path(self.scene).name)}__{_safe(self.target_name)}__s{self.seed}__{digest}"
+
+
+def _safe(s: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", str(s)).strip("_") or "x"
+
+
+# ---------------------------------------------------------------------- inputs
+def check_scene_spec(spec: str) -> str:
+    """A shipped scene name or a scene folder (or its scene.yaml); InputError otherwise.
+
+    Checked without loading the meshes, so a batch fails fast on a typo.
+    """
+    from ctrplan.collision.scene import anatomy_dir, list_scenes
+
+    p = Path(spec)
+    if p.is_file() and p.name.endswith((".yaml", ".yml")):
+        return spec
+    if p.is_dir() and (p / "scene.yaml").is_file():
+        return spec
+    if "/" not in spec and os.sep not in spec and (anatomy_dir() / spec / "scene.yaml").is_file():
+        return spec
+    raise InputError(spec, "", f"no such scene folder, and not a shipped scene "
+                               f"({', '.join(list_scenes()) or 'none found'})")
+
+
+def read_targets(path: str, scenes: Sequence[str] = ()) -> list[tuple[str, str, tuple[float, float, float]]]:
+    """Targets as (scene, name, (x, y, z)).
+
+    ``path`` is a CSV with columns ``x,y,z`` (mm, scene frame) and optionally ``scene`` and
+    ``name``, or ``"examples"`` for the example targets of the shipped scenes. ``scenes``
+    restricts the examples / CSV rows to those scenes, and supplies the scene of CSV rows
+    without a ``scene`` column (each target then goes to every listed scene).
+    """
+    from ctrplan.collision.scene import list_scenes, load_scene
+
+    for s in scenes:
+        check_scene_spec(s)
+    out: list[tuple[str, str, tuple[float, float, float]]] = []
+    if path == EXAMPLES:
+        for s in scenes or list_scenes():
+            scene = load_scene(s)
+            for t in scene.targets:
+                out.append((s, t.name, tuple(float(v) for v in t.position)))
+        if not out:
+            raise InputError("--targets", "", "no example targets found (no shipped scenes?)")
+        return out
+    from ctrplan.io import read_csv_table
+
+    header, rows = read_csv_table(path)
+    cols = {h.strip().lower(): i for i, h in enumerate(header)}
+    for c in ("x", "y", "z"):
+        if c not in cols:
+            raise InputError(path, c, "missing column (need x,y,z and optionally scene,name)")
+    if "scene" not in cols and not scenes:
+        raise InputError(path, "scene", "missing column; or give the scene with --scene")
+    if not rows:
+        raise InputError(path, "rows", "no targets (only a header)")
+    for k, row in enumerate(rows):
+        where = f"row {k + 2}"
+        try:
+            xyz = tuple(float(row[cols[c]]) for c in ("x", "y", "z"))
+        except (ValueError, IndexError):
+            raise InputError(path, where, "x, y, z must be numbers (mm)") from None
+        if not all(math.isfinite(v) for v in xyz):
+            raise InputError(path, where, "x, y, z must be finite numbers (mm)")
+        name = row[cols["name"]].strip() if "name" in cols and cols["name"] < len(row) else ""
+        name = name or f"row{k + 2}"
+        if "scene" in cols:
+            s = row[cols["scene"]].strip() if cols["scene"] < len(row) else ""
+            if not s:
+                raise InputError(path, f"{where}: scene", "empty")
+            if scenes and s not in scenes:
+                continue
+            check_scene_spec(s)
+            out.append((s, name, xyz))
+        else:
+            out.extend((s, name, xyz) for s in scenes)
+    if not out:
+        raise InputError(path, "scene", "no rows for the scenes given with --scene")
+    return out
+
+
+def make_jobs(targets: Iterable[tuple[str, str, tuple[float, float, float]]], seeds: Sequence[int] = (0,),
+              **settings: Any) -> list[Job]:
+    """One job per target and seed; ``settings`` are Job fields (robot, model, planner, ...)."""
+    return [Job(scene=s, target_name=name, target=tuple(xyz), seed=int(seed), **settings)
+            for s, name, xyz in targets for seed in seeds]
+
+
+# ---------------------------------------------------------------------- one job
+def run_job(job: Job | dict) -> dict:
+    """Run one job (in any process); returns the plan JSON plus the job's fields.
+
+    Errors from bad input become ``status: "ERROR"`` with the message, so one bad row does
+    not stop a batch.
+    """
+    from ctrplan.planning.plan import plan_to_target, scene_by_name
+
+    if isinstance(job, dict):
+        job = Job(**{**job, "target": tuple(job["target"])})
+    base = {"job_id": job.id, **asdict(job), "target": list(job.target)}
+    try:
+        scene = scene_by_name(job.scene)
+        result = plan_to_target(job.robot, scene, job.target, model=job.model, planner=job.planner,
+                                time_limit=job.time_limit, seed=job.seed, tolerance_mm=job.tolerance_mm)
+    except InputError as exc:
+        return {**base, "success": False, "status": "ERROR", "message": str(exc)}
+    plan = result.to_json()
+    plan["scene"] = job.scene
+    return {**plan, **base}
+
+
+# ---------------------------------------------------------------------- a batch
+@dataclass(frozen=True)
+class BatchSummary:
+    """What a batch did: jobs in total, skipped (already done), run now, and per-scene rows."""
+
+    total: int
+    skipped: int
+    ran: int
+    rows: list[dict]
+    out: Path
+
+
+def _done(path: Path, job: Job) -> dict | None:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(data, dict) or data.get("job_id") != job.id or "status" not in data:
+        return None
+    return data
+
+
+def run_batch(jobs: Sequence[Job], out: str | os.PathLike, workers: int = 1,
+              ray_address: str | None = None) -> BatchSummary:
+    """Run the jobs not finished yet, write one JSON per job, jobs.csv and summary.csv."""
+    from ctrplan import progress
+    from ctrplan.io import write_json_atomic
+
+    out = Path(out)
+    jobs_dir = out / "jobs"
+    jobs_dir.mkdir(parents=True, exist_ok=True)
+    results: dict[str, dict] = {}
+    todo: list[Job] = []
+    seen: set[str] = set()
+    for job in jobs:
+        if job.id in seen:
+            continue
+        seen.add(job.id)
+        data = _done(jobs_dir / f"{job.id}.json", job)
+        if data is not None:
+            results[job.id] = data
+        else:
+            todo.append(job)
+    skipped = len(results)
+    if skipped:
+        log.info("plan-batch: %d of %d jobs already done in %s, running %d", skipped, len(seen), out, len(todo))
+
+    bar = progress.bar(total=len(todo), desc="plan-batch", unit="job")
+
+    def record(res: dict) -> None:
+        write_json_atomic(jobs_dir / f"{res['job_id']}.json", res)
+        results[res["job_id"]] = res
+        bar.update(1)
+        bar.set_postfix_str(f"{res.get('status', '')}")
+
+    try:
+        if not todo:
+            pass
+        elif ray_address:
+            _run_ray(todo, ray_address, workers, record)
+        elif workers <= 1:
+            for job in todo:
+                record(run_job(job))
+        else:
+            _run_pool(todo, workers, record)
+    finally:
+        bar.close()
+    ordered = [results[j] for j in dict.fromkeys(job.id for job in jobs) if j in results]
+    rows = summarize(ordered)
+    write_tables(out, ordered, rows)
+    return BatchSummary(total=len(seen), skipped=skipped, ran=len(todo), rows=rows, out=out)
+
+
+def _run_pool(todo: Sequence[Job], workers: int, record) -> None:
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    # spawn, not fork: torch, numba and OMPL threads do not survive a fork reliably.
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as ex:
+        futures = [ex.submit(run_job, asdict(job)) for job in todo]
+        for fut in as_completed(futures):
+            record(fut.result())
+
+
+def _run_ray(todo: Sequence[Job], address: str, workers: int, record) -> None:
+    try:
+        import ray
+    except ImportError:
+        raise InputError("--ray", "", "ray is not installed (pip install 'ctrplan[ray]')") from None
+    started = False
+    if not ray.is_initialized():
+        if address == "local":
+            ray.init(num_cpus=max(1, workers), include_dashboard=False, log_to_driver=False,
+                     configure_logging=False)
+        else:
+            try:
+                ray.init(address=address, log_to_driver=False, configure_logging=False)
+            except Exception as exc:  # ray raises ConnectionError, RuntimeError, ValueError...
+                raise InputError("--ray", "", f"cannot connect to Ray at {address!r}: {exc}") from None
+        started = True
+    try:
+        remote = ray.remote(num_cpus=1)(run_job)
+        pending = [remote.remote(asdict(job)) for job in todo]
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            for ref in done:
+                record(ray.get(ref))
+    finally:
+        if started:
+            ray.shutdown()
+
+
+# ---------------------------------------------------------------------- tables
+JOB_COLUMNS = ("job_id", "scene", "target_name", "x", "y", "z", "seed", "robot", "model", "planner",
+               "status", "success", "planning_time_s", "tip_error_mm", "min_clearance_mm", "message")
+
+
+def summarize(results: Sequence[dict]) -> list[dict]:
+    """Per-scene rows (then ``all``): jobs, successes, success rate, time median/p90/max,
+    and the count of each status."""
+    by_scene: dict[str, list[dict]] = {}
+    for r in results:
+        by_scene.setdefault(str(r.get("scene")), []).append(r)
+    rows = []
+    groups = [(s, by_scene[s]) for s in sorted(by_scene)]
+    if len(groups) != 1:
+        groups.append(("all", list(results)))
+    for scene, rs in groups:
+        ok = [bool(r.get("success")) for r in rs]
+        t = np.array([r["planning_time_s"] for r in rs if r.get("planning_time_s") is not None], dtype=float)
+        statuses: dict[str, int] = {}
+        for r in rs:
+            statuses[str(r.get("status"))] = statuses.get(str(r.get("status")), 0) + 1
+        rows.append({
+            "scene": scene,
+            "jobs": len(rs),
+            "success": int(sum(ok)),
+            "success_rate": float(np.mean(ok)) if rs else float("nan"),
+            "time_median_s": float(np.median(t)) if len(t) else float("nan"),
+            "time_p90_s": float(np.percentile(t, 90)) if len(t) else float("nan"),
+            "time_max_s": float(np.max(t)) if len(t) else float("nan"),
+            "statuses": ";".join(f"{k}:{v}" for k, v in sorted(statuses.items())),
+        })
+    return rows
+
+
+def write_tables(out: Path, results: Sequence[dict], rows: Sequence[dict]) -> None:
+    """``jobs.csv`` (one row per job) and ``summary.csv`` (per scene) in ``out``."""
+    from ctrplan.io import write_csv_atomic
+
+    job_rows = []
+    for r in results:
+        x, y, z = (list(r.get("target") or [None] * 3) + [None] * 3)[:3]
+        vals = {**r, "x": x, "y": y, "z": z, "success": int(bool(r.get("success")))}
+        job_rows.append(["" if vals.get(c) is None else vals.get(c) for c in JOB_COLUMNS])
+    write_csv_atomic(out / "jobs.csv", JOB_COLUMNS, job_rows)
+    cols = list(rows[0].keys()) if rows else ["scene", "jobs", "success", "success_rate"]
+    write_csv_atomic(out / "summary.csv", cols, [[r[c] for c in cols] for r in rows])
