@@ -181,6 +181,8 @@ def test_effect_model_is_a_shape_model_picklable_and_saved(tmp_path):
     m3 = load_model(str(path), "seed1")
     assert isinstance(m3, EffectModel) and m3.effects == m.effects and m3.base == "compliant"
     np.testing.assert_array_equal(m3.backbone(q, 5), m.backbone(q, 5))
+    with pytest.raises(InputError, match="calibrated for robot"):
+        load_model(str(path), "two_tube_nylon")
 
 
 def test_bad_effects_are_input_errors():

@@ -8,12 +8,13 @@ Procedure (:func:`diagnose`):
    (friction depends on the history), and only the rows' roles differ.
 2. Residual diagnostics of the base model (:mod:`ctrplan.calibration.diagnostics`).
 3. Screen every candidate effect not yet in the model: fit its parameters alone on top of the
-   current model (bounded least squares, a few iterations) and score it.
-4. The best candidate (lowest BIC) is added only when it is justified by BOTH
+   current model (bounded least squares, a few iterations); the ``refit_top`` best (by BIC)
+   are then refitted jointly with the effects already added (uncertainties from the Jacobian).
+4. A candidate is justified only by BOTH
    - the information criterion: ``BIC_new - BIC_current < -bic_threshold`` (default 10, "very
      strong" evidence on the Kass-Raftery scale), residuals = training coordinates (mm);
-   - held-out error: the held-out mean tip error drops by at least ``min_gain`` (default 10 %).
-   It is then refitted jointly with the effects already added (uncertainties from the Jacobian).
+   - held-out error: the held-out mean tip error drops by at least ``min_gain`` (default 5 %).
+   The justified candidate with the lowest BIC is added.
 5. Repeat until no candidate is justified. When the runner-up is within ``ambiguity_bic`` of the
    best and also justified, the step is marked ambiguous; if the runner-up is never added later,
    the conclusion is "ambiguous: A or B". No effect added: "no missing effect".
@@ -164,7 +165,7 @@ def fitted_names(effect: str, robot: Robot, base: str) -> list[str]:
 
 def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: str = "rigid",
              candidates: Sequence[str] | None = None, holdout: float = 0.25, seed: int = 0,
-             bic_threshold: float = 10.0, min_gain: float = 0.10, ambiguity_bic: float = 10.0,
+             bic_threshold: float = 10.0, min_gain: float = 0.05, ambiguity_bic: float = 10.0,
              screen_iter: int = 8, fit_iter: int = 25, refit_top: int = 3, max_effects: int = 4,
              out: str | os.PathLike | None = None) -> DiagnoseReport:
     """Run the workflow (module docstring) and return a :class:`DiagnoseReport`.
@@ -227,8 +228,9 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
             screened.append(Candidate(c, float(dbic), float(r.test_mean),
                                       bool(dbic < -bic_threshold and gain >= min_gain)))
         screened.sort(key=lambda s: s.delta_bic)
-        best = screened[0]
-        runner = screened[1] if len(screened) > 1 else None
+        # the best justified candidate (lowest BIC among those passing both tests)
+        best = next((s for s in screened if s.justified), screened[0])
+        runner = next((s for s in screened if s is not best), None)
         if not best.justified:
             steps.append(Step(None, False, {}, {}, cur.test_mean, cur.test_mean, cur.test_max,
                               cur.test_max, best.delta_bic, _gain(cur.test_mean, best.test_mean_mm),

@@ -29,8 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="fraction of sweeps held out (default 0.25)")
     p.add_argument("--bic-threshold", type=float, default=10.0,
                    help="an effect must lower BIC by more than this (default 10)")
-    p.add_argument("--min-gain", type=float, default=0.10,
-                   help="and cut held-out mean tip error by at least this fraction (default 0.10)")
+    p.add_argument("--min-gain", type=float, default=0.05,
+                   help="and cut held-out mean tip error by at least this fraction (default 0.05)")
     p.add_argument("--seed", type=int, default=0, help="seed of the sweep split (default 0)")
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=run)

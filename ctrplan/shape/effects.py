@@ -409,10 +409,18 @@ class EffectModel:
                    complete_effects(effects, robot, str(data.get("base", "rigid")), source))
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> EffectModel:
+    def load(cls, path: str | os.PathLike, robot: Robot | str | None = None) -> EffectModel:
+        """Read a model file; with ``robot``, check that the file is for a robot with the same
+        tubes (the calibrated file's own tube parameters are used)."""
         from ctrplan.io import load_yaml
 
-        return cls.from_dict(load_yaml(path), source=str(path))
+        model = cls.from_dict(load_yaml(path), source=str(path))
+        if robot is not None:
+            r = load_robot(robot)
+            if r.n != model.robot.n or not np.allclose(r.lengths, model.robot.lengths):
+                raise InputError(str(path), "robot", f"calibrated for robot {model.robot.name!r} "
+                                 f"({model.robot.n} tubes), not {r.name!r} ({r.n} tubes)")
+        return model
 
 
 def is_effect_model_file(path: str | os.PathLike) -> bool:

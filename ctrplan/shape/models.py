@@ -38,7 +38,7 @@ def load_model(spec: str | os.PathLike | ShapeModel, robot: Robot | str) -> Shap
     from ctrplan.shape.effects import EffectModel, is_effect_model_file
 
     if is_effect_model_file(path):  # a calibrated model written by `ctrplan diagnose`
-        return EffectModel.load(path)
+        return EffectModel.load(path, robot=robot)
     from ctrplan.shape.learned import LearnedModel
 
     return LearnedModel.load(path, robot=robot)
