@@ -47,10 +47,13 @@ class SceneMesh:
 
 @dataclass(frozen=True)
 class Target:
-    """A named example target: position (3,) mm, scene frame."""
+    """A named example target: position (3,) mm, scene frame. ``config`` (2n,) rad and mm,
+    where given, is a collision-free configuration of the ``seed1`` robot (physics model)
+    whose tip reaches the target (how the shipped targets were chosen)."""
 
     name: str
     position: np.ndarray
+    config: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -245,8 +248,16 @@ def _parse_targets(raw: object, src: str) -> tuple[Target, ...]:
     for k, t in enumerate(raw):
         if not isinstance(t, dict) or "position" not in t:
             raise InputError(src, f"targets[{k}]", "expected {name, position: [x, y, z]}")
+        bad = sorted(set(t) - {"name", "position", "config"})
+        if bad:
+            raise InputError(src, f"targets[{k}].{bad[0]}", "unknown key")
+        config = None
+        if t.get("config") is not None:
+            raw = t["config"]
+            config = _vector(raw, len(raw) if isinstance(raw, list) else -1, src, f"targets[{k}].config")
         out.append(Target(name=str(t.get("name", f"target{k + 1}")),
-                          position=_vector(t["position"], 3, src, f"targets[{k}].position")))
+                          position=_vector(t["position"], 3, src, f"targets[{k}].position"),
+                          config=config))
     return tuple(out)
 
 
