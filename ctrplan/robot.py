@@ -149,7 +149,7 @@ class Robot:
         if n > 1:
             cols.append(beta[:, 1:] - beta[:, :-1])         # beta_i <= beta_(i+1)
             cols.append((beta[:, :-1] + L[:-1]) - (beta[:, 1:] + L[1:]))  # inner reaches further
-        cols.append((beta[:, -1:] + L[-1]))                 # outermost tube leaves the plane
+        cols.append(beta[:, -1:] + L[-1])                   # outermost tube leaves the plane
         return np.concatenate(cols, axis=1)
 
     def is_valid(self, q: np.ndarray) -> np.ndarray:
@@ -172,8 +172,14 @@ class Robot:
         lo, hi = self.beta_bounds()
         out: list[np.ndarray] = []
         have = 0
+        drawn = 0
         while have < n:
-            m = max(64, 2 * (n - have))
+            if have == 0 and drawn >= 1_000_000:
+                # e.g. two tubes of equal length force beta_i = beta_(i+1): a set of zero volume
+                raise InputError(self.source, "tubes", "the joint constraints leave (almost) no "
+                                 "volume to sample from: no valid configuration in 1e6 draws")
+            m = max(4096, 2 * (n - have))
+            drawn += m
             beta = rng.uniform(lo, hi, size=(m, self.n))
             alpha = -rng.uniform(-math.pi, math.pi, size=(m, self.n))  # maps [-pi, pi) -> (-pi, pi]
             q = np.concatenate([alpha, beta], axis=1)

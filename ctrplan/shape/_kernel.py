@@ -12,11 +12,23 @@ with precurvature ``uhat_i = (0, kappa_i, 0)`` on the curved section. Boundary v
 uniformly) and ``uz_i(beta_i + L_i) = 0``, solved by shooting on ``x = uz(0)`` with Newton and
 the Jacobian from the variational equations. The rigid model is the same with ``uz = 0``.
 
-Integration is fixed-step RK4 on intervals aligned to every break point of a configuration
-(curve starts, tube ends, requested output points); each interval is cut into
-``ceil(length / step)`` equal steps. Angles are carried as cos/sin (no trig in the loop).
-``kink`` adds a small rotation ``R <- R Exp([kx, ky, 0])`` where tube j ends (used by the
-clearance effect; zero gives the base model exactly).
+Integration runs over the intervals between break points (curve starts, tube ends and, in the
+final pass, the output points). Where fewer than two curved sections overlap, the torsions are
+constant (every ``sin(psi_i - psi_j)`` term vanishes) and the interval is stepped *exactly*:
+psi advances linearly, and the backbone is a circular arc or, when the one curved tube twists,
+a helix (in the frame ``R Rz(psi_j)`` the curvature ``(0, k, uz_j)`` is constant, so the
+rotation is one matrix exponential). The rigid model is piecewise constant curvature, so it is
+exact everywhere. Only where two or more curved sections overlap in the compliant model is
+fixed-step RK4 used: the interval is cut into ``ceil(length / step)`` equal steps, angles are
+carried as cos/sin (no trig in the loop), and the variational equations ride along in the
+shooting passes (RK4 applied to them is the exact derivative of the RK4 map, so Newton
+converges quadratically on the discretised problem). The step grid depends on the break
+points only; output points inside an RK4 interval are read off by cubic Hermite interpolation,
+so the final (frame) pass reproduces the shooting passes' torsion exactly and its residual
+can confirm convergence (saving a pass). Where Newton stalls (snapping configurations) the
+solve is retried by continuation in the torsional compliance. ``kink`` adds a small rotation
+``R <- R Exp([kx, ky, 0])`` where tube j ends (used by the clearance effect; zero gives the base
+model exactly). No numpy allocation happens per configuration: one workspace per batch.
 """
 
 from __future__ import annotations
@@ -26,38 +38,47 @@ import math
 import numpy as np
 from numba import njit
 
-# Event types in the per-configuration event list.
-_EV_CURVE = 0
-_EV_END = 1
-_EV_OUT = 2
+# Every kernel uses numba's ``error_model="numpy"``: a division by zero gives inf/nan instead
+# of a per-division check that raises (all divisions here are guarded; non-finite results end
+# up as ok=False).
+
+# Below this rotation angle the exponential's coefficients use their Taylor series
+# (1 - cos t) / t^2 and (t - sin t) / t^3 cancel catastrophically for small t.
+_SERIES_BELOW = 1e-2
 
 
-@njit(cache=True, fastmath=False)
-def _events(beta, L, straight, out_s):
+@njit(cache=True, error_model="numpy")
+def _tube_events(beta, L, straight, tpos, ttyp, tidx):
+    """Sorted tube events (curve start = 0, tube end = 1) by insertion sort; ties keep
+    curve starts before ends and lower tube indices first."""
     n = beta.shape[0]
-    m = out_s.shape[0]
-    ne = 2 * n + m
-    pos = np.empty(ne)
-    typ = np.empty(ne, dtype=np.int64)
-    idx = np.empty(ne, dtype=np.int64)
+    ne = 2 * n
     for i in range(n):
-        pos[i] = max(beta[i] + straight[i], 0.0)
-        typ[i] = _EV_CURVE
-        idx[i] = i
-        pos[n + i] = max(beta[i] + L[i], 0.0)
-        typ[n + i] = _EV_END
-        idx[n + i] = i
-    for k in range(m):
-        pos[2 * n + k] = out_s[k]
-        typ[2 * n + k] = _EV_OUT
-        idx[2 * n + k] = k
-    order = np.argsort(pos, kind="mergesort")
-    return pos[order], typ[order], idx[order]
+        tpos[i] = max(beta[i] + straight[i], 0.0)
+        ttyp[i] = 0
+        tidx[i] = i
+        tpos[n + i] = max(beta[i] + L[i], 0.0)
+        ttyp[n + i] = 1
+        tidx[n + i] = i
+    for k in range(1, ne):
+        p = tpos[k]
+        t = ttyp[k]
+        j = tidx[k]
+        m = k - 1
+        while m >= 0 and tpos[m] > p:
+            tpos[m + 1] = tpos[m]
+            ttyp[m + 1] = ttyp[m]
+            tidx[m + 1] = tidx[m]
+            m -= 1
+        tpos[m + 1] = p
+        ttyp[m + 1] = t
+        tidx[m + 1] = j
 
 
-@njit(cache=True)
-def _rhs(y, n, a, w, eisum_inv, frame, dy):
-    """Derivative of the state y = [c(n), s(n), uz(n), R(9, row-major), p(3)]."""
+@njit(cache=True, error_model="numpy")
+def _deriv(y, Y, n, a, w, eisum_inv, frame, sens, dy, dY):
+    """Derivative of y = [c(n), s(n), uz(n), R(9, row-major), p(3)] and of the sensitivities
+    Y = [dpsi/dx (n x n); duz/dx (n x n)] (when ``sens``)."""
     cw = 0.0
     sw = 0.0
     for j in range(n):
@@ -83,152 +104,192 @@ def _rhs(y, n, a, w, eisum_inv, frame, dy):
             dy[b + 3 * r + 1] = ux * r2
             dy[b + 3 * r + 2] = uy * r0 - ux * r1
             dy[b + 9 + r] = r2
-
-
-@njit(cache=True)
-def _rhs_sens(y, Y, n, a, w, dY):
-    """Variational equations: Y = [dpsi/dx (n x n); duz/dx (n x n)]."""
-    cw = 0.0
-    sw = 0.0
-    for j in range(n):
-        cw += w[j] * y[j]
-        sw += w[j] * y[n + j]
-    for col in range(n):
-        cwy = 0.0
-        swy = 0.0
-        for k in range(n):
-            cwy += w[k] * y[k] * Y[k, col]
-            swy += w[k] * y[n + k] * Y[k, col]
-        for i in range(n):
-            c = y[i]
-            s = y[n + i]
-            dY[i, col] = Y[n + i, col]
-            dY[n + i, col] = a[i] * ((c * cw + s * sw) * Y[i, col] - c * cwy - s * swy)
-
-
-@njit(cache=True)
-def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, torsion, out_s, step,
-               frame, sens, out_p, resid, jac):
-    """Integrate one configuration from s = 0 to its last event.
-
-    Fills ``out_p`` (m, 3) when ``frame``; ``resid`` (n,) = uz_i at tube i's end and
-    ``jac`` (n, n) = d resid / d x when ``sens``.
-    """
-    n = alpha.shape[0]
-    pos, typ, idx = _events(beta, L, straight, out_s)
-    nst = 3 * n + 12
-    y = np.zeros(nst)
-    for i in range(n):
-        psi0 = alpha[i] - beta[i] * x[i]
-        y[i] = math.cos(psi0)
-        y[n + i] = math.sin(psi0)
-        y[2 * n + i] = x[i]
-    b = 3 * n
-    y[b + 0] = 1.0
-    y[b + 4] = 1.0
-    y[b + 8] = 1.0
-    Y = np.zeros((2 * n, n))
     if sens:
-        for i in range(n):
-            Y[i, i] = -beta[i]
-            Y[n + i, i] = 1.0
-    k1 = np.empty(nst)
-    k2 = np.empty(nst)
-    k3 = np.empty(nst)
-    k4 = np.empty(nst)
-    yt = np.empty(nst)
-    K1 = np.empty((2 * n, n))
-    K2 = np.empty((2 * n, n))
-    K3 = np.empty((2 * n, n))
-    K4 = np.empty((2 * n, n))
-    Yt = np.empty((2 * n, n))
-    a = np.empty(n)
-    w = np.empty(n)
-    s_now = 0.0
-    for e in range(pos.shape[0]):
-        s_next = pos[e]
-        seg = s_next - s_now
-        if seg > 0.0:
-            mid = s_now + 0.5 * seg
-            eisum = 0.0
+        for col in range(n):
+            cwy = 0.0
+            swy = 0.0
+            for k in range(n):
+                cwy += w[k] * y[k] * Y[k, col]
+                swy += w[k] * y[n + k] * Y[k, col]
             for i in range(n):
-                present = mid < beta[i] + L[i]
-                curved = mid >= beta[i] + straight[i]
-                if present:
-                    eisum += EI[i]
-                w[i] = EI[i] * kappa[i] if (present and curved) else 0.0
-            eisum_inv = 1.0 / eisum if eisum > 0.0 else 0.0
-            for i in range(n):
-                if torsion and w[i] != 0.0:
-                    a[i] = ratio[i] * kappa[i] * eisum_inv
-                else:
-                    a[i] = 0.0
-            # tubes that have ended keep their state frozen: zero a and zero uz rate
-            nsub = int(math.ceil(seg / step - 1e-9))
-            if nsub < 1:
-                nsub = 1
-            h = seg / nsub
-            for _ in range(nsub):
-                _rhs(y, n, a, w, eisum_inv, frame, k1)
-                for j in range(nst):
-                    yt[j] = y[j] + 0.5 * h * k1[j]
-                _rhs(yt, n, a, w, eisum_inv, frame, k2)
-                for j in range(nst):
-                    yt[j] = y[j] + 0.5 * h * k2[j]
-                _rhs(yt, n, a, w, eisum_inv, frame, k3)
-                for j in range(nst):
-                    yt[j] = y[j] + h * k3[j]
-                _rhs(yt, n, a, w, eisum_inv, frame, k4)
-                if sens:
-                    _rhs_sens(y, Y, n, a, w, K1)
-                    for r in range(2 * n):
-                        for c in range(n):
-                            Yt[r, c] = Y[r, c] + 0.5 * h * K1[r, c]
-                    for j in range(nst):
-                        yt[j] = y[j] + 0.5 * h * k1[j]
-                    _rhs_sens(yt, Yt, n, a, w, K2)
-                    for r in range(2 * n):
-                        for c in range(n):
-                            Yt[r, c] = Y[r, c] + 0.5 * h * K2[r, c]
-                    for j in range(nst):
-                        yt[j] = y[j] + 0.5 * h * k2[j]
-                    _rhs_sens(yt, Yt, n, a, w, K3)
-                    for r in range(2 * n):
-                        for c in range(n):
-                            Yt[r, c] = Y[r, c] + h * K3[r, c]
-                    for j in range(nst):
-                        yt[j] = y[j] + h * k3[j]
-                    _rhs_sens(yt, Yt, n, a, w, K4)
-                    for r in range(2 * n):
-                        for c in range(n):
-                            Y[r, c] += h / 6.0 * (K1[r, c] + 2.0 * K2[r, c] + 2.0 * K3[r, c] + K4[r, c])
-                for j in range(nst):
-                    y[j] += h / 6.0 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
-                # ended tubes: their angle rate is uz (frozen at 0 after the end by the
-                # boundary condition); keep c/s on the unit circle against round-off
-            s_now = s_next
-        t = typ[e]
-        i = idx[e]
-        if t == _EV_OUT:
-            if frame:
-                out_p[i, 0] = y[b + 9]
-                out_p[i, 1] = y[b + 10]
-                out_p[i, 2] = y[b + 11]
-        elif t == _EV_END:
-            if sens:
-                resid[i] = y[2 * n + i]
-                for c in range(n):
-                    jac[i, c] = Y[n + i, c]
-            # the tube is gone: freeze its torsion (and angle) from here on
-            y[2 * n + i] = 0.0
-            if sens:
-                for c in range(n):
-                    Y[n + i, c] = 0.0
-            if frame and (kink[i, 0] != 0.0 or kink[i, 1] != 0.0):
-                _apply_kink(y, b, kink[i, 0], kink[i, 1])
+                c = y[i]
+                s = y[n + i]
+                dY[i, col] = Y[n + i, col]
+                dY[n + i, col] = a[i] * ((c * cw + s * sw) * Y[i, col] - c * cwy - s * swy)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
+def _rk4(y, Y, n, nst, a, w, eisum_inv, frame, sens, s0, seg, step, out_s, m_out, ko, out_p,
+         k1, k2, k3, k4, yt, K1, K2, K3, K4, Yt):
+    """Fixed-step RK4 over [s0, s0 + seg] (``ceil(seg / step)`` equal steps).
+
+    The step grid depends on the break points only, so the frame pass reproduces the shooting
+    passes' torsion exactly. Output points ``out_s[ko:]`` that fall strictly inside the
+    interval are read off by cubic Hermite interpolation of p between steps (p' = R e_z at
+    both ends; O(h^4) like RK4 itself). Returns the next output index. k*, yt (nst,) and
+    K*, Yt (2n, n) are workspace.
+    """
+    nsub = int(math.ceil(seg / step - 1e-9))
+    if nsub < 1:
+        nsub = 1
+    h = seg / nsub
+    n2 = 2 * n
+    b = 3 * n
+    s_end = s0 + seg
+    for q in range(nsub):
+        sa = s0 + q * h
+        sb = s_end if q == nsub - 1 else sa + h
+        pax = 0.0
+        pay = 0.0
+        paz = 0.0
+        tax = 0.0
+        tay = 0.0
+        taz = 0.0
+        want = frame and ko < m_out and out_s[ko] < s_end and out_s[ko] <= sb
+        if want:
+            pax = y[b + 9]
+            pay = y[b + 10]
+            paz = y[b + 11]
+            tax = y[b + 2]
+            tay = y[b + 5]
+            taz = y[b + 8]
+        _deriv(y, Y, n, a, w, eisum_inv, frame, sens, k1, K1)
+        for j in range(nst):
+            yt[j] = y[j] + 0.5 * h * k1[j]
+        if sens:
+            for r in range(n2):
+                for c in range(n):
+                    Yt[r, c] = Y[r, c] + 0.5 * h * K1[r, c]
+        _deriv(yt, Yt, n, a, w, eisum_inv, frame, sens, k2, K2)
+        for j in range(nst):
+            yt[j] = y[j] + 0.5 * h * k2[j]
+        if sens:
+            for r in range(n2):
+                for c in range(n):
+                    Yt[r, c] = Y[r, c] + 0.5 * h * K2[r, c]
+        _deriv(yt, Yt, n, a, w, eisum_inv, frame, sens, k3, K3)
+        for j in range(nst):
+            yt[j] = y[j] + h * k3[j]
+        if sens:
+            for r in range(n2):
+                for c in range(n):
+                    Yt[r, c] = Y[r, c] + h * K3[r, c]
+        _deriv(yt, Yt, n, a, w, eisum_inv, frame, sens, k4, K4)
+        h6 = h / 6.0
+        for j in range(nst):
+            y[j] += h6 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
+        if sens:
+            for r in range(n2):
+                for c in range(n):
+                    Y[r, c] += h6 * (K1[r, c] + 2.0 * K2[r, c] + 2.0 * K3[r, c] + K4[r, c])
+        if want:
+            pbx = y[b + 9]
+            pby = y[b + 10]
+            pbz = y[b + 11]
+            tbx = y[b + 2]
+            tby = y[b + 5]
+            tbz = y[b + 8]
+            while ko < m_out and out_s[ko] < s_end and out_s[ko] <= sb:
+                th = (out_s[ko] - sa) / h
+                if th < 0.0:
+                    th = 0.0
+                th2 = th * th
+                th3 = th2 * th
+                h00 = 2.0 * th3 - 3.0 * th2 + 1.0
+                h10 = (th3 - 2.0 * th2 + th) * h
+                h01 = -2.0 * th3 + 3.0 * th2
+                h11 = (th3 - th2) * h
+                out_p[ko, 0] = h00 * pax + h10 * tax + h01 * pbx + h11 * tbx
+                out_p[ko, 1] = h00 * pay + h10 * tay + h01 * pby + h11 * tby
+                out_p[ko, 2] = h00 * paz + h10 * taz + h01 * pbz + h11 * tbz
+                ko += 1
+    return ko
+
+
+@njit(cache=True, error_model="numpy")
+def _exp_coeffs(th2, seg):
+    """For Exp(seg [v]x) with th = |v| seg: returns (a1, a2, a3) with
+    Exp = I + a1 [v] + a2 [v]^2 and int_0^seg Exp(t [v]) dt = seg I + a2 [v] + a3 [v]^2."""
+    if th2 < _SERIES_BELOW * _SERIES_BELOW:
+        s1 = 1.0 - th2 / 6.0 + th2 * th2 / 120.0             # sin t / t
+        s2 = 0.5 - th2 / 24.0 + th2 * th2 / 720.0            # (1 - cos t) / t^2
+        s3 = 1.0 / 6.0 - th2 / 120.0 + th2 * th2 / 5040.0    # (t - sin t) / t^3
+    else:
+        th = math.sqrt(th2)
+        st = math.sin(th)
+        ct = math.cos(th)
+        s1 = st / th
+        s2 = (1.0 - ct) / th2
+        s3 = (th - st) / (th2 * th)
+    return seg * s1, seg * seg * s2, seg * seg * seg * s3
+
+
+@njit(cache=True, error_model="numpy")
+def _exact_frame(y, b, seg, vx, vy, vz, c0, s0, c1, s1, G):
+    """Advance R, p exactly over ``seg`` when the curvature is constant in a frame that spins
+    at rate vz about the tangent: R(s) = R0 Rz(phi0) Exp(s [v]x) Rz(-phi(s)),
+    p(s) = p0 + R0 Rz(phi0) int Exp. (c0, s0) = (cos, sin) phi0, (c1, s1) = at the end."""
+    v2 = vx * vx + vy * vy + vz * vz
+    a1, a2, a3 = _exp_coeffs(v2 * seg * seg, seg)
+    # E = I + a1 [v] + a2 [v]^2 ; [v]^2 = v v^T - |v|^2 I
+    e00 = 1.0 + a2 * (vx * vx - v2)
+    e11 = 1.0 + a2 * (vy * vy - v2)
+    e22 = 1.0 + a2 * (vz * vz - v2)
+    e01 = -a1 * vz + a2 * vx * vy
+    e10 = a1 * vz + a2 * vx * vy
+    e02 = a1 * vy + a2 * vx * vz
+    e20 = -a1 * vy + a2 * vx * vz
+    e12 = -a1 * vx + a2 * vy * vz
+    e21 = a1 * vx + a2 * vy * vz
+    # local displacement d = seg e_z + a2 (v x e_z) + a3 v x (v x e_z)
+    dx = a2 * vy + a3 * vx * vz
+    dy_ = -a2 * vx + a3 * vy * vz
+    dz = seg + a3 * (vz * vz - v2)
+    # M = E Rz(-phi1): Rz(-phi1) = [[c1, s1, 0], [-s1, c1, 0], [0, 0, 1]]
+    m00 = e00 * c1 - e01 * s1
+    m01 = e00 * s1 + e01 * c1
+    m10 = e10 * c1 - e11 * s1
+    m11 = e10 * s1 + e11 * c1
+    m20 = e20 * c1 - e21 * s1
+    m21 = e20 * s1 + e21 * c1
+    # G = Rz(phi0) M (3 x 3), g = Rz(phi0) d
+    G[0, 0] = c0 * m00 - s0 * m10
+    G[0, 1] = c0 * m01 - s0 * m11
+    G[0, 2] = c0 * e02 - s0 * e12
+    G[1, 0] = s0 * m00 + c0 * m10
+    G[1, 1] = s0 * m01 + c0 * m11
+    G[1, 2] = s0 * e02 + c0 * e12
+    G[2, 0] = m20
+    G[2, 1] = m21
+    G[2, 2] = e22
+    gx = c0 * dx - s0 * dy_
+    gy = s0 * dx + c0 * dy_
+    gz = dz
+    for r in range(3):
+        r0 = y[b + 3 * r]
+        r1 = y[b + 3 * r + 1]
+        r2 = y[b + 3 * r + 2]
+        y[b + 9 + r] += r0 * gx + r1 * gy + r2 * gz
+        y[b + 3 * r] = r0 * G[0, 0] + r1 * G[1, 0] + r2 * G[2, 0]
+        y[b + 3 * r + 1] = r0 * G[0, 1] + r1 * G[1, 1] + r2 * G[2, 1]
+        y[b + 3 * r + 2] = r0 * G[0, 2] + r1 * G[1, 2] + r2 * G[2, 2]
+
+
+@njit(cache=True, error_model="numpy")
+def _catch_up(y, n, i, pend):
+    """Apply tube i's deferred rotation ``pend[i]`` to its (cos, sin) psi."""
+    th = pend[i]
+    if th != 0.0:
+        ct = math.cos(th)
+        st = math.sin(th)
+        c = y[i]
+        s = y[n + i]
+        y[i] = c * ct - s * st
+        y[n + i] = s * ct + c * st
+        pend[i] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
 def _apply_kink(y, b, kx, ky):
     """R <- R Exp([kx, ky, 0]) (Rodrigues)."""
     th = math.sqrt(kx * kx + ky * ky)
@@ -256,16 +317,286 @@ def _apply_kink(y, b, kx, ky):
         y[b + 3 * r + 2] = r0 * m02 + r1 * m12 + r2 * m22
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
+def _exact(y, Y, n, b, w, eisum_inv, ncurved, jc, torsion, frame, sens, seg, pend, G):
+    """Advance over ``seg`` where fewer than two curved sections overlap (or the model is
+    rigid): the torsions are constant, so every psi advances linearly (its (cos, sin) rotation
+    is deferred in ``pend`` until someone needs the angle) and R, p follow an arc or helix."""
+    cj0 = 1.0
+    sj0 = 0.0
+    if frame and torsion and ncurved == 1:
+        _catch_up(y, n, jc, pend)
+        cj0 = y[jc]
+        sj0 = y[n + jc]
+        nrm = 1.0 / math.sqrt(cj0 * cj0 + sj0 * sj0)
+        cj0 *= nrm
+        sj0 *= nrm
+    if torsion:
+        for i in range(n):
+            pend[i] += y[2 * n + i] * seg
+        if sens:
+            for i in range(n):
+                for c in range(n):
+                    Y[i, c] += seg * Y[n + i, c]
+    if frame:
+        if ncurved == 0:
+            for r in range(3):
+                y[b + 9 + r] += seg * y[b + 3 * r + 2]
+        elif torsion and ncurved == 1 and y[2 * n + jc] != 0.0:
+            # helix: in the frame R Rz(psi_j) the curvature (0, k, uz_j) is constant
+            _catch_up(y, n, jc, pend)
+            cj1 = y[jc]
+            sj1 = y[n + jc]
+            nrm = 1.0 / math.sqrt(cj1 * cj1 + sj1 * sj1)
+            _exact_frame(y, b, seg, 0.0, w[jc] * eisum_inv, y[2 * n + jc],
+                         cj0, sj0, cj1 * nrm, sj1 * nrm, G)
+        else:
+            # constant curvature (the rigid model, or no torsion in the curved sections):
+            # a circular arc
+            cw = 0.0
+            sw = 0.0
+            for j in range(n):
+                if w[j] != 0.0:
+                    wj = w[j]
+                    if torsion:
+                        # (cos, sin) psi drift off the unit circle in RK4 intervals
+                        _catch_up(y, n, j, pend)
+                        wj /= math.sqrt(y[j] * y[j] + y[n + j] * y[n + j])
+                    cw += wj * y[j]
+                    sw += wj * y[n + j]
+            _exact_frame(y, b, seg, -sw * eisum_inv, cw * eisum_inv, 0.0,
+                         1.0, 0.0, 1.0, 0.0, G)
+
+
+@njit(cache=True, error_model="numpy")
+def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, torsion,
+               tpos, ttyp, tidx, out_s, m_out, step, frame, sens, out_p, resid, jac,
+               y, Y, a, w, pend, ws, WS, G):
+    """Integrate one configuration from s = 0 to its last tube event.
+
+    tpos/ttyp/tidx : the sorted tube events (:func:`_tube_events`); out_s[:m_out] : sorted
+    output arc lengths in [0, last event]. Fills ``out_p`` (m_out, 3) when ``frame``;
+    ``resid`` (n,) = uz_i at tube i's end (always) and ``jac`` (n, n) = d resid / d x when
+    ``sens``. y, Y, a, w, pend, ws, WS, G are workspace.
+    """
+    n = alpha.shape[0]
+    nst = 3 * n + 12 if frame else 3 * n
+    b = 3 * n
+    for i in range(n):
+        xi = x[i] if torsion else 0.0
+        psi0 = alpha[i] - beta[i] * xi
+        y[i] = math.cos(psi0)
+        y[n + i] = math.sin(psi0)
+        y[2 * n + i] = xi
+        pend[i] = 0.0
+    if frame:
+        for j in range(12):
+            y[b + j] = 0.0
+        y[b + 0] = 1.0
+        y[b + 4] = 1.0
+        y[b + 8] = 1.0
+    if sens:
+        for r in range(2 * n):
+            for c in range(n):
+                Y[r, c] = 0.0
+        for i in range(n):
+            Y[i, i] = -beta[i]
+            Y[n + i, i] = 1.0
+    ko = 0
+    if not frame:
+        m_out = 0
+    s_now = 0.0
+    for it in range(2 * n):
+        s_next = tpos[it]
+        seg = s_next - s_now
+        if seg > 0.0:
+            # the regime (tubes present, curved sections) is constant inside the interval
+            mid = s_now + 0.5 * seg
+            eisum = 0.0
+            ncurved = 0
+            jc = -1
+            for i in range(n):
+                present = mid < beta[i] + L[i]
+                curved = mid >= beta[i] + straight[i]
+                if present:
+                    eisum += EI[i]
+                if present and curved and kappa[i] != 0.0:
+                    w[i] = EI[i] * kappa[i]
+                    ncurved += 1
+                    jc = i
+                else:
+                    w[i] = 0.0
+            eisum_inv = 1.0 / eisum if eisum > 0.0 else 0.0
+            twisting = False
+            if torsion and ncurved >= 2:
+                for i in range(n):
+                    a[i] = ratio[i] * kappa[i] * eisum_inv if w[i] != 0.0 else 0.0
+                    if a[i] != 0.0 or y[2 * n + i] != 0.0:
+                        twisting = True
+                # with no torsional coupling and no torsion (e.g. EI/GJ = 0) the curvature is
+                # constant: the rigid model's exact arc below, not RK4
+            if twisting:
+                for i in range(n):
+                    _catch_up(y, n, i, pend)
+                ko = _rk4(y, Y, n, nst, a, w, eisum_inv, frame, sens, s_now, seg, step,
+                          out_s, m_out, ko, out_p, ws[0], ws[1], ws[2], ws[3], ws[4],
+                          WS[0], WS[1], WS[2], WS[3], WS[4])
+            else:
+                # exact: split at the output points inside the interval
+                s_at = s_now
+                while ko < m_out and out_s[ko] < s_next:
+                    d = out_s[ko] - s_at
+                    if d > 0.0:
+                        _exact(y, Y, n, b, w, eisum_inv, ncurved, jc, torsion, frame, sens, d,
+                               pend, G)
+                        s_at = out_s[ko]
+                    out_p[ko, 0] = y[b + 9]
+                    out_p[ko, 1] = y[b + 10]
+                    out_p[ko, 2] = y[b + 11]
+                    ko += 1
+                d = s_next - s_at
+                if d > 0.0:
+                    _exact(y, Y, n, b, w, eisum_inv, ncurved, jc, torsion, frame, sens, d,
+                           pend, G)
+            s_now = s_next
+        i = tidx[it]
+        if ttyp[it] == 1:
+            resid[i] = y[2 * n + i]
+            if sens:
+                for c in range(n):
+                    jac[i, c] = Y[n + i, c]
+            # the tube is gone: its torsion (and so its angle) is frozen from here on
+            y[2 * n + i] = 0.0
+            if sens:
+                for c in range(n):
+                    Y[n + i, c] = 0.0
+            if frame and (kink[i, 0] != 0.0 or kink[i, 1] != 0.0):
+                _apply_kink(y, b, kink[i, 0], kink[i, 1])
+        # output points at (or, by round-off, just past) this event
+        while ko < m_out and (out_s[ko] <= s_now or it == 2 * n - 1):
+            out_p[ko, 0] = y[b + 9]
+            out_p[ko, 1] = y[b + 10]
+            out_p[ko, 2] = y[b + 11]
+            ko += 1
+
+
+@njit(cache=True, error_model="numpy")
 def _max_abs(v):
     m = 0.0
     for i in range(v.shape[0]):
-        if abs(v[i]) > m:
+        if not abs(v[i]) <= m:       # NaN propagates
             m = abs(v[i])
     return m
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
+def _newton_step(jac, resid, dx, A, perm):
+    """dx = -jac^{-1} resid by Gaussian elimination with partial pivoting (n is tiny).
+    Returns False when the Jacobian is singular or not finite."""
+    n = resid.shape[0]
+    for i in range(n):
+        for j in range(n):
+            A[i, j] = jac[i, j]
+        dx[i] = -resid[i]
+        perm[i] = i
+    for k in range(n):
+        p = k
+        big = abs(A[k, k])
+        for i in range(k + 1, n):
+            if abs(A[i, k]) > big:
+                big = abs(A[i, k])
+                p = i
+        if not (big > 0.0) or not math.isfinite(big):
+            return False
+        if p != k:
+            for j in range(n):
+                t = A[k, j]
+                A[k, j] = A[p, j]
+                A[p, j] = t
+            t = dx[k]
+            dx[k] = dx[p]
+            dx[p] = t
+        inv = 1.0 / A[k, k]
+        for i in range(k + 1, n):
+            f = A[i, k] * inv
+            if f != 0.0:
+                for j in range(k + 1, n):
+                    A[i, j] -= f * A[k, j]
+                dx[i] -= f * dx[k]
+    for k in range(n - 1, -1, -1):
+        t = dx[k]
+        for j in range(k + 1, n):
+            t -= A[k, j] * dx[j]
+        dx[k] = t / A[k, k]
+    for i in range(n):
+        if not math.isfinite(dx[i]):
+            return False
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx, out_s, m, step, tol,
+            max_iter, may_shape, pts, resid, jac, resid_t, jac_t, dx, xt, A, perm,
+            y, Y, a, w, pend, ws, WS, G):
+    """Shooting on uz(0) = x (updated in place) by Newton with a backtracking line search.
+
+    Returns (residual, iterations, shaped): ``shaped`` is True when the final frame pass
+    (points into ``pts``) has already been run at the returned x (only if ``may_shape``).
+    """
+    n = x.shape[0]
+    no_out = out_s[:0]
+    no_p = pts[:0]
+    _integrate(al, be, x, L, straight, ka, ei, ra, kk, True, tpos, ttyp, tidx,
+               no_out, 0, step, False, True, no_p, resid, jac, y, Y, a, w, pend, ws, WS, G)
+    r = _max_abs(resid)
+    it = 0
+    quad = -1.0         # estimate of C in |resid after a full step| ~ C |dx|^2
+    while r >= tol and it < max_iter and math.isfinite(r):
+        it += 1
+        if not _newton_step(jac, resid, dx, A, perm):
+            break
+        dxn = _max_abs(dx)
+        if may_shape and quad > 0.0 and quad * dxn * dxn < 0.1 * tol:
+            # Newton is in its quadratic regime and predicts convergence: run the final
+            # frame pass at the full step and read the residual from it (same step grid, so
+            # the same residual), saving a sensitivity pass that would only confirm it
+            for i in range(n):
+                xt[i] = x[i] + dx[i]
+            _integrate(al, be, xt, L, straight, ka, ei, ra, kk, True, tpos, ttyp, tidx,
+                       out_s, m, step, True, False, pts, resid_t, jac_t,
+                       y, Y, a, w, pend, ws, WS, G)
+            rt = _max_abs(resid_t)
+            if rt < tol:
+                for i in range(n):
+                    x[i] = xt[i]
+                return rt, it, True
+        t = 1.0
+        accepted = False
+        rt = r
+        for _ls in range(8):
+            for i in range(n):
+                xt[i] = x[i] + t * dx[i]
+            _integrate(al, be, xt, L, straight, ka, ei, ra, kk, True, tpos, ttyp, tidx,
+                       no_out, 0, step, False, True, no_p, resid_t, jac_t,
+                       y, Y, a, w, pend, ws, WS, G)
+            rt = _max_abs(resid_t)
+            if rt < r or rt < tol:
+                accepted = True
+                break
+            t *= 0.5
+        if not accepted:
+            break
+        quad = rt / (dxn * dxn) if (t == 1.0 and dxn > 0.0) else -1.0
+        for i in range(n):
+            x[i] = xt[i]
+            resid[i] = resid_t[i]
+            for c in range(n):
+                jac[i, c] = jac_t[i, c]
+        r = rt
+    return r, it, False
+
+
+@njit(cache=True, error_model="numpy")
 def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, step, tol,
                 max_iter, x_init):
     """Solve and integrate a batch of configurations.
@@ -274,9 +605,15 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
     L, straight : (n,)    mm
     kappa, EI, ratio : (B, n)  1/mm, N mm^2, EI/GJ
     kink : (B, n, 2) rad  (rotation where tube j ends)
-    x_init : (B, n) initial guess of uz(0), 1/mm
+    x_init : (B, n) initial guess of uz(0), 1/mm (ignored by the rigid model)
 
     Returns points (B, m, 3), s (B, m), uz0 (B, n), iters (B,), residual (B,), ok (B,).
+    A configuration is ok when max |uz_i(end_i)| < tol was reached and every point is finite.
+    Newton (at most max_iter iterations, backtracking line search) starts from x_init; where
+    it fails (near snapping configurations the residual has local minima) the solve is
+    retried by continuation in the torsional compliance: EI/GJ scaled by k/K, k = 1..K
+    (K = 8, then 32), each stage started from the previous one's solution (at 0 the rigid
+    solution uz = 0 is exact). iters counts every Newton iteration.
     """
     B, n = alpha.shape
     points = np.zeros((B, m, 3))
@@ -285,62 +622,81 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
     iters = np.zeros(B, dtype=np.int64)
     rnorm = np.zeros(B)
     ok = np.zeros(B, dtype=np.bool_)
-    empty = np.zeros(0)
-    dummy_p = np.zeros((0, 3))
+    # one workspace for the whole batch
+    nst = 3 * n + 12
+    y = np.zeros(nst)
+    Y = np.zeros((2 * n, n))
+    a = np.zeros(n)
+    w = np.zeros(n)
+    pend = np.zeros(n)
+    ws = np.zeros((5, nst))
+    WS = np.zeros((5, 2 * n, n))
+    G = np.zeros((3, 3))
+    tpos = np.zeros(2 * n)
+    ttyp = np.zeros(2 * n, dtype=np.int64)
+    tidx = np.zeros(2 * n, dtype=np.int64)
     resid = np.zeros(n)
     jac = np.zeros((n, n))
     resid_t = np.zeros(n)
     jac_t = np.zeros((n, n))
+    A = np.zeros((n, n))
+    perm = np.zeros(n, dtype=np.int64)
+    dx = np.zeros(n)
+    x = np.zeros(n)
+    xt = np.zeros(n)
+    rs = np.zeros(n)
     out_s = np.zeros(m)
     for bi in range(B):
         al = alpha[bi]
         be = beta[bi]
-        tip = 0.0
+        ka = kappa[bi]
+        ei = EI[bi]
+        ra = ratio[bi]
+        kk = kink[bi]
+        pts = points[bi]
+        _tube_events(be, L, straight, tpos, ttyp, tidx)
+        tip = tpos[2 * n - 1]
+        for k in range(m):
+            out_s[k] = tip * k / (m - 1) if m > 1 else tip
+        out_s[m - 1] = tip
         for i in range(n):
-            if be[i] + L[i] > tip:
-                tip = be[i] + L[i]
-        x = x_init[bi].copy()
-        converged = True
+            x[i] = x_init[bi, i] if torsion else 0.0
+        shaped = False          # the final (frame) pass has been run at x
         it = 0
         r = 0.0
         if torsion:
-            converged = False
-            _integrate(al, be, x, L, straight, kappa[bi], EI[bi], ratio[bi], kink[bi], True,
-                       empty, step, False, True, dummy_p, resid, jac)
-            r = _max_abs(resid)
-            while it < max_iter:
+            r, it, shaped = _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx,
+                                    out_s, m, step, tol, max_iter, True, pts, resid, jac,
+                                    resid_t, jac_t, dx, xt, A, perm, y, Y, a, w, pend, ws, WS, G)
+            for K in (8, 32):
                 if r < tol:
-                    converged = True
                     break
-                it += 1
-                dx = np.linalg.solve(jac, -resid) if np.isfinite(jac).all() else np.zeros(n)
-                t = 1.0
-                accepted = False
-                for _ls in range(8):
-                    xt = x + t * dx
-                    _integrate(al, be, xt, L, straight, kappa[bi], EI[bi], ratio[bi], kink[bi],
-                               True, empty, step, False, True, dummy_p, resid_t, jac_t)
-                    rt = _max_abs(resid_t)
-                    if rt < r or rt < tol:
-                        accepted = True
+                for i in range(n):
+                    x[i] = 0.0
+                for k in range(1, K + 1):
+                    lam = k / K
+                    for i in range(n):
+                        rs[i] = ra[i] * lam
+                    r, itk, shaped = _newton(al, be, x, L, straight, ka, ei, rs, kk, tpos, ttyp,
+                                             tidx, out_s, m, step, tol, max_iter, k == K, pts,
+                                             resid, jac, resid_t, jac_t, dx, xt, A, perm,
+                                             y, Y, a, w, pend, ws, WS, G)
+                    it += itk
+                    if not r < tol:
                         break
-                    t *= 0.5
-                if not accepted or not math.isfinite(rt):
-                    break
-                x = xt
-                r = rt
-                resid[:] = resid_t
-                jac[:, :] = jac_t
-            if r < tol:
-                converged = True
-        for k in range(m):
-            out_s[k] = tip * k / (m - 1) if m > 1 else tip
-        _integrate(al, be, x, L, straight, kappa[bi], EI[bi], ratio[bi], kink[bi], torsion,
-                   out_s, step, True, False, points[bi], resid_t, jac_t)
+        if not shaped:
+            _integrate(al, be, x, L, straight, ka, ei, ra, kk, torsion, tpos, ttyp, tidx,
+                       out_s, m, step, True, False, pts, resid_t, jac_t,
+                       y, Y, a, w, pend, ws, WS, G)
+        finite = True
         for k in range(m):
             svals[bi, k] = out_s[k]
-        uz0[bi] = x
+            for c in range(3):
+                if not math.isfinite(pts[k, c]):
+                    finite = False
+        for i in range(n):
+            uz0[bi, i] = x[i]
         iters[bi] = it
         rnorm[bi] = r
-        ok[bi] = converged
+        ok[bi] = r < tol and finite
     return points, svals, uz0, iters, rnorm, ok

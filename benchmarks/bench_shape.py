@@ -1,0 +1,171 @@
+"""Time per shape of the mechanics models (rigid, torsionally compliant) on ``seed1``.
+
+Batch sizes 1, 100 and 10,000, 20 points per backbone, one thread (the numba kernel is
+serial), medians over repeats of ``PhysicsModel.shape`` (the public call, Python overhead
+included). Baselines run in the same process, because these machines are shared and noisy:
+the rigid model, and the tight scipy reference solver (:mod:`ctrplan.shape.reference`) one
+configuration at a time on a few configurations, which also gives the accuracy of the default
+step. Usage::
+
+    python benchmarks/bench_shape.py [--quick] [--out results.json]
+
+``run(quick) -> dict`` is what ``ctrplan bench`` calls; ``table`` holds the markdown rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+
+# one thread for anything that might use a pool (numpy BLAS); set before numpy is imported
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
+
+from ctrplan.robot import load_robot  # noqa: E402
+from ctrplan.shape.physics import PhysicsModel  # noqa: E402
+from ctrplan.shape.reference import reference_shape  # noqa: E402
+
+ROBOT = "seed1"
+POINTS = 20
+SEED = 1
+#: A published time for the torsionally compliant model, one configuration at a time (the
+#: foundation issue's anchor); measured elsewhere, so only indicative.
+PUBLISHED_ANCHOR_S = 1.73e-3
+
+
+def _median_time(fn, repeats: int) -> tuple[float, float]:
+    """Median (thread CPU time, wall time) of ``fn()`` over ``repeats`` runs.
+
+    The kernel is single-threaded, so the calling thread's CPU time is its cost on one core;
+    unlike wall time it does not count the time the OS gives the core to other processes on
+    a shared machine. Both are reported."""
+    cpu: list[float] = []
+    wall: list[float] = []
+    for _ in range(repeats):
+        c0 = time.thread_time()
+        t0 = time.perf_counter()
+        fn()
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.thread_time() - c0)
+    return statistics.median(cpu), statistics.median(wall)
+
+
+def run(quick: bool = False) -> dict:
+    robot = load_robot(ROBOT)
+    batches = (1, 100, 10_000)
+    repeats = {1: 50 if quick else 500, 100: 10 if quick else 50, 10_000: 2 if quick else 7}
+    q_all = robot.sample(10_000, seed=SEED)
+    models = {"rigid": PhysicsModel(robot, torsion=False), "compliant": PhysicsModel(robot, torsion=True)}
+    for m in models.values():                     # compile (or load the numba cache) first
+        m.shape(q_all[:2], POINTS)
+
+    per_shape: dict[str, dict[int, float]] = {name: {} for name in models}
+    per_shape_wall: dict[str, dict[int, float]] = {name: {} for name in models}
+    for B in batches:
+        q = q_all[:B]
+        # interleave the models so that machine noise hits both alike
+        for name, m in models.items():
+            cpu, wall = _median_time(lambda m=m, q=q: m.shape(q, POINTS), repeats[B])
+            per_shape[name][B] = cpu / B
+            per_shape_wall[name][B] = wall / B
+
+    comp = models["compliant"]
+    shape = comp.shape(q_all, POINTS)
+    info = comp.last_info
+    iterations = {"mean": float(info.iterations.mean()), "max": int(info.iterations.max()),
+                  "converged_fraction": float(shape.ok.mean())}
+
+    # baseline + accuracy: the scipy reference, one configuration at a time
+    n_ref = 2 if quick else 5
+    q_ref = q_all[:n_ref]
+    ref_times, refs = [], []
+    for k in range(n_ref):
+        t0 = time.thread_time()
+        refs.append(reference_shape(robot, q_ref[k], points=POINTS).points)
+        ref_times.append(time.thread_time() - t0)
+    refs_arr = np.stack(refs)
+    ref_per_shape = statistics.median(ref_times)
+    errors_by_step = {}
+    for step in (5.0, 10.0, 20.0, 40.0):
+        sh = comp.with_config(step_mm=step).shape(q_ref, POINTS)
+        errors_by_step[step] = float(np.abs(sh.points - refs_arr).max())
+    max_error = float(np.abs(shape.points[:n_ref] - refs_arr).max())
+
+    table = []
+    for B in batches:
+        r, c = per_shape["rigid"][B], per_shape["compliant"][B]
+        table.append({
+            "batch": B,
+            "rigid_us_per_shape": r * 1e6,
+            "compliant_us_per_shape": c * 1e6,
+            "compliant_over_rigid": c / r,
+            "scipy_reference_over_compliant": ref_per_shape / c,
+            "rigid_wall_us": per_shape_wall["rigid"][B] * 1e6,
+            "compliant_wall_us": per_shape_wall["compliant"][B] * 1e6,
+        })
+    c10k = per_shape["compliant"][10_000]
+    return {
+        "robot": ROBOT, "points": POINTS, "seed": SEED, "threads": 1,
+        "step_mm": comp.config.step_mm, "tol": comp.config.tol,
+        "timer": "thread CPU time (wall time in *_wall_*)",
+        "per_shape_s": {name: {str(B): v for B, v in d.items()} for name, d in per_shape.items()},
+        "per_shape_wall_s": {name: {str(B): v for B, v in d.items()} for name, d in per_shape_wall.items()},
+        "scipy_reference_s_per_shape": ref_per_shape,
+        "max_error_vs_reference_mm": max_error,
+        "max_error_vs_reference_mm_by_step": {str(k): v for k, v in errors_by_step.items()},
+        "newton_iterations": iterations,
+        "published_anchor_s_per_shape": PUBLISHED_ANCHOR_S,
+        "anchor_over_compliant_10k": PUBLISHED_ANCHOR_S / c10k,
+        "target_compliant_10k_s": 1e-4,
+        "meets_target": bool(c10k <= 1e-4),
+        "table": table,
+    }
+
+
+def to_markdown(res: dict) -> str:
+    lines = [
+        f"Robot {res['robot']}, {res['points']} points, one thread, step {res['step_mm']} mm, "
+        f"tol {res['tol']:g}; medians of thread CPU time (wall time in brackets).",
+        "",
+        "| batch | rigid (us/shape) | compliant (us/shape) | compliant / rigid | scipy reference / compliant |",
+        "|---:|---:|---:|---:|---:|",
+    ]
+    for r in res["table"]:
+        lines.append(f"| {r['batch']:,} | {r['rigid_us_per_shape']:.1f} ({r['rigid_wall_us']:.1f}) | "
+                     f"{r['compliant_us_per_shape']:.1f} ({r['compliant_wall_us']:.1f}) | "
+                     f"{r['compliant_over_rigid']:.2f} | {r['scipy_reference_over_compliant']:,.0f} |")
+    it = res["newton_iterations"]
+    lines += [
+        "",
+        f"scipy reference (solve_ivp DOP853 rtol 1e-12 + root): {res['scipy_reference_s_per_shape'] * 1e3:.0f} ms/shape; "
+        f"max |compliant - reference| = {res['max_error_vs_reference_mm']:.2e} mm at the default step "
+        f"(by step: " + ", ".join(f"{k} mm: {v:.1e}" for k, v in res["max_error_vs_reference_mm_by_step"].items()) + ").",
+        f"Newton iterations at batch 10,000: mean {it['mean']:.2f}, max {it['max']}, "
+        f"converged {it['converged_fraction'] * 100:.2f} %. Target (compliant, batch 10,000) <= 100 us: "
+        f"{'met' if res['meets_target'] else 'NOT met'} "
+        f"({res['anchor_over_compliant_10k']:.0f}x below the published 1.73 ms/shape anchor).",
+    ]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer repeats (a smoke run)")
+    ap.add_argument("--out", default=None, help="write the results as JSON here")
+    args = ap.parse_args(argv)
+    res = run(quick=args.quick)
+    if args.out:
+        with open(args.out, "w") as fh:
+            json.dump(res, fh, indent=2)
+    print(to_markdown(res))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
