@@ -1,0 +1,73 @@
+"""Numba forward pass of the learned shape network for small batches (low call overhead).
+
+Same arithmetic as the torch path in float64: features per tube (cos, sin of alpha, relative
+to the outermost tube's when ``outer``; beta scaled to [-1, 1]), ``depth`` Linear + PReLU layers,
+the last layer (de-normalisation folded in) to (K, 3) coefficients times the tip length, the
+turn by the outermost tube's angle (``outer``), and the basis expansion to points.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def forward(q, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, phi, out):
+    """q (B, 2n); W0 (3n, w); Wh (depth-1, w, w); bh (depth, w); slopes (depth,);
+    Wl (w, 3K); bl (3K,); phi (m, K); out (B, m, 3) written in place."""
+    B = q.shape[0]
+    w = W0.shape[1]
+    depth = bh.shape[0]
+    K3 = Wl.shape[1]
+    K = K3 // 3
+    m = phi.shape[0]
+    x = np.empty(3 * n)
+    h = np.empty(w)
+    h2 = np.empty(w)
+    c = np.empty(K3)
+    for bi in range(B):
+        ref = q[bi, n - 1] if outer else 0.0
+        length = -1e300
+        for i in range(n):
+            a = q[bi, i] - ref
+            x[3 * i] = math.cos(a)
+            x[3 * i + 1] = math.sin(a)
+            x[3 * i + 2] = (q[bi, n + i] - lo[i]) * inv[i] - 1.0
+            e = q[bi, n + i] + L[i]
+            if e > length:
+                length = e
+        for j in range(w):
+            s = bh[0, j]
+            for k in range(3 * n):
+                s += x[k] * W0[k, j]
+            h[j] = s if s > 0.0 else slopes[0] * s
+        for d in range(1, depth):
+            for j in range(w):
+                s = bh[d, j]
+                for k in range(w):
+                    s += h[k] * Wh[d - 1, k, j]
+                h2[j] = s if s > 0.0 else slopes[d] * s
+            for j in range(w):
+                h[j] = h2[j]
+        for j in range(K3):
+            s = bl[j]
+            for k in range(w):
+                s += h[k] * Wl[k, j]
+            c[j] = s * length
+        if outer:
+            co = math.cos(ref)
+            si = math.sin(ref)
+            for k in range(K):
+                cx = c[3 * k]
+                cy = c[3 * k + 1]
+                c[3 * k] = co * cx - si * cy
+                c[3 * k + 1] = si * cx + co * cy
+        for p in range(m):
+            for xyz in range(3):
+                s = 0.0
+                for k in range(K):
+                    s += phi[p, k] * c[3 * k + xyz]
+                out[bi, p, xyz] = s
