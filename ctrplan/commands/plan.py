@@ -61,10 +61,18 @@ def parse_target(text: str, scene) -> tuple[list[float], str]:
                                      f"({', '.join(names) or 'none'}), got {text!r}")
 
 
+def one_thread() -> None:
+    """Planning makes many small model calls: torch's intra-op thread pool only adds latency
+    (25x slower on a busy 2-core machine). Set before torch is first imported."""
+    import os
+
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
 def run(args: argparse.Namespace) -> int:
-    from ctrplan.collision.scene import load_scene
+    one_thread()
     from ctrplan.io import write_json_atomic
-    from ctrplan.planning.plan import PlanStatus, plan_to_target
+    from ctrplan.planning.plan import PlanStatus, plan_to_target, scene_by_name
     from ctrplan.planning.space import check_planner
     from ctrplan.robot import load_robot
 
@@ -73,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     if args.seed < 0:
         raise InputError("--seed", "", f"must be >= 0, got {args.seed}")
     robot = load_robot(args.robot)
-    scene = load_scene(args.scene)
+    scene = scene_by_name(args.scene)
     target, name = parse_target(args.target, scene)
     result = plan_to_target(robot, scene, target, model=args.model, planner=args.planner,
                             time_limit=args.time, seed=args.seed, tolerance_mm=args.tolerance)

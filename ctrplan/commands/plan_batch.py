@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from ctrplan.commands.plan import add_planning_args
+from ctrplan.commands.plan import add_planning_args, one_thread
 from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
@@ -36,6 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    one_thread()
     from pathlib import Path
 
     from ctrplan.planning.batch import make_jobs, read_targets, run_batch

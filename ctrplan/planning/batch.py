@@ -257,12 +257,14 @@ def _run_ray(todo: Sequence[Job], address: str, workers: int, record) -> None:
         raise InputError("--ray", "", "ray is not installed (pip install 'ctrplan[ray]')") from None
     started = False
     if not ray.is_initialized():
+        env = {"env_vars": {"OMP_NUM_THREADS": "1"}}
         if address == "local":
             ray.init(num_cpus=max(1, workers), include_dashboard=False, log_to_driver=False,
-                     configure_logging=False)
+                     configure_logging=False, runtime_env=env)
         else:
             try:
-                ray.init(address=address, log_to_driver=False, configure_logging=False)
+                ray.init(address=address, log_to_driver=False, configure_logging=False,
+                         runtime_env=env)
             except Exception as exc:  # ray raises ConnectionError, RuntimeError, ValueError...
                 raise InputError("--ray", "", f"cannot connect to Ray at {address!r}: {exc}") from None
         started = True

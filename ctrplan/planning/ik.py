@@ -31,9 +31,15 @@ class IKConfig:
     stop_mm : a seed stops once its tip error is below this.
     damping : initial damping (mm); adapted per seed (LM: /2 on success, x4 on failure).
     max_step_mm : largest step per iteration in scaled coordinates (mm).
-    fd_alpha, fd_beta : finite-difference steps (rad, mm) for models without a Jacobian.
+    fd_alpha, fd_beta : finite-difference steps (rad, mm); large enough that the learned
+        model's float32 batch path (~2e-5 mm round-off) gives ~0.1 % accurate columns.
     alpha_weight_mm : scale of rotations (mm per rad).
     enough : stop when this many seeds have converged (0 = run all to the end).
+    jacobian : "fd" (forward differences, all perturbed configurations in one batched shape
+        call) or "model" (the model's exact ``tip_and_jacobian`` when it has one, e.g. the
+        learned model's torch autograd). Both converge alike; "fd" is the default because one
+        batched forward pass of the learned model is several times cheaper than its autograd
+        call (benchmarks/README.md).
     """
 
     seeds: int = 32
@@ -41,10 +47,11 @@ class IKConfig:
     stop_mm: float = 0.05
     damping: float = 0.5
     max_step_mm: float = 15.0
-    fd_alpha: float = 1e-5
-    fd_beta: float = 1e-4
-    alpha_weight_mm: float = 50.0
+    fd_alpha: float = 1e-3
+    fd_beta: float = 1e-2
+    alpha_weight_mm: float = 30.0
     enough: int = 0
+    jacobian: str = "fd"
 
 
 @dataclass(frozen=True)
@@ -72,13 +79,13 @@ def tip_and_jacobian(model, q: np.ndarray, config: IKConfig | None = None) -> tu
     """
     q = np.atleast_2d(np.asarray(q, dtype=float))
     B, d = q.shape
-    if hasattr(model, "tip_and_jacobian"):
+    c = config or IKConfig()
+    if c.jacobian != "fd" and hasattr(model, "tip_and_jacobian"):
         tip, J = model.tip_and_jacobian(q)
         tip = np.asarray(tip, dtype=float)
         J = np.asarray(J, dtype=float)
         ok = np.all(np.isfinite(tip), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
         return tip, J, ok
-    c = config or IKConfig()
     n = d // 2
     h = np.concatenate([np.full(n, c.fd_alpha), np.full(n, -c.fd_beta)])
     stack = np.repeat(q[:, None, :], d + 1, axis=1)            # (B, d+1, d)
@@ -90,8 +97,8 @@ def tip_and_jacobian(model, q: np.ndarray, config: IKConfig | None = None) -> tu
     return tips[:, 0, :], J, ok
 
 
-def _evaluations_per_row(model, q_dim: int) -> int:
-    return 1 if hasattr(model, "tip_and_jacobian") else q_dim + 1
+def _evaluations_per_row(model, q_dim: int, config: IKConfig) -> int:
+    return 1 if config.jacobian != "fd" and hasattr(model, "tip_and_jacobian") else q_dim + 1
 
 
 def solve_ik(model, robot: Robot, target: np.ndarray, q0: np.ndarray,
@@ -109,7 +116,7 @@ def solve_ik(model, robot: Robot, target: np.ndarray, q0: np.ndarray,
     q = project_joints(robot, np.atleast_2d(np.asarray(q0, dtype=float)))
     B = len(q)
     scale = np.concatenate([np.full(n, 1.0 / c.alpha_weight_mm), np.ones(n)])  # q = scale * z
-    per_row = _evaluations_per_row(model, d)
+    per_row = _evaluations_per_row(model, d, c)
     tip, J, ok = tip_and_jacobian(model, q, c)
     evaluations = B * per_row
     err = np.where(ok, np.linalg.norm(target - tip, axis=1), np.inf)

@@ -340,7 +340,7 @@ class _GoalSource:
         """IK seeds for this round: among the next ``pool`` workspace samples nearest the
         target, the collision-free ones first (IK from a free configuration nearby tends to stay
         free), then jittered copies of them, then the colliding ones."""
-        pool = 4 * count
+        pool = 2 * count
         cand = self.table.nearest(self.target_base, pool, skip=self.rounds * pool)
         if len(cand) == 0:
             return cand

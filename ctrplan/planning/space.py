@@ -276,7 +276,7 @@ def solve(
     planner: str = "rrtconnect",
     time_limit: float = 5.0,
     seed: int = 0,
-    alpha_weight_mm: float = 50.0,
+    alpha_weight_mm: float = 30.0,
     range_mm: float | None = None,
     more_goals=None,
     slices: tuple[float, ...] = (0.4, 0.3, 0.3),

@@ -30,13 +30,16 @@ class ValidatorConfig:
 
     resolution_mm : largest estimated backbone motion between two checked states of an edge.
     points : backbone points per shape used for collision checking.
-    alpha_weight_mm : mm of backbone motion per rad of rotation (the metric's weight).
+    alpha_weight_mm : mm of backbone motion per rad of rotation (the metric's weight). Measured
+        on seed1 (4000 random small motions, physics model): the largest displacement of any
+        backbone point is at most ~0.95 x the metric with 30 mm/rad (median 0.3 x), so the
+        metric bounds the backbone motion in practice and ``resolution_mm`` is a real step.
     cache_size : single-state results kept (OMPL asks again for start/goal states).
     """
 
     resolution_mm: float = 2.0
     points: int = 24
-    alpha_weight_mm: float = 50.0
+    alpha_weight_mm: float = 30.0
     cache_size: int = 4096
 
     def __post_init__(self) -> None:
