@@ -54,6 +54,18 @@ def test_train_fine_tunes_on_measured_csv(tmp_path, measured_csv):
     assert "real" in LearnedModel.load(out2).meta["training"]
 
 
+def test_train_fine_tunes_the_shipped_model(tmp_path, measured_csv):
+    out = tmp_path / "init.pt"
+    assert main(["-q", "train", "--robot", "seed1", "--init", "learned", "--real", str(measured_csv),
+                 "--fine-epochs", "2", "--out", str(out)]) == 0
+    m = LearnedModel.load(out)
+    assert (m.width, m.depth, m.terms) == (30, 3, 7)          # the shipped architecture
+    assert "sim" not in m.meta["data"] and "finetune" in m.meta["training"]
+    assert m.meta["training"]["base"]["sim"]["rows"] == 100_000
+    assert main(["-q", "train", "--robot", "seed1", "--init", str(tmp_path / "nope.pt"),
+                 "--real", str(measured_csv), "--out", str(out)]) == 2
+
+
 def test_quick_sweep_writes_tables_and_plots(tmp_path):
     out = tmp_path / "sweep"
     assert main(["-q", "train", "--robot", "seed1", "--sweep", "--sim", "300", "--real-sim", "150",

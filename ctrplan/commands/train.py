@@ -29,6 +29,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--real", default=None,
                    help="measured CSV with backbone points to fine-tune on (with --sweep: the "
                         "'real' data; default there: simulated with hidden effects)")
+    p.add_argument("--init", default=None,
+                   help="start from a trained model instead of pre-training: 'learned' (the "
+                        "shipped default of the robot) or a model file; --sim then defaults to 0")
     p.add_argument("--real-sim", type=int, default=3000,
                    help="--sweep without --real: rows of simulated 'real' data with hidden "
                         "effects (default 3000)")
@@ -92,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     robot = load_robot(args.robot)
     terms = args.terms or basis.DEFAULT_TERMS
-    n_sim = T.DEFAULT_SIM if args.sim is None else args.sim
+    n_sim = (0 if args.init else T.DEFAULT_SIM) if args.sim is None else args.sim
     show = progress._enabled
     pre = T.TrainConfig(epochs=args.epochs, lr=args.lr, batch_size=args.batch_size,
                         patience=args.patience, seed=args.seed, progress=show, label="pre-train (sim)")
@@ -133,6 +136,14 @@ def run(args: argparse.Namespace) -> int:
     real = T.from_measured(args.real, robot) if args.real else None
     if real is not None and len(real) < 3:
         raise InputError(args.real, "rows", "need at least 3 rows (train/validation/test)")
+    base = None
+    if args.init:
+        from ctrplan.shape.models import load_model
+
+        base = load_model(args.init, robot)
+        if getattr(base, "name", "") != "learned":
+            raise InputError("--init", "", f"{args.init!r} is not a learned model")
+        base.to(args.device)
     if n_sim == 0 and real is None:
         raise InputError("--sim", "", "nothing to train on: give --sim N > 0 and/or --real CSV")
     if n_sim and n_sim < 10:
@@ -141,7 +152,8 @@ def run(args: argparse.Namespace) -> int:
                             progress=show) if n_sim else None)
     model, info = T.pretrain_finetune(
         robot, sim, real, width=args.width, depth=args.depth, terms=terms, seed=args.seed,
-        pre=pre, fine=fine if sim is not None else real_only, device=args.device, frame=args.frame)
+        pre=pre, fine=fine if (sim is not None or base is not None) else real_only,
+        device=args.device, frame=args.frame, base=base)
     import sys
 
     from ctrplan import __version__

@@ -11,7 +11,14 @@ Network (one per robot):
 * backbone ``x(q, s) = len(q) * sum_k c_k P_k(s / len(q))`` with :mod:`ctrplan.shape.basis`,
   ``len(q)`` the arc length to the tip (:meth:`Robot.tip_length`).
 
-The whole batch goes through one forward pass (float32, CPU unless ``device=`` says otherwise).
+Frame ``outer`` (default): the angles enter relative to the outermost tube's and the backbone
+is predicted in a frame turned with that tube, which is exact for an unloaded CTR (turning
+every tube by the same angle turns the backbone about the insertion axis) and leaves one angle
+less to learn; frame ``base`` uses the absolute angles as the literature does.
+
+The whole batch goes through one forward pass (float32, CPU unless ``device=`` says otherwise;
+batches up to :data:`SMALL_BATCH` use a compiled float64 kernel for low latency).
+``tip_and_jacobian`` differentiates the torch path with autograd (for inverse kinematics).
 Model files are written with :func:`torch.save` and read with ``torch.load(weights_only=True)``:
 they hold only tensors and a JSON string of metadata (robot, basis, normalisation,
 architecture, training-data hashes, metrics), never pickled code.

@@ -377,7 +377,8 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
         model = new_model(robot, width, depth, terms, seed, device, frame)
     if sim is not None:
         s_tr, s_va, s_te = split(sim, seed=seed)
-        set_normalisation(model, s_tr)
+        if base is None:
+            set_normalisation(model, s_tr)
         pre = pre or TrainConfig(seed=seed, label="pre-train (sim)")
         info["training"]["pretrain"] = train(model, s_tr, s_va, pre)
         info["data"]["sim"] = sim.describe()
