@@ -81,6 +81,7 @@ def test_fcl_and_prefilter_against_brute_force(synthetic):
     assert clear.sum() > 30 and 8 < (brute[clear] < 0).sum() < clear.sum() - 8
     np.testing.assert_array_equal(exact.collides[clear], brute[clear] < 0)
     np.testing.assert_array_equal(fast.collides, exact.collides)
+    np.testing.assert_array_equal(synthetic.collides(shape), exact.collides)
     # FCL distance for free chains equals the oracle (which overestimates by <= spacing / 2)
     free = np.flatnonzero(clear & (brute > 0))[:15]
     d = synthetic.clearance_exact(Shape(shape.points[free], shape.s[free], shape.radius[free], shape.ok[free]))
@@ -137,6 +138,7 @@ def _prefilter_against_fcl(name, seed1, physics, n: int, margins=(0.0,)):
         called_free_but_colliding = int((~fast.collides & exact.collides).sum())
         assert called_free_but_colliding == 0
         np.testing.assert_array_equal(fast.collides, exact.collides)
+        np.testing.assert_array_equal(world.collides(shape), exact.collides)   # traced walk
         assert np.all(fast.contact[fast.collides] != "")
         assert fast.fcl_calls < 0.5 * len(q)          # the prefilter decides most states
         assert 0 < (~fast.collides).sum() < len(q)   # a mix of verdicts

@@ -39,11 +39,18 @@ class FclMeshes:
             objs.append(fcl.CollisionObject(geom, fcl.Transform(R, (ak + bk) / 2.0)))
         return objs
 
-    def first_hit(self, a: np.ndarray, b: np.ndarray, r: np.ndarray) -> int:
-        """Index of the first mesh any capsule (K, ...) touches, or -1 if none."""
+    def first_hit(self, a: np.ndarray, b: np.ndarray, r: np.ndarray,
+                  pairs: np.ndarray | None = None) -> int:
+        """Index of the first mesh any capsule (K, ...) touches, or -1 if none. pairs : (K,)
+        bit masks: only capsule k vs mesh j with bit j of pairs[k] set are checked."""
+        if pairs is not None:
+            keep = pairs != 0
+            a, b, r, pairs = a[keep], b[keep], r[keep], pairs[keep]
         caps = self._capsules(a, b, r)
         for j, mo in enumerate(self.objects):
-            for co in caps:
+            for k, co in enumerate(caps):
+                if pairs is not None and not (int(pairs[k]) >> j) & 1:
+                    continue
                 res = fcl.CollisionResult()
                 if fcl.collide(co, mo, self._request, res):
                     return j

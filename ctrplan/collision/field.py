@@ -274,13 +274,21 @@ def _bounds_at(lb, ub, side, origin, h, box_lo, box_hi, x, y, z):
 
 @nb.njit(cache=True)
 def _capsule_bounds(a, b, r, active, lb, ub, side, bad_side, origin, h, box_lo, box_hi,
-                    sample_mm, eps, clear_out, depth_out):
-    """For each active configuration: clear_out = lower bound of the clearance (min over the
-    capsules of axis distance minus radius minus half the sample spacing), depth_out = lower
-    bound of the penetration depth: max of r - ub over axis samples, and lb + r at a sample
-    proven to lie on ``bad_side`` (+1: outside a wall the robot starts inside; -1: inside an
-    obstacle; 0: no side information). Stops a configuration at the first proof (depth > eps)."""
+                    sample_mm, eps, trace, bit, clear_out, depth_out, unsure_out):
+    """Bounds of every active configuration against one mesh.
+
+    Walks each capsule axis. With ``trace`` False, samples are ``delta <= sample_mm`` apart and
+    clear_out gets the lower bound of the clearance (min of lb - r - delta / 2). With ``trace``
+    True (verdicts only) it sphere-traces: a sample with slack ``lb - r - eps`` proves the
+    axis free for that distance on both sides, so the walk jumps ahead by the slack (clear_out
+    is then only a verdict: > eps proven free). A capsule whose axis it cannot prove free gets
+    ``bit`` set in unsure_out (B, K) (only those capsule-mesh pairs go to FCL).
+    depth_out = lower bound of the penetration depth: max of r - ub over the samples, and
+    lb + r at a sample proven to lie on ``bad_side`` (+1: outside a wall the robot starts
+    inside; -1: inside an obstacle; 0: no side information). A configuration stops at its
+    first proof of collision (depth > eps)."""
     B, K = r.shape
+    min_step = 0.25 * sample_mm
     for bi in range(B):
         if not active[bi]:
             continue
@@ -295,16 +303,17 @@ def _capsule_bounds(a, b, r, active, lb, ub, side, bad_side, origin, h, box_lo, 
             vy = b[bi, kk, 1] - ay
             vz = b[bi, kk, 2] - az
             seg = math.sqrt(vx * vx + vy * vy + vz * vz)
+            inv = 1.0 / seg if seg > 0.0 else 0.0
             n = int(math.ceil(seg / sample_mm)) + 1
-            half = 0.5 * seg / (n - 1)
+            delta = seg / (n - 1)
+            half = 0.5 * delta
             rk = r[bi, kk]
-            for s in range(n):
-                t = s / (n - 1)
+            unsure = False
+            pos = 0.0
+            while True:
+                t = pos * inv
                 lo_b, up_b, sd = _bounds_at(lb, ub, side, origin, h, box_lo, box_hi,
                                             ax + t * vx, ay + t * vy, az + t * vz)
-                c = lo_b - rk - half
-                if c < clear:
-                    clear = c
                 d = rk - up_b
                 if bad_side != 0 and sd == bad_side:
                     d = max(d, lo_b + rk)
@@ -313,23 +322,49 @@ def _capsule_bounds(a, b, r, active, lb, ub, side, bad_side, origin, h, box_lo, 
                 if depth > eps:
                     done = True
                     break
+                if trace:
+                    slack = lo_b - rk - eps
+                    if slack < min_step:
+                        unsure = True
+                        step = delta
+                    else:
+                        step = slack
+                    if slack < clear:
+                        clear = slack
+                else:
+                    c = lo_b - rk - half
+                    if c < clear:
+                        clear = c
+                    if c <= eps:
+                        unsure = True
+                    step = delta
+                if pos >= seg:
+                    break
+                pos = min(pos + step, seg) if step > 0.0 else seg
             if done:
                 break
+            if unsure:
+                unsure_out[bi, kk] |= bit
         clear_out[bi] = clear
         depth_out[bi] = depth
 
 
 def capsule_bounds(field: DistanceField, a: np.ndarray, b: np.ndarray, r: np.ndarray,
                    active: np.ndarray, clear: np.ndarray, depth: np.ndarray, sample_mm: float,
-                   bad_side: int = 0) -> None:
-    """Update ``clear`` (B,) and ``depth`` (B,) in place for the ``active`` configurations.
+                   bad_side: int = 0, trace: bool = False, unsure: np.ndarray | None = None,
+                   bit: int = 1) -> None:
+    """Update ``clear`` (B,), ``depth`` (B,) and ``unsure`` (B, K) uint64 bit masks in place
+    for the ``active`` configurations (see :func:`_capsule_bounds`).
 
     a, b : (B, K, 3) capsule axis ends, mm, scene frame; r : (B, K) radii, mm. bad_side : the
-    side of a closed mesh whose points prove a collision (see :func:`_capsule_bounds`).
+    side of a closed mesh whose points prove a collision.
     """
+    if unsure is None:
+        unsure = np.zeros(r.shape, dtype=np.uint64)
     _capsule_bounds(a, b, r, active, field.lb, field.ub, field.side,
                     int(bad_side) if field.watertight else 0, field.origin, field.h, field.box_lo,
-                    field.box_hi, float(sample_mm), EPS_MM, clear, depth)
+                    field.box_hi, float(sample_mm), EPS_MM, bool(trace), np.uint64(bit), clear,
+                    depth, unsure)
 
 
 @nb.njit(cache=True)

@@ -110,8 +110,8 @@ class CollisionWorld:
         return self._check(shape, use_field=False)
 
     def collides(self, shape: Shape) -> np.ndarray:
-        """(B,) bool verdicts (the fast path)."""
-        return self._check(shape, use_field=self.prefilter).collides
+        """(B,) bool verdicts (the fast path: no clearances, the field walk jumps ahead)."""
+        return self._check(shape, use_field=self.prefilter, trace=True).collides
 
     def first_collision(self, shape: Shape) -> int:
         """Index of the first colliding configuration in batch order, -1 if none.
@@ -123,15 +123,16 @@ class CollisionWorld:
         caps = self.capsules(shape)
         ok = np.asarray(shape.ok, dtype=bool)
         if self.prefilter:
-            clear, depth = self._bounds(caps, ok)
+            _, depth, unsure = self._bounds(caps, ok, trace=True)
         else:
-            clear, depth = np.full(B, -np.inf), np.full(B, -np.inf)
+            depth, unsure = np.full(B, -np.inf), None
         for i in range(B):
             if not ok[i] or depth[i] > EPS_MM:
                 return i
-            if clear[i] > EPS_MM:
+            pairs = None if unsure is None else unsure[i]
+            if pairs is not None and not pairs.any():
                 continue
-            if self._fcl.first_hit(caps.a[i], caps.b[i], caps.radius[i]) >= 0:
+            if self._fcl.first_hit(caps.a[i], caps.b[i], caps.radius[i], pairs) >= 0:
                 return i
         return -1
 
@@ -145,41 +146,45 @@ class CollisionWorld:
         return out
 
     # ------------------------------------------------------------------ internals
-    def _bounds(self, caps: Capsules, active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Field bounds: clearance lower bound and depth lower bound, (B,) each."""
+    def _bounds(self, caps: Capsules, active: np.ndarray, trace: bool = False):
+        """Field bounds: clearance lower bound (B,), depth lower bound (B,), and (B, K) uint64
+        masks of the capsule-mesh pairs the field could not prove free (bit j: mesh j)."""
         B = len(caps)
         a = np.ascontiguousarray(caps.a)
         b = np.ascontiguousarray(caps.b)
         r = np.ascontiguousarray(caps.radius)
         clear = np.full(B, np.inf)
         depth = np.full(B, -np.inf)
+        unsure = np.zeros(r.shape, dtype=np.uint64)
         self._contact_idx = np.full(B, -1)
         act = np.array(active, dtype=bool)
         for j, field in enumerate(self.fields):
             before = depth.copy()
             capsule_bounds(field, a, b, r, act, clear, depth, self.field_config.sample_mm,
-                           self._bad_side[j])
+                           self._bad_side[j], trace=trace, unsure=unsure, bit=1 << j)
             hit = (depth > EPS_MM) & (before <= EPS_MM)
             self._contact_idx[hit] = j
             act &= ~hit
-        return clear, depth
+        return clear, depth, unsure
 
-    def _check(self, shape: Shape, use_field: bool) -> CollisionReport:
+    def _check(self, shape: Shape, use_field: bool, trace: bool = False) -> CollisionReport:
         B = len(shape)
         caps = self.capsules(shape)
         ok = np.asarray(shape.ok, dtype=bool)
-        clear, depth = self._bounds(caps, ok)
+        clear, depth, unsure = self._bounds(caps, ok, trace=trace)
         contact_idx = self._contact_idx
         collides = np.zeros(B, dtype=bool)
         if use_field:
             decided_hit = depth > EPS_MM
             collides |= decided_hit
-            todo = np.flatnonzero(ok & ~decided_hit & ~(clear > EPS_MM))
+            todo = np.flatnonzero(ok & ~decided_hit & unsure.any(axis=1))
         else:
             contact_idx = np.full(B, -1)
             todo = np.flatnonzero(ok)
+            unsure = None
         for i in todo:
-            j = self._fcl.first_hit(caps.a[i], caps.b[i], caps.radius[i])
+            j = self._fcl.first_hit(caps.a[i], caps.b[i], caps.radius[i],
+                                    None if unsure is None else unsure[i])
             collides[i] = j >= 0
             contact_idx[i] = j
         contact = self.names[contact_idx]
