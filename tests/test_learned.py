@@ -106,17 +106,26 @@ def test_outer_frame_is_equivariant_to_a_common_rotation(random_model):
     np.testing.assert_allclose(random_model.backbone(q2), random_model.backbone(q) @ R.T, atol=2e-3)
 
 
-def test_tip_and_jacobian_match_finite_differences(shipped):
-    q = shipped.robot.sample(6, seed=7)
-    tip, J = shipped.tip_and_jacobian(q)
+@pytest.mark.parametrize("frame", ["outer", "base"])
+def test_tip_and_jacobian_match_finite_differences(shipped, frame):
+    m = copy.deepcopy(shipped)
+    m.frame = frame
+    m.invalidate()
+    q = m.robot.sample(6, seed=7)
+    tip, J = m.tip_and_jacobian(q)                         # compiled forward mode (float64)
+    tip_a, J_a = m.tip_and_jacobian(q, method="autograd")   # torch autograd (float32)
     assert tip.shape == (6, 3) and J.shape == (6, 3, 6)
-    np.testing.assert_allclose(tip, shipped.backbone(q)[:, -1], atol=2e-3)
-    h = 1e-3
+    np.testing.assert_allclose(tip, m.backbone(q)[:, -1], atol=1e-9)
+    np.testing.assert_allclose(tip_a, tip, atol=2e-3)
+    np.testing.assert_allclose(J_a, J, atol=2e-3 * max(1.0, np.abs(J).max()))
+    h = 1e-6
     for j in range(6):
         dq = np.zeros(6)
         dq[j] = h
-        fd = (shipped._numpy_points(q + dq, 2)[:, -1] - shipped._numpy_points(q - dq, 2)[:, -1]) / (2 * h)
-        np.testing.assert_allclose(J[:, :, j], fd, atol=0.05 + 0.01 * np.abs(fd).max())
+        fd = (m._numpy_points(q + dq, 2)[:, -1] - m._numpy_points(q - dq, 2)[:, -1]) / (2 * h)
+        np.testing.assert_allclose(J[:, :, j], fd, atol=1e-5 * max(1.0, np.abs(fd).max()))
+    with pytest.raises(ValueError):
+        m.tip_and_jacobian(q, method="nope")
 
 
 def test_save_load_roundtrip(tmp_path, random_model):

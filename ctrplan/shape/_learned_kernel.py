@@ -71,3 +71,113 @@ def forward(q, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, phi, out):
                 for k in range(K):
                     s += phi[p, k] * c[3 * k + xyz]
                 out[bi, p, xyz] = s
+
+
+@njit(cache=True)
+def tip_jacobian(q, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, ptip, tip, J):
+    """Tip (B, 3) and d tip / d q (B, 3, 2n) by forward-mode differentiation of the same
+    network; ``ptip`` (K,) are the basis values at s = 1. tip and J are written in place."""
+    B = q.shape[0]
+    w = W0.shape[1]
+    depth = bh.shape[0]
+    K3 = Wl.shape[1]
+    K = K3 // 3
+    D = 2 * n
+    x = np.empty(3 * n)
+    dx = np.zeros((3 * n, D))
+    h = np.empty(w)
+    dh = np.empty((w, D))
+    h2 = np.empty(w)
+    dh2 = np.empty((w, D))
+    c = np.empty(K3)
+    dc = np.empty((K3, D))
+    dlen = np.zeros(D)
+    for bi in range(B):
+        ref = q[bi, n - 1] if outer else 0.0
+        length = -1e300
+        imax = 0
+        for k in range(3 * n):
+            for j in range(D):
+                dx[k, j] = 0.0
+        for i in range(n):
+            a = q[bi, i] - ref
+            ca = math.cos(a)
+            sa = math.sin(a)
+            x[3 * i] = ca
+            x[3 * i + 1] = sa
+            x[3 * i + 2] = (q[bi, n + i] - lo[i]) * inv[i] - 1.0
+            dx[3 * i, i] += -sa
+            dx[3 * i + 1, i] += ca
+            if outer:
+                dx[3 * i, n - 1] -= -sa
+                dx[3 * i + 1, n - 1] -= ca
+            dx[3 * i + 2, n + i] = inv[i]
+            e = q[bi, n + i] + L[i]
+            if e > length:
+                length = e
+                imax = i
+        for j in range(D):
+            dlen[j] = 0.0
+        dlen[n + imax] = 1.0
+        for j in range(w):
+            s = bh[0, j]
+            for k in range(3 * n):
+                s += x[k] * W0[k, j]
+            g = 1.0 if s > 0.0 else slopes[0]
+            h[j] = g * s
+            for t in range(D):
+                ds = 0.0
+                for k in range(3 * n):
+                    ds += dx[k, t] * W0[k, j]
+                dh[j, t] = g * ds
+        for d in range(1, depth):
+            for j in range(w):
+                s = bh[d, j]
+                for k in range(w):
+                    s += h[k] * Wh[d - 1, k, j]
+                g = 1.0 if s > 0.0 else slopes[d]
+                h2[j] = g * s
+                for t in range(D):
+                    ds = 0.0
+                    for k in range(w):
+                        ds += dh[k, t] * Wh[d - 1, k, j]
+                    dh2[j, t] = g * ds
+            for j in range(w):
+                h[j] = h2[j]
+                for t in range(D):
+                    dh[j, t] = dh2[j, t]
+        for j in range(K3):
+            s = bl[j]
+            for k in range(w):
+                s += h[k] * Wl[k, j]
+            for t in range(D):
+                ds = 0.0
+                for k in range(w):
+                    ds += dh[k, t] * Wl[k, j]
+                dc[j, t] = ds * length + s * dlen[t]
+            c[j] = s * length
+        if outer:
+            co = math.cos(ref)
+            si = math.sin(ref)
+            for k in range(K):
+                cx = c[3 * k]
+                cy = c[3 * k + 1]
+                c[3 * k] = co * cx - si * cy
+                c[3 * k + 1] = si * cx + co * cy
+                for t in range(D):
+                    dcx = dc[3 * k, t]
+                    dcy = dc[3 * k + 1, t]
+                    dc[3 * k, t] = co * dcx - si * dcy
+                    dc[3 * k + 1, t] = si * dcx + co * dcy
+                dc[3 * k, n - 1] += -si * cx - co * cy
+                dc[3 * k + 1, n - 1] += co * cx - si * cy
+        for xyz in range(3):
+            s = 0.0
+            for k in range(K):
+                s += ptip[k] * c[3 * k + xyz]
+            tip[bi, xyz] = s
+            for t in range(D):
+                ds = 0.0
+                for k in range(K):
+                    ds += ptip[k] * dc[3 * k + xyz, t]
+                J[bi, xyz, t] = ds

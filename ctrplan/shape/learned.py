@@ -262,18 +262,22 @@ class LearnedModel:
             out[:, :, 1].mul_(c).addcmul_(x, s)
         return out
 
-    def _numpy_points(self, q: np.ndarray, points: int) -> np.ndarray:
-        """The same forward pass in float64 by a small compiled (numba) kernel: the lowest
-        latency for small batches (a torch call costs microseconds per operation)."""
-        from ctrplan.shape import _learned_kernel
+    def _phi_np(self, points: int) -> np.ndarray:
+        key = (int(points), "phi_np")
+        phi = self._basis_cache.get(key)
+        if phi is None:
+            phi = np.ascontiguousarray(basis.design_matrix(points, self.terms))
+            self._basis_cache[key] = phi  # type: ignore[assignment]
+        return phi  # type: ignore[return-value]
 
-        key = (int(points), "numba")
-        hit = self._basis_cache.get(key)
+    def _numba_weights(self):
+        """float64 weights for the compiled kernels (cached until :meth:`invalidate`)."""
+        hit = self._basis_cache.get((0, "numba"))
         if hit is None:
             with torch.no_grad():
                 mods = list(self.net.net)
-                lins = [mo for mo in mods[0:-1:2]]
-                acts = [mo for mo in mods[1:-1:2]]
+                lins = list(mods[0:-1:2])
+                acts = list(mods[1:-1:2])
                 W0 = lins[0].weight.detach().cpu().double().t().contiguous().numpy()
                 w = W0.shape[1]
                 Wh = (np.stack([li.weight.detach().cpu().double().t().numpy() for li in lins[1:]])
@@ -286,11 +290,18 @@ class LearnedModel:
                 bl = (last.bias.detach().cpu().double() * std + mean).numpy()
             hit = (np.ascontiguousarray(W0), np.ascontiguousarray(Wh), np.ascontiguousarray(bh),
                    slopes, np.ascontiguousarray(Wl), np.ascontiguousarray(bl),
-                   np.ascontiguousarray(basis.design_matrix(points, self.terms)),
                    self.beta_lo.cpu().double().numpy().copy(),
                    (2.0 / self.beta_span.cpu().double().numpy()).copy(), self.robot.lengths.copy())
-            self._basis_cache[key] = hit  # type: ignore[assignment]
-        W0, Wh, bh, slopes, Wl, bl, phi, lo, inv, L = hit  # type: ignore[misc]
+            self._basis_cache[(0, "numba")] = hit  # type: ignore[assignment]
+        return hit
+
+    def _numpy_points(self, q: np.ndarray, points: int) -> np.ndarray:
+        """The same forward pass in float64 by a small compiled (numba) kernel: the lowest
+        latency for small batches (a torch call costs microseconds per operation)."""
+        from ctrplan.shape import _learned_kernel
+
+        W0, Wh, bh, slopes, Wl, bl, lo, inv, L = self._numba_weights()
+        phi = self._phi_np(points)
         out = np.empty((len(q), points, 3))
         _learned_kernel.forward(np.ascontiguousarray(q, dtype=np.float64), self.robot.n,
                                 self.frame == "outer", lo, inv, L, W0, Wh, bh, slopes, Wl, bl, phi, out)
@@ -395,22 +406,40 @@ class LearnedModel:
         return Shape(points=pts, s=s, radius=radius_along(self.robot, q, s),
                      ok=np.ones(len(q), dtype=bool))
 
-    def tip_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Tip positions (B, 3) mm and their Jacobians d tip / d q (B, 3, 2n) by autograd.
+    def tip_and_jacobian(self, q: np.ndarray, method: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+        """Tip positions (B, 3) mm and their Jacobians d tip / d q (B, 3, 2n).
 
-        Columns are per joint: alpha in mm/rad, beta in mm/mm. (The tip length ``max(beta+L)``
-        is piecewise linear; at a tie the gradient follows one tube.)
+        Columns are per joint: alpha in mm/rad, beta in mm/mm. ``method``: "compiled"
+        (forward-mode derivatives in a numba kernel, float64, the default on the CPU) or
+        "autograd" (torch autograd through the float32 network, any device). The tip length
+        ``max(beta + L)`` is piecewise linear; at a tie the derivative follows one tube.
         """
         q = check_q(self.robot, q)
+        if method == "auto":
+            method = "compiled" if self._device.type == "cpu" else "autograd"
+        if method == "compiled":
+            from ctrplan.shape import _learned_kernel
+
+            W0, Wh, bh, slopes, Wl, bl, lo, inv, L = self._numba_weights()
+            ptip = np.ascontiguousarray(basis.evaluate(np.array(1.0), self.terms))
+            B, D = len(q), self.robot.dof
+            tip = np.empty((B, 3))
+            J = np.empty((B, 3, D))
+            _learned_kernel.tip_jacobian(np.ascontiguousarray(q, dtype=np.float64), self.robot.n,
+                                         self.frame == "outer", lo, inv, L, W0, Wh, bh, slopes,
+                                         Wl, bl, ptip, tip, J)
+            return tip, J
+        if method != "autograd":
+            raise ValueError(f"method must be 'auto', 'compiled' or 'autograd', got {method!r}")
         qt = self._as_tensor(q).requires_grad_(True)
         with torch.enable_grad():
-            tip = self.points_t(qt, 2)[:, -1, :]                      # (B, 3)
+            tip_t = self.points_t(qt, 2)[:, -1, :]                      # (B, 3)
             rows = []
             for c in range(3):
-                (g,) = torch.autograd.grad(tip[:, c].sum(), qt, retain_graph=c < 2)
+                (g,) = torch.autograd.grad(tip_t[:, c].sum(), qt, retain_graph=c < 2)
                 rows.append(g)
-        J = torch.stack(rows, dim=1)
-        return tip.detach().cpu().numpy().astype(np.float64), J.cpu().numpy().astype(np.float64)
+        Jt = torch.stack(rows, dim=1)
+        return tip_t.detach().cpu().numpy().astype(np.float64), Jt.cpu().numpy().astype(np.float64)
 
     # ------------------------------------------------------------------ files
     def metadata(self) -> dict[str, Any]:

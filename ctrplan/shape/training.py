@@ -324,8 +324,6 @@ def evaluate(model: Any, data: ShapeData) -> dict[str, Any]:
     distance at each point) and per_config_max (the max deviation of every configuration)."""
     pred = model.backbone(data.q, data.points.shape[1])
     d = shape_errors(pred, data.points)
-    if hasattr(model, "shape") and getattr(model, "name", "") in ("physics", "rigid"):
-        pass
     mx, mse, sm = d.max(axis=1), (d ** 2).mean(axis=1), d.sum(axis=1)
     good = np.isfinite(mx)
     return {
