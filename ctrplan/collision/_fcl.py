@@ -5,11 +5,10 @@ from __future__ import annotations
 import fcl
 import numpy as np
 
-from ctrplan.collision.capsules import rotation_z_to
-
 
 class FclMeshes:
-    """FCL BVH models of a list of meshes (mm, scene frame)."""
+    """FCL BVH models of a list of meshes (mm, scene frame). Not thread-safe (a pool of capsule
+    objects is reused between queries)."""
 
     def __init__(self, meshes):
         self.objects = []
@@ -22,21 +21,33 @@ class FclMeshes:
             bvh.endModel()
             self.objects.append(fcl.CollisionObject(bvh, fcl.Transform()))
         self._request = fcl.CollisionRequest()
+        self._pool: list = []
         self._dist_request = fcl.DistanceRequest()
 
     def _capsules(self, a: np.ndarray, b: np.ndarray, r: np.ndarray) -> list:
+        """FCL capsules (K of them) for segments a -> b (K, 3) with radii r (K,)."""
+        v = b - a
+        h = np.linalg.norm(v, axis=1)
+        d = v / np.where(h > 0, h, 1.0)[:, None]
+        # quaternion [w, x, y, z] turning +z onto d: half-way form [1 + z.d, z x d], normalised
+        q = np.column_stack([1.0 + d[:, 2], -d[:, 1], d[:, 0], np.zeros(len(d))])
+        flip = q[:, 0] < 1e-9            # d = -z: half a turn about x
+        q[flip] = [0.0, 1.0, 0.0, 0.0]
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
+        c = (a + b) / 2.0
+        # Reuse a pool of capsule objects: creating FCL objects costs ~15 us each from Python.
+        while len(self._pool) < len(r):
+            geom = fcl.Capsule(1.0, 1.0)
+            self._pool.append((geom, fcl.CollisionObject(geom, fcl.Transform())))
         objs = []
-        for ak, bk, rk in zip(a, b, r):
-            v = bk - ak
-            h = float(np.linalg.norm(v))
-            if h < 1e-9:
-                geom = fcl.Sphere(float(rk))
-                R = np.eye(3)
-            else:
-                # fcl.Capsule(radius, lz) is centred at the origin along its local z axis
-                geom = fcl.Capsule(float(rk), h)
-                R = rotation_z_to(v / h)
-            objs.append(fcl.CollisionObject(geom, fcl.Transform(R, (ak + bk) / 2.0)))
+        for k in range(len(r)):
+            # fcl.Capsule(radius, lz) is centred at the origin along its local z axis
+            geom, obj = self._pool[k]
+            geom.radius = float(r[k])
+            geom.lz = float(h[k])
+            geom.computeLocalAABB()
+            obj.setTransform(fcl.Transform(q[k], c[k]))  # also refreshes the world AABB
+            objs.append(obj)
         return objs
 
     def first_hit(self, a: np.ndarray, b: np.ndarray, r: np.ndarray,

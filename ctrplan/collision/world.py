@@ -171,8 +171,11 @@ class CollisionWorld:
         B = len(shape)
         caps = self.capsules(shape)
         ok = np.asarray(shape.ok, dtype=bool)
-        clear, depth, unsure = self._bounds(caps, ok, trace=trace)
-        contact_idx = self._contact_idx
+        if use_field or not trace:
+            clear, depth, unsure = self._bounds(caps, ok, trace=trace)
+            contact_idx = self._contact_idx
+        else:  # FCL verdicts only: no field needed
+            clear, depth, contact_idx = np.zeros(B), np.zeros(B), np.full(B, -1)
         collides = np.zeros(B, dtype=bool)
         if use_field:
             decided_hit = depth > EPS_MM
