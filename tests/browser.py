@@ -78,6 +78,14 @@ def _host(request_line: str) -> str:
 
 _NOISE: set[str] | None = None
 
+#: Chromium's own background services (updates, accounts, optimisation hints, time, safe
+#: browsing). They are contacted whatever the page is, so they say nothing about the page.
+BROWSER_SERVICE_SUFFIXES = ("google.com", "googleapis.com", "gvt1.com", "gstatic.com")
+
+
+def _is_browser_service(host: str) -> bool:
+    return any(host == s or host.endswith("." + s) for s in BROWSER_SERVICE_SUFFIXES)
+
 
 def browser_noise_hosts(chromium: str) -> set[str]:
     """Hosts Chromium contacts by itself (update and account services) for a blank page."""
@@ -95,7 +103,8 @@ def screenshot(html: Path, png: Path, chromium: str, size=(1100, 850), budget_ms
     (requests to hosts that Chromium also contacts for a blank page are its own background
     traffic and are left out)."""
     noise = browser_noise_hosts(chromium)
-    return [r for r in _raw_screenshot(html, png, chromium, size, budget_ms) if _host(r) not in noise]
+    return [r for r in _raw_screenshot(html, png, chromium, size, budget_ms)
+            if _host(r) not in noise and not _is_browser_service(_host(r))]
 
 
 def _raw_screenshot(html: Path, png: Path, chromium: str, size, budget_ms: int) -> list[str]:
@@ -104,6 +113,8 @@ def _raw_screenshot(html: Path, png: Path, chromium: str, size, budget_ms: int) 
             chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
             "--no-first-run", "--disable-background-networking", "--disable-component-update",
             "--disable-sync", "--disable-default-apps", "--disable-extensions",
+            "--disable-features=OptimizationHints,OptimizationHintsFetching,"
+            "OptimizationGuideModelDownloading,MediaRouter,AutofillServerCommunication",
             f"--user-data-dir={profile}", f"--window-size={size[0]},{size[1]}",
             f"--proxy-server=http://127.0.0.1:{proxy.port}", "--proxy-bypass-list=<-loopback>",
             f"--virtual-time-budget={budget_ms}", f"--screenshot={png}", html.resolve().as_uri(),
