@@ -273,6 +273,24 @@ def _bounds_at(lb, ub, side, origin, h, box_lo, box_hi, x, y, z):
 
 
 @nb.njit(cache=True)
+def _nearest_bound(lb, side, origin, h, x, y, z):
+    """(lower bound, side) of the distance at one point from its nearest grid node only
+    (side 0 unless the node's surface-free ball contains the point). Outside the grid: (-inf, 0)
+    (the caller then takes the full :func:`_bounds_at`)."""
+    nx, ny, nz = lb.shape
+    i = int(math.floor((x - origin[0]) / h + 0.5))
+    j = int(math.floor((y - origin[1]) / h + 0.5))
+    k = int(math.floor((z - origin[2]) / h + 0.5))
+    if i < 0 or j < 0 or k < 0 or i >= nx or j >= ny or k >= nz:
+        return -np.inf, 0
+    cx = origin[0] + i * h - x
+    cy = origin[1] + j * h - y
+    cz = origin[2] + k * h - z
+    lv = lb[i, j, k] - math.sqrt(cx * cx + cy * cy + cz * cz)
+    return lv, side[i, j, k] if lv > 0.0 else 0
+
+
+@nb.njit(cache=True)
 def _capsule_bounds(a, b, r, active, lb, ub, side, bad_side, origin, h, box_lo, box_hi,
                     sample_mm, eps, trace, bit, clear_out, depth_out, unsure_out):
     """Bounds of every active configuration against one mesh.
@@ -312,8 +330,21 @@ def _capsule_bounds(a, b, r, active, lb, ub, side, bad_side, origin, h, box_lo, 
             pos = 0.0
             while True:
                 t = pos * inv
-                lo_b, up_b, sd = _bounds_at(lb, ub, side, origin, h, box_lo, box_hi,
-                                            ax + t * vx, ay + t * vy, az + t * vz)
+                px = ax + t * vx
+                py = ay + t * vy
+                pz = az + t * vz
+                if trace:
+                    # cheap first look: the nearest grid node alone (one lookup, not eight)
+                    q_lo, q_sd = _nearest_bound(lb, side, origin, h, px, py, pz)
+                    q_slack = q_lo - rk - eps
+                    if q_slack >= min_step and (bad_side == 0 or q_sd != bad_side):
+                        if q_slack < clear:
+                            clear = q_slack
+                        if pos >= seg:
+                            break
+                        pos = min(pos + q_slack, seg)
+                        continue
+                lo_b, up_b, sd = _bounds_at(lb, ub, side, origin, h, box_lo, box_hi, px, py, pz)
                 d = rk - up_b
                 if bad_side != 0 and sd == bad_side:
                     d = max(d, lo_b + rk)
