@@ -178,3 +178,12 @@ def test_procedural_meshes_are_deterministic():
     np.testing.assert_array_equal(m1.vertices, m2.vertices)
     d = trimesh.proximity.closest_point(m1, path[5:15])[1]
     assert np.all(np.abs(d - 2.0) < 0.3)
+
+
+def test_empty_mesh(tmp_path):
+    folder = _bad(tmp_path)
+    (folder / "post.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
+        "property float z\nelement face 0\nproperty list uchar int vertex_indices\nend_header\n")
+    with pytest.raises(InputError, match="post.ply"):
+        load_scene(folder)
