@@ -184,10 +184,16 @@ def airway():
     return scene_by_name("airway")
 
 
+#: Always through OMPL (no straight start-goal shortcut), so the real-scene checks below
+#: exercise the planner, the simplifier and the verification.
+VIA_OMPL = PlanConfig(try_direct=False)
+
+
 @pytest.fixture(scope="module")
 def airway_plan(robot, airway):
     target = airway.targets[2].position
-    return plan_to_target(robot, airway, target, model="physics", seed=0, time_limit=10.0)
+    return plan_to_target(robot, airway, target, model="physics", seed=0, time_limit=10.0,
+                          config=VIA_OMPL)
 
 
 def test_plan_succeeds_and_reaches_the_target(airway_plan, robot, airway):
@@ -232,8 +238,9 @@ def test_returned_path_is_collision_free_state_by_state_at_4x_finer_resolution(a
 
 def test_same_seed_same_path(robot, airway, airway_plan):
     again = plan_to_target(robot, airway, airway.targets[2].position, model="physics", seed=0,
-                           time_limit=10.0)
+                           time_limit=10.0, config=VIA_OMPL)
     assert again.status is airway_plan.status
+    assert airway_plan.counts["direct"] == 0
     assert np.array_equal(again.path, airway_plan.path)
 
 
@@ -324,3 +331,18 @@ def test_cli_plan_bad_input_exits_2(tmp_path, capsys, args, needle):
     err = capsys.readouterr().err
     assert code == 2
     assert needle in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_segment_that_fails_the_fine_check_is_replanned(robot, physics):
+    from ctrplan.planning.plan import _repair
+
+    start, goal, _, world = sphere_problem(robot, physics)
+    coarse = BatchValidator(robot, physics, world, ValidatorConfig(resolution_mm=400.0))
+    assert coarse.edge_valid(start, goal)               # steps over the sphere
+    fine = BatchValidator(robot, physics, world)
+    bad = fine.check_path(np.stack([start, goal]), 0.5)
+    assert not bad.ok and bad.bad_segments == [0]
+    fixed = _repair(robot, physics, world, np.stack([start, goal]), bad.bad_segments, PlanConfig(),
+                    seed=1, resolution_mm=0.5, budget=10.0)
+    assert fixed is not None and np.allclose(fixed[0], start) and np.allclose(fixed[-1], goal)
+    assert fine.check_path(fixed, 0.5).ok

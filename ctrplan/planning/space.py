@@ -12,7 +12,7 @@ beta come from the robot; the coupled joint constraints of DESIGN.md are enforce
 validity checks (the constraint set is convex in beta, so a straight edge between two valid
 configurations never leaves it).
 
-Validity. Every edge is checked by :meth:`EdgeChecker.edge_valid` — one batched shape call and
+Validity. Every edge is checked by ``checker.edge_valid`` (:class:`ctrplan.planning.validator.BatchValidator`) — one batched shape call and
 one batched collision query over all interpolated states, both end states included (OMPL's
 RRTConnect grows its goal tree with the new state as the *first* argument). OMPL still calls
 the per-state checker for start/goal states and for samples of some planners (PRM, BIT*); that
