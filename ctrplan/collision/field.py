@@ -306,7 +306,7 @@ def _capsule_bounds(a, b, r, active, lb, ub, side, bad_side, origin, h, box_lo, 
     inside; -1: inside an obstacle; 0: no side information). A configuration stops at its
     first proof of collision (depth > eps)."""
     B, K = r.shape
-    min_step = 0.25 * sample_mm
+    min_step = 0.05 * sample_mm
     for bi in range(B):
         if not active[bi]:
             continue

@@ -77,6 +77,8 @@ class CollisionWorld:
         self._fcl = FclMeshes([m.mesh for m in meshes])
         self._fields = None
         self._cache = cache
+        #: configurations sent to FCL by the last check/collides call (for benchmarks)
+        self.last_fcl_calls = 0
         self.pose = np.asarray(self.scene.base_pose, dtype=float)
         # Side proofs (field module): a point outside a closed wall that contains the base, or
         # inside a closed obstacle, proves a collision of the chain that starts at the base.
@@ -197,5 +199,6 @@ class CollisionWorld:
         clearance = np.where(collides, np.minimum(-np.maximum(depth, 0.0), 0.0),
                              np.maximum(clear, 0.0))
         clearance[~ok] = np.nan
+        self.last_fcl_calls = len(todo)
         return CollisionReport(collides=collides, clearance_mm=clearance, contact=contact,
                                fcl_calls=len(todo))
