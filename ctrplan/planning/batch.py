@@ -244,10 +244,16 @@ def _run_pool(todo: Sequence[Job], workers: int, record) -> None:
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     # spawn, not fork: torch, numba and OMPL threads do not survive a fork reliably.
-    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as ex:
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
+                             initializer=_worker_init) as ex:
         futures = [ex.submit(run_job, asdict(job)) for job in todo]
         for fut in as_completed(futures):
             record(fut.result())
+
+
+def _worker_init() -> None:
+    # One intra-op thread per worker (before torch is imported): the pool is the parallelism.
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
 def _run_ray(todo: Sequence[Job], address: str, workers: int, record) -> None:
