@@ -107,7 +107,9 @@ class PlanResult:
     target : (3,) mm, scene frame.
     tip_error_mm : planning model's tip distance to the target at the final configuration
         (nan without a path); tip_error_physics_mm : the same with the physics model.
-    min_clearance_mm : smallest exact clearance along the verified path (nan without a path).
+    min_clearance_mm : smallest clearance along the verified path, from the collision world's
+        report: a conservative lower bound (0.0 where only FCL could decide the state, i.e.
+        within the distance field's band of a mesh); nan without a path.
     timings : seconds per stage: setup (loading the model, scene and collision world, the
         workspace table and the start configuration: cached per process, so ~0 after the first
         plan), checks, ik, planning, simplification, verification, and total.
@@ -385,6 +387,10 @@ class _GoalSource:
         if not reach.any():
             return np.zeros((0, self.robot.dof))
         q, err = res.q[reach], res.error_mm[reach]
+        # Prefer converged seeds: looser ones (up to the tolerance) only when none converged.
+        precise = err <= max(2.0 * ikc.stop_mm, 0.1 * self.tolerance_mm)
+        if precise.any():
+            q, err = q[precise], err[precise]
         order = np.argsort(err, kind="stable")
         q = q[order]
         # Drop near-duplicates (seeds that converged to the same configuration).
