@@ -34,7 +34,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def _mm(v) -> str:
+    return "n/a" if v is None else f"{v:.3f} mm"
+
+
 def run(args: argparse.Namespace) -> int:
+    from ctrplan.commands.plan import one_thread
+
+    one_thread()
     from ctrplan.collision.scene import load_scene
     from ctrplan.commands.view import render_plan
     from ctrplan.io import write_json_atomic
@@ -75,7 +82,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"ctrplan demo: robot {robot.name}, scene {scene.name}, target {target.name} "
           f"{tuple(round(float(v), 1) for v in target.position)} mm, model {plan.get('model')}")
     print(f"  status {plan['status']}  success {plan['success']}  planning time "
-          f"{plan['planning_time_s']:.2f} s  tip error {plan['tip_error_mm']:.3f} mm  "
-          f"min clearance {plan['min_clearance_mm']:.2f} mm  path {len(plan['path'])} states")
+          f"{plan['planning_time_s']:.2f} s  tip error {_mm(plan['tip_error_mm'])}  "
+          f"min clearance {_mm(plan['min_clearance_mm'])}  path {len(plan['path'] or [])} states")
+    if not plan["success"]:
+        print(f"  {plan.get('message', '')}")
     print("  wrote " + ", ".join(str(f) for f in files) + f"  ({time.perf_counter() - t0:.1f} s total)")
     return 0 if plan["success"] else 1
