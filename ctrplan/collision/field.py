@@ -44,7 +44,7 @@ import numpy as np
 
 log = logging.getLogger("ctrplan")
 
-FIELD_VERSION = 2
+FIELD_VERSION = 4
 #: Safety added to every decision threshold (mm): covers float32 storage and FCL's tolerance.
 EPS_MM = 1e-3
 
@@ -58,12 +58,14 @@ class FieldConfig:
         to the bounding box is used.
     max_nodes : largest grid (nodes).
     sample_mm : largest spacing of the samples along capsule axes.
+    refine_mm : nodes nearer the surface than this get exact distances to the samples.
     """
 
     h_mm: float = 0.5
     band_mm: float = 6.0
     max_nodes: int = 8_000_000
     sample_mm: float = 1.0
+    refine_mm: float = 4.0
 
 
 @dataclass(frozen=True)
@@ -163,7 +165,16 @@ def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = F
     # lower bound: the nearest surface point x has a sample within rho, whose node is within
     # h*sqrt(3)/2 of it, so dist <= d + rho + h*sqrt(3)/2
     lb = np.maximum(dist - rho - h * math.sqrt(3.0) / 2.0, 0.0).astype(np.float32)
-    del dist
+    # Near the surface, where verdicts are decided, replace both bounds by the exact distance
+    # to the nearest sample (lb then loses only rho, not the snapping term): every sample
+    # visits the nodes within refine_mm of it (numba); a node whose nearest visiting sample is
+    # within refine_mm has found its true nearest sample.
+    near = np.full(shape, np.inf, dtype=np.float64)
+    _splat(sv, lo, h, float(config.refine_mm), near)
+    band = near <= config.refine_mm
+    lb[band] = np.maximum(lb[band], np.maximum(near[band] - rho, 0.0))
+    ub[band] = np.minimum(ub[band], near[band])
+    del near, band
     side = _sides(lb, h, lo, v, f) if watertight else np.zeros(shape, dtype=np.int8)
     field = DistanceField(origin=lo, h=float(h), lb=lb, ub=ub, box_lo=box_lo, box_hi=box_hi,
                           rho=rho, side=side, watertight=watertight,
@@ -199,6 +210,28 @@ def _lattice(tri, n, offsets, out):
                 for d in range(3):
                     out[o, d] = (i * tri[t, 0, d] + j * tri[t, 1, d] + k * tri[t, 2, d]) / m
                 o += 1
+
+
+@nb.njit(cache=True)
+def _splat(samples, lo, h, radius, near):
+    nx, ny, nz = near.shape
+    w = int(math.ceil(radius / h))
+    for p in range(samples.shape[0]):
+        x = samples[p, 0]
+        y = samples[p, 1]
+        z = samples[p, 2]
+        ci = int(round((x - lo[0]) / h))
+        cj = int(round((y - lo[1]) / h))
+        ck = int(round((z - lo[2]) / h))
+        for i in range(max(ci - w, 0), min(ci + w + 1, nx)):
+            dx = lo[0] + i * h - x
+            for j in range(max(cj - w, 0), min(cj + w + 1, ny)):
+                dy = lo[1] + j * h - y
+                for k in range(max(ck - w, 0), min(ck + w + 1, nz)):
+                    dz = lo[2] + k * h - z
+                    d = math.sqrt(dx * dx + dy * dy + dz * dz)
+                    if d < near[i, j, k]:
+                        near[i, j, k] = d
 
 
 def _sides(lb: np.ndarray, h: float, lo: np.ndarray, v: np.ndarray, f: np.ndarray) -> np.ndarray:
