@@ -12,6 +12,9 @@ every node ``g`` its nearest marked node ``n`` at distance ``D``:
 - ``lb = D - rho - h sqrt(3) / 2``: the surface point nearest to ``g`` has a sample within
   ``rho`` whose node is within ``h sqrt(3) / 2`` of it, so ``D <= d + rho + h sqrt(3) / 2``.
 
+Within ``refine_mm`` of the surface (where verdicts are decided) both are tightened to the
+exact distance ``ds`` to the nearest sample: ``ds - rho <= d <= ds``.
+
 ``d`` is 1-Lipschitz, so at any point ``x`` in a grid cell with corners ``c``:
 ``max_c (lb_c - |x - c|) <= d(x) <= min_c (ub_c + |x - c|)``. No interpolation error is hidden:
 the bounds are exact consequences of the stored numbers. Outside the grid (which covers the
