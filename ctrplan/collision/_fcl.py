@@ -80,3 +80,8 @@ class FclMeshes:
                     best, which = d, j
         return float(best), which
 
+    def pair_distance(self, a: np.ndarray, b: np.ndarray, r: float, j: int) -> float:
+        """FCL distance from one capsule (axis a -> b (3,), radius r) to mesh j; -1 on overlap."""
+        co = self._capsules(a[None], b[None], np.array([r]))[0]
+        return float(fcl.distance(co, self.objects[j], self._dist_request, fcl.DistanceResult()))
+
