@@ -29,7 +29,7 @@ lint: install
 	$(VENV)/bin/ruff check ctrplan tests benchmarks examples
 
 bench: install
-	$(VENV)/bin/ctrplan bench --out benchmarks/results
+	$(VENV)/bin/ctrplan bench --out benchmarks/results --readme README.md
 
 clean:
 	rm -rf $(VENV) demo_out .pytest_cache

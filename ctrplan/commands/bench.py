@@ -15,6 +15,7 @@ from ctrplan.errors import InputError
 log = logging.getLogger("ctrplan")
 
 SUITES = ("shape", "learned", "collision", "planning", "diagnose")
+START, END = "<!-- bench:start -->", "<!-- bench:end -->"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,6 +26,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("suites", nargs="*", default=list(SUITES), help=f"suites to run (default: all of {', '.join(SUITES)})")
     p.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
     p.add_argument("--out", default="benchmarks/results", help="output folder")
+    p.add_argument("--readme", metavar="FILE",
+                   help=f"also put the tables into FILE between the lines {START} and {END} "
+                        "(how README.md's performance section is made)")
     p.set_defaults(func=run)
 
 
@@ -96,12 +100,30 @@ def _cell(v) -> str:
     return "" if v is None else str(v)
 
 
+def splice(text: str, md: str, source: str) -> str:
+    """``text`` with the lines between the START and END markers replaced by ``md``."""
+    lines = text.splitlines(keepends=True)
+    try:
+        i = next(k for k, ln in enumerate(lines) if ln.strip() == START)
+        j = next(k for k, ln in enumerate(lines) if ln.strip() == END and k > i)
+    except StopIteration:
+        raise InputError(source, START, f"needs a line {START} followed by a line {END}") from None
+    return "".join(lines[:i + 1]) + md.rstrip("\n") + "\n" + "".join(lines[j:])
+
+
 def run(args: argparse.Namespace) -> int:
     from ctrplan.io import write_json_atomic, write_text_atomic
 
     unknown = [s for s in args.suites if s not in SUITES]
     if unknown:
         raise InputError("suites", unknown[0], f"unknown suite (choose from {', '.join(SUITES)})")
+    readme = None
+    if args.readme:  # check the target before spending minutes on benchmarks
+        try:
+            readme = Path(args.readme).read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as e:
+            raise InputError(args.readme, "", f"cannot read: {e}") from None
+        splice(readme, "", args.readme)
     results = {"machine": machine(), "quick": bool(args.quick), "suites": {}}
     for name in args.suites:
         log.info("bench: running %s%s", name, " (quick)" if args.quick else "")
@@ -113,5 +135,7 @@ def run(args: argparse.Namespace) -> int:
     write_json_atomic(out / "bench.json", results)
     md = to_markdown(results)
     write_text_atomic(out / "bench.md", md)
+    if readme is not None:
+        write_text_atomic(Path(args.readme), splice(readme, md, args.readme))
     print(md)
     return 0
