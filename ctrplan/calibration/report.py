@@ -25,26 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from ctrplan.calibration.data import MeasuredData
-from ctrplan.io import atomic_path, write_json_atomic, write_text_atomic
+from ctrplan.io import atomic_path, jsonable, write_json_atomic, write_text_atomic
 from ctrplan.robot import Robot, Tube, wrap_angle
-
-
-def _clean(obj):
-    """JSON-safe copy: non-finite floats become None, numpy scalars plain numbers."""
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    if hasattr(obj, "value") and not isinstance(obj, (str, bytes)):
-        return obj.value
-    return obj
 
 
 def folded_robot(robot: Robot, effects: dict[str, dict[str, float]]) -> Robot:
@@ -128,7 +110,7 @@ def write_report(rep, data: MeasuredData, out: str | os.PathLike, base_pred: np.
     out.mkdir(parents=True, exist_ok=True)
     d = rep.to_dict()
     d["files"] = {"model": "calibrated.yaml", "robot": "calibrated_robot.yaml"}
-    write_json_atomic(out / "report.json", _clean(d))
+    write_json_atomic(out / "report.json", jsonable(d))
     write_text_atomic(out / "report.md", markdown(rep))
     rep.model().save(out / "calibrated.yaml")
     folded = folded_robot(rep.robot, rep.model_effects)

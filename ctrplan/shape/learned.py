@@ -27,7 +27,6 @@ architecture, training-data hashes, metrics), never pickled code.
 from __future__ import annotations
 
 import json
-import math
 import os
 from importlib import resources
 from pathlib import Path
@@ -38,6 +37,7 @@ import torch
 from torch import nn
 
 from ctrplan.errors import InputError
+from ctrplan.io import jsonable
 from ctrplan.robot import Robot, load_robot, robot_from_dict
 from ctrplan.shape import basis
 from ctrplan.shape.base import Shape, check_q, radius_along
@@ -468,7 +468,7 @@ class LearnedModel:
 
         state = {k: v.detach().cpu().contiguous() for k, v in self.net.state_dict().items()}
         obj = {"format": FORMAT, "version": FORMAT_VERSION,
-               "meta_json": json.dumps(_jsonable(self.metadata()), allow_nan=False),
+               "meta_json": json.dumps(jsonable(self.metadata()), allow_nan=False),
                "state": state}
         with atomic_path(path) as tmp:
             torch.save(obj, tmp)
@@ -540,21 +540,6 @@ class LearnedModel:
         model.meta = {k: meta[k] for k in keep if k in meta}
         model.source = src
         return model.to(device)
-
-
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, (np.floating, float)):
-        v = float(x)
-        return v if math.isfinite(v) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    return x
 
 
 def shipped_model_path(robot_name: str) -> Path | None:

@@ -568,11 +568,10 @@ def sweep_plots(res: dict[str, Any], out_dir: str | Path) -> list[Path]:
 
 def write_sweep(res: dict[str, Any], out_dir: str | Path) -> list[Path]:
     """results.json, results.md and the PNG plots under ``out_dir``."""
-    from ctrplan.io import write_json_atomic, write_text_atomic
-    from ctrplan.shape.learned import _jsonable
+    from ctrplan.io import jsonable, write_json_atomic, write_text_atomic
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(out_dir / "results.json", _jsonable(res))
+    write_json_atomic(out_dir / "results.json", jsonable(res))
     write_text_atomic(out_dir / "results.md", sweep_markdown(res))
     return [out_dir / "results.json", out_dir / "results.md"] + sweep_plots(res, out_dir)
