@@ -11,7 +11,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ctrplan.robot import Robot, load_robot
-from ctrplan.shape import _kernel
+from ctrplan.shape import _shooting
 from ctrplan.shape.base import Shape, check_q, radius_along
 
 
@@ -141,7 +141,7 @@ class PhysicsModel:
             return a
 
         x0 = np.zeros((B, n)) if uz_init is None else arr("uz_init", uz_init, (B, n))
-        pts, s, uz0, iters, resid, ok = _kernel.solve_batch(
+        pts, s, uz0, iters, resid, ok = _shooting.solve_batch(
             alpha, beta, self._lengths, self._straight,
             arr("kappa", params.kappa, (B, n)), arr("EI", params.EI, (B, n)),
             arr("ratio", params.ratio, (B, n)), arr("kink", params.kink, (B, n, 2)),

@@ -1,0 +1,238 @@
+"""Shooting for the compliant model: Newton on the base torsions ``uz(0)`` over a batch.
+
+The integration passes (and the equations) are in :mod:`ctrplan.shape._kernel`; this module
+holds the n x n Newton step, the per-configuration Newton loop with its line search and the
+continuation fallback, and :func:`solve_batch`, the one entry point used by
+:class:`ctrplan.shape.physics.PhysicsModel`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ctrplan.shape._kernel import _integrate, _tube_events
+
+
+@njit(cache=True, error_model="numpy")
+def _max_abs(v):
+    m = 0.0
+    for i in range(v.shape[0]):
+        if not abs(v[i]) <= m:       # NaN propagates
+            m = abs(v[i])
+    return m
+
+
+@njit(cache=True, error_model="numpy")
+def _newton_step(jac, resid, dx, A, perm):
+    """dx = -jac^{-1} resid by Gaussian elimination with partial pivoting (n is tiny).
+    Returns False when the Jacobian is singular or not finite."""
+    n = resid.shape[0]
+    for i in range(n):
+        for j in range(n):
+            A[i, j] = jac[i, j]
+        dx[i] = -resid[i]
+        perm[i] = i
+    for k in range(n):
+        p = k
+        big = abs(A[k, k])
+        for i in range(k + 1, n):
+            if abs(A[i, k]) > big:
+                big = abs(A[i, k])
+                p = i
+        if not (big > 0.0) or not math.isfinite(big):
+            return False
+        if p != k:
+            for j in range(n):
+                t = A[k, j]
+                A[k, j] = A[p, j]
+                A[p, j] = t
+            t = dx[k]
+            dx[k] = dx[p]
+            dx[p] = t
+        inv = 1.0 / A[k, k]
+        for i in range(k + 1, n):
+            f = A[i, k] * inv
+            if f != 0.0:
+                for j in range(k + 1, n):
+                    A[i, j] -= f * A[k, j]
+                dx[i] -= f * dx[k]
+    for k in range(n - 1, -1, -1):
+        t = dx[k]
+        for j in range(k + 1, n):
+            t -= A[k, j] * dx[j]
+        dx[k] = t / A[k, k]
+    for i in range(n):
+        if not math.isfinite(dx[i]):
+            return False
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx, out_s, m, step, tol,
+            max_iter, may_shape, pts, resid, jac, resid_t, jac_t, dx, xt, A, perm,
+            y, Y, a, w, pend, ws, WS, G):
+    """Shooting on uz(0) = x (updated in place) by Newton with a backtracking line search.
+
+    Returns (residual, iterations, shaped): ``shaped`` is True when the final frame pass
+    (points into ``pts``) has already been run at the returned x (only if ``may_shape``).
+    """
+    n = x.shape[0]
+    no_out = out_s[:0]
+    no_p = pts[:0]
+    _integrate(al, be, x, L, straight, ka, ei, ra, kk, True, tpos, ttyp, tidx,
+               no_out, 0, step, False, True, no_p, resid, jac, y, Y, a, w, pend, ws, WS, G)
+    r = _max_abs(resid)
+    it = 0
+    quad = -1.0         # estimate of C in |resid after a full step| ~ C |dx|^2
+    while r >= tol and it < max_iter and math.isfinite(r):
+        it += 1
+        if not _newton_step(jac, resid, dx, A, perm):
+            break
+        dxn = _max_abs(dx)
+        if may_shape and quad > 0.0 and quad * dxn * dxn < 0.1 * tol:
+            # Newton is in its quadratic regime and predicts convergence: run the final
+            # frame pass at the full step and read the residual from it (same step grid, so
+            # the same residual), saving a sensitivity pass that would only confirm it
+            for i in range(n):
+                xt[i] = x[i] + dx[i]
+            _integrate(al, be, xt, L, straight, ka, ei, ra, kk, True, tpos, ttyp, tidx,
+                       out_s, m, step, True, False, pts, resid_t, jac_t,
+                       y, Y, a, w, pend, ws, WS, G)
+            rt = _max_abs(resid_t)
+            if rt < tol:
+                for i in range(n):
+                    x[i] = xt[i]
+                return rt, it, True
+        t = 1.0
+        accepted = False
+        rt = r
+        for _ls in range(8):
+            for i in range(n):
+                xt[i] = x[i] + t * dx[i]
+            _integrate(al, be, xt, L, straight, ka, ei, ra, kk, True, tpos, ttyp, tidx,
+                       no_out, 0, step, False, True, no_p, resid_t, jac_t,
+                       y, Y, a, w, pend, ws, WS, G)
+            rt = _max_abs(resid_t)
+            if rt < r or rt < tol:
+                accepted = True
+                break
+            t *= 0.5
+        if not accepted:
+            break
+        quad = rt / (dxn * dxn) if (t == 1.0 and dxn > 0.0) else -1.0
+        for i in range(n):
+            x[i] = xt[i]
+            resid[i] = resid_t[i]
+            for c in range(n):
+                jac[i, c] = jac_t[i, c]
+        r = rt
+    return r, it, False
+
+
+@njit(cache=True, error_model="numpy")
+def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, step, tol,
+                max_iter, x_init):
+    """Solve and integrate a batch of configurations.
+
+    alpha, beta : (B, n)  rad, mm
+    L, straight : (n,)    mm
+    kappa, EI, ratio : (B, n)  1/mm, N mm^2, EI/GJ
+    kink : (B, n, 2) rad  (rotation where tube j ends)
+    x_init : (B, n) initial guess of uz(0), 1/mm (ignored by the rigid model)
+
+    Returns points (B, m, 3), s (B, m), uz0 (B, n), iters (B,), residual (B,), ok (B,).
+    A configuration is ok when max |uz_i(end_i)| < tol was reached and every point is finite.
+    Newton (at most max_iter iterations, backtracking line search) starts from x_init; where
+    it fails (near snapping configurations the residual has local minima) the solve is
+    retried by continuation in the torsional compliance: EI/GJ scaled by k/K, k = 1..K
+    (K = 8, then 32), each stage started from the previous one's solution (at 0 the rigid
+    solution uz = 0 is exact). iters counts every Newton iteration.
+    """
+    B, n = alpha.shape
+    points = np.zeros((B, m, 3))
+    svals = np.zeros((B, m))
+    uz0 = np.zeros((B, n))
+    iters = np.zeros(B, dtype=np.int64)
+    rnorm = np.zeros(B)
+    ok = np.zeros(B, dtype=np.bool_)
+    # one workspace for the whole batch
+    nst = 3 * n + 12
+    y = np.zeros(nst)
+    Y = np.zeros((2 * n, n))
+    a = np.zeros(n)
+    w = np.zeros(n)
+    pend = np.zeros(n)
+    ws = np.zeros((5, nst))
+    WS = np.zeros((5, 2 * n, n))
+    G = np.zeros((3, 3))
+    tpos = np.zeros(2 * n)
+    ttyp = np.zeros(2 * n, dtype=np.int64)
+    tidx = np.zeros(2 * n, dtype=np.int64)
+    resid = np.zeros(n)
+    jac = np.zeros((n, n))
+    resid_t = np.zeros(n)
+    jac_t = np.zeros((n, n))
+    A = np.zeros((n, n))
+    perm = np.zeros(n, dtype=np.int64)
+    dx = np.zeros(n)
+    x = np.zeros(n)
+    xt = np.zeros(n)
+    rs = np.zeros(n)
+    out_s = np.zeros(m)
+    for bi in range(B):
+        al = alpha[bi]
+        be = beta[bi]
+        ka = kappa[bi]
+        ei = EI[bi]
+        ra = ratio[bi]
+        kk = kink[bi]
+        pts = points[bi]
+        _tube_events(be, L, straight, tpos, ttyp, tidx)
+        tip = tpos[2 * n - 1]
+        for k in range(m):
+            out_s[k] = tip * k / (m - 1) if m > 1 else tip
+        out_s[m - 1] = tip
+        for i in range(n):
+            x[i] = x_init[bi, i] if torsion else 0.0
+        shaped = False          # the final (frame) pass has been run at x
+        it = 0
+        r = 0.0
+        if torsion:
+            r, it, shaped = _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx,
+                                    out_s, m, step, tol, max_iter, True, pts, resid, jac,
+                                    resid_t, jac_t, dx, xt, A, perm, y, Y, a, w, pend, ws, WS, G)
+            for K in (8, 32):
+                if r < tol:
+                    break
+                for i in range(n):
+                    x[i] = 0.0
+                for k in range(1, K + 1):
+                    lam = k / K
+                    for i in range(n):
+                        rs[i] = ra[i] * lam
+                    r, itk, shaped = _newton(al, be, x, L, straight, ka, ei, rs, kk, tpos, ttyp,
+                                             tidx, out_s, m, step, tol, max_iter, k == K, pts,
+                                             resid, jac, resid_t, jac_t, dx, xt, A, perm,
+                                             y, Y, a, w, pend, ws, WS, G)
+                    it += itk
+                    if not r < tol:
+                        break
+        if not shaped:
+            _integrate(al, be, x, L, straight, ka, ei, ra, kk, torsion, tpos, ttyp, tidx,
+                       out_s, m, step, True, False, pts, resid_t, jac_t,
+                       y, Y, a, w, pend, ws, WS, G)
+        finite = True
+        for k in range(m):
+            svals[bi, k] = out_s[k]
+            for c in range(3):
+                if not math.isfinite(pts[k, c]):
+                    finite = False
+        for i in range(n):
+            uz0[bi, i] = x[i]
+        iters[bi] = it
+        rnorm[bi] = r
+        ok[bi] = r < tol and finite
+    return points, svals, uz0, iters, rnorm, ok
