@@ -10,6 +10,11 @@ is the cost on one core and does not count time the OS gives to other processes 
 machine; both are reported. Usage::
 
     python benchmarks/bench_learned.py [--quick] [--out results.json]
+    python benchmarks/bench_learned.py --device cuda [--out results.json]   # GPU table
+
+With ``--device cuda`` (``run_gpu``) the learned model alone is timed on the GPU: the public
+``backbone(q)`` call from float64 numpy in to float64 numpy out (transfers included), and the
+forward pass on tensors already on the device (synchronised), batch 1 .. 1,000,000.
 
 ``run(quick) -> dict`` is what ``ctrplan bench`` calls; ``table`` holds the markdown rows.
 Targets (issue 3): at batch 100,000 at most 1 us per shape and at least 100x faster than the
@@ -97,11 +102,65 @@ def run(quick: bool = False) -> dict:
     }
 
 
+def run_gpu(quick: bool = False, device: str = "cuda") -> dict:
+    """Learned model on a CUDA device: wall time per shape vs batch size (median over repeats)."""
+    robot = load_robot(ROBOT)
+    path = shipped_model_path(ROBOT)
+    learned = LearnedModel.load(path, robot=robot, device=device) if path else LearnedModel(robot, device=device)
+    batches = [1, 100, 10_000, 100_000] if quick else [1, 10, 100, 1000, 10_000, 100_000, 1_000_000]
+    q_all = robot.sample(max(batches), seed=SEED)
+
+    def synced(fn):
+        def call():
+            fn()
+            torch.cuda.synchronize(device)
+        return call
+
+    rows = []
+    for B in batches:
+        q = q_all[:B]
+        qt = torch.as_tensor(q, dtype=torch.float32, device=device)
+        public = synced(lambda q=q: learned.backbone(q, POINTS))
+
+        def on_device(qt=qt):
+            with torch.inference_mode():
+                learned._fast_points(qt, POINTS)
+        forward = synced(on_device)
+        for fn in (public, forward):        # warm up (kernels, allocator)
+            fn()
+            fn()
+        reps = 200 if B <= 1000 else (20 if B <= 100_000 else 5)
+        reps = max(3, reps // 4) if quick else reps
+        _, pw = _median_time(public, reps)
+        _, fw = _median_time(forward, reps)
+        rows.append({"batch": B, "backbone_us_per_shape": 1e6 * pw / B,
+                     "forward_on_device_us_per_shape": 1e6 * fw / B,
+                     "backbone_call_ms": 1e3 * pw})
+    return {"robot": ROBOT, "points": POINTS, "device": torch.cuda.get_device_name(device),
+            "torch": torch.__version__, "model": str(path) if path else "untrained network",
+            "table": rows}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--device", default="cpu", help="cpu (learned vs physics) or cuda (learned on the GPU)")
     args = ap.parse_args(argv)
+    if args.device != "cpu":
+        if not torch.cuda.is_available():
+            print(f"bench_learned: --device {args.device}: torch sees no CUDA device", file=sys.stderr)
+            return 2
+        res = run_gpu(quick=args.quick, device=args.device)
+        print(f"{res['device']}, torch {res['torch']}")
+        print(f"{'batch':>8} {'backbone us/shape':>18} {'forward us/shape':>17} {'call ms':>9}")
+        for r in res["table"]:
+            print(f"{r['batch']:>8} {r['backbone_us_per_shape']:>18.4f} "
+                  f"{r['forward_on_device_us_per_shape']:>17.5f} {r['backbone_call_ms']:>9.3f}")
+        if args.out:
+            with open(args.out, "w") as fh:
+                json.dump(res, fh, indent=2)
+        return 0
     res = run(quick=args.quick)
     print(f"{'batch':>7} {'learned us':>11} {'(wall)':>8} {'physics us':>11} {'(wall)':>8} {'speed-up':>9}")
     for r in res["table"]:
