@@ -49,6 +49,15 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
             tmp_path.unlink()
 
 
+def save_figure(fig: Any, path: str | os.PathLike, dpi: int | None = None) -> None:
+    """Write a matplotlib figure to ``path`` as PNG atomically and close it."""
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
+
+
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     """Write ``text`` to ``path`` atomically (UTF-8)."""
     with atomic_path(path) as tmp:
@@ -99,15 +108,20 @@ def _fmt(v: Any) -> Any:
     return v
 
 
-def load_yaml(path: str | os.PathLike) -> Any:
-    """Read a YAML file with ``yaml.safe_load``; errors name the file."""
-    path = Path(path)
+def read_text(path: str | os.PathLike) -> str:
+    """A UTF-8 text file's contents; a missing or unreadable file is an InputError naming it."""
     try:
-        text = path.read_text(encoding="utf-8")
+        return Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
         raise InputError(str(path), "", "file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(str(path), "", f"cannot read file ({exc.__class__.__name__})") from None
+
+
+def load_yaml(path: str | os.PathLike) -> Any:
+    """Read a YAML file with ``yaml.safe_load``; errors name the file."""
+    path = Path(path)
+    text = read_text(path)
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -120,12 +134,7 @@ def load_yaml(path: str | os.PathLike) -> Any:
 def read_csv_table(path: str | os.PathLike) -> tuple[list[str], list[list[str]]]:
     """Read a CSV file into (header, rows of strings). Errors name the file."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(str(path), "", "file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(str(path), "", f"cannot read file ({exc.__class__.__name__})") from None
+    text = read_text(path)
     try:
         reader = csv.reader(io.StringIO(text))
         rows = [r for r in reader if r and any(c.strip() for c in r)]

@@ -137,7 +137,7 @@ def plan_png(
     import matplotlib.pyplot as plt
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    from ctrplan.io import atomic_path
+    from ctrplan.io import save_figure
 
     backbones = np.asarray(backbones, dtype=float)
     pts = backbones.reshape(-1, 3)
@@ -177,6 +177,4 @@ def plan_png(
     ax.set_zlabel("z (mm)")
     ax.set_title(title)
     ax.legend(loc="upper left")
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)
+    save_figure(fig, path)

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ctrplan.calibration.data import MeasuredData
-from ctrplan.io import atomic_path, jsonable, write_json_atomic, write_text_atomic
+from ctrplan.io import jsonable, save_figure, write_json_atomic, write_text_atomic
 from ctrplan.robot import Robot, Tube, wrap_angle
 
 
@@ -119,14 +119,6 @@ def write_report(rep, data: MeasuredData, out: str | os.PathLike, base_pred: np.
     return out
 
 
-def _save(fig, path: Path) -> None:
-    import matplotlib.pyplot as plt
-
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)
-
-
 def _plots(rep, data, out: Path, base_pred, final_pred, test) -> None:
     import matplotlib
 
@@ -159,7 +151,7 @@ def _plots(rep, data, out: Path, base_pred, final_pred, test) -> None:
     if n == 1:
         axes[0, 0].text(0.5, 0.5, "single tube: no relative rotation", ha="center")
     fig.suptitle("Residuals vs relative rotation, split by direction of motion")
-    _save(fig, out / "residuals_rotation.png")
+    save_figure(fig, out / "residuals_rotation.png")
     # vs insertion
     fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
     ins = robot.tip_length(data.q)
@@ -168,7 +160,7 @@ def _plots(rep, data, out: Path, base_pred, final_pred, test) -> None:
     ax.set_xlabel("insertion: tip arc length (mm)")
     ax.set_ylabel("tip error (mm)")
     ax.legend()
-    _save(fig, out / "residuals_insertion.png")
+    save_figure(fig, out / "residuals_insertion.png")
     if data.points is not None and base_pred.shape[1] == data.points.shape[1]:
         fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
         fr = np.linspace(0, 1, data.points.shape[1])
@@ -179,7 +171,7 @@ def _plots(rep, data, out: Path, base_pred, final_pred, test) -> None:
         ax.set_xlabel("arc length / tip arc length")
         ax.set_ylabel("mean backbone error (mm)")
         ax.legend()
-        _save(fig, out / "residuals_arclength.png")
+        save_figure(fig, out / "residuals_arclength.png")
     # errors per step
     fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
     labels = ["base"] + [s.effect for s in rep.steps if s.accepted]
@@ -191,7 +183,7 @@ def _plots(rep, data, out: Path, base_pred, final_pred, test) -> None:
     ax.set_xticks(xs, ["+" + lab if k else lab for k, lab in enumerate(labels)], rotation=20)
     ax.set_ylabel("tip error (mm)")
     ax.legend()
-    _save(fig, out / "errors_by_step.png")
+    save_figure(fig, out / "errors_by_step.png")
     # tip paths of the held-out sweeps
     names = list(dict.fromkeys(sweep[test].tolist()))[:4]
     fig, axes = plt.subplots(1, max(1, len(names)), figsize=(4.5 * max(1, len(names)), 4.2),
@@ -208,4 +200,4 @@ def _plots(rep, data, out: Path, base_pred, final_pred, test) -> None:
         ax.set_aspect("equal", adjustable="datalim")
         ax.legend(fontsize=7)
     fig.suptitle("Held-out tip paths (x-y)")
-    _save(fig, out / "tip_paths.png")
+    save_figure(fig, out / "tip_paths.png")

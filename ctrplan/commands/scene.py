@@ -109,7 +109,7 @@ def render_png(scene, out, backbones: np.ndarray) -> None:
     import matplotlib.pyplot as plt
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    from ctrplan.io import atomic_path
+    from ctrplan.io import save_figure
     from ctrplan.viz import ROBOT_COLOUR, ROLE_COLOURS, TARGET_COLOUR
 
     fig = plt.figure(figsize=(8, 7), dpi=110)
@@ -140,6 +140,4 @@ def render_png(scene, out, backbones: np.ndarray) -> None:
     ax3.set_zlabel("z (mm)")
     ax3.set_title(f"scene {scene.name}")
     ax3.legend(loc="upper left")
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)
+    save_figure(fig, out)

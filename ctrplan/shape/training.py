@@ -526,7 +526,7 @@ def sweep_plots(res: dict[str, Any], out_dir: str | Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ctrplan.io import atomic_path
+    from ctrplan.io import save_figure
 
     out_dir = Path(out_dir)
     best = best_runs(res)
@@ -543,12 +543,8 @@ def sweep_plots(res: dict[str, Any], out_dir: str | Path) -> list[Path]:
     ax.set_ylabel("configurations")
     ax.set_title(f"{res['robot']}: learned vs physics on held-out real data")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    p = out_dir / "hist_max_error.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    paths.append(p)
+    paths.append(out_dir / "hist_max_error.png")
+    save_figure(fig, paths[-1], dpi=110)
     fig, ax = plt.subplots(figsize=(7, 4.2))
     for name, s in series:
         pp = np.asarray(s["per_position"])
@@ -557,12 +553,8 @@ def sweep_plots(res: dict[str, Any], out_dir: str | Path) -> list[Path]:
     ax.set_ylabel("mean distance to measured point (mm)")
     ax.set_title("error vs position along the shaft")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    p = out_dir / "error_vs_position.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    paths.append(p)
+    paths.append(out_dir / "error_vs_position.png")
+    save_figure(fig, paths[-1], dpi=110)
     return paths
 
 
