@@ -13,7 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ctrplan.shape._kernel import _integrate, _tube_events
+from ctrplan.shape._kernel import _integrate, _tube_events, runtime
 
 
 @njit(cache=True, error_model="numpy")
@@ -82,8 +82,9 @@ def _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx, out_s, m, 
     n = x.shape[0]
     no_out = out_s[:0]
     no_p = pts[:0]
-    _integrate(al, be, x, L, straight, ka, ei, ra, kk, True, tpos, ttyp, tidx,
-               no_out, 0, step, False, True, no_p, resid, jac, y, Y, a, w, pend, ws, WS, G)
+    on, off, zero = runtime(True), runtime(False), runtime(0)   # one compiled _integrate
+    _integrate(al, be, x, L, straight, ka, ei, ra, kk, on, tpos, ttyp, tidx,
+               no_out, zero, step, off, on, no_p, resid, jac, y, Y, a, w, pend, ws, WS, G)
     r = _max_abs(resid)
     it = 0
     quad = -1.0         # estimate of C in |resid after a full step| ~ C |dx|^2
@@ -98,8 +99,8 @@ def _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx, out_s, m, 
             # the same residual), saving a sensitivity pass that would only confirm it
             for i in range(n):
                 xt[i] = x[i] + dx[i]
-            _integrate(al, be, xt, L, straight, ka, ei, ra, kk, True, tpos, ttyp, tidx,
-                       out_s, m, step, True, False, pts, resid_t, jac_t,
+            _integrate(al, be, xt, L, straight, ka, ei, ra, kk, on, tpos, ttyp, tidx,
+                       out_s, m, step, on, off, pts, resid_t, jac_t,
                        y, Y, a, w, pend, ws, WS, G)
             rt = _max_abs(resid_t)
             if rt < tol:
@@ -112,8 +113,8 @@ def _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx, out_s, m, 
         for _ls in range(8):
             for i in range(n):
                 xt[i] = x[i] + t * dx[i]
-            _integrate(al, be, xt, L, straight, ka, ei, ra, kk, True, tpos, ttyp, tidx,
-                       no_out, 0, step, False, True, no_p, resid_t, jac_t,
+            _integrate(al, be, xt, L, straight, ka, ei, ra, kk, on, tpos, ttyp, tidx,
+                       no_out, zero, step, off, on, no_p, resid_t, jac_t,
                        y, Y, a, w, pend, ws, WS, G)
             rt = _max_abs(resid_t)
             if rt < r or rt < tol:
@@ -202,7 +203,7 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
         r = 0.0
         if torsion:
             r, it, shaped = _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx,
-                                    out_s, m, step, tol, max_iter, True, pts, resid, jac,
+                                    out_s, m, step, tol, max_iter, runtime(True), pts, resid, jac,
                                     resid_t, jac_t, dx, xt, A, perm, y, Y, a, w, pend, ws, WS, G)
             for K in (8, 32):
                 if r < tol:
@@ -222,7 +223,7 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
                         break
         if not shaped:
             _integrate(al, be, x, L, straight, ka, ei, ra, kk, torsion, tpos, ttyp, tidx,
-                       out_s, m, step, True, False, pts, resid_t, jac_t,
+                       out_s, m, step, runtime(True), runtime(False), pts, resid_t, jac_t,
                        y, Y, a, w, pend, ws, WS, G)
         finite = True
         for k in range(m):
