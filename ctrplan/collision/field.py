@@ -173,7 +173,8 @@ def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = F
     # visits the nodes within refine_mm of it (numba); a node whose nearest visiting sample is
     # within refine_mm has found its true nearest sample.
     near = np.full(shape, np.inf, dtype=np.float64)
-    _splat(sv, lo, h, float(config.refine_mm), near)
+    _splat(sv[np.argsort(sv[:, 0], kind="stable")], lo, h, float(config.refine_mm), near)
+    np.sqrt(near, out=near)
     band = near <= config.refine_mm
     lb[band] = np.maximum(lb[band], np.maximum(near[band] - rho, 0.0))
     ub[band] = np.minimum(ub[band], near[band])
@@ -215,26 +216,42 @@ def _lattice(tri, n, offsets, out):
                 o += 1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, parallel=True)
 def _splat(samples, lo, h, radius, near):
+    """``near`` (inf on entry) gets, at every node within ``radius`` of a sample, the squared
+    distance to the nearest such sample; the caller takes the root. ``samples`` must be sorted
+    by x: each x-slab of the grid (one per thread at a time, so no two threads write the same
+    node) visits only the samples within ``radius`` of it, and its nodes stay in cache."""
     nx, ny, nz = near.shape
-    w = int(math.ceil(radius / h))
-    for p in range(samples.shape[0]):
-        x = samples[p, 0]
-        y = samples[p, 1]
-        z = samples[p, 2]
-        ci = int(round((x - lo[0]) / h))
-        cj = int(round((y - lo[1]) / h))
-        ck = int(round((z - lo[2]) / h))
-        for i in range(max(ci - w, 0), min(ci + w + 1, nx)):
-            dx = lo[0] + i * h - x
-            for j in range(max(cj - w, 0), min(cj + w + 1, ny)):
+    r2 = radius * radius
+    xs = samples[:, 0]
+    for i in nb.prange(nx):
+        xi = lo[0] + i * h
+        p0 = np.searchsorted(xs, xi - radius, side="left")
+        p1 = np.searchsorted(xs, xi + radius, side="right")
+        for p in range(p0, p1):
+            dx = xi - samples[p, 0]
+            rx = r2 - dx * dx
+            if rx < 0.0:
+                continue
+            y = samples[p, 1]
+            z = samples[p, 2]
+            ry = math.sqrt(rx)
+            j0 = max(int(math.ceil((y - ry - lo[1]) / h)), 0)
+            j1 = min(int(math.floor((y + ry - lo[1]) / h)), ny - 1)
+            for j in range(j0, j1 + 1):
                 dy = lo[1] + j * h - y
-                for k in range(max(ck - w, 0), min(ck + w + 1, nz)):
+                rz2 = rx - dy * dy
+                if rz2 < 0.0:
+                    continue
+                rz = math.sqrt(rz2)
+                k0 = max(int(math.ceil((z - rz - lo[2]) / h)), 0)
+                k1 = min(int(math.floor((z + rz - lo[2]) / h)), nz - 1)
+                dxy = dx * dx + dy * dy
+                row = near[i, j]
+                for k in range(k0, k1 + 1):
                     dz = lo[2] + k * h - z
-                    d = math.sqrt(dx * dx + dy * dy + dz * dz)
-                    if d < near[i, j, k]:
-                        near[i, j, k] = d
+                    row[k] = min(row[k], dxy + dz * dz)
 
 
 def _sides(lb: np.ndarray, h: float, lo: np.ndarray, v: np.ndarray, f: np.ndarray) -> np.ndarray:
