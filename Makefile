@@ -10,16 +10,22 @@ PYTEST_ARGS ?=
 
 .PHONY: demo test install lint bench clean
 
-$(VENV)/.installed: pyproject.toml
+# The package and its run-time dependencies (all `make demo` needs) ...
+$(VENV)/.base: pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q $(TORCH_INDEX) "$(TORCH_REQ)"
+	$(PY) -m pip install -q -e .
+	touch $@
+
+# ... and the extras the tests exercise (dev tools, ray, scene generation).
+$(VENV)/.installed: $(VENV)/.base
 	$(PY) -m pip install -q -e ".[dev,ray,scenes]"
 	touch $@
 
 install: $(VENV)/.installed
 
-demo: install
+demo: $(VENV)/.base
 	$(VENV)/bin/ctrplan demo --out demo_out
 
 test: install
