@@ -267,3 +267,14 @@ def test_zero_torsional_compliance_gives_the_rigid_model(seed1):
     shape = model.solve(q, 20, replace(params, ratio=np.zeros_like(params.ratio)))
     assert shape.ok.all()
     np.testing.assert_allclose(shape.points, PhysicsModel(seed1, torsion=False).backbone(q), atol=1e-12)
+
+
+def test_background_compile_is_awaited_by_the_first_solve(seed1):
+    from ctrplan.shape import physics
+
+    physics.compile_in_background()
+    assert physics._warmup is not None
+    q = seed1.sample(4, seed=11)
+    pts = PhysicsModel(seed1).backbone(q)
+    assert physics._warmup is None                      # the helper was waited for
+    np.testing.assert_array_equal(pts, PhysicsModel(seed1).backbone(q))

@@ -40,8 +40,10 @@ def _mm(v) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from ctrplan.commands.plan import one_thread
+    from ctrplan.shape.physics import compile_in_background
 
     one_thread()
+    compile_in_background()   # a fresh install compiles the mechanics kernel meanwhile
     from ctrplan.collision.scene import load_scene
     from ctrplan.commands.view import render_plan
     from ctrplan.io import write_json_atomic

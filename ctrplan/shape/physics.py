@@ -6,6 +6,8 @@ compiled call; the single-configuration call is the same function with ``B = 1``
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -13,6 +15,40 @@ import numpy as np
 from ctrplan.robot import Robot, load_robot
 from ctrplan.shape import _shooting
 from ctrplan.shape.base import Shape, check_q, radius_along
+
+_warmup: subprocess.Popen | None = None
+
+
+def compile_in_background() -> None:
+    """Start compiling the mechanics kernel in a separate process, so that a caller that needs
+    it only later (``ctrplan demo``: the physics check of a plan made with the learned model)
+    overlaps numba's first, uncached compile (~15-25 s) with its own work on another core.
+
+    numba writes the compiled kernel to its on-disk cache; the first :meth:`PhysicsModel.solve`
+    in this process waits for the helper and then loads it from there. With a warm cache the
+    helper only imports and exits (about a second on the other core); if it fails, the solve
+    compiles in process as usual.
+    """
+    global _warmup
+    if _warmup is None:
+        _warmup = subprocess.Popen(
+            [sys.executable, "-c", "import ctrplan.shape.physics as p; p._compile_now()"],
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def _compile_now() -> None:
+    robot = load_robot("seed1")
+    PhysicsModel(robot).backbone(robot.sample(1, seed=0), 2)
+
+
+def _wait_for_warmup() -> None:
+    global _warmup
+    proc, _warmup = _warmup, None
+    if proc is not None:
+        try:
+            proc.wait(timeout=600)
+        except subprocess.TimeoutExpired:  # pragma: no cover - compiles in process instead
+            proc.kill()
 
 
 @dataclass(frozen=True)
@@ -141,6 +177,8 @@ class PhysicsModel:
             return a
 
         x0 = np.zeros((B, n)) if uz_init is None else arr("uz_init", uz_init, (B, n))
+        if _warmup is not None:
+            _wait_for_warmup()
         pts, s, uz0, iters, resid, ok = _shooting.solve_batch(
             alpha, beta, self._lengths, self._straight,
             arr("kappa", params.kappa, (B, n)), arr("EI", params.EI, (B, n)),
