@@ -147,25 +147,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=None)
     ap.add_argument("--device", default="cpu", help="cpu (learned vs physics) or cuda (learned on the GPU)")
     args = ap.parse_args(argv)
+    if args.device != "cpu" and not torch.cuda.is_available():
+        print(f"bench_learned: --device {args.device}: torch sees no CUDA device", file=sys.stderr)
+        return 2
     if args.device != "cpu":
-        if not torch.cuda.is_available():
-            print(f"bench_learned: --device {args.device}: torch sees no CUDA device", file=sys.stderr)
-            return 2
         res = run_gpu(quick=args.quick, device=args.device)
         print(f"{res['device']}, torch {res['torch']}")
         print(f"{'batch':>8} {'backbone us/shape':>18} {'forward us/shape':>17} {'call ms':>9}")
-        for r in res["table"]:
-            print(f"{r['batch']:>8} {r['backbone_us_per_shape']:>18.4f} "
-                  f"{r['forward_on_device_us_per_shape']:>17.5f} {r['backbone_call_ms']:>9.3f}")
-        if args.out:
-            with open(args.out, "w") as fh:
-                json.dump(res, fh, indent=2)
-        return 0
-    res = run(quick=args.quick)
-    print(f"{'batch':>7} {'learned us':>11} {'(wall)':>8} {'physics us':>11} {'(wall)':>8} {'speed-up':>9}")
-    for r in res["table"]:
-        print(f"{r['batch']:>7} {r['learned_us_per_shape']:>11.3f} {r['learned_wall_us_per_shape']:>8.3f} "
-              f"{r['physics_us_per_shape']:>11.2f} {r['physics_wall_us_per_shape']:>8.2f} {r['speedup']:>8.0f}x")
+        lines = [f"{r['batch']:>8} {r['backbone_us_per_shape']:>18.4f} "
+                 f"{r['forward_on_device_us_per_shape']:>17.5f} {r['backbone_call_ms']:>9.3f}"
+                 for r in res["table"]]
+    else:
+        res = run(quick=args.quick)
+        print(f"{'batch':>7} {'learned us':>11} {'(wall)':>8} {'physics us':>11} {'(wall)':>8} {'speed-up':>9}")
+        lines = [f"{r['batch']:>7} {r['learned_us_per_shape']:>11.3f} {r['learned_wall_us_per_shape']:>8.3f} "
+                 f"{r['physics_us_per_shape']:>11.2f} {r['physics_wall_us_per_shape']:>8.2f} {r['speedup']:>8.0f}x"
+                 for r in res["table"]]
+    print("\n".join(lines))
     if args.out:
         with open(args.out, "w") as fh:
             json.dump(res, fh, indent=2)
