@@ -113,7 +113,7 @@ def test_split_holds_out_whole_sweeps():
 
 
 def test_cli_diagnose_writes_report_and_calibrated_model(tmp_path, capsys):
-    from ctrplan.calibration.data import read_measured
+    from ctrplan.measured import read_measured
     from ctrplan.robot import load_robot as lr
     from ctrplan.shape.models import load_model
 

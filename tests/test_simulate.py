@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from ctrplan.calibration.data import read_measured
 from ctrplan.calibration.simulate import EXPERIMENTS, _shapes, design, experiment, simulate
 from ctrplan.cli import main
+from ctrplan.measured import read_measured
 from ctrplan.robot import load_robot, write_configs
 from ctrplan.shape.effects import EffectModel
 from ctrplan.shape.physics import PhysicsModel

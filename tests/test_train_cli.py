@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from ctrplan.calibration.data import MeasuredData, write_measured
 from ctrplan.cli import main
+from ctrplan.measured import MeasuredData, write_measured
 from ctrplan.robot import load_robot
 from ctrplan.shape import training as T
 from ctrplan.shape.learned import LearnedModel

@@ -32,10 +32,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ctrplan.calibration.data import MeasuredData, read_measured
 from ctrplan.calibration.diagnostics import residual_diagnostics
 from ctrplan.calibration.fit import FitResult, Problem
 from ctrplan.errors import InputError
+from ctrplan.measured import MeasuredData, read_measured
 from ctrplan.robot import Robot, load_robot
 from ctrplan.shape.effects import EFFECT_NAMES, EffectModel, effect_params, off_values
 

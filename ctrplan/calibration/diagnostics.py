@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from ctrplan.calibration.data import MeasuredData
+from ctrplan.measured import MeasuredData
 from ctrplan.robot import Robot, wrap_angle
 from ctrplan.shape.effects import sweep_starts
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from ctrplan.calibration.data import MeasuredData
+from ctrplan.measured import MeasuredData
 from ctrplan.shape.effects import EffectModel, Param, effect_params, prepare, to_sensor
 from ctrplan.shape.physics import MechanicsParams
 

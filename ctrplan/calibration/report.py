@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ctrplan.calibration.data import MeasuredData
 from ctrplan.io import jsonable, save_figure, write_json_atomic, write_text_atomic
+from ctrplan.measured import MeasuredData
 from ctrplan.robot import Robot, Tube, wrap_angle
 
 

@@ -21,8 +21,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ctrplan.calibration.data import MeasuredData
 from ctrplan.errors import InputError
+from ctrplan.measured import MeasuredData
 from ctrplan.robot import Robot
 
 log = logging.getLogger("ctrplan")

@@ -37,8 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ctrplan.calibration.data import read_measured
     from ctrplan.calibration.diagnose import diagnose
+    from ctrplan.measured import read_measured
     from ctrplan.robot import load_robot
 
     if not 0 < args.holdout < 1:

@@ -47,8 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ctrplan.calibration.data import write_measured
     from ctrplan.calibration.simulate import design, simulate
+    from ctrplan.measured import write_measured
     from ctrplan.robot import load_robot, read_configs
     from ctrplan.shape.effects import complete_effects, parse_effect_arg
 

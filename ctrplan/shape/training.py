@@ -160,8 +160,8 @@ def real_data(robot: Robot | str, n: int, seed: int = 1, points: int = 20,
 
 def from_measured(path: str, robot: Robot) -> ShapeData:
     """Measured shapes from a CSV with backbone columns p1_x..pM_z (DESIGN.md)."""
-    from ctrplan.calibration.data import read_measured
     from ctrplan.errors import InputError
+    from ctrplan.measured import read_measured
 
     md = read_measured(path, robot)
     if md.points is None:
