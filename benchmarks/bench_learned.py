@@ -44,6 +44,11 @@ POINTS = 20
 SEED = 1
 
 
+def _rel(path) -> str:
+    """The model file relative to the repository (results carry no machine paths)."""
+    return os.path.relpath(path, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
 def _median_time(fn, repeats: int) -> tuple[float, float]:
     cpu: list[float] = []
     wall: list[float] = []
@@ -92,7 +97,7 @@ def run(quick: bool = False) -> dict:
     b1 = rows[0]
     return {
         "robot": ROBOT, "points": POINTS, "threads": torch.get_num_threads(),
-        "model": str(path) if path else "untrained network (no shipped model)",
+        "model": _rel(path) if path else "untrained network (no shipped model)",
         "architecture": f"{learned.depth}x{learned.width}, K={learned.terms}, frame={learned.frame}",
         "table": rows,
         "batch1_latency_us": {"learned": b1["learned_us_per_shape"], "physics": b1["physics_us_per_shape"]},
@@ -137,7 +142,7 @@ def run_gpu(quick: bool = False, device: str = "cuda") -> dict:
                      "forward_on_device_us_per_shape": 1e6 * fw / B,
                      "backbone_call_ms": 1e3 * pw})
     return {"robot": ROBOT, "points": POINTS, "device": torch.cuda.get_device_name(device),
-            "torch": torch.__version__, "model": str(path) if path else "untrained network",
+            "torch": torch.__version__, "model": _rel(path) if path else "untrained network",
             "table": rows}
 
 
