@@ -42,6 +42,7 @@ def _compile_now() -> None:
 
 
 def _wait_for_warmup() -> None:
+    """Wait for the helper of :func:`compile_in_background`, if one was started."""
     global _warmup
     proc, _warmup = _warmup, None
     if proc is not None:
@@ -177,8 +178,7 @@ class PhysicsModel:
             return a
 
         x0 = np.zeros((B, n)) if uz_init is None else arr("uz_init", uz_init, (B, n))
-        if _warmup is not None:
-            _wait_for_warmup()
+        _wait_for_warmup()
         pts, s, uz0, iters, resid, ok = _shooting.solve_batch(
             alpha, beta, self._lengths, self._straight,
             arr("kappa", params.kappa, (B, n)), arr("EI", params.EI, (B, n)),
