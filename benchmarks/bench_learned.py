@@ -69,6 +69,36 @@ def _repeats(batch: int, quick: bool) -> int:
     return 2 if quick else 3
 
 
+def network_floor(learned: LearnedModel, B: int, repeats: int) -> dict:
+    """Per-shape CPU time of the network's matrix products alone (hidden layers and the 3K
+    outputs, torch ``addmm`` in the model's chunks, nothing else), and with the basis expansion
+    to ``POINTS`` points: what no trimming of the public call can go below on this core."""
+    from ctrplan.shape.learned import CHUNK
+
+    hidden, Wl, bl, M, *_ = learned._cpu_weights(POINTS)
+    X = torch.randn(B, hidden[0][0].shape[0], generator=torch.Generator().manual_seed(SEED))
+    bufs = [torch.empty(CHUNK, W.shape[1]) for W, _, _ in hidden]
+    cbuf, pbuf = torch.empty(CHUNK, Wl.shape[1]), torch.empty(CHUNK, M.shape[1])
+
+    def products(expand: bool) -> None:
+        with torch.inference_mode():
+            for i in range(0, B, CHUNK):
+                h = X[i:i + CHUNK]
+                r = len(h)
+                for (W, b, slope), buf in zip(hidden, bufs):
+                    torch.addmm(b, h, W, out=buf[:r])
+                    torch.nn.functional.leaky_relu_(buf[:r], float(slope.reshape(-1)[0]))
+                    h = buf[:r]
+                torch.addmm(bl, h, Wl, out=cbuf[:r])
+                if expand:
+                    torch.mm(cbuf[:r], M, out=pbuf[:r])
+
+    mlp, _ = _median_time(lambda: products(False), repeats)
+    full, _ = _median_time(lambda: products(True), repeats)
+    return {"batch": B, "network_products_us_per_shape": 1e6 * mlp / B,
+            "with_basis_expansion_us_per_shape": 1e6 * full / B}
+
+
 def run(quick: bool = False) -> dict:
     torch.set_num_threads(1)
     robot = load_robot(ROBOT)
@@ -95,6 +125,7 @@ def run(quick: bool = False) -> dict:
         })
     big = rows[-1]
     b1 = rows[0]
+    floor = network_floor(learned, big["batch"], 3 if quick else 9)
     return {
         "robot": ROBOT, "points": POINTS, "threads": torch.get_num_threads(),
         "model": _rel(path) if path else "untrained network (no shipped model)",
@@ -104,6 +135,8 @@ def run(quick: bool = False) -> dict:
         "largest_batch": big["batch"],
         "target_le_1us_at_100k": bool(big["batch"] >= 100_000 and big["learned_us_per_shape"] <= 1.0),
         "target_ge_100x_at_100k": bool(big["batch"] >= 100_000 and big["speedup"] >= 100.0),
+        "floor": floor,
+        "ratio_bound_from_floor": big["physics_us_per_shape"] / floor["with_basis_expansion_us_per_shape"],
     }
 
 
@@ -169,6 +202,11 @@ def main(argv: list[str] | None = None) -> int:
                  f"{r['physics_us_per_shape']:>11.2f} {r['physics_wall_us_per_shape']:>8.2f} {r['speedup']:>8.0f}x"
                  for r in res["table"]]
     print("\n".join(lines))
+    if "floor" in res:
+        f = res["floor"]
+        print(f"network products alone at batch {f['batch']}: {f['network_products_us_per_shape']:.3f} us/shape, "
+              f"{f['with_basis_expansion_us_per_shape']:.3f} with the basis expansion "
+              f"(bound on the speed-up: {res['ratio_bound_from_floor']:.0f}x)")
     if args.out:
         with open(args.out, "w") as fh:
             json.dump(res, fh, indent=2)
