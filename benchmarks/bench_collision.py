@@ -24,9 +24,10 @@ import os
 import sys
 import time
 
-for _v in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+for _v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
+import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
 #: tip reach (mm) sampled per scene: about the depth of each scene's lumen from the base
@@ -64,6 +65,9 @@ def near_targets(robot, scene, n: int, seed: int) -> np.ndarray:
 
 def run(quick: bool = False) -> dict:
     """Measure; returns {'table': [...rows], 'notes': ...}."""
+    # numba's pool through its API: NUMBA_NUM_THREADS set after numba is imported (as under
+    # `ctrplan bench`) makes numba refuse every later compile in the process
+    numba.set_num_threads(1)
     try:
         import torch
 

@@ -30,9 +30,10 @@ import statistics
 import sys
 import time
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+import numba  # noqa: E402
 import torch  # noqa: E402
 
 from ctrplan.robot import load_robot  # noqa: E402
@@ -100,6 +101,9 @@ def network_floor(learned: LearnedModel, B: int, repeats: int) -> dict:
 
 
 def run(quick: bool = False) -> dict:
+    # numba's pool through its API: NUMBA_NUM_THREADS set after numba is imported (as under
+    # `ctrplan bench`) makes numba refuse every later compile in the process
+    numba.set_num_threads(1)
     torch.set_num_threads(1)
     robot = load_robot(ROBOT)
     path = shipped_model_path(ROBOT)

@@ -22,9 +22,10 @@ import sys
 import time
 
 # one thread for anything that might use a pool (torch intra-op, BLAS, numba); before imports
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ctrplan.collision.scene import list_scenes  # noqa: E402
@@ -42,6 +43,9 @@ def _pct(x: list[float], q: float) -> float:
 
 
 def run(quick: bool = False) -> dict:
+    # numba's pool through its API: NUMBA_NUM_THREADS set after numba is imported (as under
+    # `ctrplan bench`) makes numba refuse every later compile in the process
+    numba.set_num_threads(1)
     seeds = [0] if quick else [0, 1, 2, 3, 4]
     scenes = list_scenes()
     plans: list[dict] = []

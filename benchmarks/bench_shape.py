@@ -22,9 +22,10 @@ import sys
 import time
 
 # one thread for anything that might use a pool (numpy BLAS); set before numpy is imported
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ctrplan.robot import load_robot  # noqa: E402
@@ -57,6 +58,9 @@ def _median_time(fn, repeats: int) -> tuple[float, float]:
 
 
 def run(quick: bool = False) -> dict:
+    # numba's pool through its API: NUMBA_NUM_THREADS set after numba is imported (as under
+    # `ctrplan bench`) makes numba refuse every later compile in the process
+    numba.set_num_threads(1)
     robot = load_robot(ROBOT)
     batches = (1, 100, 10_000)
     repeats = {1: 50 if quick else 500, 100: 10 if quick else 50, 10_000: 2 if quick else 7}

@@ -41,3 +41,29 @@ def test_bench_writes_its_tables_into_the_readme(tmp_path, capsys):
     md = (tmp_path / "b" / "bench.md").read_text()
     assert "stale" not in text and md.strip() in text and text.endswith(f"{END}\n## Next\n")
     assert "Machine:" in text and "### shape" in text
+
+
+def test_bench_in_process_leaves_numba_usable(tmp_path):
+    """`ctrplan bench` imports the suites into a process where numba is already loaded: pinning
+    threads through NUMBA_NUM_THREADS there made numba refuse every later compile."""
+    import numba
+    import numpy as np
+
+    from ctrplan.collision.field import FieldConfig, build_field
+
+    threads = numba.get_num_threads()
+    try:
+        assert cli.main(["-q", "bench", "shape", "--quick", "--out", str(tmp_path)]) == 0
+        assert numba.get_num_threads() == 1
+        v = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]])
+        f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+        field = build_field(v, f, FieldConfig(h_mm=0.5), watertight=True)   # the parallel splat
+        assert np.isfinite(field.lb).all()
+
+        @numba.njit
+        def fresh(x):
+            return x + 1
+
+        assert fresh(1) == 2                                                 # a new compile
+    finally:
+        numba.set_num_threads(threads)
