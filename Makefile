@@ -8,7 +8,7 @@ TORCH_REQ ?= torch==2.13.0+cpu
 TORCH_INDEX ?=
 PYTEST_ARGS ?=
 
-.PHONY: demo test install lint bench clean
+.PHONY: demo test test-stat install lint bench clean
 
 # The package and its run-time dependencies (all `make demo` needs) ...
 $(VENV)/.base: pyproject.toml
@@ -30,6 +30,10 @@ demo: $(VENV)/.base
 
 test: install
 	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+# The seeded statistical suites whose numbers the README quotes (run by .ci/run after `make test`).
+test-stat: install
+	$(PY) -m pytest -q -m statistical $(PYTEST_ARGS)
 
 lint: install
 	$(VENV)/bin/ruff check ctrplan tests benchmarks examples

@@ -78,3 +78,61 @@ def check_q(robot: Robot, q: np.ndarray) -> np.ndarray:
     if not np.all(np.isfinite(q)):
         raise ValueError("q contains NaN or infinite values")
     return q
+
+
+# --- Cross-model contracts (direction of motion, error bounds) -------------------------------
+#
+# Direction of motion.  Models whose output depends on the direction of the last motion of each
+# joint (friction / hysteresis: an EffectModel with friction, a direction-aware LearnedModel) set
+# ``needs_direction = True`` and take ``shape(q, points, direction=D)`` with ``D`` of shape
+# (B, 2n) in {-1, 0, +1}: the sign of the last nonzero motion of each joint, same layout as q
+# (alpha_1..n, beta_1..n); 0 = unknown / never moved.  Callers pass ``direction=`` only to models
+# with ``needs_direction``; other models need not accept it.
+#
+# Error bound.  A model may carry ``error_quantiles``: a dict with keys p50, p95, p99, max (mm),
+# the held-out quantiles of its max deviation along the shaft (learned models) or of its tip
+# residual (calibrated models), or None.  ``model_error_bound`` is the margin planning uses.
+
+def needs_direction(model) -> bool:
+    """True when ``model.shape`` must be given the direction of the last motion."""
+    return bool(getattr(model, "needs_direction", False))
+
+
+def direction_from_rows(q: np.ndarray, sweep: np.ndarray | None = None,
+                        tol: float = 1e-9) -> np.ndarray:
+    """Direction of the last motion of each joint, from rows taken in order of motion.
+
+    q : (B, 2n); sweep : (B,) ids or None (one sweep). Returns (B, 2n) in {-1, 0, +1}: for row k
+    the sign of the last change larger than ``tol`` among rows <= k of the same sweep (0 before
+    the first change). Rotations are compared on the circle (wrapped differences).
+    """
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    b, d = q.shape
+    out = np.zeros((b, d), dtype=np.int8)
+    if b == 0:
+        return out
+    n = d // 2
+    diff = np.diff(q, axis=0)
+    diff[:, :n] = (diff[:, :n] + np.pi) % (2 * np.pi) - np.pi
+    step = np.where(diff > tol, 1, np.where(diff < -tol, -1, 0)).astype(np.int8)
+    sw = None if sweep is None else np.asarray(sweep)
+    last = np.zeros(d, dtype=np.int8)
+    for k in range(1, b):
+        if sw is not None and sw[k] != sw[k - 1]:
+            last = np.zeros(d, dtype=np.int8)
+        else:
+            last = np.where(step[k - 1] != 0, step[k - 1], last)
+        out[k] = last
+    return out
+
+
+def model_error_bound(model, quantile: str = "p99") -> float:
+    """The model's error bound (mm) for use as a planning margin: ``error_quantiles[quantile]``,
+    or 0.0 when the model carries none (the physics model is its own reference)."""
+    eq = getattr(model, "error_quantiles", None)
+    if not eq:
+        return 0.0
+    v = float(eq.get(quantile, eq.get("max", 0.0)))
+    if not np.isfinite(v) or v < 0:
+        raise ValueError(f"model error quantile {quantile} must be a finite value >= 0, got {v}")
+    return v
