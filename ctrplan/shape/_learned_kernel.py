@@ -15,8 +15,9 @@ from numba import njit
 
 
 @njit(cache=True)
-def forward(q, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, phi, out):
-    """q (B, 2n); W0 (3n, w); Wh (depth-1, w, w); bh (depth, w); slopes (depth,);
+def forward(q, dirs, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, phi, out):
+    """q (B, 2n); dirs (B, nd) extra inputs appended to the features (direction of the last
+    motion, nd = 0 or 2n); W0 (3n + nd, w); Wh (depth-1, w, w); bh (depth, w); slopes (depth,);
     Wl (w, 3K); bl (3K,); phi (m, K); out (B, m, 3) written in place."""
     B = q.shape[0]
     w = W0.shape[1]
@@ -24,7 +25,9 @@ def forward(q, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, phi, out):
     K3 = Wl.shape[1]
     K = K3 // 3
     m = phi.shape[0]
-    x = np.empty(3 * n)
+    nd = dirs.shape[1]
+    nx = 3 * n + nd
+    x = np.empty(nx)
     h = np.empty(w)
     h2 = np.empty(w)
     c = np.empty(K3)
@@ -39,9 +42,11 @@ def forward(q, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, phi, out):
             e = q[bi, n + i] + L[i]
             if e > length:
                 length = e
+        for k in range(nd):
+            x[3 * n + k] = dirs[bi, k]
         for j in range(w):
             s = bh[0, j]
-            for k in range(3 * n):
+            for k in range(nx):
                 s += x[k] * W0[k, j]
             h[j] = s if s > 0.0 else slopes[0] * s
         for d in range(1, depth):
@@ -74,17 +79,20 @@ def forward(q, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, phi, out):
 
 
 @njit(cache=True)
-def tip_jacobian(q, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, ptip, tip, J):
+def tip_jacobian(q, dirs, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, ptip, tip, J):
     """Tip (B, 3) and d tip / d q (B, 3, 2n) by forward-mode differentiation of the same
-    network; ``ptip`` (K,) are the basis values at s = 1. tip and J are written in place."""
+    network (the direction inputs ``dirs`` (B, nd) are constants); ``ptip`` (K,) are the
+    basis values at s = 1. tip and J are written in place."""
     B = q.shape[0]
     w = W0.shape[1]
     depth = bh.shape[0]
     K3 = Wl.shape[1]
     K = K3 // 3
     D = 2 * n
-    x = np.empty(3 * n)
-    dx = np.zeros((3 * n, D))
+    nd = dirs.shape[1]
+    nx = 3 * n + nd
+    x = np.empty(nx)
+    dx = np.zeros((nx, D))
     h = np.empty(w)
     dh = np.empty((w, D))
     h2 = np.empty(w)
@@ -96,9 +104,11 @@ def tip_jacobian(q, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, ptip, tip,
         ref = q[bi, n - 1] if outer else 0.0
         length = -1e300
         imax = 0
-        for k in range(3 * n):
+        for k in range(nx):
             for j in range(D):
                 dx[k, j] = 0.0
+        for k in range(nd):
+            x[3 * n + k] = dirs[bi, k]
         for i in range(n):
             a = q[bi, i] - ref
             ca = math.cos(a)
@@ -121,7 +131,7 @@ def tip_jacobian(q, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, ptip, tip,
         dlen[n + imax] = 1.0
         for j in range(w):
             s = bh[0, j]
-            for k in range(3 * n):
+            for k in range(nx):
                 s += x[k] * W0[k, j]
             g = 1.0 if s > 0.0 else slopes[0]
             h[j] = g * s

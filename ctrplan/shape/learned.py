@@ -22,6 +22,24 @@ batches up to :data:`SMALL_BATCH` use a compiled float64 kernel for low latency)
 Model files are written with :func:`torch.save` and read with ``torch.load(weights_only=True)``:
 they hold only tensors and a JSON string of metadata (robot, basis, normalisation,
 architecture, training-data hashes, metrics), never pickled code.
+
+Options recorded in the model file:
+
+* **Direction-aware inputs** (``direction=True``): ``2n`` more inputs, the sign of the last
+  motion of each joint (same layout as q, -1/0/+1, 0 = unknown), so friction / hysteresis that
+  depends on the direction of the last motion can be learned. Such a model has
+  ``needs_direction = True`` and takes ``shape(q, points, direction=D)``
+  (:func:`ctrplan.shape.base.needs_direction`); without ``direction`` every input is 0.
+* **Residual mode** (``base=``): the network predicts the basis coefficients of the difference
+  to a base model - ``physics``/``rigid`` (a physics call per evaluation), a calibrated
+  EffectModel (``ctrplan diagnose``; also a physics call) or a learned model (stored inside the
+  file; evaluated in the same pass, no physics call).
+* **Error bound**: ``error_quantiles`` (p50/p95/p99/max, mm) of the max deviation along the
+  shaft on the held-out test part of the data the model was last trained on.
+* **Training domain**: ``ok`` is False outside the robot's joint limits and outside the joint
+  ranges seen in that data (translations: min..max per tube; rotations: the smallest arc that
+  holds every angle seen, or the whole circle when no gap between seen angles exceeds
+  :data:`FULL_CIRCLE_GAP`).
 """
 
 from __future__ import annotations
@@ -41,9 +59,15 @@ from ctrplan.io import jsonable
 from ctrplan.robot import Robot, load_robot, robot_from_dict
 from ctrplan.shape import basis
 from ctrplan.shape.base import Shape, check_q, radius_along
+from ctrplan.shape.base import needs_direction as _needs_direction
 
 FORMAT = "ctrplan-learned-model"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: Versions :meth:`LearnedModel.load` reads (1: no direction inputs, residual, bound or domain).
+READ_VERSIONS = (1, 2)
+#: Rotations: the seen angles cover the whole circle when no gap between them exceeds this (rad).
+FULL_CIRCLE_GAP = 0.5
+QUANTILES = {"p50": 50.0, "p95": 95.0, "p99": 99.0, "max": 100.0}
 DEFAULT_WIDTH = 30
 DEFAULT_DEPTH = 3
 #: "outer": angles relative to the outermost tube, backbone predicted in a frame turned with
@@ -95,7 +119,8 @@ class LearnedModel:
 
     def __init__(self, robot: Robot | str, width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH,
                  terms: int = basis.DEFAULT_TERMS, device: str | torch.device = "cpu",
-                 seed: int | None = 0, frame: str = DEFAULT_FRAME):
+                 seed: int | None = 0, frame: str = DEFAULT_FRAME, direction: bool = False,
+                 base: Any = None, base_spec: dict | None = None):
         self.robot = load_robot(robot)
         if frame not in FRAMES:
             raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
@@ -105,7 +130,20 @@ class LearnedModel:
         n = self.robot.n
         if seed is not None:
             torch.manual_seed(seed)
-        self.net = ShapeNet(3 * n, 3 * self.terms, self.width, self.depth)
+        #: direction-aware: 2n extra inputs, the sign of the last motion of each joint
+        self.direction_inputs = bool(direction)
+        self.net = ShapeNet(3 * n + (2 * n if self.direction_inputs else 0), 3 * self.terms,
+                            self.width, self.depth)
+        #: residual mode: the network predicts the difference to this model (None: pure)
+        self.base = base
+        self.base_spec = dict(base_spec) if base_spec else (
+            {"kind": "learned"} if isinstance(base, LearnedModel) else None)
+        if base is not None and self.base_spec is None:
+            raise ValueError("a residual base other than a LearnedModel needs base_spec")
+        #: held-out max-deviation quantiles (mm) {"p50", "p95", "p99", "max"} or None
+        self.error_quantiles: dict[str, float] | None = None
+        #: training domain (joint ranges seen) or None (robot limits only)
+        self.domain: dict[str, Any] | None = None
         lo, hi = self.robot.beta_bounds()
         span = np.where(hi - lo > 0, hi - lo, 1.0)
         self.beta_lo = torch.tensor(lo, dtype=torch.float32)
@@ -124,18 +162,31 @@ class LearnedModel:
     def device(self) -> torch.device:
         return self._device
 
+    @property
+    def needs_direction(self) -> bool:
+        """True for direction-aware models (and residual models over one)."""
+        return self.direction_inputs or _needs_direction(self.base)
+
+    @property
+    def residual(self) -> bool:
+        return self.base is not None
+
     def to(self, device: str | torch.device) -> LearnedModel:
         """Move the network to ``device`` (in place); returns self."""
         self._device = torch.device(device)
         self.net.to(self._device)
+        if isinstance(self.base, LearnedModel):
+            self.base.to(device)
         for k in ("beta_lo", "beta_span", "coef_mean", "coef_std", "lengths"):
             setattr(self, k, getattr(self, k).to(self._device))
         self._basis_cache = {}
         return self
 
     def __repr__(self) -> str:
+        extra = (", direction=True" if self.direction_inputs else "") + (
+            f", base={self.base_spec.get('kind')!r}" if self.base_spec else "")
         return (f"LearnedModel(robot={self.robot.name!r}, width={self.width}, depth={self.depth}, "
-                f"terms={self.terms}, frame={self.frame!r}, device={str(self._device)!r})")
+                f"terms={self.terms}, frame={self.frame!r}{extra}, device={str(self._device)!r})")
 
     def __getstate__(self) -> dict:  # picklable for process pools: move to CPU tensors
         st = dict(self.__dict__)
@@ -143,18 +194,37 @@ class LearnedModel:
         return st
 
     # ------------------------------------------------------------------ torch path
-    def features(self, q: torch.Tensor) -> torch.Tensor:
-        """Network input (B, 3n): per tube cos alpha, sin alpha, beta scaled to [-1, 1]
-        (with frame "outer", alpha relative to the outermost tube's)."""
+    def check_direction(self, q: np.ndarray, direction: Any) -> np.ndarray | None:
+        """Direction of the last motion as float (B, 2n) in {-1, 0, 1}, or None (unknown)."""
+        if direction is None:
+            return None
+        d = np.asarray(direction, dtype=float)
+        if d.ndim == 1:
+            d = d[None, :]
+        if d.shape != q.shape:
+            raise ValueError(f"direction must have the shape of q {q.shape}, got {d.shape}")
+        if not np.all(np.isfinite(d)):
+            raise ValueError("direction contains NaN or infinite values")
+        return np.sign(d)
+
+    def features(self, q: torch.Tensor, direction: torch.Tensor | None = None) -> torch.Tensor:
+        """Network input (B, 3n [+ 2n]): per tube cos alpha, sin alpha, beta scaled to [-1, 1]
+        (with frame "outer", alpha relative to the outermost tube's); direction-aware models
+        append the direction of the last motion of each joint (zeros when not given)."""
         n = self.robot.n
         a, b = q[:, :n], q[:, n:]
         if self.frame == "outer":
             a = a - a[:, n - 1:n]
         bs = 2.0 * (b - self.beta_lo) / self.beta_span - 1.0
-        return torch.stack([torch.cos(a), torch.sin(a), bs], dim=2).reshape(len(q), 3 * n)
+        x = torch.stack([torch.cos(a), torch.sin(a), bs], dim=2).reshape(len(q), 3 * n)
+        if not self.direction_inputs:
+            return x
+        d = torch.zeros_like(q) if direction is None else direction.to(dtype=x.dtype, device=x.device)
+        return torch.cat([x, d], dim=1)
 
     def coefficients_t(self, q: torch.Tensor) -> torch.Tensor:
-        """Basis coefficients (B, K, 3) (dimensionless, base frame) for q (B, 2n)."""
+        """Basis coefficients (B, K, 3) of the network's own output (dimensionless, base frame;
+        for a residual model the coefficients of the difference to the base) for q (B, 2n)."""
         z = self.net(self.features(q))
         c = (self.coef_mean + self.coef_std * z).reshape(len(q), self.terms, 3)
         return self._to_base(q, c)
@@ -193,9 +263,11 @@ class LearnedModel:
             self._basis_cache[key] = phi
         return phi
 
-    def points_t(self, q: torch.Tensor, points: int = 20) -> torch.Tensor:
-        """Differentiable backbones (B, points, 3) mm from q (B, 2n) tensors on the device."""
-        return self._to_base(q, self.points_from_features(self.features(q), self.tip_length_t(q), points))
+    def points_t(self, q: torch.Tensor, points: int = 20, direction: torch.Tensor | None = None) -> torch.Tensor:
+        """Differentiable backbones (B, points, 3) mm from q (B, 2n) tensors on the device
+        (the network's own part: for a residual model, without the base)."""
+        return self._to_base(q, self.points_from_features(self.features(q, direction),
+                                                          self.tip_length_t(q), points))
 
     def points_from_features(self, x: torch.Tensor, length: torch.Tensor, points: int) -> torch.Tensor:
         """Differentiable backbones (B, points, 3) mm in the model frame from network inputs
@@ -245,10 +317,25 @@ class LearnedModel:
         self._basis_cache[key] = out  # type: ignore[assignment]
         return out
 
-    def _fast_points(self, qt: torch.Tensor, points: int) -> torch.Tensor:
-        """Inference-only forward pass (no autograd, fused last layer), (B, points, 3)."""
+    def _chain(self) -> tuple[list[LearnedModel], Any]:
+        """The networks whose outputs add up (this one and, in residual mode, learned bases
+        with the same frame, basis and input scaling: evaluated in the same pass), and the
+        remaining base model (physics, calibrated, ...) or None."""
+        nets = [self]
+        m = self
+        while (isinstance(m.base, LearnedModel) and m.base.frame == self.frame
+               and m.base.terms == self.terms and m.base.robot.n == self.robot.n
+               and torch.equal(m.base.beta_lo.cpu(), self.beta_lo.cpu())
+               and torch.equal(m.base.beta_span.cpu(), self.beta_span.cpu())):
+            m = m.base
+            nets.append(m)
+        return nets, m.base
+
+    def _fast_points(self, qt: torch.Tensor, points: int, dt: torch.Tensor | None = None) -> torch.Tensor:
+        """Inference-only forward pass (no autograd, fused last layer), (B, points, 3);
+        the network's own part."""
         hidden, Wf, bf = self._fused(points)
-        h = self.features(qt)
+        h = self.features(qt, dt)
         for Wt, b, a in hidden:
             h = torch.prelu(torch.addmm(b, h, Wt), a)
         out = torch.addmm(bf, h, Wf)
@@ -295,16 +382,27 @@ class LearnedModel:
             self._basis_cache[(0, "numba")] = hit  # type: ignore[assignment]
         return hit
 
-    def _numpy_points(self, q: np.ndarray, points: int) -> np.ndarray:
+    def _numpy_points(self, q: np.ndarray, points: int, d: np.ndarray | None = None,
+                      nets: list[LearnedModel] | None = None) -> np.ndarray:
         """The same forward pass in float64 by a small compiled (numba) kernel: the lowest
-        latency for small batches (a torch call costs microseconds per operation)."""
+        latency for small batches (a torch call costs microseconds per operation). ``nets``:
+        the networks whose outputs add up (default: this one)."""
         from ctrplan.shape import _learned_kernel
 
-        W0, Wh, bh, slopes, Wl, bl, lo, inv, L = self._numba_weights()
+        q = np.ascontiguousarray(q, dtype=np.float64)
         phi = self._phi_np(points)
         out = np.empty((len(q), points, 3))
-        _learned_kernel.forward(np.ascontiguousarray(q, dtype=np.float64), self.robot.n,
-                                self.frame == "outer", lo, inv, L, W0, Wh, bh, slopes, Wl, bl, phi, out)
+        tmp = np.empty_like(out) if nets and len(nets) > 1 else out
+        none = np.zeros((len(q), 0))
+        for k, net in enumerate(nets or [self]):
+            W0, Wh, bh, slopes, Wl, bl, lo, inv, L = net._numba_weights()
+            dirs = none
+            if net.direction_inputs:
+                dirs = np.zeros_like(q) if d is None else np.ascontiguousarray(d, dtype=np.float64)
+            _learned_kernel.forward(q, dirs, self.robot.n, self.frame == "outer", lo, inv, L,
+                                    W0, Wh, bh, slopes, Wl, bl, phi, out if k == 0 else tmp)
+            if k > 0:
+                out += tmp
         return out
 
     def _cpu_weights(self, points: int):
@@ -331,43 +429,62 @@ class LearnedModel:
             self._basis_cache[key] = hit  # type: ignore[assignment]
         return hit
 
-    def _cpu_points(self, q: np.ndarray, points: int) -> np.ndarray:
+    def _cpu_points(self, q: np.ndarray, points: int, d: np.ndarray | None = None,
+                    nets: list[LearnedModel] | None = None) -> np.ndarray:
         """CPU inference in float32 chunks that stay in cache; returns float64 (B, points, 3).
 
         Features in numpy (vectorised float32 cos/sin), the MLP in torch, the rotation of the
-        "outer" frame applied to the (B, K) coefficients before the basis expansion."""
-        hidden, Wl, bl, M, lo, inv, L = self._cpu_weights(points)
+        "outer" frame applied to the (B, K) coefficients before the basis expansion. ``nets``:
+        networks whose coefficients add up (residual over a learned base: one pass, one
+        expansion)."""
+        nets = nets or [self]
+        _, _, _, M, lo, inv, L = self._cpu_weights(points)
         n, K, B = self.robot.n, self.terms, len(q)
         q32 = np.asarray(q, dtype=np.float32)
         a, b = q32[:, :n], q32[:, n:]
         ar = a - a[:, n - 1:n] if self.frame == "outer" else a
-        feats = np.empty((B, n, 3), dtype=np.float32)
-        np.cos(ar, out=feats[:, :, 0])
-        np.sin(ar, out=feats[:, :, 1])
-        feats[:, :, 2] = (b - lo) * inv - 1.0
+        with_dir = any(net.direction_inputs for net in nets)
+        feats = np.zeros((B, 5 * n if with_dir else 3 * n), dtype=np.float32)
+        f3 = feats[:, :3 * n].reshape(B, n, 3) if with_dir else feats.reshape(B, n, 3)
+        np.cos(ar, out=f3[:, :, 0])
+        np.sin(ar, out=f3[:, :, 1])
+        f3[:, :, 2] = (b - lo) * inv - 1.0
+        if with_dir and d is not None:
+            feats[:, 3 * n:] = d
         length = torch.from_numpy(np.max(b + L, axis=1))
-        X = torch.from_numpy(feats.reshape(B, 3 * n))
+        X = torch.from_numpy(feats)
         if self.frame == "outer":
             cr = torch.from_numpy(np.cos(a[:, n - 1]))
             sr = torch.from_numpy(np.sin(a[:, n - 1]))
         out = np.empty((B, points, 3), dtype=np.float64)
         flat = out.reshape(B, 3 * points)
-        slopes = [float(sl.reshape(-1)[0]) for _, _, sl in hidden]
         rows = min(CHUNK, B)
-        bufs = [torch.empty(rows, Wt.shape[1]) for Wt, _, _ in hidden]
-        cbuf = torch.empty(rows, Wl.shape[1])
+        mlps = []
+        for net in nets:
+            hidden, Wl, bl = net._cpu_weights(points)[:3]
+            mlps.append((hidden, Wl, bl, [float(sl.reshape(-1)[0]) for _, _, sl in hidden],
+                         [torch.empty(rows, Wt.shape[1]) for Wt, _, _ in hidden],
+                         (5 if net.direction_inputs else 3) * n))
+        cbuf = torch.empty(rows, 3 * K)
+        c2buf = torch.empty(rows, 3 * K)
         pbuf = torch.empty(rows, M.shape[1])
         with torch.inference_mode():
             for i in range(0, B, CHUNK):
                 r = min(CHUNK, B - i)
-                h = X[i:i + r]
-                for (Wt, bb, _), a_, buf in zip(hidden, slopes, bufs):
-                    hb = buf[:r]
-                    torch.addmm(bb, h, Wt, out=hb)
-                    torch.nn.functional.leaky_relu_(hb, a_)   # PReLU with one slope per layer
-                    h = hb
                 c = cbuf[:r]
-                torch.addmm(bl, h, Wl, out=c)
+                for k, (hidden, Wl, bl, slopes, bufs, cols) in enumerate(mlps):
+                    h = X[i:i + r, :cols]
+                    for (Wt, bb, _), a_, buf in zip(hidden, slopes, bufs):
+                        hb = buf[:r]
+                        torch.addmm(bb, h, Wt, out=hb)
+                        torch.nn.functional.leaky_relu_(hb, a_)   # PReLU with one slope per layer
+                        h = hb
+                    if k == 0:
+                        torch.addmm(bl, h, Wl, out=c)
+                    else:
+                        c2 = c2buf[:r]
+                        torch.addmm(bl, h, Wl, out=c2)
+                        c.add_(c2)
                 c.mul_(length[i:i + r, None])
                 if self.frame == "outer":
                     cv = c.view(-1, K, 3)
@@ -385,38 +502,114 @@ class LearnedModel:
         return torch.as_tensor(np.ascontiguousarray(q, dtype=np.float32), device=self._device)
 
     # ------------------------------------------------------------------ ShapeModel protocol
-    def backbone(self, q: np.ndarray, points: int = 20) -> np.ndarray:
-        """(B, points, 3) backbone points, mm, robot base frame (one forward pass)."""
+    def _evaluate(self, q: np.ndarray, points: int, d: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        """Backbones (B, points, 3) and the base model's ok (or None) for checked q."""
+        nets, rest = self._chain()
+        if self._device.type == "cpu":
+            if len(q) <= SMALL_BATCH:
+                out = self._numpy_points(q, points, d, nets)
+            else:
+                out = self._cpu_points(q, points, d, nets)
+        else:
+            qt = self._as_tensor(q)
+            dt = None if d is None else self._as_tensor(d)
+            with torch.inference_mode():
+                acc = nets[0]._fast_points(qt, points, dt)
+                for net in nets[1:]:
+                    acc += net._fast_points(qt, points, dt)
+            out = acc.cpu().numpy().astype(np.float64)
+        ok = None
+        if rest is not None:
+            if _needs_direction(rest) and d is not None:
+                sh = rest.shape(q, points=points, direction=d)
+            else:
+                sh = rest.shape(q, points=points)
+            out += sh.points
+            ok = np.asarray(sh.ok, dtype=bool)
+        return out, ok
+
+    def backbone(self, q: np.ndarray, points: int = 20, direction: np.ndarray | None = None) -> np.ndarray:
+        """(B, points, 3) backbone points, mm, robot base frame (one forward pass).
+
+        direction : (B, 2n) sign of the last motion of each joint, for direction-aware models
+        (ignored otherwise; None = unknown)."""
         if points < 2:
             raise ValueError("points must be >= 2 (base and tip)")
         q = check_q(self.robot, q)
-        if self._device.type == "cpu":
-            if len(q) <= SMALL_BATCH:
-                return self._numpy_points(q, points)
-            return self._cpu_points(q, points)
-        with torch.inference_mode():
-            out = self._fast_points(self._as_tensor(q), points)
-        return out.cpu().numpy().astype(np.float64)
+        return self._evaluate(q, points, self.check_direction(q, direction))[0]
 
-    def shape(self, q: np.ndarray, points: int = 20) -> Shape:
-        """Backbones with radii; ``ok`` is all True (the network always answers)."""
+    def shape(self, q: np.ndarray, points: int = 20, direction: np.ndarray | None = None) -> Shape:
+        """Backbones with radii. ``ok`` is False outside the training domain
+        (:meth:`in_domain`) and where a residual model's base model failed."""
+        if points < 2:
+            raise ValueError("points must be >= 2 (base and tip)")
         q = check_q(self.robot, q)
-        pts = self.backbone(q, points)
+        pts, base_ok = self._evaluate(q, points, self.check_direction(q, direction))
+        ok = self.in_domain(q)
+        if base_ok is not None:
+            ok &= base_ok
         s = np.linspace(0.0, 1.0, points)[None, :] * self.robot.tip_length(q)[:, None]
-        return Shape(points=pts, s=s, radius=radius_along(self.robot, q, s),
-                     ok=np.ones(len(q), dtype=bool))
+        return Shape(points=pts, s=s, radius=radius_along(self.robot, q, s), ok=ok)
 
-    def tip_and_jacobian(self, q: np.ndarray, method: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    def in_domain(self, q: np.ndarray) -> np.ndarray:
+        """(B,) bool: inside the robot's joint limits and the joint ranges of the training
+        data (:attr:`domain`; see the module docstring)."""
+        q = check_q(self.robot, q)
+        ok = self.robot.is_valid(q)
+        dom = self.domain
+        if not dom:
+            return ok
+        n = self.robot.n
+        tol = float(dom.get("tolerance", 1e-9))
+        lo = np.asarray(dom["beta_min_mm"], dtype=float)
+        hi = np.asarray(dom["beta_max_mm"], dtype=float)
+        ok &= np.all((q[:, n:] >= lo - tol) & (q[:, n:] <= hi + tol), axis=1)
+        for i, arc in enumerate(dom["alpha_arcs_rad"]):
+            if arc is None:
+                continue
+            centre, half = float(arc[0]), float(arc[1])
+            off = (q[:, i] - centre + np.pi) % (2 * np.pi) - np.pi
+            ok &= np.abs(off) <= half + tol
+        return ok
+
+    def set_domain(self, q: np.ndarray, source: str = "") -> None:
+        """Record the training domain from the configurations a model was trained on: per
+        tube the translation range seen and the smallest arc holding every rotation seen
+        (None: the whole circle, when no gap between seen angles exceeds FULL_CIRCLE_GAP)."""
+        self.domain = training_domain(self.robot, q, source)
+
+    def set_error_quantiles(self, per_config_max: np.ndarray) -> dict[str, float]:
+        """Store quantiles of held-out max deviations (mm) as :attr:`error_quantiles`."""
+        self.error_quantiles = error_quantiles(per_config_max)
+        return self.error_quantiles
+
+    def tip_and_jacobian(self, q: np.ndarray, method: str = "auto",
+                         direction: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Tip positions (B, 3) mm and their Jacobians d tip / d q (B, 3, 2n).
 
         Columns are per joint: alpha in mm/rad, beta in mm/mm. ``method``: "compiled"
         (forward-mode derivatives in a numba kernel, float64, the default on the CPU) or
         "autograd" (torch autograd through the float32 network, any device). The tip length
         ``max(beta + L)`` is piecewise linear; at a tie the derivative follows one tube.
+        Direction inputs are held constant. A residual model adds its base's tip and
+        Jacobian (a learned base's own; central differences of a physics/calibrated base).
         """
         q = check_q(self.robot, q)
+        d = self.check_direction(q, direction)
         if method == "auto":
             method = "compiled" if self._device.type == "cpu" else "autograd"
+        if method not in ("compiled", "autograd"):
+            raise ValueError(f"method must be 'auto', 'compiled' or 'autograd', got {method!r}")
+        tip, J = self._own_tip_jacobian(q, d, method)
+        if self.base is None:
+            return tip, J
+        if isinstance(self.base, LearnedModel):
+            bt, bJ = self.base.tip_and_jacobian(q, method=method, direction=d)
+        else:
+            bt, bJ = _fd_tip_jacobian(self.base, q, d)
+        return tip + bt, J + bJ
+
+    def _own_tip_jacobian(self, q: np.ndarray, d: np.ndarray | None, method: str):
         if method == "compiled":
             from ctrplan.shape import _learned_kernel
 
@@ -425,15 +618,17 @@ class LearnedModel:
             B, D = len(q), self.robot.dof
             tip = np.empty((B, 3))
             J = np.empty((B, 3, D))
-            _learned_kernel.tip_jacobian(np.ascontiguousarray(q, dtype=np.float64), self.robot.n,
-                                         self.frame == "outer", lo, inv, L, W0, Wh, bh, slopes,
-                                         Wl, bl, ptip, tip, J)
+            qc = np.ascontiguousarray(q, dtype=np.float64)
+            dirs = np.zeros((B, 0))
+            if self.direction_inputs:
+                dirs = np.zeros_like(qc) if d is None else np.ascontiguousarray(d, dtype=np.float64)
+            _learned_kernel.tip_jacobian(qc, dirs, self.robot.n, self.frame == "outer", lo, inv, L,
+                                         W0, Wh, bh, slopes, Wl, bl, ptip, tip, J)
             return tip, J
-        if method != "autograd":
-            raise ValueError(f"method must be 'auto', 'compiled' or 'autograd', got {method!r}")
         qt = self._as_tensor(q).requires_grad_(True)
+        dt = None if d is None else self._as_tensor(d)
         with torch.enable_grad():
-            tip_t = self.points_t(qt, 2)[:, -1, :]                      # (B, 3)
+            tip_t = self.points_t(qt, 2, dt)[:, -1, :]                  # (B, 3)
             rows = []
             for c in range(3):
                 (g,) = torch.autograd.grad(tip_t[:, c].sum(), qt, retain_graph=c < 2)
@@ -444,7 +639,18 @@ class LearnedModel:
     # ------------------------------------------------------------------ files
     def metadata(self) -> dict[str, Any]:
         meta = dict(self.meta)
+        base_spec = None
+        if self.base_spec is not None:
+            base_spec = dict(self.base_spec)
+            if isinstance(self.base, LearnedModel):
+                base_spec["note"] = "stored in the file under 'base'"
         meta.update({
+            "inputs": {"direction": self.direction_inputs,
+                       "direction_layout": "sign of the last motion of each joint, q's layout "
+                                           "(alpha_1..n, beta_1..n), -1/0/+1, 0 = unknown"},
+            "residual": base_spec,
+            "error_quantiles": self.error_quantiles,
+            "domain": self.domain,
             "robot": self.robot.to_dict(),
             "architecture": {"width": self.width, "depth": self.depth, "activation": "PReLU",
                              "frame": self.frame,
@@ -466,12 +672,17 @@ class LearnedModel:
         """Write the model file atomically (tensors + JSON metadata)."""
         from ctrplan.io import atomic_path
 
+        with atomic_path(path) as tmp:
+            torch.save(self._file_object(), tmp)
+
+    def _file_object(self) -> dict[str, Any]:
         state = {k: v.detach().cpu().contiguous() for k, v in self.net.state_dict().items()}
         obj = {"format": FORMAT, "version": FORMAT_VERSION,
                "meta_json": json.dumps(jsonable(self.metadata()), allow_nan=False),
                "state": state}
-        with atomic_path(path) as tmp:
-            torch.save(obj, tmp)
+        if isinstance(self.base, LearnedModel):
+            obj["base"] = self.base._file_object()
+        return obj
 
     @classmethod
     def load(cls, path: str | os.PathLike, robot: Robot | str | None = None,
@@ -490,10 +701,16 @@ class LearnedModel:
             obj = torch.load(p, map_location="cpu", weights_only=True)
         except Exception as exc:  # corrupt, truncated, or not a torch file
             raise InputError(src, "", f"not a readable ctrplan model file ({exc.__class__.__name__})") from None
+        model = cls._from_object(obj, src, robot)
+        return model.to(device)
+
+    @classmethod
+    def _from_object(cls, obj: Any, src: str, robot: Robot | str | None, depth_left: int = 4) -> LearnedModel:
         if not isinstance(obj, dict) or obj.get("format") != FORMAT:
             raise InputError(src, "format", f"not a {FORMAT} file")
-        if obj.get("version") != FORMAT_VERSION:
-            raise InputError(src, "version", f"unsupported version {obj.get('version')!r} (expected {FORMAT_VERSION})")
+        if obj.get("version") not in READ_VERSIONS:
+            raise InputError(src, "version", f"unsupported version {obj.get('version')!r} "
+                                             f"(reads {', '.join(map(str, READ_VERSIONS))})")
         try:
             meta = json.loads(obj["meta_json"])
             arch, bas, norm = meta["architecture"], meta["basis"], meta["normalisation"]
@@ -501,6 +718,12 @@ class LearnedModel:
             frame = str(arch.get("frame", "base"))
             if frame not in FRAMES:
                 raise ValueError(f"unknown frame {frame!r}")
+            direction = bool((meta.get("inputs") or {}).get("direction", False))
+            base_spec = meta.get("residual")
+            if base_spec is not None and not isinstance(base_spec, dict):
+                raise ValueError("residual is not a mapping")
+            eq = _check_quantiles(meta.get("error_quantiles"))
+            domain = _check_domain(meta.get("domain"))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(src, "meta_json", f"missing or malformed metadata ({exc})") from None
         try:
@@ -514,8 +737,12 @@ class LearnedModel:
                                                f"whose tubes differ from {robot.name!r}")
         else:
             robot = stored
+        base = None
+        if base_spec is not None:
+            base = _load_base(base_spec, obj, src, robot, depth_left)
         try:
-            model = cls(robot, width=width, depth=depth, terms=terms, seed=None, frame=frame)
+            model = cls(robot, width=width, depth=depth, terms=terms, seed=None, frame=frame,
+                        direction=direction, base=base, base_spec=base_spec)
             state = obj["state"]
             if not isinstance(state, dict):
                 raise TypeError("state is not a mapping")
@@ -536,10 +763,118 @@ class LearnedModel:
         for t in list(model.net.state_dict().values()) + [model.coef_mean, model.coef_std, model.beta_span]:
             if not torch.all(torch.isfinite(t)):
                 raise InputError(src, "state", "contains non-finite weights")
-        keep = ("training", "metrics", "data", "created", "command", "ctrplan_version")
+        if domain is not None and (len(domain["beta_min_mm"]) != robot.n or len(domain["alpha_arcs_rad"]) != robot.n):
+            raise InputError(src, "domain", f"expects {robot.n} tubes")
+        model.error_quantiles = eq
+        model.domain = domain
+        keep = ("training", "metrics", "data", "created", "command", "ctrplan_version",
+                "error_quantiles_source")
         model.meta = {k: meta[k] for k in keep if k in meta}
         model.source = src
-        return model.to(device)
+        return model
+
+
+def error_quantiles(per_config_max: Any) -> dict[str, float]:
+    """p50/p95/p99/max (mm) of per-configuration max deviations (non-finite rows ignored)."""
+    v = np.asarray(per_config_max, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        raise ValueError("no finite errors to take quantiles of")
+    return {k: float(np.percentile(v, p)) for k, p in QUANTILES.items()}
+
+
+def training_domain(robot: Robot, q: np.ndarray, source: str = "") -> dict[str, Any]:
+    """The joint ranges seen in ``q`` (see :meth:`LearnedModel.set_domain`)."""
+    q = check_q(robot, q)
+    n = robot.n
+    arcs: list[list[float] | None] = []
+    for i in range(n):
+        a = np.sort(np.mod(q[:, i], 2 * np.pi))
+        gaps = np.diff(np.concatenate([a, a[:1] + 2 * np.pi]))
+        k = int(np.argmax(gaps))
+        if gaps[k] <= FULL_CIRCLE_GAP:
+            arcs.append(None)
+            continue
+        start = a[(k + 1) % len(a)]                  # the arc runs from after the gap ...
+        width = 2 * np.pi - gaps[k]                  # ... around to the gap's start
+        centre = (start + width / 2 + np.pi) % (2 * np.pi) - np.pi
+        arcs.append([float(centre), float(width / 2)])
+    return {"beta_min_mm": q[:, n:].min(axis=0).tolist(), "beta_max_mm": q[:, n:].max(axis=0).tolist(),
+            "alpha_arcs_rad": arcs, "tolerance": 1e-6, "rows": int(len(q)), "source": source,
+            "rule": "inside the robot's joint limits, the translation range seen per tube and "
+                    "the rotation arc seen per tube ([centre, half-width] rad; null = whole circle)"}
+
+
+def _check_quantiles(eq: Any) -> dict[str, float] | None:
+    if eq is None:
+        return None
+    if not isinstance(eq, dict) or set(QUANTILES) - set(eq):
+        raise ValueError(f"error_quantiles must have keys {', '.join(QUANTILES)}")
+    out = {k: float(eq[k]) for k in QUANTILES}
+    if not all(np.isfinite(v) and v >= 0 for v in out.values()):
+        raise ValueError("error_quantiles must be finite and >= 0")
+    return out
+
+
+def _check_domain(dom: Any) -> dict[str, Any] | None:
+    if dom is None:
+        return None
+    if not isinstance(dom, dict):
+        raise ValueError("domain is not a mapping")
+    for k in ("beta_min_mm", "beta_max_mm", "alpha_arcs_rad"):
+        if not isinstance(dom.get(k), list):
+            raise ValueError(f"domain.{k} missing")
+    np.asarray(dom["beta_min_mm"], dtype=float), np.asarray(dom["beta_max_mm"], dtype=float)
+    for arc in dom["alpha_arcs_rad"]:
+        if arc is not None and (not isinstance(arc, list) or len(arc) != 2):
+            raise ValueError("domain.alpha_arcs_rad entries must be [centre, half-width] or null")
+    return dom
+
+
+def _load_base(spec: dict, obj: dict, src: str, robot: Robot, depth_left: int) -> Any:
+    """The base model of a residual model file."""
+    kind = spec.get("kind")
+    if kind in ("physics", "rigid"):
+        from ctrplan.shape.physics import PhysicsModel
+
+        return PhysicsModel(robot, torsion=(kind == "physics"))
+    if kind == "learned":
+        if depth_left <= 0 or not isinstance(obj.get("base"), dict):
+            raise InputError(src, "base", "residual model over a learned base without a valid stored base")
+        return LearnedModel._from_object(obj["base"], f"{src} (base)", robot, depth_left - 1)
+    if kind == "effect":
+        from ctrplan.shape.effects import EffectModel
+
+        return EffectModel.from_dict(spec.get("model"), source=f"{src} (residual base)")
+    raise InputError(src, "residual", f"unknown base model kind {kind!r}")
+
+
+def base_model_spec(base: Any) -> dict[str, Any]:
+    """The metadata that lets :meth:`LearnedModel.load` rebuild a residual base model."""
+    from ctrplan.shape.physics import PhysicsModel
+
+    if isinstance(base, LearnedModel):
+        return {"kind": "learned"}
+    if isinstance(base, PhysicsModel):
+        return {"kind": "physics" if getattr(base, "torsion", True) else "rigid"}
+    if hasattr(base, "to_dict") and getattr(base, "name", "") != "learned":
+        return {"kind": "effect", "model": base.to_dict()}
+    raise ValueError(f"cannot use {type(base).__name__} as a residual base")
+
+
+def _fd_tip_jacobian(model: Any, q: np.ndarray, d: np.ndarray | None, h: float = 1e-5):
+    """Tip and central-difference Jacobian of any shape model (float64 models)."""
+    def tip(x):
+        if d is not None and _needs_direction(model):
+            return model.shape(x, points=2, direction=d).points[:, -1, :]
+        return model.backbone(x, 2)[:, -1, :]
+    t0 = tip(q)
+    J = np.empty((len(q), 3, q.shape[1]))
+    for j in range(q.shape[1]):
+        e = np.zeros(q.shape[1])
+        e[j] = h
+        J[:, :, j] = (tip(q + e) - tip(q - e)) / (2 * h)
+    return t0, J
 
 
 def shipped_model_path(robot_name: str) -> Path | None:
