@@ -70,8 +70,8 @@ def test_training_on_gpu_is_seeded_and_loads_on_cpu(tmp_path):
         m = T.new_model(load_robot("seed1"), 15, 2, 5, seed=1, device="cuda")
         T.set_normalisation(m, tr)
         cfg = T.TrainConfig(epochs=8, patience=3, seed=1, progress=False)
-        T.train(m, tr, va, cfg)
-        losses = [h["val_loss"] for h in cfg.history]
+        info = T.train(m, tr, va, cfg)
+        losses = [h["val_loss"] for h in info.history]
         assert min(losses) < losses[0]
         runs.append(m)
     q = te.q[:50]

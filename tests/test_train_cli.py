@@ -61,7 +61,7 @@ def test_train_fine_tunes_the_shipped_model(tmp_path, measured_csv):
     m = LearnedModel.load(out)
     assert (m.width, m.depth, m.terms) == (30, 3, 7)          # the shipped architecture
     assert "sim" not in m.meta["data"] and "finetune" in m.meta["training"]
-    assert m.meta["training"]["base"]["sim"]["rows"] == 100_000
+    assert m.meta["data"]["init"]["sim"]["rows"] == 100_000
     assert main(["-q", "train", "--robot", "seed1", "--init", str(tmp_path / "nope.pt"),
                  "--real", str(measured_csv), "--out", str(out)]) == 2
 
@@ -71,8 +71,9 @@ def test_quick_sweep_writes_tables_and_plots(tmp_path):
     assert main(["-q", "train", "--robot", "seed1", "--sweep", "--sim", "300", "--real-sim", "150",
                  "--archs", "2x8,3x8", *SMALL, "--out", str(out)]) == 0
     res = json.loads((out / "results.json").read_text())
-    regimes = {(r["regime"], r["arch"]) for r in res["runs"]}
-    assert regimes == {(g, a) for g in T.REGIMES for a in ("2x8", "3x8")}
+    regimes = {(r["regime"], r["variant"], r["arch"]) for r in res["runs"]}
+    assert regimes == {(g, v, a) for g in T.REGIMES for v in T.VARIANTS for a in ("2x8", "3x8")
+                       if g != "Sim-only" or v == "pure"}
     for r in res["runs"]:
         assert len(r["per_position"]) == 20 and len(r["per_config_max"]) == r["n"]
         assert r["max_dev_mean"] > 0 and r["mse_mean"] > 0 and r["sum_dev_mean"] > 0

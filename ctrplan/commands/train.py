@@ -20,8 +20,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "shapes (a measured CSV with backbone columns p1_x..pM_z). Each data set is "
                     "split 80/10/10 into train/validation/test; training minimises the sum of "
                     "squared point distances with Adam and stops early on the validation loss. "
-                    "Writes a model file (.pt) with its metadata. With --sweep: train Sim-only, "
-                    "Real-only and Sim+Real models for several architectures and write tables "
+                    "Writes a model file (.pt) with its metadata, the held-out error quantiles "
+                    "(p50/p95/p99/max of the max deviation along the shaft) and the training "
+                    "domain (joint ranges seen; the model answers ok=False outside). "
+                    "--direction adds the direction of the last motion of each joint as inputs "
+                    "(from row order within each sweep of the CSV); --residual learns the "
+                    "difference to a base model. With --sweep: train Sim-only, and Real-only and "
+                    "Sim+Real for each variant (pure, direction-aware, residual, both) for several "
+                    "architectures, evaluated on held-out whole sweeps, and write tables "
                     "(results.md, results.json) and plots (PNG) to the --out folder.")
     add_robot_arg(p)
     p.add_argument("--sim", type=int, default=None,
@@ -52,6 +58,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads for training (default 1: the fastest for these small networks)")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    p.add_argument("--direction", action="store_true",
+                   help="direction-aware inputs: the sign of the last motion of each joint, from "
+                        "the row order within each sweep of the --real CSV")
+    p.add_argument("--residual", default=None, metavar="BASE",
+                   help="residual mode: the network learns the difference to BASE: 'physics', "
+                        "'rigid', 'sim' (the pre-trained or --init model; no physics call at "
+                        "evaluation), a calibrated model file from diagnose, or a learned model file")
+    p.add_argument("--variants", default=None,
+                   help="--sweep variants, comma separated (default all: pure,direction,residual,"
+                        "residual+direction)")
     p.add_argument("--sweep", action="store_true", help="run the evaluation sweep; --out is a folder")
     p.add_argument("--archs", default=None,
                    help="--sweep architectures DEPTHxWIDTH,... (default all of {3,5,7}x{15,30,60})")
@@ -114,6 +130,11 @@ def run(args: argparse.Namespace) -> int:
             archs = T.parse_archs(args.archs) if args.archs else list(T.ALL_ARCHS)
         except ValueError as exc:
             raise InputError("--archs", "", str(exc)) from None
+        variants = [v.strip() for v in args.variants.split(",") if v.strip()] if args.variants else list(T.VARIANTS)
+        bad = [v for v in variants if v not in T.VARIANTS]
+        if bad or not variants:
+            raise InputError("--variants", "", f"unknown variant {bad[0] if bad else ''!r} "
+                                               f"(one of {', '.join(T.VARIANTS)})")
         if n_sim < 10:
             raise InputError("--sim", "", "--sweep needs at least 10 simulated configurations")
         sim = T.simulated_data(robot, n_sim, seed=args.seed, points=args.points, workers=args.workers,
@@ -123,7 +144,8 @@ def run(args: argparse.Namespace) -> int:
         if len(real) < 10:
             raise InputError(args.real or "--real-sim", "rows", "need at least 10 rows of real data")
         res = T.sweep(robot, sim, real, archs=archs, terms=terms, frame=args.frame, seed=args.seed,
-                      pre=pre, fine=fine, real_only=real_only, device=args.device, progress=show)
+                      pre=pre, fine=fine, real_only=real_only, device=args.device, progress=show,
+                      variants=variants)
         if not args.real:
             res["data"]["hidden_effects"] = T.HiddenEffects.default(robot).to_dict()
         res["seconds"] = time.perf_counter() - t0
@@ -148,12 +170,28 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--sim", "", "nothing to train on: give --sim N > 0 and/or --real CSV")
     if n_sim and n_sim < 10:
         raise InputError("--sim", "", f"need at least 10 simulated configurations, got {n_sim}")
+    variant = ("residual" if args.residual else "pure") + ("+direction" if args.residual and args.direction else "")
+    if args.direction and not args.residual:
+        variant = "direction"
+    if variant != "pure" and real is None:
+        raise InputError("--real", "", f"--{'residual' if args.residual else 'direction'} needs a measured CSV")
+    residual_base = None
+    if args.residual and args.residual != "sim":
+        from ctrplan.shape.models import load_model
+
+        residual_base = load_model(args.residual, robot)
+    elif args.residual == "sim" and n_sim == 0 and base is None:
+        raise InputError("--residual", "", "'sim' needs a pre-trained model (--sim N or --init)")
     sim = (T.simulated_data(robot, n_sim, seed=args.seed, points=args.points, workers=args.workers,
                             progress=show) if n_sim else None)
-    model, info = T.pretrain_finetune(
-        robot, sim, real, width=args.width, depth=args.depth, terms=terms, seed=args.seed,
-        pre=pre, fine=fine if (sim is not None or base is not None) else real_only,
-        device=args.device, frame=args.frame, base=base)
+    try:
+        model, report = T.pretrain_finetune(
+            robot, sim, real, width=args.width, depth=args.depth, terms=terms, seed=args.seed,
+            pre=pre, fine=fine if (sim is not None or base is not None) else real_only,
+            real_only=real_only, device=args.device, frame=args.frame, base=base,
+            variant=variant, residual_base=residual_base)
+    except ValueError as exc:
+        raise InputError(args.real or "--sim", "", str(exc)) from None
     import sys
 
     from ctrplan import __version__
@@ -164,8 +202,11 @@ def run(args: argparse.Namespace) -> int:
         "ctrplan_version": __version__,
     })
     model.save(out)
-    for name, m in info["metrics"].items():
+    for name, m in report.metrics.items():
         log.info("%s: max deviation %.3f +- %.3f mm, MSE %.4f mm^2, sum of deviations %.2f mm (n=%d)",
                  name, m["max_dev_mean"], m["max_dev_std"], m["mse_mean"], m["sum_dev_mean"], m["n"])
+    eq = report.error_quantiles or {}
+    log.info("error quantiles (held-out max deviation, mm): %s",
+             ", ".join(f"{k} {v:.3f}" for k, v in eq.items()))
     log.info("wrote %s (%.0f s)", out, time.perf_counter() - t0)
     return 0

@@ -768,7 +768,7 @@ class LearnedModel:
         model.error_quantiles = eq
         model.domain = domain
         keep = ("training", "metrics", "data", "created", "command", "ctrplan_version",
-                "error_quantiles_source")
+                "error_quantiles_source", "variant")
         model.meta = {k: meta[k] for k in keep if k in meta}
         model.source = src
         return model

@@ -8,18 +8,27 @@
   :func:`pretrain_finetune` - pre-train on simulation, fine-tune on measured shapes;
 * :func:`evaluate` - the literature's metrics (max deviation, MSE, sum of deviations along the
   shaft) with mean +- std over a test set;
-* :func:`sweep` - Sim-only / Real-only / Sim+Real x architectures, tables and plots.
+* :func:`sweep` - Sim-only / Real-only / Sim+Real x variants (pure, direction-aware,
+  residual, residual + direction) x architectures, tables and plots.
+
+Variants: *direction-aware* models get the sign of the last motion of each joint as extra
+inputs (from row order within each sweep of measured data, :func:`direction_from_rows`); a
+Sim+Real direction-aware model starts from the Sim model with zero weights on those inputs.
+*Residual* models learn the difference to a base model: physics for Real-only, the frozen
+Sim model for Sim+Real (no physics call at evaluation), or a calibrated model.
+Measured data with a ``sweep`` column is split by whole sweeps (held-out sweeps).
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import hashlib
 import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +37,14 @@ import torch
 
 from ctrplan.robot import Robot, load_robot
 from ctrplan.shape import basis
-from ctrplan.shape.learned import DEFAULT_DEPTH, DEFAULT_FRAME, DEFAULT_WIDTH, LearnedModel
+from ctrplan.shape.base import direction_from_rows, needs_direction
+from ctrplan.shape.learned import (
+    DEFAULT_DEPTH,
+    DEFAULT_FRAME,
+    DEFAULT_WIDTH,
+    LearnedModel,
+    base_model_spec,
+)
 from ctrplan.shape.physics import MechanicsParams, PhysicsModel
 
 log = logging.getLogger("ctrplan")
@@ -44,17 +60,27 @@ class ShapeData:
     """Configurations and measured/simulated backbones.
 
     q : (N, 2n) rad, mm. points : (N, m, 3) mm, evenly spaced in arc length base to tip.
+    direction : (N, 2n) sign of the last motion of each joint (-1/0/+1) or None (unknown).
+    sweep : (N,) sweep ids (one continuous experiment each) or None.
     """
 
     q: np.ndarray
     points: np.ndarray
     source: str = "<memory>"
+    direction: np.ndarray | None = None
+    sweep: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.q.shape[0])
 
     def subset(self, idx: np.ndarray) -> ShapeData:
-        return ShapeData(self.q[idx], self.points[idx], self.source)
+        def pick(a):
+            return None if a is None else a[idx]
+        return ShapeData(self.q[idx], self.points[idx], self.source, pick(self.direction), pick(self.sweep))
+
+    def with_direction_from_rows(self) -> ShapeData:
+        """Direction of the last motion from the row order within each sweep."""
+        return dataclasses.replace(self, direction=direction_from_rows(self.q, self.sweep))
 
     def digest(self) -> str:
         """sha256 of the arrays (first 16 hex digits), recorded in model metadata."""
@@ -166,15 +192,22 @@ def from_measured(path: str, robot: Robot) -> ShapeData:
     md = read_measured(path, robot)
     if md.points is None:
         raise InputError(str(path), "p1_x", "training needs backbone point columns p1_x..pM_z")
-    return ShapeData(md.q, md.points, source=str(path))
+    sweep = None if md.sweep is None else np.asarray(md.sweep)
+    return ShapeData(md.q, md.points, source=str(path), sweep=sweep,
+                     direction=direction_from_rows(md.q, sweep))
 
 
 def split(data: ShapeData, fractions: Sequence[float] = (0.8, 0.1, 0.1),
           seed: int = 0) -> tuple[ShapeData, ShapeData, ShapeData]:
-    """Seeded random train/validation/test split (each part gets at least one row)."""
+    """Seeded train/validation/test split (each part gets at least one row).
+
+    Data with at least 3 sweeps is split by whole sweeps (rows of a sweep stay together,
+    roughly the row fractions; held-out sweeps), otherwise by random rows."""
     N = len(data)
     if N < 3:
         raise ValueError(f"need at least 3 rows to split, got {N}")
+    if data.sweep is not None and len(np.unique(data.sweep)) >= 3:
+        return split_sweeps(data, fractions, seed)
     perm = np.random.default_rng(seed).permutation(N)
     n_val = max(1, int(round(fractions[1] * N)))
     n_test = max(1, int(round(fractions[2] * N)))
@@ -185,8 +218,37 @@ def split(data: ShapeData, fractions: Sequence[float] = (0.8, 0.1, 0.1),
             data.subset(perm[n_train + n_val:]))
 
 
+def split_sweeps(data: ShapeData, fractions: Sequence[float] = (0.8, 0.1, 0.1),
+                 seed: int = 0) -> tuple[ShapeData, ShapeData, ShapeData]:
+    """Split by whole sweeps in a seeded random order: test and validation take sweeps until
+    they hold their fraction of the rows (at least one sweep each), training the rest."""
+    if data.sweep is None:
+        raise ValueError("data has no sweep ids")
+    ids, inverse, counts = np.unique(data.sweep, return_inverse=True, return_counts=True)
+    if len(ids) < 3:
+        raise ValueError(f"need at least 3 sweeps to split by sweep, got {len(ids)}")
+    order = [int(i) for i in np.random.default_rng(seed).permutation(len(ids))]
+    N = len(data)
+    parts: list[list[int]] = []
+    for frac, keep in ((fractions[2], 2), (fractions[1], 1)):     # test, then validation
+        part: list[int] = []
+        rows = 0
+        while len(order) > keep and (not part or rows < frac * N):
+            k = order.pop(0)
+            part.append(k)
+            rows += int(counts[k])
+        parts.append(part)
+    test_s, val_s = set(parts[0]), set(parts[1])
+    te = np.isin(inverse, list(test_s))
+    va = np.isin(inverse, list(val_s))
+    tr = ~(te | va)
+    if not tr.any():
+        raise ValueError("too few sweeps for a train/validation/test split")
+    return data.subset(np.flatnonzero(tr)), data.subset(np.flatnonzero(va)), data.subset(np.flatnonzero(te))
+
+
 # ---------------------------------------------------------------------------------- training
-@dataclass
+@dataclass(frozen=True)
 class TrainConfig:
     """Optimiser settings. ``patience``: epochs without validation improvement before stopping;
     the learning rate halves after ``patience // 3`` such epochs."""
@@ -200,7 +262,51 @@ class TrainConfig:
     max_seconds: float | None = None
     progress: bool = True
     label: str = "train"
-    history: list[dict] = field(default_factory=list)
+
+    def replace(self, **changes: Any) -> TrainConfig:
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    """What one :func:`train` call did: epochs, the best validation loss (mean over
+    configurations of the sum of squared point distances, mm^2), time, settings, and the
+    per-epoch history (epoch, train_loss, val_loss, lr)."""
+
+    epochs_run: int
+    best_epoch: int
+    best_val_loss_mm2: float
+    seconds: float
+    lr: float
+    batch_size: int
+    patience: int
+    seed: int
+    rows_train: int
+    rows_val: int
+    history: tuple[dict, ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able summary (without the history), as stored in model metadata."""
+        d = dataclasses.asdict(self)
+        d.pop("history")
+        return d
+
+
+@dataclass(frozen=True)
+class TrainReport:
+    """What :func:`pretrain_finetune` did: data descriptions, one :class:`TrainResult` per
+    stage ("pretrain", "finetune" or "real"), held-out metrics per data set ("sim_test",
+    "real_test"), and the error quantiles stored in the model."""
+
+    data: dict[str, Any]
+    stages: dict[str, TrainResult]
+    metrics: dict[str, dict[str, Any]]
+    error_quantiles: dict[str, float] | None = None
+    variant: str = "pure"
+
+    def to_meta(self) -> dict[str, Any]:
+        return {"data": self.data, "training": {k: v.to_dict() for k, v in self.stages.items()},
+                "metrics": self.metrics}
 
 
 def _loss(model: LearnedModel, x: torch.Tensor, length: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
@@ -209,21 +315,39 @@ def _loss(model: LearnedModel, x: torch.Tensor, length: torch.Tensor, pts: torch
     return ((pred - pts) ** 2).sum(dim=(1, 2)).mean()
 
 
+def base_points(base: Any, data: ShapeData) -> np.ndarray:
+    """A residual base model's backbones at the data's configurations (and directions)."""
+    m = data.points.shape[1]
+    if data.direction is not None and needs_direction(base):
+        return base.shape(data.q, points=m, direction=data.direction).points
+    return base.backbone(data.q, m)
+
+
+def targets(model: LearnedModel, data: ShapeData) -> np.ndarray:
+    """What the network itself must output (B, m, 3) mm, base frame: the measured points, or
+    for a residual model their difference to the base model."""
+    if model.base is None:
+        return np.asarray(data.points, dtype=float)
+    return np.asarray(data.points, dtype=float) - base_points(model.base, data)
+
+
 def _tensors(model: LearnedModel, data: ShapeData) -> tuple[torch.Tensor, ...]:
     """Network inputs, tip lengths and target points of a data set, on the model's device."""
     dev = model.device
     with torch.no_grad():
         q = torch.as_tensor(data.q, dtype=torch.float32, device=dev)
-        x = model.features(q)
+        d = None if data.direction is None else torch.as_tensor(data.direction, dtype=torch.float32, device=dev)
+        x = model.features(q, d)
         length = model.tip_length_t(q)
-    pts = model.to_model_frame(data.q, data.points)
+    pts = model.to_model_frame(data.q, targets(model, data))
     return x, length, torch.as_tensor(pts, dtype=torch.float32, device=dev)
 
 
 def set_normalisation(model: LearnedModel, data: ShapeData) -> None:
-    """Output normalisation from the least-squares basis coefficients of ``data``."""
+    """Output normalisation from the least-squares basis coefficients of ``data`` (of the
+    differences to the base model in residual mode)."""
     L = model.robot.tip_length(data.q)
-    c = basis.fit(model.to_model_frame(data.q, data.points), L, model.terms).reshape(len(data), -1)
+    c = basis.fit(model.to_model_frame(data.q, targets(model, data)), L, model.terms).reshape(len(data), -1)
     mean = c.mean(axis=0)
     std = c.std(axis=0)
     std = np.maximum(std, 1e-3 * max(float(std.max()), 1e-12))
@@ -233,8 +357,9 @@ def set_normalisation(model: LearnedModel, data: ShapeData) -> None:
 
 
 def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
-          config: TrainConfig | None = None) -> dict[str, Any]:
-    """Fit ``model`` in place; returns a summary (epochs run, best validation loss, seconds).
+          config: TrainConfig | None = None) -> TrainResult:
+    """Fit ``model`` in place; returns a :class:`TrainResult` (epochs run, best validation
+    loss, seconds, history).
 
     Adam on the mean per-configuration sum of squared point distances; the weights with the
     best validation loss are kept (early stopping)."""
@@ -256,6 +381,7 @@ def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
     best_state = copy.deepcopy(model.net.state_dict())
     best_epoch = 0
     stale = 0
+    history: list[dict] = []
     N = len(train_data)
     bs = max(1, min(cfg.batch_size, N))
     t0 = time.perf_counter()
@@ -278,7 +404,7 @@ def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
             with torch.no_grad():
                 val = float(_loss(model, xva, lva, pva))
             sched.step(val)
-            cfg.history.append({"epoch": epoch, "train_loss": tot / N, "val_loss": val,
+            history.append({"epoch": epoch, "train_loss": tot / N, "val_loss": val,
                                 "lr": opt.param_groups[0]["lr"]})
             pb.set_postfix(val=f"{val:.3g}")
             pb.update(1)
@@ -295,19 +421,52 @@ def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
     model.net.load_state_dict(best_state)
     model.net.eval()
     model.invalidate()
-    summary = {"epochs_run": epoch, "best_epoch": best_epoch, "best_val_loss_mm2": best,
-               "seconds": time.perf_counter() - t0, "lr": cfg.lr, "batch_size": bs,
-               "patience": cfg.patience, "seed": cfg.seed, "rows_train": N, "rows_val": len(val_data)}
+    summary = TrainResult(epochs_run=epoch, best_epoch=best_epoch, best_val_loss_mm2=best,
+                          seconds=time.perf_counter() - t0, lr=cfg.lr, batch_size=bs,
+                          patience=cfg.patience, seed=cfg.seed, rows_train=N, rows_val=len(val_data),
+                          history=tuple(history))
     log.info("%s: %d epochs (best %d), validation loss %.4g mm^2, %.1f s", cfg.label, epoch,
-             best_epoch, best, summary["seconds"])
+             best_epoch, best, summary.seconds)
     return summary
 
 
 def new_model(robot: Robot, width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH,
               terms: int = basis.DEFAULT_TERMS, seed: int = 0, device: str = "cpu",
-              frame: str = DEFAULT_FRAME) -> LearnedModel:
-    return LearnedModel(robot, width=width, depth=depth, terms=terms, seed=seed, device=device,
-                        frame=frame)
+              frame: str = DEFAULT_FRAME, direction: bool = False, base: Any = None) -> LearnedModel:
+    """A fresh network; with ``base`` a residual model whose last layer starts at zero (it
+    starts as the base model plus the mean difference once normalised)."""
+    spec = None if base is None else base_model_spec(base)
+    if isinstance(base, LearnedModel):
+        base = copy.deepcopy(base)
+        base.invalidate()
+        base.net.requires_grad_(False)
+    m = LearnedModel(robot, width=width, depth=depth, terms=terms, seed=seed, device=device,
+                     frame=frame, direction=direction, base=base, base_spec=spec)
+    if base is not None:
+        with torch.no_grad():
+            last = m.net.net[-1]
+            last.weight.zero_()
+            last.bias.zero_()
+    return m
+
+
+def with_direction_inputs(model: LearnedModel) -> LearnedModel:
+    """A copy of a trained model with direction inputs added (zero weights on them: the
+    same outputs until fine-tuned)."""
+    if model.direction_inputs:
+        return copy.deepcopy(model)
+    new = LearnedModel(model.robot, width=model.width, depth=model.depth, terms=model.terms,
+                       seed=None, frame=model.frame, direction=True, base=copy.deepcopy(model.base),
+                       base_spec=model.base_spec)
+    state = {k: v.clone() for k, v in model.net.state_dict().items()}
+    W0 = state["net.0.weight"]
+    state["net.0.weight"] = torch.cat([W0, torch.zeros(W0.shape[0], 2 * model.robot.n, dtype=W0.dtype)], dim=1)
+    new.net.load_state_dict(state)
+    new.coef_mean, new.coef_std = model.coef_mean.clone(), model.coef_std.clone()
+    new.meta = copy.deepcopy(model.meta)
+    new.to(model.device)
+    new.invalidate()
+    return new
 
 
 # ---------------------------------------------------------------------------------- evaluation
@@ -321,8 +480,13 @@ def evaluate(model: Any, data: ShapeData) -> dict[str, Any]:
 
     max_dev (max distance along the shaft), mse (mean squared distance), sum_dev (sum of
     distances), each as mean and std over configurations (mm, mm^2, mm); per_position (mean
-    distance at each point) and per_config_max (the max deviation of every configuration)."""
-    pred = model.backbone(data.q, data.points.shape[1])
+    distance at each point) and per_config_max (the max deviation of every configuration).
+    Direction-aware models get the data's directions."""
+    m = data.points.shape[1]
+    if needs_direction(model) and data.direction is not None:
+        pred = model.shape(data.q, m, direction=data.direction).points
+    else:
+        pred = model.backbone(data.q, m)
     d = shape_errors(pred, data.points)
     mx, mse, sm = d.max(axis=1), (d ** 2).mean(axis=1), d.sum(axis=1)
     good = np.isfinite(mx)
@@ -352,49 +516,133 @@ def basis_fit_table(robot: Robot | str, n: int = 5000, seed: int = 11, points: i
 
 
 # ---------------------------------------------------------------------------------- workflows
+#: Model variants: pure (configuration in, shape out), direction-aware inputs, residual mode
+#: (the network learns the difference to a base model) and both.
+VARIANTS = ("pure", "direction", "residual", "residual+direction")
+
+
+def fit_real(robot: Robot, r_tr: ShapeData, r_va: ShapeData, variant: str = "pure",
+             sim_model: LearnedModel | None = None, residual_base: Any = None,
+             width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH, terms: int = basis.DEFAULT_TERMS,
+             seed: int = 0, frame: str = DEFAULT_FRAME, device: str = "cpu",
+             fine: TrainConfig | None = None, real_only: TrainConfig | None = None,
+             ) -> tuple[LearnedModel, TrainResult]:
+    """Train one variant on measured data (train / validation parts).
+
+    * pure / direction with ``sim_model``: fine-tune a copy of it (Sim+Real; direction inputs
+      added with zero weights), with ``fine``;
+    * pure / direction without: a new network trained on the measured data (Real-only);
+    * residual[+direction]: a new network for the difference to ``residual_base`` (default: the
+      ``sim_model`` if given - Sim+Real residual, no physics call - else the physics model),
+      with ``real_only`` (the network starts at the base plus the mean difference).
+    """
+    if variant not in VARIANTS:
+        raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+    direction = variant.endswith("direction")
+    fine = fine or TrainConfig(seed=seed, lr=5e-4, batch_size=128, label="fine-tune (real)")
+    real_only = real_only or TrainConfig(seed=seed, batch_size=128, label="train (real)")
+    if variant.startswith("residual"):
+        if residual_base is None:
+            from ctrplan.shape.physics import PhysicsModel
+
+            residual_base = sim_model if sim_model is not None else PhysicsModel(robot)
+        if isinstance(residual_base, LearnedModel):
+            terms, frame = residual_base.terms, residual_base.frame
+        model = new_model(robot, width, depth, terms, seed, device, frame, direction=direction,
+                          base=residual_base)
+        set_normalisation(model, r_tr)
+        return model, train(model, r_tr, r_va, real_only)
+    if sim_model is not None:
+        model = with_direction_inputs(sim_model) if direction else copy.deepcopy(sim_model)
+        model.invalidate()
+        return model, train(model, r_tr, r_va, fine)
+    model = new_model(robot, width, depth, terms, seed, device, frame, direction=direction)
+    set_normalisation(model, r_tr)
+    return model, train(model, r_tr, r_va, real_only)
+
+
+def finish(model: LearnedModel, seen: ShapeData, test: ShapeData, label: str) -> dict[str, float]:
+    """Store the training domain (joint ranges of ``seen``) and the error quantiles of the max
+    deviation along the shaft on the held-out ``test`` data in the model."""
+    model.set_domain(seen.q, source=label)
+    eq = model.set_error_quantiles(evaluate(model, test)["per_config_max"])
+    model.meta["error_quantiles_source"] = {
+        "data": test.source, "rows": len(test), "part": "held-out test split" + (
+            " (whole sweeps)" if test.sweep is not None else ""),
+        "metric": "max deviation along the shaft per configuration, mm"}
+    return eq
+
+
+def _concat(a: ShapeData, b: ShapeData) -> ShapeData:
+    def cat(x, y):
+        return None if x is None or y is None else np.concatenate([x, y])
+    return ShapeData(np.concatenate([a.q, b.q]), np.concatenate([a.points, b.points]), a.source,
+                     cat(a.direction, b.direction), cat(a.sweep, b.sweep))
+
+
 def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData | None,
                       width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH,
                       terms: int = basis.DEFAULT_TERMS, seed: int = 0,
                       pre: TrainConfig | None = None, fine: TrainConfig | None = None,
                       device: str = "cpu", base: LearnedModel | None = None,
-                      frame: str = DEFAULT_FRAME) -> tuple[LearnedModel, dict[str, Any]]:
-    """Pre-train on ``sim`` (if given), then fine-tune on ``real`` (if given).
+                      frame: str = DEFAULT_FRAME, variant: str = "pure",
+                      residual_base: Any = None, real_only: TrainConfig | None = None,
+                      ) -> tuple[LearnedModel, TrainReport]:
+    """Pre-train on ``sim`` (if given), then train ``variant`` on ``real`` (if given).
 
-    Each data set is split 80/10/10 (seeded); validation drives early stopping, the test parts
-    are evaluated and stored in the metadata. ``base``: start from this trained model instead
-    of pre-training (its normalisation is kept)."""
+    Each data set is split 80/10/10 (seeded; measured data with sweeps by whole sweeps);
+    validation drives early stopping, the test parts are evaluated and stored in the metadata,
+    with the error quantiles and the training domain of the last data set trained on.
+    ``base``: start from this trained model instead of pre-training (its normalisation is
+    kept). ``residual_base``: the base of a residual variant (default: the pre-trained model,
+    else physics). ``fine``: fine-tuning settings; ``real_only``: for new networks trained on
+    ``real`` (default ``fine`` when nothing was pre-trained).
+    """
     robot = load_robot(robot)
-    if sim is None and real is None and base is None:
+    if variant not in VARIANTS:
+        raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+    if sim is None and real is None:
         raise ValueError("need simulated and/or measured data")
-    info: dict[str, Any] = {"data": {}, "training": {}, "metrics": {}}
+    data: dict[str, Any] = {}
+    stages: dict[str, TrainResult] = {}
+    metrics: dict[str, dict[str, Any]] = {}
+    start: LearnedModel | None = None
     if base is not None:
-        model = copy.deepcopy(base)
-        model.invalidate()
-        info["training"]["base"] = dict(getattr(base, "meta", {}).get("data", {}))
-    else:
-        model = new_model(robot, width, depth, terms, seed, device, frame)
+        start = copy.deepcopy(base)
+        start.invalidate()
+        data["init"] = dict(getattr(base, "meta", {}).get("data", {}))
+    model: LearnedModel | None = start
     if sim is not None:
         s_tr, s_va, s_te = split(sim, seed=seed)
-        if base is None:
-            set_normalisation(model, s_tr)
+        if start is None:
+            start = new_model(robot, width, depth, terms, seed, device, frame)
+            set_normalisation(start, s_tr)
         pre = pre or TrainConfig(seed=seed, label="pre-train (sim)")
-        info["training"]["pretrain"] = train(model, s_tr, s_va, pre)
-        info["data"]["sim"] = sim.describe()
-        info["metrics"]["sim_test"] = summary_metrics(evaluate(model, s_te))
+        stages["pretrain"] = train(start, s_tr, s_va, pre)
+        data["sim"] = sim.describe()
+        metrics["sim_test"] = summary_metrics(evaluate(start, s_te))
+        model = start
+        eq_data = (_concat(s_tr, s_va), s_te, "sim")
     if real is not None:
         r_tr, r_va, r_te = split(real, seed=seed + 1)
-        if sim is None and base is None:
-            set_normalisation(model, r_tr)
-        if sim is not None or base is not None:
-            fine = fine or TrainConfig(seed=seed, lr=5e-4, label="fine-tune (real)")
-        else:
-            fine = fine or TrainConfig(seed=seed, label="train (real)")
-        info["training"]["finetune" if (sim is not None or base is not None) else "real"] = train(
-            model, r_tr, r_va, fine)
-        info["data"]["real"] = real.describe()
-        info["metrics"]["real_test"] = summary_metrics(evaluate(model, r_te))
-    model.meta.update(info)
-    return model, info
+        if variant.endswith("direction") and real.direction is None:
+            raise ValueError("a direction-aware variant needs measured data with directions")
+        stage = "finetune" if (start is not None and not variant.startswith("residual")) else "real"
+        model, stages[stage] = fit_real(
+            robot, r_tr, r_va, variant, sim_model=start, residual_base=residual_base, width=width,
+            depth=depth, terms=terms, seed=seed, frame=frame, device=device,
+            fine=fine, real_only=real_only or (fine if start is None else None))
+        data["real"] = real.describe()
+        metrics["real_test"] = summary_metrics(evaluate(model, r_te))
+        eq_data = (_concat(r_tr, r_va), r_te, "real")
+    elif variant != "pure":
+        raise ValueError(f"variant {variant!r} needs measured data")
+    assert model is not None
+    eq = finish(model, eq_data[0], eq_data[1], eq_data[2])
+    report = TrainReport(data=data, stages=stages, metrics=metrics, error_quantiles=eq, variant=variant)
+    model.meta.update(report.to_meta())
+    model.meta["variant"] = variant
+    return model, report
 
 
 # ---------------------------------------------------------------------------------- sweep
@@ -422,25 +670,36 @@ def sweep(robot: Robot | str, sim: ShapeData, real: ShapeData,
           archs: Sequence[tuple[int, int]] = tuple(ALL_ARCHS), terms: int = basis.DEFAULT_TERMS,
           frame: str = DEFAULT_FRAME, seed: int = 0, pre: TrainConfig | None = None,
           fine: TrainConfig | None = None, real_only: TrainConfig | None = None,
-          device: str = "cpu", progress: bool = True) -> dict[str, Any]:
-    """Sim-only, Real-only and Sim+Real training for each architecture, all evaluated on the
-    same held-out part of ``real``, next to the physics model. Returns the results (JSON-able)
-    with per-configuration errors for the plots."""
+          device: str = "cpu", progress: bool = True,
+          variants: Sequence[str] = VARIANTS) -> dict[str, Any]:
+    """Sim-only, and Real-only and Sim+Real for each variant (pure, direction-aware, residual,
+    residual + direction), for each architecture, all evaluated on the same held-out part of
+    ``real`` (whole sweeps when it has sweep ids), next to the physics model. Residual
+    variants: Real-only learns the difference to physics, Sim+Real the difference to the
+    Sim-only model. Returns the results (JSON-able) with per-configuration errors for plots."""
+    from ctrplan.shape.physics import PhysicsModel
+
     robot = load_robot(robot)
+    for v in variants:
+        if v not in VARIANTS:
+            raise ValueError(f"unknown variant {v!r} (one of {', '.join(VARIANTS)})")
+    if real.direction is None and any(v.endswith("direction") for v in variants):
+        real = real.with_direction_from_rows()
     s_tr, s_va, s_te = split(sim, seed=seed)
     r_tr, r_va, r_te = split(real, seed=seed + 1)
 
     def cfg(base: TrainConfig | None, label: str, **kw) -> TrainConfig:
-        c = copy.deepcopy(base) if base is not None else TrainConfig(**kw)
-        c.label, c.progress, c.history = label, progress, []
-        return c
+        c = base if base is not None else TrainConfig(**kw)
+        return c.replace(label=label, progress=progress)
 
     phys = PhysicsModel(robot)
     res: dict[str, Any] = {
         "robot": robot.name, "terms": terms, "frame": frame, "seed": seed,
+        "variants": list(variants),
         "data": {"sim": sim.describe(), "real": real.describe(),
                  "splits": {"sim": [len(s_tr), len(s_va), len(s_te)],
-                            "real": [len(r_tr), len(r_va), len(r_te)]}},
+                            "real": [len(r_tr), len(r_va), len(r_te)]},
+                 "real_split_by": "sweep" if r_te.sweep is not None else "row"},
         "physics": evaluate(phys, r_te), "physics_sim_test": summary_metrics(evaluate(phys, s_te)),
         "runs": [],
     }
@@ -449,22 +708,27 @@ def sweep(robot: Robot | str, sim: ShapeData, real: ShapeData,
         sim_model = new_model(robot, width, depth, terms, seed, device, frame)
         set_normalisation(sim_model, s_tr)
         t_sim = train(sim_model, s_tr, s_va, cfg(pre, f"{tag} sim", seed=seed))
-        fine_model = copy.deepcopy(sim_model)
-        t_fine = train(fine_model, r_tr, r_va, cfg(fine, f"{tag} sim+real", seed=seed, lr=5e-4))
-        real_model = new_model(robot, width, depth, terms, seed, device, frame)
-        set_normalisation(real_model, r_tr)
-        t_real = train(real_model, r_tr, r_va, cfg(real_only, f"{tag} real", seed=seed))
-        for regime, model, tinfo in (("Sim-only", sim_model, [t_sim]),
-                                     ("Real-only", real_model, [t_real]),
-                                     ("Sim+Real", fine_model, [t_sim, t_fine])):
+        runs = [("Sim-only", "pure", sim_model, [t_sim])]
+        for variant in variants:
+            for regime, start in (("Real-only", None), ("Sim+Real", sim_model)):
+                model, t = fit_real(robot, r_tr, r_va, variant, sim_model=start, width=width,
+                                    depth=depth, terms=terms, seed=seed, frame=frame, device=device,
+                                    fine=cfg(fine, f"{tag} {regime} {variant}", seed=seed, lr=5e-4),
+                                    real_only=cfg(real_only, f"{tag} {regime} {variant}", seed=seed))
+                runs.append((regime, variant, model, [t_sim, t] if start is not None else [t]))
+        for regime, variant, model, tinfo in runs:
             ev = evaluate(model, r_te)
-            run = {"regime": regime, "depth": depth, "width": width, "arch": tag,
-                   "seconds": float(sum(t["seconds"] for t in tinfo)),
-                   "epochs": [t["epochs_run"] for t in tinfo], **ev}
+            base = ("-" if not variant.startswith("residual")
+                    else ("physics" if regime == "Real-only" else "Sim-only model"))
+            run = {"regime": regime, "variant": variant, "residual_base": base,
+                   "name": f"{regime} {variant}", "depth": depth, "width": width, "arch": tag,
+                   "seconds": float(sum(t.seconds for t in tinfo)),
+                   "epochs": [t.epochs_run for t in tinfo], **ev}
             if regime == "Sim-only":
                 run["sim_test"] = summary_metrics(evaluate(model, s_te))
             res["runs"].append(run)
-            log.info("sweep %s %-9s max dev %.3f +- %.3f mm", tag, regime, ev["max_dev_mean"], ev["max_dev_std"])
+            log.info("sweep %s %-9s %-18s max dev %.3f +- %.3f mm", tag, regime, variant,
+                     ev["max_dev_mean"], ev["max_dev_std"])
     return res
 
 
@@ -479,20 +743,26 @@ def sweep_markdown(res: dict[str, Any]) -> str:
     lines = [
         f"# Learned shape model: evaluation on robot `{res['robot']}`",
         "",
-        f"Test set: {ph['n']} held-out \"real\" configurations ({d['real']['source']}); metrics at "
+        f"Test set: {ph['n']} held-out \"real\" configurations ({d['real']['source']}; "
+        f"held out by {d.get('real_split_by', 'row')}); metrics at "
         f"{len(ph['per_position'])} points evenly spaced along the shaft, mean ± std over the test set. "
         f"Basis terms K = {res['terms']}, frame `{res['frame']}`. Simulation: {d['sim']['rows']} rows "
         f"(split {d['splits']['sim']}), real: {d['real']['rows']} rows (split {d['splits']['real']}).",
         "",
-        "| model | training | arch (depth x width) | max deviation (mm) | MSE (mm²) | sum of deviations (mm) | tip error (mm) |",
-        "|---|---|---|---|---|---|---|",
-        f"| physics (compliant) | - | - | {_pm(ph, 'max_dev')} | {_pm(ph, 'mse')} | {_pm(ph, 'sum_dev', '.2f')} | {ph['tip_mean']:.3f} |",
+        "Variants: pure (configuration in); direction (+ sign of the last motion of each joint, "
+        "from row order within a sweep); residual (the network learns the difference to a base "
+        "model: physics for Real-only, the Sim-only model for Sim+Real).",
+        "",
+        "| model | training | variant | residual base | arch (depth x width) | max deviation (mm) | MSE (mm²) | sum of deviations (mm) | tip error (mm) |",
+        "|---|---|---|---|---|---|---|---|---|",
+        f"| physics (compliant) | - | - | - | - | {_pm(ph, 'max_dev')} | {_pm(ph, 'mse')} | {_pm(ph, 'sum_dev', '.2f')} | {ph['tip_mean']:.3f} |",
     ]
     for r in res["runs"]:
-        lines.append(f"| learned | {r['regime']} | {r['arch']} | {_pm(r, 'max_dev')} | {_pm(r, 'mse')} | "
+        lines.append(f"| learned | {r['regime']} | {r.get('variant', 'pure')} | {r.get('residual_base', '-')} | "
+                     f"{r['arch']} | {_pm(r, 'max_dev')} | {_pm(r, 'mse')} | "
                      f"{_pm(r, 'sum_dev', '.2f')} | {r['tip_mean']:.3f} |")
     best = best_runs(res)
-    lines += ["", "Best architecture per training regime (by mean max deviation):", ""]
+    lines += ["", "Best architecture per training regime and variant (by mean max deviation):", ""]
     for regime, r in best.items():
         gain = 100.0 * (1.0 - r["max_dev_mean"] / ph["max_dev_mean"])
         lines.append(f"- {regime}: {r['arch']}, {r['max_dev_mean']:.3f} ± {r['max_dev_std']:.3f} mm "
@@ -512,10 +782,12 @@ def sweep_markdown(res: dict[str, Any]) -> str:
 
 
 def best_runs(res: dict[str, Any]) -> dict[str, dict]:
+    """The best architecture per "regime variant" (e.g. "Sim+Real direction")."""
     best: dict[str, dict] = {}
     for r in res["runs"]:
-        if r["regime"] not in best or r["max_dev_mean"] < best[r["regime"]]["max_dev_mean"]:
-            best[r["regime"]] = r
+        key = r.get("name", r["regime"])
+        if key not in best or r["max_dev_mean"] < best[key]["max_dev_mean"]:
+            best[key] = r
     return best
 
 
