@@ -44,7 +44,9 @@ def run(args: argparse.Namespace) -> int:
     q = read_configs(args.configs, robot)
     model = load_model(args.model, robot)
     world = CollisionWorld(args.scene, margin_mm=args.margin)
-    shape = model.shape(q, points=args.points)
+    from ctrplan.commands.shape import shape_with_direction
+
+    shape = shape_with_direction(model, q, args.configs, args.points)
     report = world.check_exact(shape) if args.exact else world.check(shape)
     rows = [[int(c), round(float(d), 4), str(n)]
             for c, d, n in zip(report.collides, report.clearance_mm, report.contact)]

@@ -23,6 +23,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def shape_with_direction(model, q: np.ndarray, path: str, points: int):
+    """``model.shape(q, points)``; models that need the direction of the last motion get it
+    from the row order of the CSV (within each ``sweep`` when it has that column)."""
+    from ctrplan.shape.base import direction_from_rows, needs_direction
+
+    if not needs_direction(model):
+        return model.shape(q, points=points)
+    from ctrplan.io import read_csv_table
+
+    header, body = read_csv_table(path)
+    sweep = None
+    if "sweep" in header:
+        ci = header.index("sweep")
+        sweep = np.array([r[ci].strip() if ci < len(r) else "" for r in body], dtype=object)
+    return model.shape(q, points=points, direction=direction_from_rows(q, sweep))
+
+
 def run(args: argparse.Namespace) -> int:
     from ctrplan.io import atomic_path, write_csv_atomic
     from ctrplan.robot import load_robot, read_configs
@@ -34,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     q = read_configs(args.configs, robot)
     model = load_model(args.model, robot)
-    shape = model.shape(q, points=args.points)
+    shape = shape_with_direction(model, q, args.configs, args.points)
     if out.suffix.lower() == ".npz":
         with atomic_path(out) as tmp:
             with open(tmp, "wb") as fh:

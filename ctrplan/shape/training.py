@@ -562,9 +562,15 @@ def fit_real(robot: Robot, r_tr: ShapeData, r_va: ShapeData, variant: str = "pur
 
 
 def finish(model: LearnedModel, seen: ShapeData, test: ShapeData, label: str) -> dict[str, float]:
-    """Store the training domain (joint ranges of ``seen``) and the error quantiles of the max
-    deviation along the shaft on the held-out ``test`` data in the model."""
+    """Store the training domain and the error quantiles of the max deviation along the shaft
+    on the held-out ``test`` data in the model. Domain: the joint ranges of ``seen``; for
+    simulated data (uniform over the robot's joint limits, ``label == "sim"``) the robot's
+    limits themselves."""
     model.set_domain(seen.q, source=label)
+    if label == "sim":
+        lo, hi = model.robot.beta_bounds()
+        model.domain.update(beta_min_mm=lo.tolist(), beta_max_mm=hi.tolist(), alpha_arcs_rad=[None] * model.robot.n,
+                            source="sim: uniform over the robot's joint limits")
     eq = model.set_error_quantiles(evaluate(model, test)["per_config_max"])
     model.meta["error_quantiles_source"] = {
         "data": test.source, "rows": len(test), "part": "held-out test split" + (
