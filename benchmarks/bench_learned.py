@@ -19,6 +19,13 @@ forward pass on tensors already on the device (synchronised), batch 1 .. 1,000,0
 ``run(quick) -> dict`` is what ``ctrplan bench`` calls; ``table`` holds the markdown rows.
 Targets (issue 3): at batch 100,000 at most 1 us per shape and at least 100x faster than the
 batched physics model.
+
+``variants`` (issue 14): the same public call as the table (``backbone(q)``, with
+``direction=D`` for direction-aware models) at batch 100,000 for the pure
+shipped model, a direction-aware one, a residual one over a learned base (the shipped
+network; evaluated in the same pass, no physics call), and both, as medians and as ratios to
+the pure model measured in the same run (target <= 2x). A residual model over the *physics*
+base adds one physics call per shape: it is timed too, and its ratio is physics-sized.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import numba  # noqa: E402
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from ctrplan.robot import load_robot  # noqa: E402
@@ -100,6 +108,45 @@ def network_floor(learned: LearnedModel, B: int, repeats: int) -> dict:
             "with_basis_expansion_us_per_shape": 1e6 * full / B}
 
 
+def variants(learned: LearnedModel, quick: bool = False, batch: int = 100_000) -> dict:
+    """Per-shape CPU time of the model variants at ``batch`` and their ratios to the pure model."""
+    from ctrplan.shape import training as T
+
+    robot = learned.robot
+    q = robot.sample(batch, seed=SEED + 1)
+    d = np.random.default_rng(SEED).choice([-1, 0, 1], size=q.shape).astype(np.int8)
+    direction = T.with_direction_inputs(learned)
+    residual = T.new_model(robot, learned.width, learned.depth, learned.terms, seed=1, base=learned)
+    both = T.new_model(robot, learned.width, learned.depth, learned.terms, seed=1, base=learned,
+                       direction=True)
+    phys_res = T.new_model(robot, learned.width, learned.depth, learned.terms, seed=1,
+                           base=PhysicsModel(robot))
+    calls = {
+        "pure": lambda: learned.backbone(q, POINTS),
+        "direction": lambda: direction.backbone(q, POINTS, direction=d),
+        "residual (learned base)": lambda: residual.backbone(q, POINTS),
+        "residual+direction (learned base)": lambda: both.backbone(q, POINTS, direction=d),
+    }
+    reps = 3 if quick else 7
+    rows = {}
+    for name, fn in calls.items():
+        fn()                                                  # warm up
+    for _ in range(2):                                        # interleave: same machine load
+        for name, fn in calls.items():
+            c, _ = _median_time(fn, reps)
+            rows.setdefault(name, []).append(c)
+    out = {name: 1e6 * min(v) / batch for name, v in rows.items()}
+    pb = min(batch, 10_000) if quick else batch
+    phys_res.backbone(q[:4], POINTS)                          # warm up (kernel load)
+    c, _ = _median_time(lambda: phys_res.backbone(q[:pb], POINTS), 1)
+    pc, _ = _median_time(lambda: PhysicsModel(robot).backbone(q[:pb], POINTS), 1)
+    return {"batch": batch, "us_per_shape": out,
+            "ratio_to_pure": {k: v / out["pure"] for k, v in out.items()},
+            "residual_physics_base": {"batch": pb, "us_per_shape": 1e6 * c / pb,
+                                      "physics_alone_us_per_shape": 1e6 * pc / pb,
+                                      "note": "a residual over the physics base calls physics once per shape"}}
+
+
 def run(quick: bool = False) -> dict:
     # numba's pool through its API: NUMBA_NUM_THREADS set after numba is imported (as under
     # `ctrplan bench`) makes numba refuse every later compile in the process
@@ -141,6 +188,7 @@ def run(quick: bool = False) -> dict:
         "target_ge_100x_at_100k": bool(big["batch"] >= 100_000 and big["speedup"] >= 100.0),
         "floor": floor,
         "ratio_bound_from_floor": big["physics_us_per_shape"] / floor["with_basis_expansion_us_per_shape"],
+        "variants": variants(learned, quick, batch=10_000 if quick else 100_000),
     }
 
 
@@ -211,6 +259,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"network products alone at batch {f['batch']}: {f['network_products_us_per_shape']:.3f} us/shape, "
               f"{f['with_basis_expansion_us_per_shape']:.3f} with the basis expansion "
               f"(bound on the speed-up: {res['ratio_bound_from_floor']:.0f}x)")
+    if "variants" in res:
+        v = res["variants"]
+        print(f"variants at batch {v['batch']} (backbone(), us/shape, ratio to pure in this run):")
+        for k, t in v["us_per_shape"].items():
+            print(f"  {k:<36} {t:8.3f}  {v['ratio_to_pure'][k]:5.2f}x")
+        p = v["residual_physics_base"]
+        print(f"  residual over physics (batch {p['batch']}): {p['us_per_shape']:.2f} us/shape "
+              f"(physics alone {p['physics_alone_us_per_shape']:.2f}): {p['note']}")
     if args.out:
         with open(args.out, "w") as fh:
             json.dump(res, fh, indent=2)

@@ -443,16 +443,19 @@ class LearnedModel:
         q32 = np.asarray(q, dtype=np.float32)
         a, b = q32[:, :n], q32[:, n:]
         ar = a - a[:, n - 1:n] if self.frame == "outer" else a
-        with_dir = any(net.direction_inputs for net in nets)
-        feats = np.zeros((B, 5 * n if with_dir else 3 * n), dtype=np.float32)
-        f3 = feats[:, :3 * n].reshape(B, n, 3) if with_dir else feats.reshape(B, n, 3)
-        np.cos(ar, out=f3[:, :, 0])
-        np.sin(ar, out=f3[:, :, 1])
-        f3[:, :, 2] = (b - lo) * inv - 1.0
-        if with_dir and d is not None:
-            feats[:, 3 * n:] = d
+        feats = np.empty((B, n, 3), dtype=np.float32)
+        np.cos(ar, out=feats[:, :, 0])
+        np.sin(ar, out=feats[:, :, 1])
+        feats[:, :, 2] = (b - lo) * inv - 1.0
+        X3 = torch.from_numpy(feats.reshape(B, 3 * n))
+        X5 = None
+        if any(net.direction_inputs for net in nets):             # contiguous inputs per width
+            f5 = np.zeros((B, 5 * n), dtype=np.float32)
+            f5[:, :3 * n] = feats.reshape(B, 3 * n)
+            if d is not None:
+                f5[:, 3 * n:] = d
+            X5 = torch.from_numpy(f5)
         length = torch.from_numpy(np.max(b + L, axis=1))
-        X = torch.from_numpy(feats)
         if self.frame == "outer":
             cr = torch.from_numpy(np.cos(a[:, n - 1]))
             sr = torch.from_numpy(np.sin(a[:, n - 1]))
@@ -464,7 +467,7 @@ class LearnedModel:
             hidden, Wl, bl = net._cpu_weights(points)[:3]
             mlps.append((hidden, Wl, bl, [float(sl.reshape(-1)[0]) for _, _, sl in hidden],
                          [torch.empty(rows, Wt.shape[1]) for Wt, _, _ in hidden],
-                         (5 if net.direction_inputs else 3) * n))
+                         X5 if net.direction_inputs else X3))
         cbuf = torch.empty(rows, 3 * K)
         c2buf = torch.empty(rows, 3 * K)
         pbuf = torch.empty(rows, M.shape[1])
@@ -472,8 +475,8 @@ class LearnedModel:
             for i in range(0, B, CHUNK):
                 r = min(CHUNK, B - i)
                 c = cbuf[:r]
-                for k, (hidden, Wl, bl, slopes, bufs, cols) in enumerate(mlps):
-                    h = X[i:i + r, :cols]
+                for k, (hidden, Wl, bl, slopes, bufs, X) in enumerate(mlps):
+                    h = X[i:i + r]
                     for (Wt, bb, _), a_, buf in zip(hidden, slopes, bufs):
                         hb = buf[:r]
                         torch.addmm(bb, h, Wt, out=hb)
