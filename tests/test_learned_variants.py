@@ -234,3 +234,18 @@ def test_shape_and_check_commands_supply_directions_from_row_order(shipped, tmp_
                  "--out", str(out2)]) == 0
     np.testing.assert_allclose(np.load(out2)["points"],
                                m.shape(q, 20, direction=direction_from_rows(q, sweep)).points, atol=1e-9)
+
+
+def test_residual_over_a_calibrated_model_is_stored_in_the_file(tmp_path):
+    from ctrplan.shape.effects import EffectModel
+
+    r = load_robot("seed1")
+    cal = EffectModel(r, "compliant", {"precurvature": {"scale1": 1.1, "scale2": 0.95, "scale3": 1.0}})
+    m = _perturb(T.new_model(r, 10, 2, 5, seed=1, base=cal), seed=2, scale=0.1)
+    q = r.sample(40, seed=3)
+    own = m.points_t(torch.as_tensor(q, dtype=torch.float32), 20).detach().numpy()
+    np.testing.assert_allclose(m.backbone(q), cal.backbone(q) + own, atol=2e-3)
+    m.save(tmp_path / "c.pt")
+    back = LearnedModel.load(tmp_path / "c.pt")
+    assert isinstance(back.base, EffectModel) and back.base.effects == cal.effects
+    np.testing.assert_allclose(back.backbone(q), m.backbone(q), atol=1e-9)
