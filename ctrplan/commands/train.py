@@ -65,6 +65,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="residual mode: the network learns the difference to BASE: 'physics', "
                         "'rigid', 'sim' (the pre-trained or --init model; no physics call at "
                         "evaluation), a calibrated model file from diagnose, or a learned model file")
+    p.add_argument("--refit", action="store_true",
+                   help="after early stopping has chosen the epochs, train again on the measured "
+                        "training + validation parts for that many epochs")
     p.add_argument("--variants", default=None,
                    help="--sweep variants, comma separated (default all: pure,direction,residual,"
                         "residual+direction)")
@@ -145,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(args.real or "--real-sim", "rows", "need at least 10 rows of real data")
         res = T.sweep(robot, sim, real, archs=archs, terms=terms, frame=args.frame, seed=args.seed,
                       pre=pre, fine=fine, real_only=real_only, device=args.device, progress=show,
-                      variants=variants)
+                      variants=variants, refit=args.refit)
         if not args.real:
             res["data"]["hidden_effects"] = T.HiddenEffects.default(robot).to_dict()
         res["seconds"] = time.perf_counter() - t0
@@ -189,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
             robot, sim, real, width=args.width, depth=args.depth, terms=terms, seed=args.seed,
             pre=pre, fine=fine if (sim is not None or base is not None) else real_only,
             real_only=real_only, device=args.device, frame=args.frame, base=base,
-            variant=variant, residual_base=residual_base)
+            variant=variant, residual_base=residual_base, refit=args.refit)
     except ValueError as exc:
         raise InputError(args.real or "--sim", "", str(exc)) from None
     import sys

@@ -25,9 +25,10 @@ architecture, training-data hashes, metrics), never pickled code.
 
 Options recorded in the model file:
 
-* **Direction-aware inputs** (``direction=True``): ``2n`` more inputs, the sign of the last
-  motion of each joint (same layout as q, -1/0/+1, 0 = unknown), so friction / hysteresis that
-  depends on the direction of the last motion can be learned. Such a model has
+* **Direction-aware inputs** (``direction=True``): ``3n - 1`` more inputs, the sign of the last
+  motion of each joint (same layout as q, -1/0/+1, 0 = unknown) and the direction of relative
+  rotation of each pair of neighbouring tubes (:func:`direction_features`), so friction /
+  hysteresis that depends on the direction of the last motion can be learned. Such a model has
   ``needs_direction = True`` and takes ``shape(q, points, direction=D)``
   (:func:`ctrplan.shape.base.needs_direction`); without ``direction`` every input is 0.
 * **Residual mode** (``base=``): the network predicts the basis coefficients of the difference
@@ -130,9 +131,9 @@ class LearnedModel:
         n = self.robot.n
         if seed is not None:
             torch.manual_seed(seed)
-        #: direction-aware: 2n extra inputs, the sign of the last motion of each joint
+        #: direction-aware: extra inputs from the sign of the last motion of each joint
         self.direction_inputs = bool(direction)
-        self.net = ShapeNet(3 * n + (2 * n if self.direction_inputs else 0), 3 * self.terms,
+        self.net = ShapeNet(3 * n + (n_direction_features(n) if self.direction_inputs else 0), 3 * self.terms,
                             self.width, self.depth)
         #: residual mode: the network predicts the difference to this model (None: pure)
         self.base = base
@@ -220,7 +221,8 @@ class LearnedModel:
         if not self.direction_inputs:
             return x
         d = torch.zeros_like(q) if direction is None else direction.to(dtype=x.dtype, device=x.device)
-        return torch.cat([x, d], dim=1)
+        rel = torch.sign(d[:, :n - 1] - d[:, 1:n])
+        return torch.cat([x, d, rel], dim=1)
 
     def coefficients_t(self, q: torch.Tensor) -> torch.Tensor:
         """Basis coefficients (B, K, 3) of the network's own output (dimensionless, base frame;
@@ -398,7 +400,7 @@ class LearnedModel:
             W0, Wh, bh, slopes, Wl, bl, lo, inv, L = net._numba_weights()
             dirs = none
             if net.direction_inputs:
-                dirs = np.zeros_like(q) if d is None else np.ascontiguousarray(d, dtype=np.float64)
+                dirs = direction_features(np.zeros_like(q) if d is None else d, self.robot.n)
             _learned_kernel.forward(q, dirs, self.robot.n, self.frame == "outer", lo, inv, L,
                                     W0, Wh, bh, slopes, Wl, bl, phi, out if k == 0 else tmp)
             if k > 0:
@@ -450,10 +452,10 @@ class LearnedModel:
         X3 = torch.from_numpy(feats.reshape(B, 3 * n))
         X5 = None
         if any(net.direction_inputs for net in nets):             # contiguous inputs per width
-            f5 = np.zeros((B, 5 * n), dtype=np.float32)
+            f5 = np.zeros((B, 3 * n + n_direction_features(n)), dtype=np.float32)
             f5[:, :3 * n] = feats.reshape(B, 3 * n)
             if d is not None:
-                f5[:, 3 * n:] = d
+                f5[:, 3 * n:] = direction_features(d, n)
             X5 = torch.from_numpy(f5)
         length = torch.from_numpy(np.max(b + L, axis=1))
         if self.frame == "outer":
@@ -624,7 +626,7 @@ class LearnedModel:
             qc = np.ascontiguousarray(q, dtype=np.float64)
             dirs = np.zeros((B, 0))
             if self.direction_inputs:
-                dirs = np.zeros_like(qc) if d is None else np.ascontiguousarray(d, dtype=np.float64)
+                dirs = direction_features(np.zeros_like(qc) if d is None else d, self.robot.n)
             _learned_kernel.tip_jacobian(qc, dirs, self.robot.n, self.frame == "outer", lo, inv, L,
                                          W0, Wh, bh, slopes, Wl, bl, ptip, tip, J)
             return tip, J
@@ -649,8 +651,10 @@ class LearnedModel:
                 base_spec["note"] = "stored in the file under 'base'"
         meta.update({
             "inputs": {"direction": self.direction_inputs,
-                       "direction_layout": "sign of the last motion of each joint, q's layout "
-                                           "(alpha_1..n, beta_1..n), -1/0/+1, 0 = unknown"},
+                       "direction_layout": "D = sign of the last motion of each joint, q's layout "
+                                           "(alpha_1..n, beta_1..n), -1/0/+1, 0 = unknown; inputs "
+                                           "D and the relative rotation directions "
+                                           "sign(D_alpha_i - D_alpha_i+1), i < n"},
             "residual": base_spec,
             "error_quantiles": self.error_quantiles,
             "domain": self.domain,
@@ -775,6 +779,19 @@ class LearnedModel:
         model.meta = {k: meta[k] for k in keep if k in meta}
         model.source = src
         return model
+
+
+def n_direction_features(n: int) -> int:
+    """Direction inputs of an n-tube model: 2n signs and n - 1 relative rotation directions."""
+    return 3 * n - 1
+
+
+def direction_features(d: np.ndarray, n: int) -> np.ndarray:
+    """(B, 3n - 1) float64: the directions D (B, 2n) and the direction of relative rotation of
+    each pair of neighbouring tubes, ``sign(D_alpha_i - D_alpha_i+1)`` (friction between tubes
+    follows their relative motion)."""
+    d = np.asarray(d, dtype=np.float64)
+    return np.ascontiguousarray(np.concatenate([d, np.sign(d[:, :n - 1] - d[:, 1:n])], axis=1))
 
 
 def error_quantiles(per_config_max: Any) -> dict[str, float]:

@@ -262,6 +262,8 @@ class TrainConfig:
     max_seconds: float | None = None
     progress: bool = True
     label: str = "train"
+    #: decoupled weight decay (AdamW) per step, 0 = plain Adam
+    weight_decay: float = 0.0
 
     def replace(self, **changes: Any) -> TrainConfig:
         return dataclasses.replace(self, **changes)
@@ -371,10 +373,13 @@ def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
     dev = model.device
     xtr, ltr, ptr = _tensors(model, train_data)
     xva, lva, pva = _tensors(model, val_data)
+    params = [p for p in model.net.parameters() if p.requires_grad]
+    Opt = torch.optim.AdamW if cfg.weight_decay > 0 else torch.optim.Adam
+    kw = {"weight_decay": cfg.weight_decay} if cfg.weight_decay > 0 else {}
     try:
-        opt = torch.optim.Adam(model.net.parameters(), lr=cfg.lr, fused=True)
+        opt = Opt(params, lr=cfg.lr, fused=True, **kw)
     except (RuntimeError, TypeError):  # pragma: no cover - older torch / unsupported device
-        opt = torch.optim.Adam(model.net.parameters(), lr=cfg.lr)
+        opt = Opt(params, lr=cfg.lr, **kw)
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=max(1, cfg.patience // 3),
                                                        min_lr=cfg.min_lr)
     best = math.inf
@@ -460,7 +465,8 @@ def with_direction_inputs(model: LearnedModel) -> LearnedModel:
                        base_spec=model.base_spec)
     state = {k: v.clone() for k, v in model.net.state_dict().items()}
     W0 = state["net.0.weight"]
-    state["net.0.weight"] = torch.cat([W0, torch.zeros(W0.shape[0], 2 * model.robot.n, dtype=W0.dtype)], dim=1)
+    extra = new.net.net[0].weight.shape[1] - W0.shape[1]
+    state["net.0.weight"] = torch.cat([W0, torch.zeros(W0.shape[0], extra, dtype=W0.dtype)], dim=1)
     new.net.load_state_dict(state)
     new.coef_mean, new.coef_std = model.coef_mean.clone(), model.coef_std.clone()
     new.meta = copy.deepcopy(model.meta)
@@ -526,8 +532,12 @@ def fit_real(robot: Robot, r_tr: ShapeData, r_va: ShapeData, variant: str = "pur
              width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH, terms: int = basis.DEFAULT_TERMS,
              seed: int = 0, frame: str = DEFAULT_FRAME, device: str = "cpu",
              fine: TrainConfig | None = None, real_only: TrainConfig | None = None,
-             ) -> tuple[LearnedModel, TrainResult]:
+             refit: bool = False) -> tuple[LearnedModel, TrainResult]:
     """Train one variant on measured data (train / validation parts).
+
+    ``refit``: after early stopping on the validation part has chosen the number of epochs,
+    train the variant again from the same start on train + validation for that many epochs
+    (all the measured data; the returned result is the refit's).
 
     * pure / direction with ``sim_model``: fine-tune a copy of it (Sim+Real; direction inputs
       added with zero weights), with ``fine``;
@@ -538,6 +548,18 @@ def fit_real(robot: Robot, r_tr: ShapeData, r_va: ShapeData, variant: str = "pur
     """
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+    if refit:
+        kw = dict(sim_model=sim_model, residual_base=residual_base, width=width, depth=depth,
+                  terms=terms, seed=seed, frame=frame, device=device)
+        _, first = fit_real(robot, r_tr, r_va, variant, fine=fine, real_only=real_only, **kw)
+        both = _concat(r_tr, r_va)
+        n_ep = max(1, first.best_epoch)
+
+        def again(c: TrainConfig | None) -> TrainConfig | None:
+            return None if c is None else c.replace(epochs=n_ep, patience=n_ep + 1, max_seconds=None)
+        fine2 = again(fine or TrainConfig(seed=seed, lr=5e-4, batch_size=128, label="fine-tune (real)"))
+        real2 = again(real_only or TrainConfig(seed=seed, batch_size=128, label="train (real)"))
+        return fit_real(robot, both, both, variant, fine=fine2, real_only=real2, **kw)
     direction = variant.endswith("direction")
     fine = fine or TrainConfig(seed=seed, lr=5e-4, batch_size=128, label="fine-tune (real)")
     real_only = real_only or TrainConfig(seed=seed, batch_size=128, label="train (real)")
@@ -593,7 +615,7 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
                       device: str = "cpu", base: LearnedModel | None = None,
                       frame: str = DEFAULT_FRAME, variant: str = "pure",
                       residual_base: Any = None, real_only: TrainConfig | None = None,
-                      ) -> tuple[LearnedModel, TrainReport]:
+                      refit: bool = False) -> tuple[LearnedModel, TrainReport]:
     """Pre-train on ``sim`` (if given), then train ``variant`` on ``real`` (if given).
 
     Each data set is split 80/10/10 (seeded; measured data with sweeps by whole sweeps);
@@ -602,7 +624,7 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
     ``base``: start from this trained model instead of pre-training (its normalisation is
     kept). ``residual_base``: the base of a residual variant (default: the pre-trained model,
     else physics). ``fine``: fine-tuning settings; ``real_only``: for new networks trained on
-    ``real`` (default ``fine`` when nothing was pre-trained).
+    ``real`` (default ``fine`` when nothing was pre-trained). ``refit``: see :func:`fit_real`.
     """
     robot = load_robot(robot)
     if variant not in VARIANTS:
@@ -637,7 +659,7 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
         model, stages[stage] = fit_real(
             robot, r_tr, r_va, variant, sim_model=start, residual_base=residual_base, width=width,
             depth=depth, terms=terms, seed=seed, frame=frame, device=device,
-            fine=fine, real_only=real_only or (fine if start is None else None))
+            fine=fine, real_only=real_only or (fine if start is None else None), refit=refit)
         data["real"] = real.describe()
         metrics["real_test"] = summary_metrics(evaluate(model, r_te))
         eq_data = (_concat(r_tr, r_va), r_te, "real")
@@ -677,7 +699,7 @@ def sweep(robot: Robot | str, sim: ShapeData, real: ShapeData,
           frame: str = DEFAULT_FRAME, seed: int = 0, pre: TrainConfig | None = None,
           fine: TrainConfig | None = None, real_only: TrainConfig | None = None,
           device: str = "cpu", progress: bool = True,
-          variants: Sequence[str] = VARIANTS) -> dict[str, Any]:
+          variants: Sequence[str] = VARIANTS, refit: bool = False) -> dict[str, Any]:
     """Sim-only, and Real-only and Sim+Real for each variant (pure, direction-aware, residual,
     residual + direction), for each architecture, all evaluated on the same held-out part of
     ``real`` (whole sweeps when it has sweep ids), next to the physics model. Residual
@@ -701,7 +723,7 @@ def sweep(robot: Robot | str, sim: ShapeData, real: ShapeData,
     phys = PhysicsModel(robot)
     res: dict[str, Any] = {
         "robot": robot.name, "terms": terms, "frame": frame, "seed": seed,
-        "variants": list(variants),
+        "variants": list(variants), "refit": refit,
         "data": {"sim": sim.describe(), "real": real.describe(),
                  "splits": {"sim": [len(s_tr), len(s_va), len(s_te)],
                             "real": [len(r_tr), len(r_va), len(r_te)]},
@@ -720,7 +742,8 @@ def sweep(robot: Robot | str, sim: ShapeData, real: ShapeData,
                 model, t = fit_real(robot, r_tr, r_va, variant, sim_model=start, width=width,
                                     depth=depth, terms=terms, seed=seed, frame=frame, device=device,
                                     fine=cfg(fine, f"{tag} {regime} {variant}", seed=seed, lr=5e-4),
-                                    real_only=cfg(real_only, f"{tag} {regime} {variant}", seed=seed))
+                                    real_only=cfg(real_only, f"{tag} {regime} {variant}", seed=seed),
+                                    refit=refit)
                 runs.append((regime, variant, model, [t_sim, t] if start is not None else [t]))
         for regime, variant, model, tinfo in runs:
             ev = evaluate(model, r_te)
