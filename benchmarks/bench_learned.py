@@ -129,7 +129,7 @@ def variants(learned: LearnedModel, quick: bool = False, batch: int = 100_000) -
     }
     reps = 3 if quick else 7
     rows = {}
-    for name, fn in calls.items():
+    for fn in calls.values():
         fn()                                                  # warm up
     for _ in range(2):                                        # interleave: same machine load
         for name, fn in calls.items():

@@ -109,3 +109,40 @@ def test_measured_csv_without_points_is_rejected(tmp_path, capsys):
     assert main(["-q", "train", "--robot", "seed1", "--sim", "0", "--real", str(path),
                  "--out", str(tmp_path / "m.pt")]) == 2
     assert "p1_x" in capsys.readouterr().err
+
+
+def test_train_direction_and_residual_variants(tmp_path, measured_csv):
+    from ctrplan.shape.physics import PhysicsModel
+
+    out = tmp_path / "rd.pt"
+    assert main(["-q", "train", "--robot", "seed1", "--sim", "0", "--real", str(measured_csv),
+                 "--direction", "--residual", "physics", "--refit", *SMALL, "--out", str(out)]) == 0
+    m = LearnedModel.load(out)
+    assert m.needs_direction and isinstance(m.base, PhysicsModel)
+    assert m.meta["variant"] == "residual+direction"
+    eq = m.error_quantiles
+    assert eq is not None and 0 < eq["p50"] <= eq["p95"] <= eq["p99"] <= eq["max"]
+    assert m.domain is not None
+    out2 = tmp_path / "rs.pt"
+    assert main(["-q", "train", "--robot", "seed1", "--sim", "200", "--real", str(measured_csv),
+                 "--residual", "sim", *SMALL, "--out", str(out2)]) == 0
+    m2 = LearnedModel.load(out2)
+    assert m2.base_spec["kind"] == "learned" and not m2.needs_direction
+    q = m2.robot.sample(5, seed=1)
+    assert np.all(np.isfinite(m2.backbone(q)))
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--sim", "0", "--residual", "sim"], "--residual"),
+    (["--sim", "0", "--residual", "nonexistent.pt"], "nonexistent.pt"),
+])
+def test_bad_variant_arguments_exit_2(tmp_path, measured_csv, capsys, args, needle):
+    assert main(["-q", "train", "--robot", "seed1", "--real", str(measured_csv), *args,
+                 "--out", str(tmp_path / "m.pt")]) == 2
+    assert needle in capsys.readouterr().err
+
+
+def test_direction_without_measured_data_exits_2(tmp_path, capsys):
+    assert main(["-q", "train", "--robot", "seed1", "--sim", "50", "--direction",
+                 "--out", str(tmp_path / "m.pt")]) == 2
+    assert "--real" in capsys.readouterr().err
