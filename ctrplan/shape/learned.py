@@ -69,6 +69,9 @@ READ_VERSIONS = (1, 2)
 #: Rotations: the seen angles cover the whole circle when no gap between them exceeds this (rad).
 FULL_CIRCLE_GAP = 0.5
 QUANTILES = {"p50": 50.0, "p95": 95.0, "p99": 99.0, "max": 100.0}
+#: Slack of the domain check (mm for translations and the joint constraints, rad for
+#: rotations): finite-difference steps just across a limit (IK) still count as inside.
+DOMAIN_TOL = 0.05
 DEFAULT_WIDTH = 30
 DEFAULT_DEPTH = 3
 #: "outer": angles relative to the outermost tube, backbone predicted in a frame turned with
@@ -558,14 +561,15 @@ class LearnedModel:
 
     def in_domain(self, q: np.ndarray) -> np.ndarray:
         """(B,) bool: inside the robot's joint limits and the joint ranges of the training
-        data (:attr:`domain`; see the module docstring)."""
+        data (:attr:`domain`; see the module docstring), each with a slack of
+        :data:`DOMAIN_TOL` (mm / rad)."""
         q = check_q(self.robot, q)
-        ok = self.robot.is_valid(q)
+        ok = np.all(self.robot.constraint_violations(q) >= -DOMAIN_TOL, axis=1)
         dom = self.domain
         if not dom:
             return ok
         n = self.robot.n
-        tol = float(dom.get("tolerance", 1e-9))
+        tol = max(float(dom.get("tolerance", 0.0)), DOMAIN_TOL)
         lo = np.asarray(dom["beta_min_mm"], dtype=float)
         hi = np.asarray(dom["beta_max_mm"], dtype=float)
         ok &= np.all((q[:, n:] >= lo - tol) & (q[:, n:] <= hi + tol), axis=1)
