@@ -10,7 +10,7 @@ CSV writer. API: /work/coord/GENERATOR_API.md.
 
 from .designs import DESIGNS
 from .effects import FRICTION_FORMS, OUTSIDE_EFFECTS, VOCAB_EFFECTS
-from .generate import (STUDY_EFFECTS, STUDY_EXPERIMENTS, ForeignData, backbones, generate,
+from .core import (STUDY_EFFECTS, STUDY_EXPERIMENTS, ForeignData, backbones, generate,
                        generate_study, read_csv, truth)
 from .robot import load_spec, valid
 

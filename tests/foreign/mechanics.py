@@ -442,52 +442,79 @@ def _eval(pb, x, full, K, EIref, reduced_residual):
 
 
 def _newton(pb, x, full, K, EIref, tol, max_iter, reduced_residual=False):
-    """Damped Newton (backtracking on the residual norm) with a forward-difference Jacobian,
-    all rows at once; returns (x, converged)."""
+    """Damped Newton / chord iteration on all rows at once; returns (x, converged).
+
+    The Jacobian (forward differences) is recomputed only where the last step did not shrink
+    the residual by at least 3x (chord steps elsewhere); a step that does not lower the residual
+    norm is halved (up to 4 times) with a fresh Jacobian."""
     B, k = x.shape
     eps = 1e-7
+    r = _eval(pb, x, full, K, EIref, reduced_residual)
+    J = np.zeros((B, k, k))
+    fresh = np.zeros(B, bool)
+    need_J = np.ones(B, bool)
     active = np.arange(B)
-    r_act = None
+    def clean(v):
+        return np.nan_to_num(v, nan=1e3, posinf=1e3, neginf=-1e3)
     for _ in range(max_iter):
+        small = np.max(np.abs(clean(r[active])), axis=1) < 1e-14
+        active = active[~small]
         if active.size == 0:
             break
-        na = active.size
-        idx = np.tile(active, k + 1)
-        sub = pb.take(idx)
-        xs = np.tile(x[active], (k + 1, 1))
-        for c in range(k):
-            xs[(c + 1) * na:(c + 2) * na, c] += eps
-        r = _eval(sub, xs, full, K, EIref, reduced_residual)
-        r0 = np.nan_to_num(r[:na], nan=1e3, posinf=1e3, neginf=-1e3)
-        J = np.stack([(r[(c + 1) * na:(c + 2) * na] - r[:na]) / eps for c in range(k)], axis=2)
-        bad = ~np.isfinite(J).all(axis=(1, 2))
-        J[bad] = np.eye(k)
+        jrows = active[need_J[active]]
+        if jrows.size:
+            nj = jrows.size
+            idx = np.tile(jrows, k)
+            xs = np.tile(x[jrows], (k, 1))
+            for c in range(k):
+                xs[c * nj:(c + 1) * nj, c] += eps
+            rp = _eval(pb.take(idx), xs, full, K, EIref, reduced_residual)
+            Jn = np.stack([(rp[c * nj:(c + 1) * nj] - r[jrows]) / eps for c in range(k)], axis=2)
+            badJ = ~np.isfinite(Jn).all(axis=(1, 2))
+            Jn[badJ] = np.eye(k)
+            J[jrows] = Jn
+            fresh[jrows] = True
+            need_J[jrows] = False
+        ra = clean(r[active])
         try:
-            dx = np.linalg.solve(J, -r0[:, :, None])[:, :, 0]
+            dx = np.linalg.solve(J[active], -ra[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
-            dx = np.stack([np.linalg.lstsq(Ji, -ri, rcond=None)[0] for Ji, ri in zip(J, r0)])
-        conv_now = np.max(np.abs(r0), axis=1) < 1e-14
-        # backtracking: accept the largest step 2^-j that lowers the residual norm
-        f0 = np.sum(r0 ** 2, axis=1)
-        lam = np.ones(na)
-        pending = np.flatnonzero(~conv_now)
-        sub1 = pb.take(active)
-        for _j in range(4):
+            dx = np.stack([np.linalg.lstsq(Ji, -ri, rcond=None)[0] for Ji, ri in zip(J[active], ra)])
+        f0 = np.sum(ra ** 2, axis=1)
+        lam = np.ones(active.size)
+        accepted = np.zeros(active.size, bool)
+        rnew = np.zeros_like(ra)
+        pending = np.arange(active.size)
+        for t in range(5):
             if pending.size == 0:
                 break
             trial = x[active[pending]] + lam[pending, None] * dx[pending]
-            rt = _eval(sub1.take(pending), trial, full, K, EIref, reduced_residual)
-            ft = np.sum(np.nan_to_num(rt, nan=1e3, posinf=1e3, neginf=1e3) ** 2, axis=1)
+            rt = _eval(pb.take(active[pending]), trial, full, K, EIref, reduced_residual)
+            ft = np.sum(clean(rt) ** 2, axis=1)
             good = ft < f0[pending] * (1 - 1e-4 * lam[pending]) + 1e-30
-            lam[pending[~good]] *= 0.5
-            pending = pending[~good]
-        step = lam[:, None] * dx
-        step[conv_now] = 0.0
-        x[active] += step
-        done = conv_now | (np.max(np.abs(step), axis=1) < tol)
-        active = active[~done]
-    conv = np.ones(B, bool)
-    conv[active] = False
+            gi = pending[good]
+            accepted[gi] = True
+            rnew[gi] = rt[good]
+            # a stale Jacobian gets no line search: recompute it instead
+            stale = pending[~good & ~fresh[active[pending]]]
+            need_J[active[stale]] = True
+            pending = pending[~good & fresh[active[pending]]]
+            lam[pending] *= 0.5
+        acc = active[accepted]
+        step = lam[accepted, None] * dx[accepted]
+        x[acc] += step
+        r[acc] = rnew[accepted]
+        slow = np.sum(rnew[accepted] ** 2, axis=1) > f0[accepted] / 9.0
+        need_J[acc[slow]] = True
+        fresh[acc] = False
+        done = np.max(np.abs(step), axis=1) < tol
+        # rows with a fresh Jacobian and no acceptable step are stuck: give up on them
+        stuck = active[~accepted & ~need_J[active]]
+        finished = np.concatenate([acc[done], stuck])
+        active = np.setdiff1d(active, finished, assume_unique=True)
+        if stuck.size:
+            r[stuck] = np.where(np.isfinite(r[stuck]), r[stuck], 1e3)
+    conv = np.max(np.abs(clean(r)), axis=1) < 1e-9
     return x, conv
 
 
