@@ -111,7 +111,7 @@ def _alpha_lag(eff, q, n, direction, sweep):
 
 
 def truth(spec: Spec, q: np.ndarray, eff: dict, direction=None, sweep=None, points: int = 0,
-          h_max: float = 6.0):
+          h_max: float = 10.0):
     """Noise-free tips (N,3) and points (N,M,3) or None in the robot base frame (before tracker
     effects), and ok (N,) (mechanics converged)."""
     q = np.atleast_2d(np.asarray(q, float))

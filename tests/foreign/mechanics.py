@@ -594,7 +594,7 @@ def _m0_guess(pb, bb):
 
 
 def cosserat(spec: Spec, alpha, beta, *, torsion=True, gravity=None, tip_force=None,
-             clearance=None, friction_mu=0.0, rel_dir=None, h_max=6.0, tol=1e-10, max_iter=12):
+             clearance=None, friction_mu=0.0, rel_dir=None, h_max=10.0, tol=1e-10, max_iter=12):
     """Solve the (loaded) Cosserat rod BVP for a batch. gravity: (3,) m/s^2 in the base frame
     (None = no weight); tip_force: (3,) N. Returns a CosseratBackbone (with .ok per row).
 
