@@ -448,3 +448,27 @@ def test_package_imports_nothing_from_ctrplan():
             "generate('seed1', 'sweeps', n=20, effects={'torsion': {}, 'load': {}}); "
             "assert not any(m == 'ctrplan' or m.startswith('ctrplan.') for m in sys.modules), 'ctrplan imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).parents[1])
+
+
+def _kabsch_residual(a, b):
+    """Mean residual after the best rigid transform mapping a onto b."""
+    ca, cb = a.mean(0), b.mean(0)
+    H = (a - ca).T @ (b - cb)
+    U, _, Vt = np.linalg.svd(H)
+    dd = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1, 1, dd]) @ U.T
+    return np.linalg.norm((a - ca) @ R.T + cb - b, axis=1).mean()
+
+
+def test_outside_effects_are_not_rigid_transforms():
+    base = generate("seed1", "sweeps", n=400, effects={}, noise_mm=0.0, seed=3)
+    reg = generate("seed1", "sweeps", n=400, effects={"registration": {}}, noise_mm=0.0, seed=3)
+    assert _kabsch_residual(base.tip_clean, reg.tip_clean) < 1e-9       # registration is rigid
+    for name in OUTSIDE_EFFECTS:
+        d = generate("seed1", "sweeps", n=400, effects={name: {}}, noise_mm=0.0, seed=3)
+        assert _kabsch_residual(base.tip_clean, d.tip_clean) > 0.5, name
+    # drift grows with time: last rows displaced by the amplitude, first rows not at all
+    d = generate("seed1", "sweeps", n=400, effects={"drift": {}}, noise_mm=0.0, seed=3)
+    dev = np.linalg.norm(d.tip_clean - base.tip_clean, axis=1)
+    assert dev[0] < 1e-9 and abs(dev[-1] - 4.0) < 1e-9
+    assert np.corrcoef(d.time, dev)[0, 1] > 0.99

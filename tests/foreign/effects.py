@@ -70,7 +70,7 @@ def defaults(name: str, n: int, spec=None) -> dict:
     if name == "torsion":
         return {"gj_scale": 1.0}
     if name == "clearance":
-        return {"amplitude": 0.08, "phase_deg": 205.0, "harmonics": [0.5, 0.5]}
+        return {"amplitude": 0.065, "phase_deg": 205.0, "harmonics": [0.5, 0.5]}
     if name == "friction":
         return {"form": "end_moment", "mu": 0.08}
     if name == "precurvature":
