@@ -472,3 +472,32 @@ def test_outside_effects_are_not_rigid_transforms():
     dev = np.linalg.norm(d.tip_clean - base.tip_clean, axis=1)
     assert dev[0] < 1e-9 and abs(dev[-1] - 4.0) < 1e-9
     assert np.corrcoef(d.time, dev)[0, 1] > 0.99
+
+
+def test_presliding_builds_up_after_a_reversal():
+    # one tube rotating forward then back: the lag relaxes toward +c, then toward -c
+    sp = one_tube()
+    a = np.r_[np.linspace(0, 1.0, 41), np.linspace(1.0, 0.0, 41)[1:]]
+    q = np.c_[a, np.full_like(a, -20.0)]
+    sweep = np.array(["s0"] * len(a))
+    from tests.foreign.core import _alpha_lag
+    from tests.foreign.designs import directions
+    eff = {"friction": {"form": "presliding", "lag": 0.06, "angle": 0.25}}
+    qe = _alpha_lag(eff, q, 1, directions(q, sweep), sweep)
+    lag = q[:, 0] - qe[:, 0]
+    # closed form of z' = (c - z)/angle per unit rotation from z=0: c (1 - exp(-a/angle))
+    np.testing.assert_allclose(lag[:41], 0.06 * (1 - np.exp(-a[:41] / 0.25)), atol=1e-12)
+    assert lag[-1] < -0.05 and np.all(np.diff(lag[41:]) < 0)
+
+
+def test_robot_from_yaml_path_equals_shipped_name(tmp_path):
+    src = Path(__file__).parents[1] / "ctrplan" / "data" / "robots" / "seed1.yaml"
+    p = tmp_path / "my_robot.yaml"
+    p.write_text(src.read_text())
+    a = generate("seed1", "sweeps", n=50, effects={"clearance": {}}, seed=1)
+    b = generate(str(p), "sweeps", n=50, effects={"clearance": {}}, seed=1)
+    assert np.array_equal(a.tip, b.tip)
+    # density from the file is used for gravity
+    text = src.read_text().replace("poisson_ratio: 0.33}", "poisson_ratio: 0.33, density: 12900}")
+    p.write_text(text)
+    assert np.allclose(load_spec(str(p)).density, 12900.0)

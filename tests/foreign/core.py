@@ -98,11 +98,12 @@ def _alpha_lag(eff, q, n, direction, sweep):
         q[:, :n] -= lag * d[:, :n]
         return q
     z = np.zeros(n)
+    a0 = q[:, :n].copy()
     for i in range(q.shape[0]):
         if i == 0 or sweep[i] != sweep[i - 1]:
             z = np.zeros(n)
         else:
-            da = q[i, :n] - q[i - 1, :n]
+            da = a0[i] - a0[i - 1]
             sg = np.sign(da)
             target = lag * sg
             z = np.where(sg != 0, target + (z - target) * np.exp(-np.abs(da) / ang), z)
@@ -116,6 +117,7 @@ def truth(spec: Spec, q: np.ndarray, eff: dict, direction=None, sweep=None, poin
     effects), and ok (N,) (mechanics converged)."""
     q = np.atleast_2d(np.asarray(q, float))
     n = spec.n
+    eff = E.resolve(eff, n, spec)       # idempotent on resolved parameters; {} -> defaults
     if "joint_offset" in eff:
         q = q.copy()
         q[:, :n] += E._per_tube(eff["joint_offset"]["alpha"], n, "alpha")
