@@ -101,8 +101,12 @@ def test_rigid_two_tube_closed_form():
 
 
 # ----------------------------------------------------------------------------- scipy oracle
-def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True):
-    """Independent shooting: scipy DOP853 (rtol 1e-12) per section + scipy.optimize.root."""
+def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True, mu=0.0, rel=None,
+                    clear=None):
+    """Independent shooting: scipy DOP853 (rtol 1e-11) per section + scipy.optimize.root.
+    Optional point events where outer tube o ends: friction torque T = mu rel |M_o| (+T on the
+    outer tube's end condition, -T on the inner tube: a jump of its u_z) and a clearance tilt
+    by clear(phi) about R Rz(psi_in) e_y (scipy Rotation)."""
     n = spec.n
     L = spec.straight + spec.curved
     e = np.maximum(beta + L, 0.0)
@@ -129,7 +133,7 @@ def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True):
         duz = (EIp / GJ) * k_i * ui_x if torsion else np.zeros(n)
         return np.r_[t, dR.ravel(), -np.cross(t, nvec), dpsi, duz]
 
-    def run(x):
+    def run(x, T_out=None):
         uz0 = x[:n] if torsion else np.zeros(n)
         m0 = np.zeros(3)
         if loaded:
@@ -143,14 +147,33 @@ def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True):
             pres = (mid < e).astype(float)
             k_i = np.where((mid >= cs) & (mid < e), kap, 0.0)
             sol = solve_ivp(rhs, (a, b), y, method="DOP853", rtol=1e-11, atol=1e-11, args=(k_i, pres))
-            y = sol.y[:, -1]
+            y = sol.y[:, -1].copy()
+            for o in range(1, n):
+                if e[o] != b:
+                    continue
+                R, m = y[3:12].reshape(3, 3), y[12:15]
+                psi = y[15:15 + n]
+                EIp = EI * pres
+                S = np.array([np.sum(-EIp * k_i * np.sin(psi)), np.sum(EIp * k_i * np.cos(psi))])
+                uxy = ((R.T @ m)[:2] + S) / EIp.sum()
+                if mu:
+                    uo = Rotation.from_euler("z", -psi[o]).as_matrix()[:2, :2] @ uxy
+                    T = mu * rel[o - 1] * EI[o] * np.hypot(uo[0], uo[1] - k_i[o])
+                    if T_out is not None:
+                        T_out[o] = T
+                    y[15 + n + o - 1] += T / GJ[o - 1]
+                if clear is not None:
+                    axis = np.array([-math.sin(psi[o - 1]), math.cos(psi[o - 1]), 0.0])
+                    Q = Rotation.from_rotvec(axis * clear(psi[o - 1] - psi[o])).as_matrix()
+                    y[3:12] = (R @ Q).ravel()
         return y
 
     def res(x):
-        y = run(x)
+        T = np.zeros(n)
+        y = run(x, T)
         out = []
         if torsion:
-            out.append(y[15 + n:15 + 2 * n] * GJ)
+            out.append(y[15 + n:15 + 2 * n] * GJ - T)
         if loaded:
             R, m = y[3:12].reshape(3, 3), y[12:15]
             out.append((R.T @ m)[:2] if torsion else m)
@@ -501,3 +524,21 @@ def test_robot_from_yaml_path_equals_shipped_name(tmp_path):
     text = src.read_text().replace("poisson_ratio: 0.33}", "poisson_ratio: 0.33, density: 12900}")
     p.write_text(text)
     assert np.allclose(load_spec(str(p)).density, 12900.0)
+
+
+def test_compliant_friction_and_clearance_events_vs_scipy():
+    sp = load_spec("seed1")
+    n = sp.n
+    from tests.foreign.effects import clearance_fn
+    from tests.foreign.robot import beta_from_unit
+    q = np.c_[np.array([[0.4, -0.9, 1.3]]), beta_from_unit(sp, np.array([[0.7, 0.5, 0.6]]))]
+    rel = np.array([1.0, -1.0])
+    clear = clearance_fn({"amplitude": 0.06, "phase_deg": 205.0, "harmonics": [0.5, 0.5]})
+    bb = M.cosserat(sp, q[:, :n], q[:, n:], torsion=True, gravity=[0.0, 9.81, 0.0],
+                    clearance=clear, friction_mu=0.1, rel_dir=rel[None, :])
+    ref = _scipy_cosserat(sp, q[0, :n], q[0, n:], np.array([0.0, 9.81, 0.0]), None, True,
+                          mu=0.1, rel=rel, clear=lambda phi: float(clear(np.array([phi]), 0)[0]))
+    assert bb.ok.all()
+    assert np.linalg.norm(bb.tip()[0] - ref) < 1e-3
+    plain = M.cosserat(sp, q[:, :n], q[:, n:], torsion=True, gravity=[0.0, 9.81, 0.0]).tip()[0]
+    assert np.linalg.norm(plain - ref) > 1.0           # the events matter at this tolerance
