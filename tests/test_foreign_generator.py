@@ -17,8 +17,18 @@ from scipy.integrate import solve_bvp, solve_ivp
 from scipy.optimize import root
 from scipy.spatial.transform import Rotation
 
-from tests.foreign import (DESIGNS, FRICTION_FORMS, OUTSIDE_EFFECTS, VOCAB_EFFECTS, backbones,
-                           generate, generate_study, load_spec, read_csv, valid)
+from tests.foreign import (
+    DESIGNS,
+    FRICTION_FORMS,
+    OUTSIDE_EFFECTS,
+    VOCAB_EFFECTS,
+    backbones,
+    generate,
+    generate_study,
+    load_spec,
+    read_csv,
+    valid,
+)
 from tests.foreign import mechanics as M
 from tests.foreign.core import truth
 
@@ -118,7 +128,7 @@ def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True, mu=0.
     loaded = gravity is not None or F is not None
 
     def rhs(s, y, k_i, pres):
-        p, R, m = y[0:3], y[3:12].reshape(3, 3), y[12:15]
+        R, m = y[3:12].reshape(3, 3), y[12:15]
         psi, uz = y[15:15 + n], y[15 + n:15 + 2 * n]
         EIp = EI * pres
         S = np.array([np.sum(-EIp * k_i * np.sin(psi)), np.sum(EIp * k_i * np.cos(psi))])
@@ -499,7 +509,6 @@ def test_outside_effects_are_not_rigid_transforms():
 
 def test_presliding_builds_up_after_a_reversal():
     # one tube rotating forward then back: the lag relaxes toward +c, then toward -c
-    sp = one_tube()
     a = np.r_[np.linspace(0, 1.0, 41), np.linspace(1.0, 0.0, 41)[1:]]
     q = np.c_[a, np.full_like(a, -20.0)]
     sweep = np.array(["s0"] * len(a))

@@ -29,11 +29,19 @@ nylon pair (pass {"torsion": {"gj_scale": g}} to change it). Friction is only vi
 carry a direction of motion (not in "uniform").
 """
 
+from .core import (
+                       STUDY_EFFECTS,
+                       STUDY_EXPERIMENTS,
+                       ForeignData,
+                       backbones,
+                       generate,
+                       generate_study,
+                       read_csv,
+                       truth,
+)
 from .designs import DESIGNS
 from .effects import FRICTION_FORMS, OUTSIDE_EFFECTS, VOCAB_EFFECTS
-from .core import (STUDY_EFFECTS, STUDY_EXPERIMENTS, ForeignData, backbones, generate,
-                       generate_study, read_csv, truth)
 from .robot import load_spec, valid
 
-__all__ = ["generate", "generate_study", "backbones", "ForeignData", "VOCAB_EFFECTS",
+__all__ = ["generate", "generate_study", "STUDY_EFFECTS", "STUDY_EXPERIMENTS", "backbones", "ForeignData", "VOCAB_EFFECTS",
            "OUTSIDE_EFFECTS", "FRICTION_FORMS", "DESIGNS", "read_csv", "load_spec", "valid", "truth"]

@@ -9,7 +9,7 @@ import numpy as np
 from . import designs as D
 from . import effects as E
 from . import mechanics as M
-from .robot import Spec, load_spec, valid
+from .robot import Spec, load_spec
 
 
 @dataclass
@@ -32,7 +32,7 @@ class ForeignData:
     def n(self) -> int:
         return self.q.shape[1] // 2
 
-    def subset(self, mask) -> "ForeignData":
+    def subset(self, mask) -> ForeignData:
         m = np.asarray(mask)
         if m.dtype == bool:
             m = np.flatnonzero(m)

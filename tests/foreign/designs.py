@@ -19,7 +19,7 @@ def _split(n, k):
 
 
 def _times(rng, counts):
-    t, out, t0 = [], [], 0.0
+    out, t0 = [], 0.0
     for c in counts:
         dt = DT * rng.uniform(0.8, 1.2, c)
         dt[0] = 0.0

@@ -264,11 +264,6 @@ class _Problem:
                         None if self.rel_dir is None else self.rel_dir[idx])
 
 
-def _layout(n):
-    return dict(psi=slice(0, n), uz=slice(n, 2 * n), p=slice(2 * n, 2 * n + 3),
-                R=slice(2 * n + 3, 2 * n + 12), m=slice(2 * n + 12, 2 * n + 15))
-
-
 def _deriv(X, s, kap, EIp, GJ, EIt, nA, nB, n, full, torsion):
     """State derivative. Reduced state (full=False): [psi (n), u_z (n)]; full state adds
     p (3), R (9, row-major), m (3)."""
@@ -485,7 +480,7 @@ def _newton(pb, x, full, K, EIref, tol, max_iter, reduced_residual=False):
         accepted = np.zeros(active.size, bool)
         rnew = np.zeros_like(ra)
         pending = np.arange(active.size)
-        for t in range(5):
+        for _t in range(5):
             if pending.size == 0:
                 break
             trial = x[active[pending]] + lam[pending, None] * dx[pending]
