@@ -551,3 +551,24 @@ def test_compliant_friction_and_clearance_events_vs_scipy():
     assert np.linalg.norm(bb.tip()[0] - ref) < 1e-3
     plain = M.cosserat(sp, q[:, :n], q[:, n:], torsion=True, gravity=[0.0, 9.81, 0.0]).tip()[0]
     assert np.linalg.norm(plain - ref) > 1.0           # the events matter at this tolerance
+
+
+def test_bistable_pair_returns_a_stable_twisted_equilibrium():
+    # At a relative rotation of exactly 180 deg the untwisted state (u_z = 0) is an exact
+    # equilibrium by symmetry. For the nylon pair with its physical GJ and deep overlap it is the
+    # unstable middle state between two twisted stable ones (snapping regime): the generator
+    # must return a twisted state. With 6x the torsional stiffness the pair is stable and the
+    # untwisted state is the solution.
+    sp = load_spec("two_tube_nylon")
+    from tests.foreign.robot import beta_from_unit
+    beta = beta_from_unit(sp, np.array([[0.05, 0.6]]))
+    alpha = np.array([[math.pi, 0.0]])
+    rigid_tip = M.rigid(sp, alpha, beta).tip()[0]
+    soft = M.cosserat(sp, alpha, beta, torsion=True)
+    assert soft.ok.all() and abs(soft.info["x"][0, 0]) > 1e-4
+    assert np.linalg.norm(soft.tip()[0] - rigid_tip) > 1.0
+    from dataclasses import replace
+    stiff_sp = replace(sp, nu=(1.0 + sp.nu) / 6.0 - 1.0)        # GJ x 6
+    stiff = M.cosserat(stiff_sp, alpha, beta, torsion=True)
+    assert stiff.ok.all() and abs(stiff.info["x"][0, 0]) < 1e-9
+    np.testing.assert_allclose(stiff.tip()[0], rigid_tip, atol=2e-4)
