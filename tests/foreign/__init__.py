@@ -11,11 +11,11 @@ Mean / max tip displacement (mm) each effect causes at its DEFAULT parameters ag
 rows without it (design "sweeps", n=1000, seed=1, no noise; measured 2026-11-23):
 
     effect                    seed1 mean/max    two_tube_nylon mean/max
-    torsion (physical GJ)        0.90 / 3.32       11.04 / 36.52
+    torsion (physical GJ)        0.90 / 3.32       12.73 / 37.32
     clearance                    3.84 / 9.45        1.25 / 5.90
     friction end_moment          1.37 / 7.30        3.47 / 20.26
     friction coulomb_lag         1.32 / 3.38        2.65 / 6.04
-    friction presliding          1.37 / 3.51        2.78 / 7.24
+    friction presliding          1.22 / 3.76        2.35 / 7.12
     precurvature                 1.77 / 4.77        5.09 / 11.53
     stiffness                    3.07 / 4.88        2.41 / 4.15
     load (gravity + tip force)   3.42 / 10.43       3.48 / 9.69
