@@ -572,3 +572,21 @@ def test_bistable_pair_returns_a_stable_twisted_equilibrium():
     stiff = M.cosserat(stiff_sp, alpha, beta, torsion=True)
     assert stiff.ok.all() and abs(stiff.info["x"][0, 0]) < 1e-9
     np.testing.assert_allclose(stiff.tip()[0], rigid_tip, atol=2e-4)
+
+
+def test_load_parameters():
+    from tests.foreign.effects import resolve
+    sp = load_spec("seed1")
+    full = resolve({"load": {}}, 3, sp)["load"]
+    assert full["gravity"] == [9.81, 0.0, 0.0]
+    assert np.allclose(full["tip_force"], [0.0, -1e-5 * sp.EI[0], 0.0])
+    g_only = resolve({"load": {"gravity": [0, -9.81, 0]}}, 3, sp)["load"]
+    assert g_only["tip_force"] is None
+    q = generate("seed1", "uniform", n=20, effects={}, seed=1).q
+    tg, _, _ = truth(sp, q, {"load": {"gravity": [0, -9.81, 0]}})
+    tf, _, _ = truth(sp, q, {"load": {"tip_force": [0, -0.02, 0]}})
+    tb, _, _ = truth(sp, q, {"load": {"gravity": [0, -9.81, 0], "tip_force": [0, -0.02, 0]}})
+    t0, _, _ = truth(sp, q, {})
+    # small loads: deflections superpose (linear regime) and point along -y
+    np.testing.assert_allclose(tb - t0, (tg - t0) + (tf - t0), atol=0.02)
+    assert np.all((tg - t0)[:, 1] < 0) and np.all((tf - t0)[:, 1] < 0)
