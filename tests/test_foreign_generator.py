@@ -590,3 +590,17 @@ def test_load_parameters():
     # small loads: deflections superpose (linear regime) and point along -y
     np.testing.assert_allclose(tb - t0, (tg - t0) + (tf - t0), atol=0.02)
     assert np.all((tg - t0)[:, 1] < 0) and np.all((tf - t0)[:, 1] < 0)
+
+
+def test_conventions_agree_with_ctrplan_physics():
+    """Same DESIGN.md conventions (frames, alpha sign, beta, points) as ctrplan's physics model:
+    the generator's base model equals ctrplan's rigid model to round-off and its compliant one
+    on seed1 to the integration tolerance (two independent implementations)."""
+    from ctrplan.shape.physics import PhysicsModel
+    for robot, tors in (("seed1", (False, True)), ("two_tube_nylon", (False,))):
+        d = generate(robot, "uniform", n=100, effects={}, seed=4)
+        for torsion in tors:
+            theirs = np.asarray(PhysicsModel(robot, torsion=torsion).shape(d.q, points=20).points)
+            mine = backbones(robot, d.q, {"torsion": {}} if torsion else {}, points=20)
+            dev = np.linalg.norm(theirs - mine, axis=2).max()
+            assert dev < (1e-3 if torsion else 1e-9), (robot, torsion, dev)
