@@ -264,11 +264,6 @@ class _Problem:
                         None if self.rel_dir is None else self.rel_dir[idx])
 
 
-def _layout(n):
-    return dict(psi=slice(0, n), uz=slice(n, 2 * n), p=slice(2 * n, 2 * n + 3),
-                R=slice(2 * n + 3, 2 * n + 12), m=slice(2 * n + 12, 2 * n + 15))
-
-
 def _deriv(X, s, kap, EIp, GJ, EIt, nA, nB, n, full, torsion):
     """State derivative. Reduced state (full=False): [psi (n), u_z (n)]; full state adds
     p (3), R (9, row-major), m (3)."""
@@ -442,78 +437,129 @@ def _eval(pb, x, full, K, EIref, reduced_residual):
 
 
 def _newton(pb, x, full, K, EIref, tol, max_iter, reduced_residual=False):
-    """Damped Newton (backtracking on the residual norm) with a forward-difference Jacobian,
-    all rows at once; returns (x, converged)."""
+    """Damped Newton / chord iteration on all rows at once; returns (x, converged).
+
+    The Jacobian (forward differences) is recomputed only where the last step did not shrink
+    the residual by at least 3x (chord steps elsewhere); a step that does not lower the residual
+    norm is halved (up to 4 times) with a fresh Jacobian."""
     B, k = x.shape
     eps = 1e-7
+    r = _eval(pb, x, full, K, EIref, reduced_residual)
+    J = np.zeros((B, k, k))
+    fresh = np.zeros(B, bool)
+    need_J = np.ones(B, bool)
     active = np.arange(B)
-    r_act = None
+    def clean(v):
+        return np.nan_to_num(v, nan=1e3, posinf=1e3, neginf=-1e3)
     for _ in range(max_iter):
+        small = np.max(np.abs(clean(r[active])), axis=1) < 1e-14
+        active = active[~small]
         if active.size == 0:
             break
-        na = active.size
-        idx = np.tile(active, k + 1)
-        sub = pb.take(idx)
-        xs = np.tile(x[active], (k + 1, 1))
-        for c in range(k):
-            xs[(c + 1) * na:(c + 2) * na, c] += eps
-        r = _eval(sub, xs, full, K, EIref, reduced_residual)
-        r0 = np.nan_to_num(r[:na], nan=1e3, posinf=1e3, neginf=-1e3)
-        J = np.stack([(r[(c + 1) * na:(c + 2) * na] - r[:na]) / eps for c in range(k)], axis=2)
-        bad = ~np.isfinite(J).all(axis=(1, 2))
-        J[bad] = np.eye(k)
+        jrows = active[need_J[active]]
+        if jrows.size:
+            nj = jrows.size
+            idx = np.tile(jrows, k)
+            xs = np.tile(x[jrows], (k, 1))
+            for c in range(k):
+                xs[c * nj:(c + 1) * nj, c] += eps
+            rp = _eval(pb.take(idx), xs, full, K, EIref, reduced_residual)
+            Jn = np.stack([(rp[c * nj:(c + 1) * nj] - r[jrows]) / eps for c in range(k)], axis=2)
+            badJ = ~np.isfinite(Jn).all(axis=(1, 2))
+            Jn[badJ] = np.eye(k)
+            J[jrows] = Jn
+            fresh[jrows] = True
+            need_J[jrows] = False
+        ra = clean(r[active])
         try:
-            dx = np.linalg.solve(J, -r0[:, :, None])[:, :, 0]
+            dx = np.linalg.solve(J[active], -ra[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
-            dx = np.stack([np.linalg.lstsq(Ji, -ri, rcond=None)[0] for Ji, ri in zip(J, r0)])
-        conv_now = np.max(np.abs(r0), axis=1) < 1e-14
-        # backtracking: accept the largest step 2^-j that lowers the residual norm
-        f0 = np.sum(r0 ** 2, axis=1)
-        lam = np.ones(na)
-        pending = np.flatnonzero(~conv_now)
-        sub1 = pb.take(active)
-        for _j in range(4):
+            dx = np.stack([np.linalg.lstsq(Ji, -ri, rcond=None)[0] for Ji, ri in zip(J[active], ra)])
+        f0 = np.sum(ra ** 2, axis=1)
+        lam = np.ones(active.size)
+        accepted = np.zeros(active.size, bool)
+        rnew = np.zeros_like(ra)
+        pending = np.arange(active.size)
+        for _t in range(5):
             if pending.size == 0:
                 break
             trial = x[active[pending]] + lam[pending, None] * dx[pending]
-            rt = _eval(sub1.take(pending), trial, full, K, EIref, reduced_residual)
-            ft = np.sum(np.nan_to_num(rt, nan=1e3, posinf=1e3, neginf=1e3) ** 2, axis=1)
+            rt = _eval(pb.take(active[pending]), trial, full, K, EIref, reduced_residual)
+            ft = np.sum(clean(rt) ** 2, axis=1)
             good = ft < f0[pending] * (1 - 1e-4 * lam[pending]) + 1e-30
-            lam[pending[~good]] *= 0.5
-            pending = pending[~good]
-        step = lam[:, None] * dx
-        step[conv_now] = 0.0
-        x[active] += step
-        done = conv_now | (np.max(np.abs(step), axis=1) < tol)
-        active = active[~done]
-    conv = np.ones(B, bool)
-    conv[active] = False
+            gi = pending[good]
+            accepted[gi] = True
+            rnew[gi] = rt[good]
+            # a stale Jacobian gets no line search: recompute it instead
+            stale = pending[~good & ~fresh[active[pending]]]
+            need_J[active[stale]] = True
+            pending = pending[~good & fresh[active[pending]]]
+            lam[pending] *= 0.5
+        acc = active[accepted]
+        step = lam[accepted, None] * dx[accepted]
+        x[acc] += step
+        r[acc] = rnew[accepted]
+        slow = np.sum(rnew[accepted] ** 2, axis=1) > f0[accepted] / 9.0
+        need_J[acc[slow]] = True
+        fresh[acc] = False
+        done = np.max(np.abs(step), axis=1) < tol
+        # rows with a fresh Jacobian and no acceptable step are stuck: give up on them
+        stuck = active[~accepted & ~need_J[active]]
+        finished = np.concatenate([acc[done], stuck])
+        active = np.setdiff1d(active, finished, assume_unique=True)
+        if stuck.size:
+            r[stuck] = np.where(np.isfinite(r[stuck]), r[stuck], 1e3)
+    conv = np.max(np.abs(clean(r)), axis=1) < 1e-9
     return x, conv
+
+
+def _line(pb, c, d, K, EIref):
+    """Residual of the first tube along the torque-balanced line u_z(0) = c d (two tubes)."""
+    return _eval(pb, c[:, None] * d, False, K, EIref, False)[:, 0]
+
+
+def _two_tube_stable(pb, spec, x, K, EIref):
+    """Two tubes: is the solution x on a stable branch? Along the torque-balanced line the tip
+    residual r(c) has an odd number of roots; the outer ones (slope of the same sign as the
+    chord r(+A) - r(-A)) are the stable equilibria, a middle one (opposite slope) is the
+    unstable equilibrium between two stable ones (the snapping regime)."""
+    B = x.shape[0]
+    amp = 4.0 * float(np.max(spec.kappa))
+    d = np.array([1.0, -spec.GJ[0] / spec.GJ[1]])
+    c = x[:, 0]
+    h = 1e-6
+    idx = np.tile(np.arange(B), 4)
+    cc = np.concatenate([c + h, c - h, np.full(B, amp), np.full(B, -amp)])
+    r = _line(pb.take(idx), cc, d, K, EIref).reshape(4, B)
+    return np.sign(r[0] - r[1]) == np.sign(r[2] - r[3])
 
 
 def _bracket_solve(pb, spec, K, EIref, m=81, iters=60):
     """Two tubes: on the torque-balanced line u_z(0) = c (1, -GJ_1/GJ_2) the residual is a
-    scalar function of c; bracket its root nearest c = 0 on a grid, then regula falsi
-    (Illinois). Robust where the twist is strongly nonlinear."""
+    scalar function of c; bracket the STABLE root (slope sign of the chord over the scan range)
+    nearest c = 0 on a grid, then regula falsi (Illinois). Robust where the twist is strongly
+    nonlinear, and it never returns the unstable middle equilibrium of a bistable pair."""
     B = pb.alpha.shape[0]
     amp = 4.0 * float(np.max(spec.kappa))
     d = np.array([1.0, -spec.GJ[0] / spec.GJ[1]])
     c = np.linspace(-amp, amp, m)
     idx = np.repeat(np.arange(B), m)
-    r = _eval(pb.take(idx), np.tile(c[:, None] * d, (B, 1)), False, K, EIref, False)[:, 0]
-    r = r.reshape(B, m)
+    r = _line(pb.take(idx), np.tile(c, B), d, K, EIref).reshape(B, m)
     sgn = np.sign(r)
-    ch = (sgn[:, :-1] * sgn[:, 1:]) <= 0
+    normal = np.sign(r[:, -1] - r[:, 0])[:, None]
+    ch = ((sgn[:, :-1] * sgn[:, 1:]) <= 0) & (np.sign(r[:, 1:] - r[:, :-1]) == normal)
     dist = np.where(ch, np.abs(0.5 * (c[:-1] + c[1:]))[None, :], np.inf)
     k = np.argmin(dist, axis=1)
-    found = np.isfinite(dist[np.arange(B), k])
+    rows = np.arange(B)
+    found = np.isfinite(dist[rows, k])
     a, b = c[k], c[k + 1]
-    fa, fb = r[np.arange(B), k], r[np.arange(B), k + 1]
+    fa, fb = r[rows, k], r[rows, k + 1]
     side = np.zeros(B)
+    cm = 0.5 * (a + b)
     for _ in range(iters):
         den = np.where(fb - fa != 0, fb - fa, 1.0)
         cm = np.where(fb - fa != 0, b - fb * (b - a) / den, 0.5 * (a + b))
-        fm = _eval(pb, cm[:, None] * d, False, K, EIref, False)[:, 0]
+        fm = _line(pb, cm, d, K, EIref)
         left = np.sign(fm) == np.sign(fa)
         # Illinois modification
         fb_new = np.where(left, fb * np.where(side == -1, 0.5, 1.0), fm)
@@ -567,7 +613,7 @@ def _m0_guess(pb, bb):
 
 
 def cosserat(spec: Spec, alpha, beta, *, torsion=True, gravity=None, tip_force=None,
-             clearance=None, friction_mu=0.0, rel_dir=None, h_max=6.0, tol=1e-10, max_iter=12):
+             clearance=None, friction_mu=0.0, rel_dir=None, h_max=10.0, tol=1e-10, max_iter=12):
     """Solve the (loaded) Cosserat rod BVP for a batch. gravity: (3,) m/s^2 in the base frame
     (None = no weight); tip_force: (3,) N. Returns a CosseratBackbone (with .ok per row).
 
@@ -591,6 +637,10 @@ def cosserat(spec: Spec, alpha, beta, *, torsion=True, gravity=None, tip_force=N
     pb0 = _Problem(spec, g, alpha, torsion, None, None, clearance, friction_mu, rel_dir)
     if torsion:
         x, conv = _newton(pb0, np.zeros((B, n)), False, K, EIref, tol, max_iter)
+        if n == 2 and conv.any():
+            # Newton may land on the unstable middle equilibrium where the pair is bistable
+            ci = np.flatnonzero(conv)
+            conv[ci[~_two_tube_stable(pb0.take(ci), spec, x[ci], K, EIref)]] = False
         if not conv.all():
             # multi-start for the rows Newton did not solve from u_z = 0 (strongly nonlinear
             # twist near a fold): scan starts on the torque-balanced set sum GJ u_z = 0 and
