@@ -64,7 +64,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--residual", default=None, metavar="BASE",
                    help="residual mode: the network learns the difference to BASE: 'physics', "
                         "'rigid', 'sim' (the pre-trained or --init model; no physics call at "
-                        "evaluation), a calibrated model file from diagnose, or a learned model file")
+                        "evaluation), a calibrated model file from diagnose, or a learned model file; "
+                        "with physics/rigid/FILE --sim defaults to 0")
     p.add_argument("--refit", action="store_true",
                    help="after early stopping has chosen the epochs, train again on the measured "
                         "training + validation parts for that many epochs")
@@ -114,7 +115,8 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     robot = load_robot(args.robot)
     terms = args.terms or basis.DEFAULT_TERMS
-    n_sim = (0 if args.init else T.DEFAULT_SIM) if args.sim is None else args.sim
+    explicit_base = args.residual is not None and args.residual != "sim"
+    n_sim = (0 if args.init or explicit_base else T.DEFAULT_SIM) if args.sim is None else args.sim
     show = progress._enabled
     pre = T.TrainConfig(epochs=args.epochs, lr=args.lr, batch_size=args.batch_size,
                         patience=args.patience, seed=args.seed, progress=show, label="pre-train (sim)")
