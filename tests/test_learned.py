@@ -276,7 +276,7 @@ def test_full_sweep_default_architecture_meets_the_done_when(tmp_path):
                   progress=False)
     T.write_sweep(res, tmp_path)
     best = T.best_runs(res)
-    phys = res["physics"]["max_dev_mean"]
+    phys = res.physics["max_dev_mean"]
     assert best["Sim+Real pure"]["max_dev_mean"] < best["Real-only pure"]["max_dev_mean"]
     assert best["Sim+Real pure"]["max_dev_mean"] < best["Sim-only pure"]["max_dev_mean"]
     assert best["Sim+Real pure"]["max_dev_mean"] <= 0.6 * phys

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import time
 
@@ -152,8 +153,8 @@ def run(args: argparse.Namespace) -> int:
                       pre=pre, fine=fine, real_only=real_only, device=args.device, progress=show,
                       variants=variants, refit=args.refit)
         if not args.real:
-            res["data"]["hidden_effects"] = T.HiddenEffects.default(robot).to_dict()
-        res["seconds"] = time.perf_counter() - t0
+            res.data["hidden_effects"] = T.HiddenEffects.default(robot).to_dict()
+        res = dataclasses.replace(res, seconds=time.perf_counter() - t0)
         paths = T.write_sweep(res, out)
         print(T.sweep_markdown(res))
         log.info("wrote %s", ", ".join(str(p) for p in paths))

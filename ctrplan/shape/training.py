@@ -690,6 +690,33 @@ def parse_archs(text: str) -> list[tuple[int, int]]:
     return out
 
 
+@dataclass(frozen=True)
+class SweepResult:
+    """What :func:`sweep` measured: settings, data descriptions and splits, the physics model's
+    metrics on the held-out real data (``physics``) and on held-out simulation, and one entry
+    per trained model in ``runs`` (regime, variant, residual_base, arch, seconds, epochs and the
+    :func:`evaluate` metrics with per-configuration errors). ``to_dict()`` is results.json."""
+
+    robot: str
+    terms: int
+    frame: str
+    seed: int
+    variants: list[str]
+    refit: bool
+    data: dict[str, Any]
+    physics: dict[str, Any]
+    physics_sim_test: dict[str, Any]
+    runs: list[dict[str, Any]]
+    seconds: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def _as_dict(res: SweepResult | dict[str, Any]) -> dict[str, Any]:
+    return res.to_dict() if isinstance(res, SweepResult) else res
+
+
 ALL_ARCHS = [(d, w) for d in ARCH_DEPTHS for w in ARCH_WIDTHS]
 REGIMES = ("Sim-only", "Real-only", "Sim+Real")
 
@@ -699,12 +726,12 @@ def sweep(robot: Robot | str, sim: ShapeData, real: ShapeData,
           frame: str = DEFAULT_FRAME, seed: int = 0, pre: TrainConfig | None = None,
           fine: TrainConfig | None = None, real_only: TrainConfig | None = None,
           device: str = "cpu", progress: bool = True,
-          variants: Sequence[str] = VARIANTS, refit: bool = False) -> dict[str, Any]:
+          variants: Sequence[str] = VARIANTS, refit: bool = False) -> SweepResult:
     """Sim-only, and Real-only and Sim+Real for each variant (pure, direction-aware, residual,
     residual + direction), for each architecture, all evaluated on the same held-out part of
     ``real`` (whole sweeps when it has sweep ids), next to the physics model. Residual
     variants: Real-only learns the difference to physics, Sim+Real the difference to the
-    Sim-only model. Returns the results (JSON-able) with per-configuration errors for plots."""
+    Sim-only model. Returns a :class:`SweepResult` (per-configuration errors for the plots)."""
     from ctrplan.shape.physics import PhysicsModel
 
     robot = load_robot(robot)
@@ -758,15 +785,16 @@ def sweep(robot: Robot | str, sim: ShapeData, real: ShapeData,
             res["runs"].append(run)
             log.info("sweep %s %-9s %-18s max dev %.3f +- %.3f mm", tag, regime, variant,
                      ev["max_dev_mean"], ev["max_dev_std"])
-    return res
+    return SweepResult(**res)
 
 
 def _pm(m: dict, key: str, fmt: str = ".3f") -> str:
     return f"{m[key + '_mean']:{fmt}} ± {m[key + '_std']:{fmt}}"
 
 
-def sweep_markdown(res: dict[str, Any]) -> str:
+def sweep_markdown(res: SweepResult | dict[str, Any]) -> str:
     """The sweep's tables as markdown."""
+    res = _as_dict(res)
     ph = res["physics"]
     d = res["data"]
     lines = [
@@ -810,8 +838,9 @@ def sweep_markdown(res: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def best_runs(res: dict[str, Any]) -> dict[str, dict]:
+def best_runs(res: SweepResult | dict[str, Any]) -> dict[str, dict]:
     """The best architecture per "regime variant" (e.g. "Sim+Real direction")."""
+    res = _as_dict(res)
     best: dict[str, dict] = {}
     for r in res["runs"]:
         key = r.get("name", r["regime"])
@@ -820,8 +849,9 @@ def best_runs(res: dict[str, Any]) -> dict[str, dict]:
     return best
 
 
-def sweep_plots(res: dict[str, Any], out_dir: str | Path) -> list[Path]:
+def sweep_plots(res: SweepResult | dict[str, Any], out_dir: str | Path) -> list[Path]:
     """hist_max_error.png and error_vs_position.png for the best architecture per regime."""
+    res = _as_dict(res)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -859,8 +889,9 @@ def sweep_plots(res: dict[str, Any], out_dir: str | Path) -> list[Path]:
     return paths
 
 
-def write_sweep(res: dict[str, Any], out_dir: str | Path) -> list[Path]:
+def write_sweep(res: SweepResult | dict[str, Any], out_dir: str | Path) -> list[Path]:
     """results.json, results.md and the PNG plots under ``out_dir``."""
+    res = _as_dict(res)
     from ctrplan.io import jsonable, write_json_atomic, write_text_atomic
 
     out_dir = Path(out_dir)
