@@ -34,7 +34,8 @@ Options recorded in the model file:
 * **Residual mode** (``base=``): the network predicts the basis coefficients of the difference
   to a base model - ``physics``/``rigid`` (a physics call per evaluation), a calibrated
   EffectModel (``ctrplan diagnose``; also a physics call) or a learned model (stored inside the
-  file; evaluated in the same pass, no physics call).
+  file; evaluated in the same pass, no physics call). A residual model answers in its base
+  model's frame (a calibrated model with ``registration``: the sensor frame).
 * **Error bound**: ``error_quantiles`` (p50/p95/p99/max, mm) of the max deviation along the
   shaft on the held-out test part of the data the model was last trained on.
 * **Training domain**: ``ok`` is False outside the robot's joint limits and outside the joint
