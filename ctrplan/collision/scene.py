@@ -9,7 +9,8 @@ in the scene frame, in mm. Roles:
 - ``landmark``: drawn and used to pick targets (e.g. the ventricles the robot enters), never
   collision-checked.
 
-Shipped scenes live in the repository's ``anatomy/`` folder and are loaded by name.
+Shipped scenes live in the repository's ``anatomy/`` folder and are loaded by name; a built
+wheel carries them inside the package (``ctrplan/anatomy/``, copied there by ``setup.py``).
 """
 
 from __future__ import annotations
@@ -101,11 +102,16 @@ class Scene:
 
 
 def anatomy_dir() -> Path:
-    """The repository's ``anatomy/`` folder (ctrplan is installed from a checkout)."""
+    """Where the shipped scenes are: ``$CTRPLAN_ANATOMY`` if set, else ``ctrplan/anatomy/``
+    inside an installed wheel, else the checkout's top-level ``anatomy/`` (editable install)."""
     env = os.environ.get("CTRPLAN_ANATOMY")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[2] / "anatomy"
+    here = Path(__file__).resolve().parents[1]
+    packaged = here / "anatomy"
+    if packaged.is_dir():
+        return packaged
+    return here.parent / "anatomy"
 
 
 def list_scenes() -> list[str]:
