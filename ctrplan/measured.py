@@ -1,4 +1,4 @@
-"""Measured (or simulated-measured) data: the CSV format of DESIGN.md.
+"""Measured (or simulated-measured) data: the CSV format of docs/conventions.md.
 
 Columns: ``alpha1..alphaN, beta1..betaN`` (rad, mm), ``tip_x, tip_y, tip_z`` (mm, robot base
 frame unless a registration is being calibrated), optionally ``time`` (s; row order is the order
@@ -86,7 +86,7 @@ def read_measured(path: str | os.PathLike, robot: Robot) -> MeasuredData:
 
 
 def write_measured(path: str | os.PathLike, robot: Robot, data: MeasuredData) -> None:
-    """Write a measured-data CSV atomically (columns in the order of DESIGN.md)."""
+    """Write a measured-data CSV atomically (columns in the order of docs/conventions.md)."""
     header = list(robot.column_names) + ["tip_x", "tip_y", "tip_z"]
     parts = [data.q, data.tip]
     if data.time is not None:

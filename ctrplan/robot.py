@@ -1,6 +1,6 @@
 """Tubes, robots, joint constraints, YAML I/O and configuration sampling.
 
-Conventions (fixed by DESIGN.md): lengths mm, angles rad, curvature 1/mm, Young's modulus MPa.
+Conventions (docs/conventions.md): lengths mm, angles rad, curvature 1/mm, Young's modulus MPa.
 Tube index 0 (tube "1" in files) is the innermost. A configuration is
 ``q = [alpha_1..alpha_n, beta_1..beta_n]``, batch first ``(B, 2n)``.
 """

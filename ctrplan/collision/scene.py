@@ -1,6 +1,6 @@
 """Anatomy scenes: meshes with roles, the robot's entry pose and example targets.
 
-A scene is a folder with ``scene.yaml`` (format in DESIGN.md) and its mesh files. Everything is
+A scene is a folder with ``scene.yaml`` (format in docs/conventions.md) and its mesh files. Everything is
 in the scene frame, in mm. Roles:
 
 - ``wall``: the lumen surface the robot must stay inside; touching it is a collision. A wall may

@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def read_plan(path: str | Path) -> dict:
-    """Read and check a plan.json (fields of DESIGN.md)."""
+    """Read and check a plan.json (fields in docs/conventions.md)."""
     path = Path(path)
     try:
         plan = json.loads(path.read_text(encoding="utf-8"))
