@@ -169,7 +169,7 @@ def test_prefilter_never_calls_a_colliding_state_free(name, seed1, physics):
     _prefilter_against_fcl(name, seed1, physics, 2000)
 
 
-@pytest.mark.slow
+@pytest.mark.statistical   # backs the README's "never calls a colliding shape free" (.ci/run)
 @pytest.mark.parametrize("name", SHIPPED_SCENES)
 def test_prefilter_never_calls_a_colliding_state_free_large(name, seed1, physics):
     _prefilter_against_fcl(name, seed1, physics, 10000, margins=(0.0, 0.5, 2.0))
