@@ -19,5 +19,5 @@ def set_enabled(flag: bool) -> None:
 
 def bar(iterable: Iterable[Any] | None = None, total: int | None = None, desc: str = "", **kw: Any) -> tqdm:
     """A tqdm bar on stderr, disabled when stderr is not a TTY or progress is off."""
-    disable = (not _enabled) or not sys.stderr.isatty()
+    disable = (not _enabled) or not sys.stderr.isatty() or bool(kw.pop("disable", False))
     return tqdm(iterable, total=total, desc=desc, disable=disable, file=sys.stderr, leave=False, **kw)

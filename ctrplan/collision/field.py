@@ -118,7 +118,9 @@ def field_for(mesh, config: FieldConfig = FieldConfig(), cache: bool | Path = Tr
                                          side=z["side"], watertight=bool(z["watertight"]))
             except (OSError, ValueError, KeyError) as exc:  # a corrupt cache entry is rebuilt
                 log.warning("ignoring unreadable field cache %s (%s)", path, exc)
-    field = build_field(v, f, config, watertight=bool(mesh.is_watertight))
+    log.info("preparing the distance field of a %d-triangle mesh (once; cached in %s)",
+             len(f), folder if folder is not None else "memory only")
+    field = build_field(v, f, config, watertight=bool(mesh.is_watertight), progress=True)
     if folder is not None:
         try:
             folder.mkdir(parents=True, exist_ok=True)
@@ -133,10 +135,18 @@ def field_for(mesh, config: FieldConfig = FieldConfig(), cache: bool | Path = Tr
 
 
 def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = FieldConfig(),
-                watertight: bool = False) -> DistanceField:
-    """Build the bounds grid of one mesh (see the module docstring)."""
+                watertight: bool = False, progress: bool = False) -> DistanceField:
+    """Build the bounds grid of one mesh (see the module docstring). ``progress``: a bar over
+    the build's stages on a terminal."""
     from scipy import ndimage
 
+    from ctrplan.progress import bar
+
+    with bar(total=5, desc="distance field", disable=not progress) as pbar:
+        return _build_field(vertices, faces, config, watertight, pbar, ndimage)
+
+
+def _build_field(vertices, faces, config, watertight, pbar, ndimage) -> DistanceField:
     t0 = time.perf_counter()
     v = np.asarray(vertices, dtype=float)
     f = np.asarray(faces, dtype=np.int64)
@@ -149,6 +159,7 @@ def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = F
     # surface samples covering every triangle within rho (cost ~ area, see surface_samples)
     sv, e_max = surface_samples(v, f, h / 2.0)
     rho = e_max / math.sqrt(3.0)
+    pbar.update(1)
     # mark the grid node nearest to each sample; keep one sample per marked node
     node = np.clip(np.rint((sv - lo) / h).astype(np.int64), 0, np.array(shape) - 1)
     flat = np.ravel_multi_index(node.T, shape)
@@ -158,6 +169,7 @@ def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = F
     grid.flat[marked] = False
     # exact Euclidean distance transform: for every node, the nearest marked node
     dist, idx = ndimage.distance_transform_edt(grid, sampling=h, return_indices=True)
+    pbar.update(1)
     near = np.ravel_multi_index(idx.reshape(3, -1), shape)
     del idx
     rep_near = rep[np.searchsorted(marked, near)]
@@ -168,6 +180,7 @@ def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = F
     # lower bound: the nearest surface point x has a sample within rho, whose node is within
     # h*sqrt(3)/2 of it, so dist <= d + rho + h*sqrt(3)/2
     lb = np.maximum(dist - rho - h * math.sqrt(3.0) / 2.0, 0.0).astype(np.float32)
+    pbar.update(1)
     # Near the surface, where verdicts are decided, replace both bounds by the exact distance
     # to the nearest sample (lb then loses only rho, not the snapping term): every sample
     # visits the nodes within refine_mm of it (numba); a node whose nearest visiting sample is
@@ -175,11 +188,13 @@ def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = F
     near = np.full(shape, np.inf, dtype=np.float64)
     _splat(sv[np.argsort(sv[:, 0], kind="stable")], lo, h, float(config.refine_mm), near)
     np.sqrt(near, out=near)
+    pbar.update(1)
     band = near <= config.refine_mm
     lb[band] = np.maximum(lb[band], np.maximum(near[band] - rho, 0.0))
     ub[band] = np.minimum(ub[band], near[band])
     del near, band
     side = _sides(lb, h, lo, v, f) if watertight else np.zeros(shape, dtype=np.int8)
+    pbar.update(1)
     field = DistanceField(origin=lo, h=float(h), lb=lb, ub=ub, box_lo=box_lo, box_hi=box_hi,
                           rho=rho, side=side, watertight=watertight,
                           build_s=time.perf_counter() - t0)

@@ -175,7 +175,7 @@ def scene_from_dict(data: object, yml: Path) -> Scene:
         role = str(entry["role"])
         if role not in ROLES:
             raise InputError(src, f"{where}.role", f"unknown role {role!r} (choose from {', '.join(ROLES)})")
-        path = yml.parent / str(entry["file"])
+        path = _mesh_path(yml, str(entry["file"]), src, f"{where}.file")
         meshes.append(SceneMesh(name=mname, role=role, mesh=load_mesh(path), file=str(entry["file"])))
     base_pose = _parse_pose(data.get("base_pose"), src)
     targets = _parse_targets(data.get("targets") or [], src)
@@ -187,6 +187,16 @@ def scene_from_dict(data: object, yml: Path) -> Scene:
         raise InputError(src, "meshes", "no wall or obstacle mesh: nothing to check collisions against")
     check_base_inside(scene, src)
     return scene
+
+
+def _mesh_path(yml: Path, file: str, src: str, fieldname: str) -> Path:
+    """A mesh file named in scene.yaml: a relative path that stays inside the scene folder."""
+    rel = Path(file)
+    if rel.is_absolute() or file.startswith(("/", "\\")) or (len(file) > 1 and file[1] == ":"):
+        raise InputError(src, fieldname, f"{file!r} is an absolute path: name a file inside the scene folder")
+    if ".." in rel.parts or ".." in Path(file.replace("\\", "/")).parts:
+        raise InputError(src, fieldname, f"{file!r} leaves the scene folder ('..')")
+    return yml.parent / rel
 
 
 def load_mesh(path: str | os.PathLike):

@@ -42,8 +42,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         m = args.points
         header = ["ok"] + [f"p{k + 1}_{c}" for k in range(m) for c in "xyz"]
-        rows = [[int(ok)] + pts.reshape(-1).tolist() for ok, pts in zip(shape.ok, shape.points)]
-        write_csv_atomic(out, header, rows)
+        rows = ([int(ok)] + pts.reshape(-1).tolist() for ok, pts in zip(shape.ok, shape.points))
+        write_csv_atomic(out, header, rows)   # streamed row by row
     bad = int((~shape.ok).sum())
     import logging
 

@@ -78,6 +78,8 @@ def render_plan(plan: dict, out: Path, points: int = 40, source: str = "plan") -
 
 def run(args: argparse.Namespace) -> int:
     out = output_path(args.out, (".html", ".png"))
+    if args.points < 2:
+        raise InputError("--points", "", f"must be >= 2 (base and tip), got {args.points}")
     plan = read_plan(args.plan)
     render_plan(plan, out, args.points, source=args.plan)
     log.info("wrote %s", out)
