@@ -56,7 +56,6 @@ def _os_error(path: Path, exc: OSError) -> InputError:
     return InputError(str(path), "", f"cannot write ({exc.strerror or exc.__class__.__name__})")
 
 
-
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` only on success.
