@@ -217,7 +217,9 @@ def surface_samples(v: np.ndarray, f: np.ndarray, max_edge: float) -> tuple[np.n
     A well-shaped triangle gets the lattice ``(i a + j b + k c) / n`` with ``n = ceil(longest
     edge / max_edge)``: its sub-triangles are copies of the triangle scaled by ``1 / n``. A long
     thin triangle (whose lattice would need more than ``LATTICE_EXCESS`` times the points its area
-    needs) gets a square grid of spacing ``g = max_edge`` in its own plane instead: the grid
+    needs) gets a square grid of spacing ``g = max_edge`` in its own plane instead (and then,
+    as the covering radius is set by those, every triangle gets whichever of a lattice with
+    sub-edges up to ``g sqrt(2)`` or the grid needs fewer points): the grid
     nodes inside it, the points where its edges cross grid lines, and its corners. Each grid
     cell cuts the triangle into a convex polygon whose corners are all samples and whose
     diameter is at most ``g sqrt(2)``; triangulated from its corners, every point lies within
@@ -234,6 +236,12 @@ def surface_samples(v: np.ndarray, f: np.ndarray, max_edge: float) -> tuple[np.n
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     by_area = area / g**2 + 2.0 * edges.sum(axis=1) / g + 3.0
     thin = lattice > LATTICE_EXCESS * by_area
+    if thin.any():
+        # the grid triangles set the covering radius (e = g sqrt(2)): sample the others with
+        # lattice sub-edges up to that too, and each triangle by whichever needs fewer points
+        n = np.maximum(np.ceil(longest / (g * math.sqrt(2.0))), 1).astype(np.int64)
+        lattice = (n + 1) * (n + 2) // 2
+        thin |= lattice > by_area
     counts = np.where(thin, 0, lattice)
     if thin.any():
         counts[thin] = _grid_samples(tri[thin], g, np.empty((0, 3)), np.zeros(1, np.int64), False)
