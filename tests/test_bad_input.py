@@ -5,6 +5,7 @@ accepted are accepted, and Ctrl-C stops a command inside compiled code within 3 
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import select
@@ -148,6 +149,7 @@ def _mkdir(p: Path) -> Path:
     return p
 
 
+@functools.lru_cache(maxsize=1)
 def _unwritable_folder() -> Path | None:
     """A folder this process cannot create files in (root ignores permission bits, so then a
     pseudo file system such as /sys)."""
