@@ -2,19 +2,26 @@
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
-# The CPU build of torch. Where the PyTorch CPU wheel index is reachable, use e.g.
-#   make test TORCH_INDEX="--extra-index-url https://download.pytorch.org/whl/cpu"
+# torch, in order of preference (the first that installs wins; an installed torch is kept):
+#   1. TORCH_REQ from the configured indexes (a local CPU wheel, a mirror, or TORCH_INDEX);
+#   2. the newest CPU build from the PyTorch CPU index (TORCH_CPU_INDEX), where reachable;
+#   3. plain PyPI `torch` (works everywhere; on Linux it pulls several GB of CUDA libraries).
 TORCH_REQ ?= torch==2.13.0+cpu
 TORCH_INDEX ?=
+TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
 PYTEST_ARGS ?=
 
-.PHONY: demo test test-stat install lint bench clean
+.PHONY: demo test test-stat install lint bench wheel clean
 
 # The package and its run-time dependencies (all `make demo` needs) ...
 $(VENV)/.base: pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q $(TORCH_INDEX) "$(TORCH_REQ)"
+	$(PY) -c "import torch" 2>/dev/null \
+	  || $(PY) -m pip install -q $(TORCH_INDEX) "$(TORCH_REQ)" 2>/dev/null \
+	  || $(PY) -m pip install -q --retries 1 --timeout 20 --index-url $(TORCH_CPU_INDEX) "torch>=2.2" 2>/dev/null \
+	  || { echo "make: no CPU build of torch reachable; installing PyPI's default torch (larger download)"; \
+	       $(PY) -m pip install -q "torch>=2.2"; }
 	$(PY) -m pip install -q -e .
 	touch $@
 
@@ -41,5 +48,9 @@ lint: install
 bench: install
 	$(VENV)/bin/ctrplan bench --out benchmarks/results --readme README.md
 
+# A wheel with the robots, models and scenes inside (setup.py copies anatomy/ into the package).
+wheel: $(VENV)/.base
+	$(PY) -m pip wheel -q --no-deps -w dist .
+
 clean:
-	rm -rf $(VENV) demo_out .pytest_cache
+	rm -rf $(VENV) demo_out .pytest_cache build dist

@@ -2,6 +2,10 @@
 
 The public API is the handful of names below; they are imported lazily so that
 ``import ctrplan`` stays fast and does not load torch, FCL or OMPL until they are used.
+
+Units (mm, rad, 1/mm, MPa), frames, the configuration vector ``q = [alpha_1..alpha_n,
+beta_1..beta_n]`` and every file format are described in the repository's
+``docs/conventions.md``; bad inputs and their messages in ``docs/bad-input.md``.
 """
 
 from __future__ import annotations

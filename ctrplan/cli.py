@@ -58,14 +58,44 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     configure_logging(args.verbose, args.quiet)
+    from ctrplan import interrupt
+
     try:
-        return int(args.func(args) or 0)
+        with interrupt.guard():
+            check_common_args(args)
+            return int(args.func(args) or 0)
     except InputError as exc:
         print(f"ctrplan {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except (MemoryError, RecursionError) as exc:
+        print(f"ctrplan {args.command}: error: the input is too large or too deeply nested "
+              f"({exc.__class__.__name__})", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        # an output that cannot be written (disk full, permissions changed mid-run, ...)
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        print(f"ctrplan {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"ctrplan {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+def check_common_args(args: argparse.Namespace) -> None:
+    """Checks every command shares, before any work: ``--seed`` >= 0 (numpy's generators take
+    no negative seeds); ``--out`` writable (a file when it has a suffix, else a folder)."""
+    seed = getattr(args, "seed", None)
+    if isinstance(seed, int) and seed < 0:
+        raise InputError("--seed", "", f"must be >= 0, got {seed}")
+    out = getattr(args, "out", None)
+    if not out:
+        return
+    from pathlib import Path
+
+    from ctrplan.io import check_writable
+
+    p = Path(out)
+    check_writable(p, "--out", folder=p.is_dir() or not p.suffix)
 
 
 if __name__ == "__main__":

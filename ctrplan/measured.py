@@ -1,4 +1,4 @@
-"""Measured (or simulated-measured) data: the CSV format of DESIGN.md.
+"""Measured (or simulated-measured) data: the CSV format of docs/conventions.md.
 
 Columns: ``alpha1..alphaN, beta1..betaN`` (rad, mm), ``tip_x, tip_y, tip_z`` (mm, robot base
 frame unless a registration is being calibrated), optionally ``time`` (s; row order is the order
@@ -86,21 +86,28 @@ def read_measured(path: str | os.PathLike, robot: Robot) -> MeasuredData:
 
 
 def write_measured(path: str | os.PathLike, robot: Robot, data: MeasuredData) -> None:
-    """Write a measured-data CSV atomically (columns in the order of DESIGN.md)."""
+    """Write a measured-data CSV atomically (columns in the order of docs/conventions.md),
+    streamed row by row."""
     header = list(robot.column_names) + ["tip_x", "tip_y", "tip_z"]
     parts = [data.q, data.tip]
     if data.time is not None:
         header.append("time")
         parts.append(np.asarray(data.time, dtype=float)[:, None])
-    cols = np.concatenate(parts, axis=1).tolist()
+    m = 0
     if data.sweep is not None:
         header.append("sweep")
-        for row, s in zip(cols, data.sweep):
-            row.append(str(s))
     if data.points is not None:
         m = data.points.shape[1]
         header += [f"p{k}_{c}" for k in range(1, m + 1) for c in "xyz"]
-        flat = np.asarray(data.points, dtype=float).reshape(len(data), -1).tolist()
-        for row, f in zip(cols, flat):
-            row.extend(f)
-    write_csv_atomic(path, header, cols)
+    numbers = np.concatenate(parts, axis=1)
+
+    def rows():
+        for k in range(len(data)):
+            row = numbers[k].tolist()
+            if data.sweep is not None:
+                row.append(str(data.sweep[k]))
+            if data.points is not None:
+                row.extend(np.asarray(data.points[k], dtype=float).reshape(-1).tolist())
+            yield row
+
+    write_csv_atomic(path, header, rows())

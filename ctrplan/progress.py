@@ -19,5 +19,6 @@ def set_enabled(flag: bool) -> None:
 
 def bar(iterable: Iterable[Any] | None = None, total: int | None = None, desc: str = "", **kw: Any) -> tqdm:
     """A tqdm bar on stderr, disabled when stderr is not a TTY or progress is off."""
-    disable = (not _enabled) or not sys.stderr.isatty()
+    off = bool(kw.pop("disable", False))
+    disable = off or (not _enabled) or not sys.stderr.isatty()
     return tqdm(iterable, total=total, desc=desc, disable=disable, file=sys.stderr, leave=False, **kw)

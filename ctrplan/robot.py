@@ -1,6 +1,6 @@
 """Tubes, robots, joint constraints, YAML I/O and configuration sampling.
 
-Conventions (fixed by DESIGN.md): lengths mm, angles rad, curvature 1/mm, Young's modulus MPa.
+Conventions (docs/conventions.md): lengths mm, angles rad, curvature 1/mm, Young's modulus MPa.
 Tube index 0 (tube "1" in files) is the innermost. A configuration is
 ``q = [alpha_1..alpha_n, beta_1..beta_n]``, batch first ``(B, 2n)``.
 """
@@ -23,6 +23,12 @@ from ctrplan.io import load_yaml, parse_float_columns, read_csv_table, write_csv
 CONSTRAINT_TOL_MM = 1e-9
 
 SHIPPED_ROBOTS = ("seed1", "two_tube_nylon")
+
+#: Largest bending strain (od/2 x curvature) a curved section may carry when straightened. The
+#: most elastic tube materials used for these robots (superelastic nitinol, ~8 % recoverable;
+#: polymers) stay below it; above it the tube would not keep its shape, and the mechanics
+#: (linear elasticity, small strain) do not apply.
+MAX_BENDING_STRAIN = 0.10
 
 
 @dataclass(frozen=True)
@@ -168,6 +174,12 @@ class Robot:
         Alphas are uniform on (-pi, pi]; betas are uniform over the constraint polytope
         (rejection sampling from its bounding box, which is exact).
         """
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+            raise InputError("n", "", f"the number of samples must be an integer >= 0, got {n!r}")
+        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) and seed < 0:
+            raise InputError("seed", "", f"must be >= 0, got {seed}")
+        if n == 0:
+            return np.empty((0, self.dof))
         rng = np.random.default_rng(seed)
         lo, hi = self.beta_bounds()
         out: list[np.ndarray] = []
@@ -241,6 +253,14 @@ def _validate_tubes(tubes: tuple[Tube, ...], source: str) -> None:
             raise InputError(source, f"{where}.curved_length", f"must be >= 0, got {t.curved_length}")
         if t.length <= 0:
             raise InputError(source, f"{where}", "straight_length + curved_length must be > 0")
+        strain = 0.5 * t.od * abs(t.curvature)
+        if strain > MAX_BENDING_STRAIN:
+            raise InputError(
+                source, f"{where}.curvature",
+                f"tube {i + 1} (od {t.od:g} mm) with curvature {t.curvature:g} 1/mm would be "
+                f"strained {100 * strain:.3g} % when straightened (od/2 x curvature), beyond the "
+                f"{100 * MAX_BENDING_STRAIN:g} % any elastic tube material survives: is the "
+                f"curvature in 1/mm (not 1/m or a radius)?")
         if t.youngs_modulus <= 0:
             raise InputError(source, f"{where}.youngs_modulus", f"must be > 0, got {t.youngs_modulus}")
         if not 0 <= t.poisson_ratio < 0.5:

@@ -160,7 +160,10 @@ def _prefilter_against_fcl(name, seed1, physics, n: int, margins=(0.0,)):
         np.testing.assert_array_equal(world.collides(shape), exact.collides)   # traced walk
         assert np.all(fast.contact[fast.collides] != "")
         assert fast.fcl_calls < 0.5 * len(q)          # the prefilter decides most states
-        assert 0 < (~fast.collides).sum() < len(q)   # a mix of verdicts
+        if margin == 0.0:   # a mix of verdicts (with a wide margin a narrow scene may have no free state)
+            assert 0 < (~fast.collides).sum() < len(q)
+        else:
+            assert exact.collides.any()
         assert world.first_collision(shape) == int(np.flatnonzero(exact.collides)[0])
 
 
@@ -169,7 +172,7 @@ def test_prefilter_never_calls_a_colliding_state_free(name, seed1, physics):
     _prefilter_against_fcl(name, seed1, physics, 2000)
 
 
-@pytest.mark.slow
+@pytest.mark.statistical   # backs the README's "never calls a colliding shape free" (.ci/run)
 @pytest.mark.parametrize("name", SHIPPED_SCENES)
 def test_prefilter_never_calls_a_colliding_state_free_large(name, seed1, physics):
     _prefilter_against_fcl(name, seed1, physics, 10000, margins=(0.0, 0.5, 2.0))

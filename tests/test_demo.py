@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -28,17 +27,15 @@ needs_browser = pytest.mark.skipif(CHROMIUM is None, reason="no Chromium install
 @pytest.fixture(scope="module")
 def demo_outputs(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
-    t0 = time.perf_counter()
+    # how long it takes is measured by benchmarks/bench_release.py, not asserted here
     proc = subprocess.run([sys.executable, "-m", "ctrplan.cli", "demo", "--out", str(out)],
                           capture_output=True, text=True, timeout=600)
-    elapsed = time.perf_counter() - t0
     assert proc.returncode == 0, proc.stderr[-2000:]
-    return out, proc.stdout, elapsed
+    return out, proc.stdout
 
 
 def test_demo_writes_what_it_names(demo_outputs):
-    out, stdout, elapsed = demo_outputs
-    assert elapsed < 120, f"demo took {elapsed:.0f} s"
+    out, stdout = demo_outputs
     for name in ("plan.json", "demo.png", "demo.html"):
         assert (out / name).exists() and (out / name).stat().st_size > 0, name
         assert str(out / name) in stdout
@@ -56,7 +53,7 @@ def test_demo_writes_what_it_names(demo_outputs):
 def test_view_command_renders_the_plan(demo_outputs, tmp_path):
     from ctrplan.cli import main
 
-    out, _, _ = demo_outputs
+    out, _ = demo_outputs
     assert main(["view", str(out / "plan.json"), "--out", str(tmp_path / "v.png")]) == 0
     assert non_background_fraction(tmp_path / "v.png") > 0.05
     assert main(["view", str(tmp_path / "missing.json"), "--out", str(tmp_path / "w.html")]) == 2

@@ -262,7 +262,7 @@ def test_sim_plus_real_beats_real_only_sim_only_and_physics(shipped):
     assert sim_real <= 0.6 * phys, (sim_real, phys)
 
 
-@pytest.mark.slow
+@pytest.mark.statistical   # backs the README's "learned beats physics on real data" (.ci/run)
 def test_full_sweep_default_architecture_meets_the_done_when(tmp_path):
     """The sweep at a meaningful size (minutes): Sim+Real beats Real-only and Sim-only and is
     at least 40% better than the physics model on held-out "real" data (default 3 x 30)."""

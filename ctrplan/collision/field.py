@@ -118,7 +118,9 @@ def field_for(mesh, config: FieldConfig = FieldConfig(), cache: bool | Path = Tr
                                          side=z["side"], watertight=bool(z["watertight"]))
             except (OSError, ValueError, KeyError) as exc:  # a corrupt cache entry is rebuilt
                 log.warning("ignoring unreadable field cache %s (%s)", path, exc)
-    field = build_field(v, f, config, watertight=bool(mesh.is_watertight))
+    log.info("preparing the distance field of a %d-triangle mesh (once; cached in %s)",
+             len(f), folder if folder is not None else "memory only")
+    field = build_field(v, f, config, watertight=bool(mesh.is_watertight), progress=True)
     if folder is not None:
         try:
             folder.mkdir(parents=True, exist_ok=True)
@@ -133,10 +135,18 @@ def field_for(mesh, config: FieldConfig = FieldConfig(), cache: bool | Path = Tr
 
 
 def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = FieldConfig(),
-                watertight: bool = False) -> DistanceField:
-    """Build the bounds grid of one mesh (see the module docstring)."""
+                watertight: bool = False, progress: bool = False) -> DistanceField:
+    """Build the bounds grid of one mesh (see the module docstring). ``progress``: a bar over
+    the build's stages on a terminal."""
     from scipy import ndimage
 
+    from ctrplan.progress import bar
+
+    with bar(total=5, desc="distance field", disable=not progress) as pbar:
+        return _build_field(vertices, faces, config, watertight, pbar, ndimage)
+
+
+def _build_field(vertices, faces, config, watertight, pbar, ndimage) -> DistanceField:
     t0 = time.perf_counter()
     v = np.asarray(vertices, dtype=float)
     f = np.asarray(faces, dtype=np.int64)
@@ -146,9 +156,10 @@ def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = F
     ext = hi - lo
     h = max(config.h_mm, float(np.prod(ext) / config.max_nodes) ** (1 / 3))
     shape = tuple(int(math.ceil(e / h)) + 1 for e in ext)
-    # surface samples: a barycentric lattice on every triangle with sub-edges at most h / 2
+    # surface samples covering every triangle within rho (cost ~ area, see surface_samples)
     sv, e_max = surface_samples(v, f, h / 2.0)
     rho = e_max / math.sqrt(3.0)
+    pbar.update(1)
     # mark the grid node nearest to each sample; keep one sample per marked node
     node = np.clip(np.rint((sv - lo) / h).astype(np.int64), 0, np.array(shape) - 1)
     flat = np.ravel_multi_index(node.T, shape)
@@ -158,6 +169,7 @@ def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = F
     grid.flat[marked] = False
     # exact Euclidean distance transform: for every node, the nearest marked node
     dist, idx = ndimage.distance_transform_edt(grid, sampling=h, return_indices=True)
+    pbar.update(1)
     near = np.ravel_multi_index(idx.reshape(3, -1), shape)
     del idx
     rep_near = rep[np.searchsorted(marked, near)]
@@ -168,6 +180,7 @@ def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = F
     # lower bound: the nearest surface point x has a sample within rho, whose node is within
     # h*sqrt(3)/2 of it, so dist <= d + rho + h*sqrt(3)/2
     lb = np.maximum(dist - rho - h * math.sqrt(3.0) / 2.0, 0.0).astype(np.float32)
+    pbar.update(1)
     # Near the surface, where verdicts are decided, replace both bounds by the exact distance
     # to the nearest sample (lb then loses only rho, not the snapping term): every sample
     # visits the nodes within refine_mm of it (numba); a node whose nearest visiting sample is
@@ -175,11 +188,13 @@ def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = F
     near = np.full(shape, np.inf, dtype=np.float64)
     _splat(sv[np.argsort(sv[:, 0], kind="stable")], lo, h, float(config.refine_mm), near)
     np.sqrt(near, out=near)
+    pbar.update(1)
     band = near <= config.refine_mm
     lb[band] = np.maximum(lb[band], np.maximum(near[band] - rho, 0.0))
     ub[band] = np.minimum(ub[band], near[band])
     del near, band
     side = _sides(lb, h, lo, v, f) if watertight else np.zeros(shape, dtype=np.int8)
+    pbar.update(1)
     field = DistanceField(origin=lo, h=float(h), lb=lb, ub=ub, box_lo=box_lo, box_hi=box_hi,
                           rho=rho, side=side, watertight=watertight,
                           build_s=time.perf_counter() - t0)
@@ -188,24 +203,66 @@ def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = F
     return field
 
 
+#: A triangle is sampled by a grid in its plane (cost ~ area) instead of the barycentric
+#: lattice (cost ~ longest edge squared) when the lattice would need this many times more points.
+LATTICE_EXCESS = 16.0
+
+
 def surface_samples(v: np.ndarray, f: np.ndarray, max_edge: float) -> tuple[np.ndarray, float]:
-    """Points covering a mesh: on each triangle the lattice ``(i a + j b + k c) / n`` with
-    ``n = ceil(longest edge / max_edge)``, whose sub-triangles are copies of the triangle
-    scaled by ``1 / n``. Returns (points (S, 3), longest sub-triangle edge)."""
+    """Points covering a mesh so that every surface point lies within ``rho = e / sqrt(3)`` of
+    one, returned as (points (S, 3), ``e``); ``e <= max_edge`` where every triangle is
+    well-shaped, ``e = sqrt(2) max_edge`` where some are long and thin. Cost follows surface
+    area, not triangle shape.
+
+    A well-shaped triangle gets the lattice ``(i a + j b + k c) / n`` with ``n = ceil(longest
+    edge / max_edge)``: its sub-triangles are copies of the triangle scaled by ``1 / n``. A long
+    thin triangle (whose lattice would need more than ``LATTICE_EXCESS`` times the points its area
+    needs) gets a square grid of spacing ``g = max_edge`` in its own plane instead (and then,
+    as the covering radius is set by those, every triangle gets whichever of a lattice with
+    sub-edges up to ``g sqrt(2)`` or the grid needs fewer points): the grid
+    nodes inside it, the points where its edges cross grid lines, and its corners. Each grid
+    cell cuts the triangle into a convex polygon whose corners are all samples and whose
+    diameter is at most ``g sqrt(2)``; triangulated from its corners, every point lies within
+    (longest edge) / sqrt(3) of a corner, so ``e = g sqrt(2)`` bounds the covering radius.
+    """
     tri = np.ascontiguousarray(v[f], dtype=float)
+    if len(tri) == 0:
+        return np.empty((0, 3)), 0.0
     edges = np.stack([np.linalg.norm(tri[:, i] - tri[:, (i + 1) % 3], axis=1) for i in range(3)], axis=1)
     longest = edges.max(axis=1)
     n = np.maximum(np.ceil(longest / max_edge), 1).astype(np.int64)
-    counts = (n + 1) * (n + 2) // 2
+    lattice = (n + 1) * (n + 2) // 2
+    g = max_edge
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    by_area = area / g**2 + 2.0 * edges.sum(axis=1) / g + 3.0
+    thin = lattice > LATTICE_EXCESS * by_area
+    if thin.any():
+        # the grid triangles set the covering radius (e = g sqrt(2)): sample the others with
+        # lattice sub-edges up to that too, and each triangle by whichever needs fewer points
+        n = np.maximum(np.ceil(longest / (g * math.sqrt(2.0))), 1).astype(np.int64)
+        lattice = (n + 1) * (n + 2) // 2
+        thin |= lattice > by_area
+    counts = np.where(thin, 0, lattice)
+    if thin.any():
+        counts[thin] = _grid_samples(tri[thin], g, np.empty((0, 3)), np.zeros(1, np.int64), False)
     offsets = np.concatenate([[0], np.cumsum(counts)])
     out = np.empty((int(offsets[-1]), 3))
-    _lattice(tri, n, offsets, out)
-    return out, float((longest / n).max())
+    fat = ~thin
+    if fat.any():
+        sel = np.flatnonzero(fat)
+        _lattice_at(tri, n, offsets, sel, out)
+    if thin.any():
+        _grid_samples(tri[thin], g, out, offsets[:-1][thin], True)
+    e = float((longest[fat] / n[fat]).max()) if fat.any() else 0.0
+    if thin.any():
+        e = max(e, g * math.sqrt(2.0))
+    return out, e
 
 
 @nb.njit(cache=True)
-def _lattice(tri, n, offsets, out):
-    for t in range(tri.shape[0]):
+def _lattice_at(tri, n, offsets, sel, out):
+    for s in range(sel.shape[0]):
+        t = sel[s]
         m = n[t]
         o = offsets[t]
         for i in range(m + 1):
@@ -214,6 +271,85 @@ def _lattice(tri, n, offsets, out):
                 for d in range(3):
                     out[o, d] = (i * tri[t, 0, d] + j * tri[t, 1, d] + k * tri[t, 2, d]) / m
                 o += 1
+
+
+@nb.njit(cache=True)
+def _grid_samples(tri, g, out, offsets, write):
+    """Grid samples of each triangle (see :func:`surface_samples`). With ``write`` False only
+    counts them (returns (T,) counts); with ``write`` True fills ``out`` from ``offsets``."""
+    T = tri.shape[0]
+    counts = np.zeros(T, dtype=np.int64)
+    for t in range(T):
+        # in-plane frame: U along the longest edge a->b, W perpendicular toward c
+        q0 = 0
+        best = -1.0
+        for q in range(3):
+            dd = 0.0
+            for d in range(3):
+                dd += (tri[t, (q + 1) % 3, d] - tri[t, q, d]) ** 2
+            if dd > best:
+                best = dd
+                q0 = q
+        a = tri[t, q0]
+        b = tri[t, (q0 + 1) % 3]
+        c = tri[t, (q0 + 2) % 3]
+        ab = b - a
+        L = math.sqrt(ab[0] ** 2 + ab[1] ** 2 + ab[2] ** 2)
+        U = ab / L if L > 0.0 else np.zeros(3)
+        ac = c - a
+        cu = ac[0] * U[0] + ac[1] * U[1] + ac[2] * U[2]
+        wv = ac - cu * U
+        cw = math.sqrt(wv[0] ** 2 + wv[1] ** 2 + wv[2] ** 2)
+        W = wv / cw if cw > 0.0 else np.zeros(3)
+        P = np.array([[0.0, 0.0], [L, 0.0], [cu, cw]])
+        o = offsets[t] if write else 0
+        k = 0
+        # corners
+        for q in range(3):
+            if write:
+                for d in range(3):
+                    out[o + k, d] = tri[t, q, d]
+            k += 1
+        # edge crossings with the grid lines u = i g and w = j g (corners excluded)
+        for q in range(3):
+            p0u = P[q, 0]
+            p0w = P[q, 1]
+            p1u = P[(q + 1) % 3, 0]
+            p1w = P[(q + 1) % 3, 1]
+            for axis in range(2):
+                x0 = p0u if axis == 0 else p0w
+                x1 = p1u if axis == 0 else p1w
+                if x0 == x1:
+                    continue
+                lo = min(x0, x1)
+                hi = max(x0, x1)
+                i0 = int(math.floor(lo / g)) + 1
+                i1 = int(math.ceil(hi / g)) - 1
+                for i in range(i0, i1 + 1):
+                    s = (i * g - x0) / (x1 - x0)
+                    if s <= 0.0 or s >= 1.0:
+                        continue
+                    if write:
+                        pu = p0u + s * (p1u - p0u)
+                        pw = p0w + s * (p1w - p0w)
+                        for d in range(3):
+                            out[o + k, d] = a[d] + pu * U[d] + pw * W[d]
+                    k += 1
+        # grid nodes strictly inside
+        for i in range(1, int(math.ceil(L / g))):
+            u = i * g
+            for j in range(1, int(math.ceil(cw / g))):
+                w = j * g
+                # inside: w > 0, left of b->c and of c->a
+                e1 = (cu - L) * (w - 0.0) - (cw - 0.0) * (u - L)
+                e2 = (0.0 - cu) * (w - cw) - (0.0 - cw) * (u - cu)
+                if e1 > 0.0 and e2 > 0.0:
+                    if write:
+                        for d in range(3):
+                            out[o + k, d] = a[d] + u * U[d] + w * W[d]
+                    k += 1
+        counts[t] = k
+    return counts
 
 
 @nb.njit(cache=True, parallel=True)

@@ -1,6 +1,6 @@
 """Anatomy scenes: meshes with roles, the robot's entry pose and example targets.
 
-A scene is a folder with ``scene.yaml`` (format in DESIGN.md) and its mesh files. Everything is
+A scene is a folder with ``scene.yaml`` (format in docs/conventions.md) and its mesh files. Everything is
 in the scene frame, in mm. Roles:
 
 - ``wall``: the lumen surface the robot must stay inside; touching it is a collision. A wall may
@@ -9,7 +9,8 @@ in the scene frame, in mm. Roles:
 - ``landmark``: drawn and used to pick targets (e.g. the ventricles the robot enters), never
   collision-checked.
 
-Shipped scenes live in the repository's ``anatomy/`` folder and are loaded by name.
+Shipped scenes live in the repository's ``anatomy/`` folder and are loaded by name; a built
+wheel carries them inside the package (``ctrplan/anatomy/``, copied there by ``setup.py``).
 """
 
 from __future__ import annotations
@@ -101,11 +102,16 @@ class Scene:
 
 
 def anatomy_dir() -> Path:
-    """The repository's ``anatomy/`` folder (ctrplan is installed from a checkout)."""
+    """Where the shipped scenes are: ``$CTRPLAN_ANATOMY`` if set, else ``ctrplan/anatomy/``
+    inside an installed wheel, else the checkout's top-level ``anatomy/`` (editable install)."""
     env = os.environ.get("CTRPLAN_ANATOMY")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[2] / "anatomy"
+    here = Path(__file__).resolve().parents[1]
+    packaged = here / "anatomy"
+    if packaged.is_dir():
+        return packaged
+    return here.parent / "anatomy"
 
 
 def list_scenes() -> list[str]:
@@ -169,7 +175,7 @@ def scene_from_dict(data: object, yml: Path) -> Scene:
         role = str(entry["role"])
         if role not in ROLES:
             raise InputError(src, f"{where}.role", f"unknown role {role!r} (choose from {', '.join(ROLES)})")
-        path = yml.parent / str(entry["file"])
+        path = _mesh_path(yml, str(entry["file"]), src, f"{where}.file")
         meshes.append(SceneMesh(name=mname, role=role, mesh=load_mesh(path), file=str(entry["file"])))
     base_pose = _parse_pose(data.get("base_pose"), src)
     targets = _parse_targets(data.get("targets") or [], src)
@@ -181,6 +187,16 @@ def scene_from_dict(data: object, yml: Path) -> Scene:
         raise InputError(src, "meshes", "no wall or obstacle mesh: nothing to check collisions against")
     check_base_inside(scene, src)
     return scene
+
+
+def _mesh_path(yml: Path, file: str, src: str, fieldname: str) -> Path:
+    """A mesh file named in scene.yaml: a relative path that stays inside the scene folder."""
+    rel = Path(file)
+    if rel.is_absolute() or file.startswith(("/", "\\")) or (len(file) > 1 and file[1] == ":"):
+        raise InputError(src, fieldname, f"{file!r} is an absolute path: name a file inside the scene folder")
+    if ".." in rel.parts or ".." in Path(file.replace("\\", "/")).parts:
+        raise InputError(src, fieldname, f"{file!r} leaves the scene folder ('..')")
+    return yml.parent / rel
 
 
 def load_mesh(path: str | os.PathLike):

@@ -20,10 +20,11 @@ def add_model_arg(p: argparse.ArgumentParser, default: str = "physics") -> None:
 
 
 def output_path(path: str, suffixes: tuple[str, ...], field: str = "--out") -> Path:
-    """Check an output path's suffix and that its folder can be created."""
+    """Check an output path's suffix and that it can be written (its folder exists or can be
+    created, and accepts files)."""
+    from ctrplan.io import check_writable
+
     p = Path(path)
     if suffixes and p.suffix.lower() not in suffixes:
         raise InputError(field, "", f"{path!r} must end in one of {', '.join(suffixes)}")
-    if p.exists() and p.is_dir():
-        raise InputError(field, "", f"{path!r} is a folder, expected a file")
-    return p
+    return check_writable(p, field)

@@ -20,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "write report.json, report.md, PNG plots and the calibrated model "
                     "(calibrated.yaml for --model; calibrated_robot.yaml for --robot).")
     add_robot_arg(p)
-    p.add_argument("--data", required=True, help="measured CSV (DESIGN.md format)")
+    p.add_argument("--data", required=True, help="measured CSV (format: docs/conventions.md)")
     p.add_argument("--base", choices=["rigid", "compliant"], default="rigid",
                    help="base mechanics model (default rigid, the 'traditional' model)")
     p.add_argument("--effects", default=None,

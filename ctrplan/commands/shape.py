@@ -23,13 +23,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def shape_with_direction(model, q: np.ndarray, path: str, points: int):
-    """``model.shape(q, points)``; models that need the direction of the last motion get it
-    from the row order of the CSV (within each ``sweep`` when it has that column)."""
+def directions_for(model, q: np.ndarray, path: str) -> np.ndarray | None:
+    """The direction of the last motion of each joint for models that need it (from the row
+    order of the CSV ``path``, within each ``sweep`` when it has that column); else None."""
     from ctrplan.shape.base import direction_from_rows, needs_direction
 
     if not needs_direction(model):
-        return model.shape(q, points=points)
+        return None
     from ctrplan.io import read_csv_table
 
     header, body = read_csv_table(path)
@@ -37,7 +37,16 @@ def shape_with_direction(model, q: np.ndarray, path: str, points: int):
     if "sweep" in header:
         ci = header.index("sweep")
         sweep = np.array([r[ci].strip() if ci < len(r) else "" for r in body], dtype=object)
-    return model.shape(q, points=points, direction=direction_from_rows(q, sweep))
+    return direction_from_rows(q, sweep)
+
+
+def shape_with_direction(model, q: np.ndarray, path: str, points: int):
+    """``model.shape(q, points)``; models that need the direction of the last motion get it
+    from the row order of the CSV (within each ``sweep`` when it has that column)."""
+    d = directions_for(model, q, path)
+    if d is None:
+        return model.shape(q, points=points)
+    return model.shape(q, points=points, direction=d)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -59,8 +68,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         m = args.points
         header = ["ok"] + [f"p{k + 1}_{c}" for k in range(m) for c in "xyz"]
-        rows = [[int(ok)] + pts.reshape(-1).tolist() for ok, pts in zip(shape.ok, shape.points)]
-        write_csv_atomic(out, header, rows)
+        rows = ([int(ok)] + pts.reshape(-1).tolist() for ok, pts in zip(shape.ok, shape.points))
+        write_csv_atomic(out, header, rows)   # streamed row by row
     bad = int((~shape.ok).sum())
     import logging
 

@@ -16,7 +16,7 @@ log = logging.getLogger("ctrplan")
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "simulate", help="simulate measured data with hidden effects",
-        description="Simulate measured data (DESIGN.md measured CSV: configuration, tip, time, "
+        description="Simulate measured data (measured CSV of docs/conventions.md: configuration, tip, time, "
                     "sweep, optional backbone points) from the mechanics model with hidden "
                     "effects and Gaussian noise. Rows are in order of motion.",
         epilog="Effects: torsion, friction, clearance, precurvature, stiffness, registration, "

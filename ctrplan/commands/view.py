@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def read_plan(path: str | Path) -> dict:
-    """Read and check a plan.json (fields of DESIGN.md)."""
+    """Read and check a plan.json (fields in docs/conventions.md)."""
     path = Path(path)
     try:
         plan = json.loads(path.read_text(encoding="utf-8"))
@@ -78,6 +78,8 @@ def render_plan(plan: dict, out: Path, points: int = 40, source: str = "plan") -
 
 def run(args: argparse.Namespace) -> int:
     out = output_path(args.out, (".html", ".png"))
+    if args.points < 2:
+        raise InputError("--points", "", f"must be >= 2 (base and tip), got {args.points}")
     plan = read_plan(args.plan)
     render_plan(plan, out, args.points, source=args.plan)
     log.info("wrote %s", out)

@@ -1,6 +1,6 @@
 """Numba kernels of the mechanics model (torsionally rigid and compliant CTRs).
 
-Formulation (DESIGN.md). A twist-free backbone frame ``R`` (``R' = R [u]x`` with
+Formulation (docs/conventions.md for units and frames). A twist-free backbone frame ``R`` (``R' = R [u]x`` with
 ``u = (ux, uy, 0)``, ``p' = R e_z``) carries every tube; tube i's material frame is
 ``R Rz(psi_i)`` and its torsion is ``uz_i = psi_i'``. Unloaded moment balance gives
 

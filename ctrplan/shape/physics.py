@@ -187,5 +187,17 @@ class PhysicsModel:
             int(self.config.max_iter), x0,
         )
         ok = ok & np.all(np.isfinite(pts), axis=(1, 2))
+        ok &= chords_within_arc(pts, s)
         self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid)
         return Shape(points=pts, s=s, radius=radius_along(r, q, s), ok=ok)
+
+
+def chords_within_arc(points: np.ndarray, s: np.ndarray, rtol: float = 1e-4) -> np.ndarray:
+    """(B,) bool: no straight segment between consecutive backbone points is longer than the
+    arc length between them (a unit-speed curve cannot do that; the solver failed if it did).
+    points : (B, m, 3) mm; s : (B, m) mm."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        chord = np.linalg.norm(np.diff(points, axis=1), axis=2)
+        arc = np.diff(s, axis=1)
+        good = chord <= arc * (1.0 + rtol) + 1e-6
+    return np.all(good, axis=1)

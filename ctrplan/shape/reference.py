@@ -1,6 +1,6 @@
 """A slow, tight-tolerance reference solver of the mechanics model (a test oracle only).
 
-It shares no code with :mod:`ctrplan.shape._kernel`: the equations of DESIGN.md are transcribed
+It shares no code with :mod:`ctrplan.shape._kernel`: the equations (units and frames: docs/conventions.md) are transcribed
 literally (angles ``psi`` instead of cos/sin, the full vector ``u`` built from rotated
 precurvatures, ``u_i = Rz(psi_i)^T u``), integrated piecewise between break points with
 ``scipy.integrate.solve_ivp`` (DOP853, rtol/atol 1e-12 by default) and shot with
