@@ -51,14 +51,45 @@ def _fmt(v: float | None, s: float | None = None) -> str:
 
 
 def markdown(rep) -> str:
-    lines = [f"# ctrplan diagnose: {rep.robot.name} ({rep.base} base)", "",
-             f"**Conclusion: {rep.conclusion}.**", "",
-             f"Held-out mean tip error {rep.error_before_mm:.3f} mm -> {rep.error_after_mm:.3f} mm "
-             f"(max {rep.max_before_mm:.3f} -> {rep.max_after_mm:.3f} mm).", "",
-             "Selection rule: an effect is added only when its BIC change is below "
-             f"-{rep.settings['bic_threshold']:g} (training residuals) AND it lowers the held-out "
-             f"mean tip error by at least {100 * rep.settings['min_heldout_gain']:.0f} %. "
-             f"Held-out sweeps: {', '.join(rep.test_sweeps)}.", ""]
+    from ctrplan.calibration.evidence import supporting
+
+    lines = [rep.headline() + ".", "",
+             f"# ctrplan diagnose: {rep.robot.name} ({rep.base} base)", "",
+             f"**Conclusion: {rep.conclusion}.**", ""]
+    if rep.warnings:
+        lines += ["**Warnings:**", ""] + [f"- {w}" for w in rep.warnings] + [""]
+    if rep.experiment:
+        lines += ["**What experiment would support a diagnosis:**", ""] + \
+            [f"- {w}" for w in rep.experiment] + [""]
+    lines += ["Selection rule: an effect is added only when its BIC change is below "
+              f"-{rep.settings['bic_threshold']:g} (training residuals) AND it lowers the held-out "
+              f"mean tip error by at least {100 * rep.settings['min_heldout_gain']:.0f} %; effects "
+              f"are named only when they leave at most "
+              f"{100 * rep.settings.get('max_remainder', 0.5):.0f} % of the held-out error above "
+              f"the noise floor. Held-out: {', '.join(rep.test_sweeps)} "
+              f"({rep.split.get('method', 'whole sweeps')}).", ""]
+    lines += _evidence_md(rep)
+    if rep.effects:
+        lines += ["## Evidence for each named effect", ""]
+        for e in rep.effects:
+            sup = supporting(e, rep.evidence_before)
+            form = rep.forms.get(e)
+            head = f"- **{e}**" + (f" (form: {form})" if form else "") + ": "
+            lines.append(head + ("; ".join(sup) if sup else "no data-only test singles it out; "
+                                 "named by the fit (BIC and held-out error) alone"))
+        lines.append("")
+    if rep.unexplained:
+        u = rep.unexplained
+        corr = ", ".join(f"{c['description']} (r2 {c['r2']:.2f})" if c.get("r2") is not None
+                         else c["description"] for c in u.get("correlates_with", []))
+        lines += ["## Unexplained remainder", "",
+                  f"Held-out mean error {u['heldout_mean_mm']:.3f} mm against "
+                  f"{u['noise_mean_mm']:.3f} mm expected from the noise floor: "
+                  f"{u['excess_mean_mm']:.3f} mm left ({100 * u['fraction_of_initial_excess']:.0f} % "
+                  "of the initial excess). " + (f"It still correlates with: {corr}." if corr else
+                                                "No tested quantity explains it."), ""]
+    if rep.partial:
+        lines += ["Partial fits (not named): " + ", ".join(rep.partial) + ".", ""]
     for k, s in enumerate(rep.steps, 1):
         title = f"## Step {k}: {s.effect}" if s.accepted else f"## Step {k}: nothing more justified"
         lines += [title, ""]
@@ -97,6 +128,50 @@ def markdown(rep) -> str:
               "`tip_paths.png`" + (", `residuals_arclength.png`" if rep.settings.get("shapes_measured") else ""),
               ""]
     return "\n".join(lines)
+
+
+def _evidence_md(rep) -> list[str]:
+    e = rep.evidence_before
+    if not e:
+        return []
+    nf = e.get("noise", {})
+    sd = nf.get("sd_mm")
+    lines = ["## Evidence from the data (base model residual)", "",
+             "| test | result |", "|---|---|",
+             f"| rows / distinct configurations | {e['rows']} / {e['distinct_configurations']} |",
+             f"| noise floor | {_fmt(sd)} mm per axis ({nf.get('method')}) |",
+             f"| residual rms / above noise | {_fmt(e['residual_rms_mm'])} / "
+             f"{_fmt(e['excess_rms_mm'])} mm |"]
+    h = e.get("hysteresis", {})
+    if h.get("tested"):
+        lines.append(f"| hysteresis (opposite vs same direction) | gap {_fmt(h['median_gap_mm'])} mm, "
+                     f"ratio {_fmt(h['ratio'])}, p {h['p_value']:.1e}: "
+                     f"{'yes' if h['significant'] else 'no'} |")
+    else:
+        lines.append(f"| hysteresis | not tested: {h.get('why')} |")
+    for item in e.get("harmonics", []):
+        pair = f"{item['pair'][0]}-{item['pair'][1]}"
+        if item.get("tested"):
+            hs = ", ".join(f"order {x['order']}: {_fmt(x['amplitude_mm'])} mm at "
+                           f"{x['phase_deg']:.0f} deg" for x in item["harmonics"])
+            lines.append(f"| harmonics in relative rotation {pair} | {hs}; r2 {item['r2']:.2f}, "
+                         f"p {item['p_value']:.1e}: {'yes' if item['significant'] else 'no'} |")
+        else:
+            lines.append(f"| harmonics in relative rotation {pair} | not tested: {item.get('why')} |")
+    ins = e.get("insertion", {})
+    if ins.get("tested"):
+        lines.append(f"| trend with insertion | {_fmt(ins['slope_norm'])} mm/mm, r2 "
+                     f"{ins['r2']:.2f}: {'yes' if ins['significant'] else 'no'} |")
+    pr = e.get("procrustes", {})
+    if pr.get("tested"):
+        lines.append(f"| rigid transform (Procrustes) | removes {100 * pr['fraction_explained']:.0f} % "
+                     f"(rotation {pr['rotation_deg']:.2f} deg, rms {_fmt(pr['rms_before_mm'])} -> "
+                     f"{_fmt(pr['rms_after_mm'])} mm): {'yes' if pr['significant'] else 'no'} |")
+    for key, label in (("time", "trend with time"), ("position", "field of tip position")):
+        it = e.get(key, {})
+        if it.get("tested"):
+            lines.append(f"| {label} | r2 {it['r2']:.2f}: {'yes' if it['significant'] else 'no'} |")
+    return lines + [""]
 
 
 def write_report(rep, data: MeasuredData, out: str | os.PathLike, base_pred: np.ndarray,

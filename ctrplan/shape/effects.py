@@ -61,12 +61,30 @@ from numba import njit
 
 from ctrplan.errors import InputError
 from ctrplan.robot import Robot, load_robot
-from ctrplan.shape.base import Shape, check_q, radius_along
+from ctrplan.shape.base import Shape, check_q, direction_from_rows, radius_along
 from ctrplan.shape.physics import MechanicsParams, PhysicsConfig, PhysicsModel
 
 EFFECT_NAMES = ("torsion", "friction", "clearance", "precurvature", "stiffness", "registration",
                 "joint_offset")
 BASES = ("rigid", "compliant")
+
+#: Friction forms (the ``form`` code of the friction effect is the index):
+#: ``dead_band`` a backlash taken in row order (Dahl-type with ``presliding`` > 0);
+#: ``lag`` a constant lag against each tube's own direction of motion;
+#: ``relative`` a constant lag against the direction of rotation relative to the adjacent tubes
+#: (a tube is dragged along by a neighbour turning against it; the study's ``dtheta``);
+#: ``end_moment`` ``relative`` plus a lag growing with the bending moment between the tubes
+#: (the study's concentrated end moment, ``beta'(L) = mu' |M| (1/k2z - 1/k1z)``).
+FRICTION_FORMS = ("dead_band", "lag", "relative", "end_moment")
+
+#: Harmonic coefficients of the clearance tilt in the relative rotation phi of the tube that ends
+#: and the next tube inside it: tilt(phi) = c0 + c1 cos phi + s1 sin phi + c2 cos 2phi + s2 sin 2phi
+#: (rad), about the inner tube's curvature axis (towards its bending direction).
+CLEARANCE_HARMONICS = (("c0", "constant tilt towards the inner tube's bending direction"),
+                       ("c1", "tilt, cos(relative rotation) term"),
+                       ("s1", "tilt, sin(relative rotation) term"),
+                       ("c2", "tilt, cos(2 relative rotation) term"),
+                       ("s2", "tilt, sin(2 relative rotation) term"))
 
 #: File kind written by :meth:`EffectModel.save` and recognised by ``load_model``.
 MODEL_KIND = "ctrplan-effect-model"
@@ -96,15 +114,22 @@ def effect_params(name: str, robot: Robot, base: str = "rigid") -> tuple[Param, 
                       fit=False))
     if name == "friction":
         return tuple(Param(f"lost{i + 1}", 0.0, 0.0, 1.0, "rad",
-                           f"rotation lost in transmission of tube {i + 1} (backlash half-width)")
-                     for i in range(n)) + (
+                           f"rotation lost in transmission of tube {i + 1} (lag / dead-band "
+                           "half-width)") for i in range(n)) + tuple(
+            Param(f"moment{i + 1}", 0.0, 0.0, 1.0, "rad",
+                  f"extra lag of tube {i + 1} per unit interaction moment (end_moment form)",
+                  fit=False) for i in range(n)) + (
             Param("presliding", 0.0, 0.0, 1.0, "rad", "rotation over which the lag builds up "
-                  "(0 = ideal backlash)", fit=False),)
+                  "(0 = ideal backlash; dead_band form)", fit=False),
+            Param("form", 0.0, 0.0, float(len(FRICTION_FORMS) - 1), "1",
+                  "friction form: " + ", ".join(f"{k} {f}" for k, f in enumerate(FRICTION_FORMS)),
+                  fit=False))
     if name == "clearance":
         return (Param("length", 0.0, 0.0, 100.0, "mm",
                       "tilt per unit curvature jump where an outer tube ends"),
                 Param("limit", 0.0, 0.0, 1.0, "rad", "largest tilt the gap allows (0 = none)",
-                      fit=False))
+                      fit=False)) + tuple(
+            Param(h, 0.0, -0.2, 0.2, "rad", doc) for h, doc in CLEARANCE_HARMONICS)
     if name == "precurvature":
         return tuple(Param(f"scale{i + 1}", 1.0, 0.3, 3.0, "1", f"precurvature scale of tube {i + 1}")
                      for i in range(n))
@@ -127,6 +152,41 @@ def effect_params(name: str, robot: Robot, base: str = "rigid") -> tuple[Param, 
 def off_values(name: str, robot: Robot, base: str = "rigid") -> dict[str, float]:
     """All parameters of an effect at their off values."""
     return {p.name: p.off for p in effect_params(name, robot, base)}
+
+
+def effect_variants(name: str, robot: Robot, base: str = "rigid") -> list[tuple[str, dict[str, float], list[str]]]:
+    """The forms of effect ``name`` that diagnose screens: ``(form label, fixed form parameter
+    values, names of the fitted parameters)``. An effect with one form has a single variant
+    (label ``""``) fitting every parameter marked ``fit``."""
+    n = robot.n
+    if name == "friction":
+        lost = [f"lost{i + 1}" for i in range(n)]
+        mom = [f"moment{i + 1}" for i in range(n)]
+        return [("dead_band", {"form": 0.0, "presliding": 0.0}, lost),
+                ("presliding", {"form": 0.0}, [*lost, "presliding"]),
+                ("lag", {"form": 1.0, "presliding": 0.0}, lost),
+                ("relative", {"form": 2.0, "presliding": 0.0}, lost),
+                ("end_moment", {"form": 3.0, "presliding": 0.0}, [*lost, *mom])]
+    if name == "clearance":
+        harm = [h for h, _ in CLEARANCE_HARMONICS]
+        return [("harmonic", {"length": 0.0, "limit": 0.0}, harm[:3]),
+                ("harmonic2", {"length": 0.0, "limit": 0.0}, harm),
+                ("gap", {"limit": 0.0}, ["length"])]
+    return [("", {}, [p.name for p in effect_params(name, robot, base) if p.fit])]
+
+
+def effect_form(name: str, values: Mapping[str, float]) -> str:
+    """A short label of the form of a fitted effect (for reports)."""
+    if name == "friction":
+        f = FRICTION_FORMS[int(round(values.get("form", 0.0)))]
+        if f == "dead_band" and values.get("presliding", 0.0) > 0:
+            return "presliding"
+        return f
+    if name == "clearance":
+        harm = any(values.get(h, 0.0) != 0.0 for h, _ in CLEARANCE_HARMONICS)
+        gap = values.get("length", 0.0) != 0.0
+        return "harmonic+gap" if harm and gap else ("harmonic" if harm else "gap")
+    return ""
 
 
 def complete_effects(effects: Mapping[str, Mapping[str, float]] | None, robot: Robot, base: str,
@@ -269,6 +329,26 @@ def clearance_kinks(robot: Robot, q: np.ndarray, kappa: np.ndarray, EI: np.ndarr
     return kink
 
 
+def clearance_harmonic_kinks(robot: Robot, q: np.ndarray, coef) -> np.ndarray:
+    """Kink rotation vectors (B, n, 2) rad of the harmonic clearance form.
+
+    Where outer tube j (j >= 2) ends, the tubes inside tilt by
+    ``t(phi) = c0 + c1 cos phi + s1 sin phi + c2 cos 2phi + s2 sin 2phi`` towards the bending
+    direction of tube j-1 (rotation about its curvature axis), phi = alpha_(j-1) - alpha_j.
+    """
+    n = robot.n
+    B = len(q)
+    kink = np.zeros((B, n, 2))
+    c0, c1, s1, c2, s2 = (float(c) for c in coef)
+    for j in range(1, n):
+        a_in = q[:, j - 1]
+        phi = a_in - q[:, j]
+        t = c0 + c1 * np.cos(phi) + s1 * np.sin(phi) + c2 * np.cos(2 * phi) + s2 * np.sin(2 * phi)
+        kink[:, j, 0] = -np.sin(a_in) * t
+        kink[:, j, 1] = np.cos(a_in) * t
+    return kink
+
+
 @dataclass(frozen=True)
 class Prepared:
     """What goes into one kernel call: actual configurations and mechanics parameters."""
@@ -278,9 +358,95 @@ class Prepared:
     torsion: bool
 
 
+def relative_direction(robot: Robot, d: np.ndarray) -> np.ndarray:
+    """(B, n) direction of each tube's rotation relative to its adjacent tubes, from (B, n)
+    directions of the relative angles alpha_i - alpha_(i+1) (pairs, (B, n-1))."""
+    B = len(d)
+    n = robot.n
+    out = np.zeros((B, n))
+    for i in range(n - 1):
+        out[:, i] += d[:, i]
+        out[:, i + 1] -= d[:, i]
+    return np.clip(out, -1.0, 1.0)
+
+
+def interaction_moment(robot: Robot, alpha: np.ndarray) -> np.ndarray:
+    """(B, n) normalised bending moment between each tube and the others (0..1): the jump
+    between its precurvature vector and the stiffness-weighted one of the other tubes, over
+    the sum of their magnitudes."""
+    n = robot.n
+    kap = robot.array("curvature")
+    EI = robot.array("bending_stiffness")
+    ux = -np.sin(alpha) * kap
+    uy = np.cos(alpha) * kap
+    out = np.zeros_like(alpha)
+    for i in range(n):
+        w = EI.copy()
+        w[i] = 0.0
+        if w.sum() <= 0:
+            continue
+        ox = (ux * w).sum(1) / w.sum()
+        oy = (uy * w).sum(1) / w.sum()
+        km = float((np.abs(kap) * w).sum() / w.sum())
+        den = abs(kap[i]) + km
+        if den > 0:
+            out[:, i] = np.hypot(ux[:, i] - ox, uy[:, i] - oy) / den
+    return out
+
+
+def _row_directions(angles: np.ndarray, sweep: np.ndarray | None) -> np.ndarray:
+    """(B, k) direction of the last motion of each angle column (rows in order of motion)."""
+    B, k = angles.shape
+    if k == 0:
+        return np.zeros((B, 0))
+    padded = np.hstack([angles, np.zeros((B, k))])      # direction_from_rows wraps the first half
+    return direction_from_rows(padded, sweep)[:, :k].astype(float)
+
+
+def friction_angles(robot: Robot, fr: Mapping[str, float], alpha: np.ndarray,
+                    sweep: np.ndarray | None = None, direction: np.ndarray | None = None,
+                    pure: bool = False) -> np.ndarray:
+    """Actual tube angles (B, n) from commanded ``alpha`` (B, n) under friction ``fr``.
+
+    With ``direction`` (B, 2n) in {-1, 0, 1} every row is a pure function of (alpha, direction)
+    (the settled state after moving that way: a lag of ``lost``); without it the rows are one
+    motion in order per sweep (``dead_band`` is then a backlash with its transients). ``pure``
+    without ``direction``: no direction known, no lag.
+    """
+    n = robot.n
+    B = len(alpha)
+    lost = np.array([fr[f"lost{i + 1}"] for i in range(n)])
+    mom = np.array([fr.get(f"moment{i + 1}", 0.0) for i in range(n)])
+    if not (np.any(lost > 0.0) or np.any(mom > 0.0)):
+        return alpha
+    form = FRICTION_FORMS[int(round(fr.get("form", 0.0)))]
+    if direction is None and pure:
+        return alpha
+    if direction is None and form == "dead_band":
+        return _backlash(np.ascontiguousarray(alpha), sweep_starts(B, sweep), lost,
+                         float(fr["presliding"]))
+    if form in ("dead_band", "lag"):
+        d = (np.asarray(direction, dtype=float)[:, :n] if direction is not None
+             else _row_directions(alpha, sweep))
+    else:
+        if direction is not None:
+            dj = np.asarray(direction, dtype=float)[:, :n]
+            pair = np.sign(dj[:, :-1] - dj[:, 1:])
+        else:
+            pair = _row_directions(alpha[:, :-1] - alpha[:, 1:], sweep)
+        d = relative_direction(robot, pair)
+    amount = lost[None, :]
+    if form == "end_moment" and np.any(mom > 0.0):
+        amount = amount + mom[None, :] * interaction_moment(robot, alpha)
+    return alpha - d * amount
+
+
 def prepare(robot: Robot, base: str, effects: Mapping[str, Mapping[str, float]], q: np.ndarray,
-            sweep: np.ndarray | None = None) -> Prepared:
-    """Joint-space and mechanics stages of the effects (complete parameter dicts expected)."""
+            sweep: np.ndarray | None = None, direction: np.ndarray | None = None,
+            pure: bool = False) -> Prepared:
+    """Joint-space and mechanics stages of the effects (complete parameter dicts expected).
+
+    ``direction`` / ``pure``: see :func:`friction_angles`."""
     n = robot.n
     q = np.array(q, dtype=float)
     B = len(q)
@@ -291,10 +457,7 @@ def prepare(robot: Robot, base: str, effects: Mapping[str, Mapping[str, float]],
             q = q + off
     fr = effects.get("friction")
     if fr is not None:
-        lost = np.array([fr[f"lost{i + 1}"] for i in range(n)])
-        if np.any(lost > 0.0):
-            q[:, :n] = _backlash(np.ascontiguousarray(q[:, :n]), sweep_starts(B, sweep), lost,
-                                 float(fr["presliding"]))
+        q[:, :n] = friction_angles(robot, fr, q[:, :n], sweep, direction, pure)
     kappa = np.broadcast_to(robot.array("curvature"), (B, n)).copy()
     EI = np.broadcast_to(robot.array("bending_stiffness"), (B, n)).copy()
     ratio = np.broadcast_to(robot.array("bending_stiffness") / robot.array("torsional_stiffness"),
@@ -318,6 +481,9 @@ def prepare(robot: Robot, base: str, effects: Mapping[str, Mapping[str, float]],
     cl = effects.get("clearance")
     if cl is not None and cl["length"] != 0.0:
         kink = clearance_kinks(robot, q, kappa, EI, float(cl["length"]), float(cl["limit"]))
+    if cl is not None and any(cl.get(h, 0.0) != 0.0 for h, _ in CLEARANCE_HARMONICS):
+        kink = kink + clearance_harmonic_kinks(robot, q, [cl.get(h, 0.0) for h, _ in
+                                                          CLEARANCE_HARMONICS])
     return Prepared(q=q, params=MechanicsParams(kappa=kappa, EI=EI, ratio=ratio, kink=kink),
                     torsion=torsion)
 
@@ -351,7 +517,8 @@ class EffectModel:
 
     def __init__(self, robot: Robot | str, base: str = "rigid",
                  effects: Mapping[str, Mapping[str, float]] | None = None,
-                 config: PhysicsConfig | None = None):
+                 config: PhysicsConfig | None = None,
+                 error_quantiles: Mapping[str, float] | None = None, pure: bool = False):
         self.robot = load_robot(robot)
         self.base = base
         self.effects = complete_effects(effects, self.robot, base)
@@ -359,18 +526,47 @@ class EffectModel:
         self._rigid = PhysicsModel(self.robot, torsion=False, config=self.config)
         self._compliant = PhysicsModel(self.robot, torsion=True, config=self.config)
         self.name = base + "".join(f"+{e}" for e in self.effects)
+        #: held-out tip residual norm quantiles (mm) of a calibrated model, or None
+        self.error_quantiles = dict(error_quantiles) if error_quantiles else None
+        #: True: friction is a pure function of (q, direction) even without direction
+        #: (no direction known = no lag); False: direction=None takes rows in order
+        self.pure = bool(pure)
+
+    @property
+    def needs_direction(self) -> bool:
+        """True when friction is on: shapes depend on the direction of the last motion."""
+        fr = self.effects.get("friction")
+        return bool(fr) and any(v > 0.0 for k, v in fr.items()
+                                if k.startswith(("lost", "moment")))
 
     def __repr__(self) -> str:
         return f"EffectModel(robot={self.robot.name!r}, base={self.base!r}, effects={self.effects!r})"
 
     def with_effects(self, effects: Mapping[str, Mapping[str, float]]) -> EffectModel:
         """A copy with other effects (same robot, base and config)."""
-        return EffectModel(self.robot, self.base, effects, self.config)
+        return EffectModel(self.robot, self.base, effects, self.config, pure=self.pure)
 
-    def shape(self, q: np.ndarray, points: int = 20, sweep: np.ndarray | None = None) -> Shape:
-        """Backbones of a batch (one kernel call). q : (B, 2n) rad and mm."""
+    def planning_model(self) -> EffectModel:
+        """The model for collision checking: no sensor registration (points in the robot base
+        frame) and friction a pure function of (q, direction) (no lag where none is given)."""
+        eff = {k: v for k, v in self.effects.items() if k != "registration"}
+        return EffectModel(self.robot, self.base, eff, self.config, self.error_quantiles,
+                           pure=True)
+
+    def shape(self, q: np.ndarray, points: int = 20, sweep: np.ndarray | None = None,
+              direction: np.ndarray | None = None) -> Shape:
+        """Backbones of a batch (one kernel call). q : (B, 2n) rad and mm.
+
+        direction : (B, 2n) in {-1, 0, +1}, the direction of each joint's last motion; with it
+        every row is a pure function of (q, direction). Without it rows are one motion in order
+        (per ``sweep``), unless the model is ``pure``.
+        """
         q = check_q(self.robot, q)
-        return evaluate(self, q, points, sweep)
+        if direction is not None:
+            direction = np.asarray(direction)
+            if direction.shape != q.shape:
+                raise ValueError(f"direction must have shape {q.shape}, got {direction.shape}")
+        return evaluate(self, q, points, sweep, direction=direction)
 
     def backbone(self, q: np.ndarray, points: int = 20) -> np.ndarray:
         """(B, points, 3) backbone points, mm (sensor frame with registration, else base frame)."""
@@ -378,9 +574,12 @@ class EffectModel:
 
     # ------------------------------------------------------------------ files
     def to_dict(self) -> dict[str, Any]:
-        return {"kind": MODEL_KIND, "base": self.base, "robot": self.robot.to_dict(),
-                "effects": {k: dict(v) for k, v in self.effects.items()},
-                "units": "mm, rad; see ctrplan.shape.effects"}
+        d = {"kind": MODEL_KIND, "base": self.base, "robot": self.robot.to_dict(),
+             "effects": {k: dict(v) for k, v in self.effects.items()},
+             "units": "mm, rad; see ctrplan.shape.effects"}
+        if self.error_quantiles:
+            d["error_quantiles"] = {k: float(v) for k, v in self.error_quantiles.items()}
+        return d
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the model as YAML (robot + base + effects with parameters)."""
@@ -398,15 +597,27 @@ class EffectModel:
 
         if not isinstance(data, dict) or data.get("kind") != MODEL_KIND:
             raise InputError(source, "kind", f"not a {MODEL_KIND} file")
-        unknown = set(data) - {"kind", "base", "robot", "effects", "units", "notes"}
+        unknown = set(data) - {"kind", "base", "robot", "effects", "units", "notes",
+                               "error_quantiles"}
         if unknown:
             raise InputError(source, sorted(unknown)[0], "unknown key")
         robot = robot_from_dict(data.get("robot"), source=source)
         effects = data.get("effects") or {}
         if not isinstance(effects, dict):
             raise InputError(source, "effects", "must be a mapping")
+        eq = data.get("error_quantiles")
+        if eq is not None:
+            if not isinstance(eq, dict) or set(eq) - {"p50", "p95", "p99", "max"}:
+                raise InputError(source, "error_quantiles", "must be a mapping with keys "
+                                 "p50, p95, p99, max (mm)")
+            for k, v in eq.items():
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not \
+                        math.isfinite(v) or v < 0:
+                    raise InputError(source, f"error_quantiles.{k}",
+                                     f"must be a finite number >= 0 (mm), got {v!r}")
         return cls(robot, str(data.get("base", "rigid")),
-                   complete_effects(effects, robot, str(data.get("base", "rigid")), source))
+                   complete_effects(effects, robot, str(data.get("base", "rigid")), source),
+                   error_quantiles=eq)
 
     @classmethod
     def load(cls, path: str | os.PathLike, robot: Robot | str | None = None) -> EffectModel:
@@ -436,14 +647,16 @@ def is_effect_model_file(path: str | os.PathLike) -> bool:
 
 
 def evaluate(model: EffectModel, q: np.ndarray, points: int, sweep: np.ndarray | None = None,
-             effects: Mapping[str, Mapping[str, float]] | None = None) -> Shape:
+             effects: Mapping[str, Mapping[str, float]] | None = None,
+             direction: np.ndarray | None = None) -> Shape:
     """Shapes of ``q`` under ``model``'s robot/base with ``effects`` (default: the model's).
 
     One kernel call for the whole batch; ``effects`` must be complete (see
     :func:`complete_effects`).
     """
     eff = model.effects if effects is None else effects
-    prep = prepare(model.robot, model.base, eff, q, sweep)
+    prep = prepare(model.robot, model.base, eff, q, sweep, direction,
+                   pure=getattr(model, "pure", False))
     phys = model._compliant if prep.torsion else model._rigid
     shp = phys.solve(prep.q, points, prep.params)
     if "registration" in eff:
