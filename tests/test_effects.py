@@ -199,3 +199,89 @@ def test_bad_effects_are_input_errors():
         parse_effect_arg("friction:lost1")
     assert parse_effect_arg("friction:lost1=0.1, lost2=0.2") == ("friction", {"lost1": 0.1, "lost2": 0.2})
     assert parse_effect_arg("torsion") == ("torsion", {})
+
+
+# ------------------------------------------------------------------ forms and contracts (issue 12)
+def test_friction_with_direction_is_a_pure_function_of_q_and_direction():
+    from ctrplan.shape.base import needs_direction
+
+    r = load_robot("seed1")
+    q = _q(r, 30, seed=5)
+    rng = np.random.default_rng(0)
+    D = rng.integers(-1, 2, size=q.shape).astype(np.int8)
+    lost = {"lost1": 0.1, "lost2": 0.05, "lost3": 0.02}
+    phys = PhysicsModel(r, torsion=False)
+    for form in (0.0, 1.0):          # dead band and constant lag: settled lag against D
+        m = EffectModel(r, "rigid", {"friction": {**lost, "form": form}})
+        assert needs_direction(m)
+        tips = m.shape(q, 2, direction=D).tip
+        perm = rng.permutation(len(q))
+        np.testing.assert_array_equal(m.shape(q[perm], 2, direction=D[perm]).tip, tips[perm])
+        qa = q.copy()
+        qa[:, :3] -= D[:, :3] * np.array([0.1, 0.05, 0.02])     # oracle: commanded - lost * D
+        np.testing.assert_allclose(tips, phys.shape(qa, 2).tip, atol=1e-12)
+    # relative form: a tube is dragged by a neighbour turning against it
+    m = EffectModel(r, "rigid", {"friction": {"lost1": 0.1, "form": 2.0}})
+    D2 = np.zeros((1, 6), dtype=np.int8)
+    D2[0, 1] = 1                                                # tube 2 turns +, tube 1 held
+    qa = q[:1].copy()
+    qa[0, 0] += 0.1                                             # tube 1 is dragged along (+)
+    np.testing.assert_allclose(m.shape(q[:1], 2, direction=D2).tip, phys.shape(qa, 2).tip,
+                               atol=1e-12)
+    assert not needs_direction(EffectModel(r, "rigid", {"friction": {}}))
+
+
+def test_planning_model_drops_registration_and_is_pure():
+    r = load_robot("seed1")
+    q = _q(r, 12)
+    eff = {"registration": {"tx": 5.0}, "friction": {"lost1": 0.2},
+           "clearance": {"c1": 0.05}}
+    m = EffectModel(r, "rigid", eff, error_quantiles={"p50": 1, "p95": 2, "p99": 3, "max": 4})
+    pm = m.planning_model()
+    assert "registration" not in pm.effects and pm.error_quantiles == m.error_quantiles
+    # no direction known: no lag; rows independent of their order
+    ref = EffectModel(r, "rigid", {"clearance": {"c1": 0.05}}).shape(q, 4).points
+    np.testing.assert_array_equal(pm.shape(q, 4).points, ref)
+    np.testing.assert_array_equal(pm.shape(q[::-1], 4).points, ref[::-1])
+    D = np.ones_like(q, dtype=np.int8)
+    assert not np.allclose(pm.shape(q, 4, direction=D).points, ref)
+
+
+def test_clearance_harmonic_tilts_towards_bending_direction_with_free_phase():
+    from ctrplan.shape.effects import clearance_harmonic_kinks
+
+    r = load_robot("two_tube_nylon")
+    phi = np.linspace(-math.pi, math.pi, 73)
+    q = np.zeros((len(phi), 4))
+    q[:, 0] = phi - 0.4            # alpha1 - alpha2 = phi, alpha2 = -0.4
+    q[:, 1] = -0.4
+    q[:, 2:] = -10.0
+    peak = math.radians(205.0)
+    k = clearance_harmonic_kinks(r, q, [0.0, 0.1 * math.cos(peak), 0.1 * math.sin(peak), 0, 0])
+    assert np.all(k[:, 0] == 0.0)
+    # the rotation axis is tube 1's curvature axis (-sin a1, cos a1): tilt towards its bending
+    axis = np.stack([-np.sin(q[:, 0]), np.cos(q[:, 0])], 1)
+    t = (k[:, 1] * axis).sum(1)
+    np.testing.assert_allclose(np.abs(t), np.hypot(k[:, 1, 0], k[:, 1, 1]), atol=1e-12)
+    assert math.degrees(phi[np.argmax(t)]) % 360 == pytest.approx(205.0, abs=5.1)
+    np.testing.assert_allclose(t, 0.1 * np.cos(phi - peak), atol=1e-12)
+    # off is exact; the form changes the tip
+    base = EffectModel(r).shape(q, 2).tip
+    np.testing.assert_array_equal(EffectModel(r, "rigid", {"clearance": {"c0": 0.0}}).shape(q, 2).tip, base)
+    assert np.max(np.linalg.norm(EffectModel(r, "rigid", {"clearance": {"c0": 0.05}}).shape(q, 2).tip
+                                 - base, axis=1)) > 1.0
+
+
+def test_error_quantiles_round_trip_through_calibrated_yaml(tmp_path):
+    from ctrplan.shape.base import model_error_bound
+    from ctrplan.shape.models import load_model
+
+    eq = {"p50": 0.4, "p95": 1.1, "p99": 1.6, "max": 2.0}
+    m = EffectModel("seed1", "rigid", {"torsion": {"compliance": 0.8}}, error_quantiles=eq)
+    m.save(tmp_path / "calibrated.yaml")
+    m2 = load_model(str(tmp_path / "calibrated.yaml"), "seed1")
+    assert m2.error_quantiles == eq and model_error_bound(m2) == 1.6
+    text = (tmp_path / "calibrated.yaml").read_text().replace("p99: 1.6", "p99: -1")
+    (tmp_path / "bad.yaml").write_text(text)
+    with pytest.raises(InputError, match="error_quantiles.p99"):
+        load_model(str(tmp_path / "bad.yaml"), "seed1")

@@ -312,6 +312,7 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
             warnings.append(f"friction not screened: {hyst['why']}")
             experiment.append("move each joint back and forth over the same range (reversals "
                               "reveal friction)")
+    settings["candidates"] = list(cands)
     steps: list[Step] = []
     partial: list[str] = []
     if insufficient:
@@ -347,6 +348,15 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
         warnings.append("parameters at a bound that is not their off value (the effect may be "
                         "larger than its form allows, or another effect is being absorbed): "
                         + ", ".join(bounds))
+        if effects:
+            partial = partial or [f"{s.effect} ({s.form})" if s.form else s.effect
+                                  for s in steps if s.accepted]
+            effects = []
+            insufficient = ([f"fitted parameters at their bounds ({', '.join(bounds)})"],
+                            ["check the set-up for an effect beyond its physical range (e.g. a "
+                             "tracker origin far from the robot base, wrong units or tube "
+                             "parameters) and measure over the whole joint range"])
+            experiment += insufficient[1]
     forms = {s.effect: s.form for s in steps if s.accepted and s.effect in effects and s.form}
     amb = [s for s in steps if s.accepted and s.ambiguous and s.runner_up not in effects
            and s.effect in effects]
