@@ -248,7 +248,7 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
              candidates: Sequence[str] | None = None, holdout: float = 0.25, seed: int = 0,
              bic_threshold: float = 10.0, min_gain: float = 0.05, ambiguity_bic: float = 10.0,
              screen_iter: int = 8, fit_iter: int = 25, refit_top: int = 3, max_effects: int = 4,
-             max_remainder: float = 0.5, min_configurations: int = 20,
+             max_remainder: float = 0.5, min_configurations: int = 20, nuisances: bool = True,
              out: str | os.PathLike | None = None) -> DiagnoseReport:
     """Run the workflow (module docstring) and return a :class:`DiagnoseReport`.
 
@@ -315,18 +315,20 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     settings["candidates"] = list(cands)
     steps: list[Step] = []
     partial: list[str] = []
+    nuisance: list[str] = []
     if insufficient:
         reasons, todo = insufficient
         warnings += reasons
         experiment += todo
     else:
-        current, cur = _select(prob, robot, base, cands, current, cur, steps, bic_threshold,
-                               min_gain, ambiguity_bic, screen_iter, fit_iter, refit_top,
-                               max_effects)
+        current, cur, nuisance = _select(prob, robot, base, cands, current, cur, steps,
+                                         bic_threshold, min_gain, ambiguity_bic, screen_iter,
+                                         fit_iter, refit_top, max_effects,
+                                         tuple(NUISANCES) if nuisances else ())
     final_pred = prob.predict_many([current])[0]
     ev_after = ev.collect(robot, data.q, final_pred[:, -1], data.tip, sw, data.time, ordered,
                           noise=ev_before["noise"]) if current else ev_before
-    effects = [s.effect for s in steps if s.accepted]
+    effects = [s.effect for s in steps if s.accepted and s.effect not in NUISANCES]
     # ---------------------------------------------------------------- honest remainder
     e_noise = CHI3_MEAN * noise_sd if noise_sd else 0.0
     excess0 = max(base_fit.test_mean - e_noise, 0.0)
@@ -336,6 +338,19 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     if not insufficient and (cur.test_mean > 1.5 * e_noise + 0.05 or remainder > max_remainder) \
             and excess0 > 0:
         unexplained = _unexplained(ev_after, cur.test_mean, e_noise, excess1, remainder)
+    if nuisance:
+        if unexplained is None:
+            unexplained = _unexplained(ev_after, cur.test_mean, e_noise, excess1, remainder)
+        unexplained["outside_vocabulary"] = [
+            {"kind": k.lstrip("~"), "description": NUISANCES[k],
+             "heldout_mean_mm_once_removed": next(s.error_after_mm for s in steps
+                                                  if s.effect == k)} for k in nuisance]
+        for k in reversed(nuisance):
+            if not any(c["with"] == {"~drift": "time", "~field": "position"}[k]
+                       for c in unexplained["correlates_with"]):
+                unexplained["correlates_with"].insert(0, {
+                    "with": {"~drift": "time", "~field": "position"}[k],
+                    "description": NUISANCES[k], "r2": None, "p_value": None})
     if effects and remainder > max_remainder:
         partial = [f"{s.effect} ({s.form})" if s.form else s.effect
                    for s in steps if s.accepted]
@@ -363,7 +378,7 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     if insufficient:
         status = DiagnoseStatus.INSUFFICIENT
         conclusion = "the data cannot support a diagnosis: " + "; ".join(insufficient[0])
-    elif not effects and partial:
+    elif not effects and (partial or nuisance):
         status = DiagnoseStatus.UNEXPLAINED
         conclusion = ("unexplained: no effect of the vocabulary explains the data"
                       + _corr_text(unexplained))
@@ -486,14 +501,66 @@ def _corr_text(unexplained: dict | None) -> str:
     return left + ")"
 
 
+#: Nuisances outside the effect vocabulary, screened like effects so that they are never
+#: absorbed by a wrong name: a sensor drift growing with time from the first row (quadratic,
+#: no constant: a constant offset is registration), and a smooth tracker-field distortion
+#: (a cubic polynomial of the measured position; it contains every small rigid transform, so
+#: a true registration wins against it only through its far fewer parameters). Accepted nuisances are
+#: removed from the data before further screening and reported under ``unexplained``; the
+#: calibrated model never contains them.
+NUISANCES = {"~drift": "a drift of the sensor in time", "~field": "a distortion of the tracker "
+             "field (a smooth function of the measured position)"}
+
+
+def _nuisance_features(kind: str, prob, data: MeasuredData) -> np.ndarray | None:
+    """(B, m, k) features of nuisance ``kind`` at every target point, or None."""
+    B, m, _ = prob.target_raw.shape
+    if kind == "~drift":
+        t = data.time
+        if t is None or len(t) < 8 or not np.ptp(t) > 0:
+            return None
+        x = (np.asarray(t, dtype=float) - np.min(t)) / np.ptp(t)
+        f = np.stack([x, x * x], axis=1)
+        return np.broadcast_to(f[:, None, :], (B, m, 2)).copy()
+    if kind == "~field":
+        p = prob.target_raw
+        c = p - np.nanmean(p[:, prob.use].reshape(-1, 3), axis=0)
+        sc = float(np.nanmax(np.abs(c[:, prob.use])))
+        if not sc > 0:
+            return None
+        c = c / sc
+        x, y, z = c[..., 0], c[..., 1], c[..., 2]
+        one = np.ones_like(x)
+        return np.stack([one, x, y, z, x * x, y * y, z * z, x * y, x * z, y * z,
+                         x ** 3, y ** 3, z ** 3, x * x * y, x * x * z, y * y * x, y * y * z,
+                         z * z * x, z * z * y, x * y * z], axis=-1)
+    return None
+
+
+def _fit_nuisance(prob, F: np.ndarray, pts: np.ndarray, train: np.ndarray):
+    """Least squares of the residual (target - prediction) on features F; returns the
+    correction (B, m, 3) and the number of coefficients."""
+    use = prob.use
+    r = (prob.target - pts)[train][:, use].reshape(-1, 3)
+    A = F[train][:, use].reshape(-1, F.shape[-1])
+    ok = np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(A), axis=1)
+    coef, *_ = np.linalg.lstsq(A[ok], r[ok], rcond=None)
+    corr = np.nan_to_num(F) @ coef
+    return corr, coef.size
+
+
 def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_gain,
-            ambiguity_bic, screen_iter, fit_iter, refit_top, max_effects):
+            ambiguity_bic, screen_iter, fit_iter, refit_top, max_effects, nuisances=()):
     """Forward selection over effect forms (module docstring, steps 4-5)."""
-    k_cur = 0
+    k_cur = 0          # parameters in the model: effects' fitted parameters + nuisance terms
+    k_nuis = 0
     free_cur: dict[str, list[str]] = {}
+    accepted_nuisances: list[str] = []
+    correction = np.zeros_like(prob.target_raw)
     while True:
         remaining = [c for c in cands if c not in current]
-        if not remaining or len(current) >= max_effects:
+        if (not remaining and len(accepted_nuisances) == len(nuisances)) or \
+                len(current) >= max_effects:
             break
         results: dict[tuple[str, str], FitResult] = {}
         frees: dict[tuple[str, str], list[str]] = {}
@@ -507,6 +574,22 @@ def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_ga
                 frees[key] = names
                 results[key] = prob.fit(fixed, {c: names}, max_iter=screen_iter,
                                         k_total=k_cur + len(names))
+        # nuisances outside the vocabulary, fitted on top of the current model
+        nuis: dict[str, tuple[FitResult, np.ndarray]] = {}
+        if nuisances:
+            pts = prob.predict_many([current])[0]
+            for kind in nuisances:
+                if kind in accepted_nuisances:
+                    continue
+                F = _nuisance_features(kind, prob, prob.data)
+                if F is None:
+                    continue
+                corr, kk = _fit_nuisance(prob, F, pts, prob.train)
+                r = prob.residual(pts + corr, prob.train)
+                e = prob.errors(pts + corr)
+                nuis[kind] = (FitResult(effects=current, rss=float(r @ r), n_res=r.size,
+                                        k=k_cur + kk, test_mean=float(e[prob.test].mean()),
+                                        test_max=float(e[prob.test].max())), corr)
         ranked = sorted(results, key=lambda c: results[c].bic())
         # the screen holds the effects already added fixed; the leading candidates are refitted
         # jointly with them (their parameters may have absorbed part of the new effect)
@@ -514,7 +597,7 @@ def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_ga
             for key in ranked[:refit_top]:
                 free = {**free_cur, key[0]: frees[key]}
                 joint = prob.fit(results[key].effects, free, max_iter=fit_iter,
-                                 k_total=sum(len(v) for v in free.values()))
+                                 k_total=k_nuis + sum(len(v) for v in free.values()))
                 if joint.rss <= results[key].rss * (1 + 1e-9):
                     results[key] = joint
                 else:
@@ -544,8 +627,35 @@ def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_ga
                         cand.justified = True
                         cand.form = k[1]
                     break
+        for kind, (r, _) in nuis.items():
+            dbic = r.bic() - cur.bic()
+            gain = _gain(cur.test_mean, r.test_mean)
+            screened.append(Candidate(kind, float(dbic), float(r.test_mean),
+                                      bool(dbic < -bic_threshold and gain >= min_gain),
+                                      "outside the vocabulary"))
+        if not screened:
+            break
         screened.sort(key=lambda s: s.delta_bic)
         best = next((s for s in screened if s.justified), screened[0])
+        if best.justified and best.effect in nuis:
+            r, corr = nuis[best.effect]
+            runner = next((s for s in screened if s is not best), None)
+            steps.append(Step(best.effect, True, {}, {}, cur.test_mean, r.test_mean,
+                              cur.test_max, r.test_max, best.delta_bic,
+                              _gain(cur.test_mean, r.test_mean),
+                              runner.effect if runner else None,
+                              runner.delta_bic if runner else None, False, screened,
+                              "outside the vocabulary"))
+            log.info("residual follows %s: held-out mean tip error %.3f -> %.3f mm once it is "
+                     "removed (not a vocabulary effect)", NUISANCES[best.effect], cur.test_mean,
+                     r.test_mean)
+            correction = correction + corr
+            prob.set_correction(correction)
+            accepted_nuisances.append(best.effect)
+            k_nuis += r.k - k_cur
+            k_cur = r.k
+            cur = prob.score(current, k=k_cur)
+            continue
         runner = next((s for s in screened if s is not best), None)
         if not best.justified:
             steps.append(Step(None, False, {}, {}, cur.test_mean, cur.test_mean, cur.test_max,
@@ -556,7 +666,7 @@ def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_ga
         joint = results[key]
         free_new = {**free_cur, best.effect: frees[key]}
         polished = prob.fit(joint.effects, free_new, max_iter=fit_iter,
-                            k_total=sum(len(v) for v in free_new.values()))
+                            k_total=k_nuis + sum(len(v) for v in free_new.values()))
         if polished.rss <= joint.rss * (1 + 1e-9) and polished.test_mean <= joint.test_mean * 1.05:
             joint = polished
         if not joint.values or best.effect not in joint.values:
@@ -575,8 +685,9 @@ def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_ga
         current = joint.effects
         cur = joint
         free_cur = free_new
-        k_cur = sum(len(v) for v in free_cur.values())
-    return current, cur
+        k_cur = k_nuis + sum(len(v) for v in free_cur.values())
+    prob.set_correction(None)
+    return current, prob.score(current, k=k_cur), accepted_nuisances
 
 
 def _gain(before: float, after: float) -> float:

@@ -67,6 +67,8 @@ class Problem:
         target = data.points if data.points is not None else np.stack(
             [np.full_like(data.tip, np.nan), data.tip], axis=1)
         self.target = target                       # (B, m, 3); row 0 unused without shapes
+        self.target_raw = target
+        self.tip = data.tip
         self.use = slice(None) if data.points is not None else slice(1, 2)
         self.evals = 0
 
@@ -108,8 +110,18 @@ class Problem:
 
     def errors(self, pts: np.ndarray) -> np.ndarray:
         """(B,) tip error (mm); non-finite predictions count as NONFINITE_MM."""
-        e = np.linalg.norm(pts[:, -1, :] - self.data.tip, axis=1)
+        e = np.linalg.norm(pts[:, -1, :] - self.tip, axis=1)
         return np.where(np.isfinite(e), e, NONFINITE_MM)
+
+    def set_correction(self, corr: np.ndarray | None) -> None:
+        """Subtract a sensor-side correction (B, m, 3) mm from the measurements (a nuisance
+        outside the effect vocabulary, e.g. a drift in time); None restores the data."""
+        if corr is None:
+            self.target = self.target_raw
+            self.tip = self.data.tip
+        else:
+            self.target = self.target_raw - corr
+            self.tip = self.data.tip - corr[:, -1, :]
 
     def residual(self, pts: np.ndarray, rows: np.ndarray) -> np.ndarray:
         r = (pts[rows][:, self.use, :] - self.target[rows][:, self.use, :]).ravel()

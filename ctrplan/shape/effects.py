@@ -73,8 +73,9 @@ BASES = ("rigid", "compliant")
 #: ``lag`` a constant lag against each tube's own direction of motion;
 #: ``relative`` a constant lag against the direction of rotation relative to the adjacent tubes
 #: (a tube is dragged along by a neighbour turning against it; the study's ``dtheta``);
-#: ``end_moment`` ``relative`` plus a lag growing with the bending moment between the tubes
-#: (the study's concentrated end moment, ``beta'(L) = mu' |M| (1/k2z - 1/k1z)``).
+#: ``end_moment`` ``relative`` plus the twist of a torque ``mu |M|`` where each outer tube ends
+#: (the study's concentrated end moment, ``beta'(L) = mu' |M| (1/k2z - 1/k1z)``; see
+#: :func:`end_moment_twist`).
 FRICTION_FORMS = ("dead_band", "lag", "relative", "end_moment")
 
 #: Harmonic coefficients of the clearance tilt in the relative rotation phi of the tube that ends
@@ -115,10 +116,10 @@ def effect_params(name: str, robot: Robot, base: str = "rigid") -> tuple[Param, 
     if name == "friction":
         return tuple(Param(f"lost{i + 1}", 0.0, 0.0, 1.0, "rad",
                            f"rotation lost in transmission of tube {i + 1} (lag / dead-band "
-                           "half-width)") for i in range(n)) + tuple(
-            Param(f"moment{i + 1}", 0.0, 0.0, 1.0, "rad",
-                  f"extra lag of tube {i + 1} per unit interaction moment (end_moment form)",
-                  fit=False) for i in range(n)) + (
+                           "half-width)") for i in range(n)) + (
+            Param("mu", 0.0, 0.0, 1.0, "1", "end-moment friction: a torque mu |M| where an "
+                  "outer tube ends (|M| its bending moment there) twists both tubes of the pair "
+                  "(end_moment form)", fit=False),
             Param("presliding", 0.0, 0.0, 1.0, "rad", "rotation over which the lag builds up "
                   "(0 = ideal backlash; dead_band form)", fit=False),
             Param("form", 0.0, 0.0, float(len(FRICTION_FORMS) - 1), "1",
@@ -161,12 +162,12 @@ def effect_variants(name: str, robot: Robot, base: str = "rigid") -> list[tuple[
     n = robot.n
     if name == "friction":
         lost = [f"lost{i + 1}" for i in range(n)]
-        mom = [f"moment{i + 1}" for i in range(n)]
         return [("dead_band", {"form": 0.0, "presliding": 0.0}, lost),
                 ("presliding", {"form": 0.0}, [*lost, "presliding"]),
                 ("lag", {"form": 1.0, "presliding": 0.0}, lost),
                 ("relative", {"form": 2.0, "presliding": 0.0}, lost),
-                ("end_moment", {"form": 3.0, "presliding": 0.0}, [*lost, *mom])]
+                ("end_moment", {"form": 3.0, "presliding": 0.0}, ["mu"]),
+                ("end_moment+lag", {"form": 3.0, "presliding": 0.0}, ["mu", *lost])]
     if name == "clearance":
         harm = [h for h, _ in CLEARANCE_HARMONICS]
         return [("harmonic", {"length": 0.0, "limit": 0.0}, harm[:3]),
@@ -370,30 +371,6 @@ def relative_direction(robot: Robot, d: np.ndarray) -> np.ndarray:
     return np.clip(out, -1.0, 1.0)
 
 
-def interaction_moment(robot: Robot, alpha: np.ndarray) -> np.ndarray:
-    """(B, n) normalised bending moment between each tube and the others (0..1): the jump
-    between its precurvature vector and the stiffness-weighted one of the other tubes, over
-    the sum of their magnitudes."""
-    n = robot.n
-    kap = robot.array("curvature")
-    EI = robot.array("bending_stiffness")
-    ux = -np.sin(alpha) * kap
-    uy = np.cos(alpha) * kap
-    out = np.zeros_like(alpha)
-    for i in range(n):
-        w = EI.copy()
-        w[i] = 0.0
-        if w.sum() <= 0:
-            continue
-        ox = (ux * w).sum(1) / w.sum()
-        oy = (uy * w).sum(1) / w.sum()
-        km = float((np.abs(kap) * w).sum() / w.sum())
-        den = abs(kap[i]) + km
-        if den > 0:
-            out[:, i] = np.hypot(ux[:, i] - ox, uy[:, i] - oy) / den
-    return out
-
-
 def _row_directions(angles: np.ndarray, sweep: np.ndarray | None) -> np.ndarray:
     """(B, k) direction of the last motion of each angle column (rows in order of motion)."""
     B, k = angles.shape
@@ -405,40 +382,69 @@ def _row_directions(angles: np.ndarray, sweep: np.ndarray | None) -> np.ndarray:
 
 def friction_angles(robot: Robot, fr: Mapping[str, float], alpha: np.ndarray,
                     sweep: np.ndarray | None = None, direction: np.ndarray | None = None,
-                    pure: bool = False) -> np.ndarray:
+                    pure: bool = False, beta: np.ndarray | None = None) -> np.ndarray:
     """Actual tube angles (B, n) from commanded ``alpha`` (B, n) under friction ``fr``.
 
     With ``direction`` (B, 2n) in {-1, 0, 1} every row is a pure function of (alpha, direction)
     (the settled state after moving that way: a lag of ``lost``); without it the rows are one
     motion in order per sweep (``dead_band`` is then a backlash with its transients). ``pure``
-    without ``direction``: no direction known, no lag.
+    without ``direction``: no direction known, no lag. ``beta`` (B, n) is needed by the
+    end-moment form.
     """
     n = robot.n
     B = len(alpha)
     lost = np.array([fr[f"lost{i + 1}"] for i in range(n)])
-    mom = np.array([fr.get(f"moment{i + 1}", 0.0) for i in range(n)])
-    if not (np.any(lost > 0.0) or np.any(mom > 0.0)):
-        return alpha
+    mu = float(fr.get("mu", 0.0))
     form = FRICTION_FORMS[int(round(fr.get("form", 0.0)))]
+    if not (np.any(lost > 0.0) or (mu > 0.0 and form == "end_moment")):
+        return alpha
     if direction is None and pure:
         return alpha
     if direction is None and form == "dead_band":
         return _backlash(np.ascontiguousarray(alpha), sweep_starts(B, sweep), lost,
                          float(fr["presliding"]))
+    dj = (np.asarray(direction, dtype=float)[:, :n] if direction is not None
+          else _row_directions(alpha, sweep))
     if form in ("dead_band", "lag"):
-        d = (np.asarray(direction, dtype=float)[:, :n] if direction is not None
-             else _row_directions(alpha, sweep))
-    else:
-        if direction is not None:
-            dj = np.asarray(direction, dtype=float)[:, :n]
-            pair = np.sign(dj[:, :-1] - dj[:, 1:])
-        else:
-            pair = _row_directions(alpha[:, :-1] - alpha[:, 1:], sweep)
-        d = relative_direction(robot, pair)
-    amount = lost[None, :]
-    if form == "end_moment" and np.any(mom > 0.0):
-        amount = amount + mom[None, :] * interaction_moment(robot, alpha)
-    return alpha - d * amount
+        return alpha - dj * lost[None, :]
+    pair = np.sign(dj[:, :-1] - dj[:, 1:])                    # inner minus outer, (B, n-1)
+    out = alpha - relative_direction(robot, pair) * lost[None, :]
+    if form == "end_moment" and mu > 0.0 and n > 1:
+        if beta is None:
+            raise ValueError("the end-moment friction form needs beta")
+        out = out + mu * end_moment_twist(robot, alpha, beta, pair)
+    return out
+
+
+def end_moment_twist(robot: Robot, alpha: np.ndarray, beta: np.ndarray,
+                     pair: np.ndarray) -> np.ndarray:
+    """(B, n) rotation (rad) per unit friction coefficient of the end-moment form (the study's
+    concentrated moment): where outer tube o ends, a torque T = s |M| (|M| the outer tube's
+    bending moment there in the rigid model, s = ``pair[:, o-1]`` the direction of the relative
+    rotation inner minus outer) twists tube o by +T l_o / GJ_o and tube o-1 by
+    -T l_(o-1) / GJ_(o-1), l being each tube's length from its base to that point."""
+    n = robot.n
+    kap = robot.array("curvature")
+    EI = robot.array("bending_stiffness")
+    GJ = robot.array("torsional_stiffness")
+    L = robot.lengths
+    straight = robot.array("straight_length")
+    out = np.zeros_like(alpha)
+    for o in range(1, n):
+        s_end = beta[:, o] + L[o]
+        s_in = s_end - 1e-6                                   # just inside the outer tube's end
+        present = s_in[:, None] < beta + L[None, :]
+        curved = s_in[:, None] >= beta + straight[None, :]
+        k = np.where(curved, kap[None, :], 0.0)
+        w = np.where(present, EI[None, :], 0.0)
+        tot = np.where(w.sum(1) > 0, w.sum(1), 1.0)
+        ux = -(w * k * np.sin(alpha)).sum(1) / tot
+        uy = (w * k * np.cos(alpha)).sum(1) / tot
+        M = EI[o] * np.hypot(ux + k[:, o] * np.sin(alpha[:, o]), uy - k[:, o] * np.cos(alpha[:, o]))
+        T = pair[:, o - 1] * M
+        out[:, o] += T * (s_end - beta[:, o]) / GJ[o]
+        out[:, o - 1] -= T * (s_end - beta[:, o - 1]) / GJ[o - 1]
+    return out
 
 
 def prepare(robot: Robot, base: str, effects: Mapping[str, Mapping[str, float]], q: np.ndarray,
@@ -457,7 +463,7 @@ def prepare(robot: Robot, base: str, effects: Mapping[str, Mapping[str, float]],
             q = q + off
     fr = effects.get("friction")
     if fr is not None:
-        q[:, :n] = friction_angles(robot, fr, q[:, :n], sweep, direction, pure)
+        q[:, :n] = friction_angles(robot, fr, q[:, :n], sweep, direction, pure, q[:, n:])
     kappa = np.broadcast_to(robot.array("curvature"), (B, n)).copy()
     EI = np.broadcast_to(robot.array("bending_stiffness"), (B, n)).copy()
     ratio = np.broadcast_to(robot.array("bending_stiffness") / robot.array("torsional_stiffness"),
@@ -536,8 +542,8 @@ class EffectModel:
     def needs_direction(self) -> bool:
         """True when friction is on: shapes depend on the direction of the last motion."""
         fr = self.effects.get("friction")
-        return bool(fr) and any(v > 0.0 for k, v in fr.items()
-                                if k.startswith(("lost", "moment")))
+        return bool(fr) and (any(v > 0.0 for k, v in fr.items() if k.startswith("lost"))
+                             or (fr.get("mu", 0.0) > 0.0 and round(fr.get("form", 0.0)) == 3))
 
     def __repr__(self) -> str:
         return f"EffectModel(robot={self.robot.name!r}, base={self.base!r}, effects={self.effects!r})"
