@@ -184,8 +184,11 @@ class Reference:
             if s_next > s_now:
                 lo, hi = s_now, s_next
                 eps = 1e-9 * (hi - lo)
-                sol = solve_ivp(lambda s, yy: self.rhs(min(max(s, lo + eps), hi - eps), yy),
-                                (lo, hi), y, method="DOP853", rtol=1e-12, atol=1e-13)
+
+                def f(s, yy, a=lo + eps, b=hi - eps):
+                    return self.rhs(min(max(s, a), b), yy)
+
+                sol = solve_ivp(f, (lo, hi), y, method="DOP853", rtol=1e-12, atol=1e-13)
                 y = sol.y[:, -1].copy()
                 s_now = s_next
             for i in range(n):
@@ -241,4 +244,205 @@ def test_independent_integration(case, torsion):
     unloaded = PhysicsModel(robot, torsion=torsion).shape(q[None], 15).points[0]
     moved = np.max(np.linalg.norm(unloaded - want, axis=1))
     assert moved > 0.2          # the load matters
-    assert err < 1e-2, (err, moved)
+    assert err < 1e-3, (err, moved)
+
+
+# ----------------------------------------------------------------------------- kernel properties
+def _workspace(n):
+    N = 3 * n + 14
+    nx = n + 2
+    return dict(y=np.zeros(N), T=np.zeros((N, nx)), k=np.zeros(n), w=np.zeros(n),
+                n0=np.zeros(3), wsum=np.zeros(3), ws=np.zeros((5, N)), WS=np.zeros((5, N, nx)))
+
+
+def _residual(robot, q, x, W, F, M, kink=None, torsion=True, sens=True):
+    n = robot.n
+    L = robot.lengths
+    st = robot.array("straight_length")
+    EI = robot.array("bending_stiffness")
+    ratio = EI / robot.array("torsional_stiffness") if torsion else np.zeros(n)
+    kink = np.zeros((n, 2)) if kink is None else kink
+    tpos, ttyp, tidx = np.zeros(2 * n), np.zeros(2 * n, np.int64), np.zeros(2 * n, np.int64)
+    _tube_events(q[n:], L, st, tpos, ttyp, tidx)
+    resid, jac = np.zeros(n + 2), np.zeros((n + 2, n + 2))
+    ws = _workspace(n)
+    _loaded._integrate(q[:n].copy(), q[n:].copy(), x, L, st, robot.array("curvature"), EI, ratio,
+                       kink, W, F, M, tpos, ttyp, tidx, np.zeros(1), 0, 10.0, sens,
+                       np.zeros((0, 3)), resid, jac, ws["y"], ws["T"], ws["k"], ws["w"],
+                       ws["n0"], ws["wsum"], ws["ws"], ws["WS"])
+    return resid, jac
+
+
+@pytest.mark.parametrize("torsion", [True, False])
+@pytest.mark.parametrize("with_kink", [False, True])
+def test_variational_jacobian_matches_finite_differences(torsion, with_kink):
+    robot = load_robot("seed1")
+    q = np.array([0.4, -1.2, 2.5, -60.0, -30.0, -10.0])
+    W = np.array([[0.0, -3e-5, 1e-5]] * 3)
+    F = np.array([0.05, -0.02, 0.01])
+    M = np.array([1.0, 2.0, -0.5])
+    kink = np.array([[0.0, 0.0], [0.01, -0.02], [0.03, 0.01]]) if with_kink else None
+    x = np.array([3.0, -2.0, 1.0, 5.0, -4.0])
+    _, jac = _residual(robot, q, x, W, F, M, kink, torsion)
+    fd = np.zeros_like(jac)
+    for c in range(len(x)):
+        h = 1e-4
+        xp, xm = x.copy(), x.copy()
+        xp[c] += h
+        xm[c] -= h
+        fd[:, c] = (_residual(robot, q, xp, W, F, M, kink, torsion, False)[0]
+                    - _residual(robot, q, xm, W, F, M, kink, torsion, False)[0]) / (2 * h)
+    assert np.max(np.abs(jac)) > 1e-6
+    np.testing.assert_allclose(jac, fd, rtol=1e-6, atol=1e-7 * np.max(np.abs(jac)))
+
+
+@pytest.mark.parametrize("robot", ["seed1", "two_tube_nylon"])
+@pytest.mark.parametrize("torsion", [True, False])
+def test_zero_loads_are_the_unloaded_kernels_bit_for_bit(robot, torsion):
+    r = load_robot(robot)
+    q = r.sample(60, seed=4)
+    ref = PhysicsModel(r, torsion=torsion).shape(q, 9)
+    a = PhysicsModel(r, torsion=torsion, loads=Loads()).shape(q, 9)
+    m = PhysicsModel(r, torsion=torsion)
+    B, n = len(q), r.n
+    p = m.base_params(B)
+    zeros = MechanicsParams(p.kappa, p.EI, p.ratio, p.kink, weight=np.zeros((B, n, 3)),
+                            force=np.zeros((B, 3)), moment=np.zeros((B, 3)))
+    b = m.solve(q, 9, zeros)
+    off = EffectModel(r, "compliant" if torsion else "rigid", {"load": {}}).shape(q, 9)
+    for s in (a, b, off):
+        assert np.array_equal(s.points, ref.points, equal_nan=True)
+        assert np.array_equal(s.ok, ref.ok)
+
+
+def test_mixed_batch_and_batch_order():
+    """Per-row loads: unloaded rows are bit-identical to the unloaded kernel, loaded rows equal
+    their own single solves, and a permuted batch gives the same rows."""
+    r = load_robot("seed1")
+    q = r.sample(24, seed=7)
+    m = PhysicsModel(r)
+    B, n = len(q), r.n
+    rng = np.random.default_rng(0)
+    p = m.base_params(B)
+    on = np.arange(B) % 3 != 0
+    force = rng.normal(0, 0.05, (B, 3)) * on[:, None]
+    weight = np.zeros((B, n, 3))
+    weight[:, :, 1] = -6e-5 * on[:, None]
+    params = MechanicsParams(p.kappa, p.EI, p.ratio, p.kink, weight=weight, force=force)
+    shp = m.solve(q, 11, params)
+    assert shp.ok.all()
+    ref = m.shape(q, 11)
+    assert np.array_equal(shp.points[~on], ref.points[~on])
+    assert np.all(np.linalg.norm(shp.tip[on] - ref.tip[on], axis=1) > 1e-3)
+    perm = rng.permutation(B)
+    pp = MechanicsParams(p.kappa[perm], p.EI[perm], p.ratio[perm], p.kink[perm],
+                         weight=weight[perm], force=force[perm])
+    again = m.solve(q[perm], 11, pp)
+    assert np.array_equal(again.points, shp.points[perm])
+    for i in np.flatnonzero(on)[:3]:
+        one = m.solve(q[i:i + 1], 11, MechanicsParams(p.kappa[i:i + 1], p.EI[i:i + 1],
+                                                      p.ratio[i:i + 1], p.kink[i:i + 1],
+                                                      weight=weight[i:i + 1],
+                                                      force=force[i:i + 1]))
+        assert np.array_equal(one.points[0], shp.points[i])
+
+
+def test_not_converged_is_not_ok():
+    from ctrplan.shape.physics import PhysicsConfig
+
+    r = load_robot("seed1")
+    q = r.sample(5, seed=1)
+    m = PhysicsModel(r, config=PhysicsConfig(max_iter=1), loads=Loads(tip_force=(1.0, -1.0, 0.0)))
+    shp = m.shape(q, 5)
+    assert not shp.ok.any()
+    good = PhysicsModel(r, loads=Loads(tip_force=(1.0, -1.0, 0.0))).shape(q, 5)
+    assert good.ok.all()
+
+
+def test_large_load_converges_by_continuation():
+    """A load that bends the robot by tens of mm: ok, and equal to the independent solver."""
+    r = load_robot("two_tube_nylon")
+    q = np.array([0.5, 2.0, -30.0, -20.0])
+    loads = Loads(tip_force=(0.0, 1.5, 0.0), gravity=(0.0, 0.0, G))
+    shp = PhysicsModel(r, loads=loads).shape(q[None], 9)
+    assert shp.ok.all()
+    unl = PhysicsModel(r).shape(q[None], 9)
+    assert np.linalg.norm(shp.tip - unl.tip) > 20.0
+    want = Reference(r, q, True, loads.gravity, loads.tip_force).solve(shp.s[0])
+    assert np.max(np.linalg.norm(shp.points[0] - want, axis=1)) < 1e-3
+
+
+# ----------------------------------------------------------------------------- load effect
+@pytest.mark.parametrize("base", ["rigid", "compliant"])
+def test_load_effect_is_the_loaded_physics_model(base):
+    r = load_robot("seed1")
+    q = r.sample(10, seed=2)
+    eff = EffectModel(r, base, {"load": {"gx": 3.0, "gy": -9.0, "fz": 0.2, "fx": 0.01}})
+    phys = PhysicsModel(r, torsion=base == "compliant",
+                        loads=Loads(gravity=(3.0, -9.0, 0.0), tip_force=(0.01, 0.0, 0.2)))
+    a = eff.shape(q, 7)
+    b = phys.shape(q, 7)
+    assert a.ok.all()
+    assert np.array_equal(a.points, b.points)
+
+
+def test_load_effect_params():
+    r = load_robot("seed1")
+    ps = {p.name: p for p in effect_params("load", r)}
+    assert set(ps) == {"gx", "gy", "gz", "fx", "fy", "fz"}
+    assert all(p.off == 0.0 and p.lo < 0 < p.hi for p in ps.values())
+    assert [k for k, p in ps.items() if p.fit] == ["gx", "gy"]
+
+
+def test_cli_simulate_with_load(tmp_path):
+    from ctrplan.cli import main
+    from ctrplan.measured import read_measured
+
+    r = load_robot("seed1")
+    cfg = tmp_path / "c.csv"
+    q = r.sample(6, seed=3)
+    from ctrplan.robot import write_configs
+
+    write_configs(cfg, r, q)
+    out = tmp_path / "m.csv"
+    assert main(["-q", "simulate", "--robot", "seed1", "--configs", str(cfg), "--effect",
+                 "load:gy=-9.81,fx=0.02", "--out", str(out)]) == 0
+    d = read_measured(out, r)
+    want = PhysicsModel(r, torsion=False, loads=Loads(gravity=(0, -9.81, 0),
+                                                      tip_force=(0.02, 0, 0))).shape(q, 2).tip
+    np.testing.assert_allclose(d.tip, want, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- robot YAML
+def test_density_yaml_round_trip_and_validation(tmp_path):
+    data = load_robot("seed1").to_dict()
+    assert all("density" not in t for t in data["tubes"])      # optional: not written if unset
+    data["tubes"][1]["density"] = 1140
+    r = robot_from_dict(data, "r.yaml")
+    assert r.tubes[1].density == 1140.0 and r.tubes[0].density is None
+    path = tmp_path / "r.yaml"
+    r.save(path)
+    back = load_robot(path)
+    assert back.tubes[1].density == 1140.0 and back.tubes[0].density is None
+    assert back == r
+    for bad in (-1.0, 0.0, float("nan"), float("inf"), "heavy", True):
+        d = load_robot("seed1").to_dict()
+        d["tubes"][2]["density"] = bad
+        with pytest.raises(InputError, match=r"tubes\[2\]\.density"):
+            robot_from_dict(d, "bad.yaml")
+
+
+def test_gravity_uses_density():
+    """Weight scales with density: doubling every density doubles the small gravity sag."""
+    base = load_robot("seed1").to_dict()
+    heavy = load_robot("seed1").to_dict()
+    for t in heavy["tubes"]:
+        t["density"] = 2 * 6450.0
+    q = np.array([[0.0, 0.0, 0.0, -40.0, -30.0, -20.0]])
+    r0 = robot_from_dict(base)
+    r2 = robot_from_dict(heavy)
+    un = PhysicsModel(r0).shape(q, 5).tip
+    d1 = PhysicsModel(r0, loads=Loads(gravity=(0, -G, 0))).shape(q, 5).tip - un
+    d2 = PhysicsModel(r2, loads=Loads(gravity=(0, -G, 0))).shape(q, 5).tip - un
+    assert np.linalg.norm(d1) > 0.1
+    assert np.linalg.norm(d2 - 2 * d1) < 2e-2 * np.linalg.norm(2 * d1)
