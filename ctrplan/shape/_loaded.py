@@ -425,19 +425,37 @@ def _solve_lin(jac, resid, dx, A):
 
 
 @njit(cache=True, error_model="numpy")
-def _newton(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, out_s, step,
-            tol, max_iter, resid, jac, resid_t, jac_t, dx, xt, A, y, T, k, w, n0, wsum, ws, WS,
-            no_p):
-    """Newton with backtracking on x (in place). Returns (residual, iterations)."""
+def _newton(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, out_s, m_out,
+            step, tol, max_iter, pts, resid, jac, resid_t, jac_t, dx, xt, A, y, T, k, w, n0,
+            wsum, ws, WS):
+    """Newton with backtracking on x (in place). Every pass also writes the output points
+    ``pts[:m_out]`` (cheap: Hermite interpolation), so the final pass is skipped when the last
+    pass was at the returned x. Once Newton is in its quadratic regime and predicts
+    convergence, the full step is tried without the variational equations.
+    Returns (residual, iterations, pts_at_x)."""
     nx = x.shape[0]
-    _integrate(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, out_s, 0,
-               step, True, no_p, resid, jac, y, T, k, w, n0, wsum, ws, WS)
+    _integrate(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, out_s, m_out,
+               step, True, pts, resid, jac, y, T, k, w, n0, wsum, ws, WS)
     r = _max_abs(resid)
     it = 0
+    quad = -1.0            # estimate of C in |resid after a full step| ~ C |dx|^2
+    at_x = True
     while r >= tol and it < max_iter and math.isfinite(r):
         it += 1
         if not _solve_lin(jac, resid, dx, A):
             break
+        dxn = _max_abs(dx)
+        if quad > 0.0 and quad * dxn * dxn < 0.1 * tol:
+            for i in range(nx):
+                xt[i] = x[i] + dx[i]
+            _integrate(al, be, xt, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx,
+                       out_s, m_out, step, False, pts, resid_t, jac_t, y, T, k, w, n0, wsum,
+                       ws, WS)
+            rt = _max_abs(resid_t)
+            if rt < tol:
+                for i in range(nx):
+                    x[i] = xt[i]
+                return rt, it, True
         t = 1.0
         accepted = False
         rt = r
@@ -445,21 +463,24 @@ def _newton(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, o
             for i in range(nx):
                 xt[i] = x[i] + t * dx[i]
             _integrate(al, be, xt, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx,
-                       out_s, 0, step, True, no_p, resid_t, jac_t, y, T, k, w, n0, wsum, ws, WS)
+                       out_s, m_out, step, True, pts, resid_t, jac_t, y, T, k, w, n0, wsum,
+                       ws, WS)
             rt = _max_abs(resid_t)
             if rt < r or rt < tol:
                 accepted = True
                 break
             t *= 0.5
         if not accepted:
+            at_x = False
             break
+        quad = rt / (dxn * dxn) if (t == 1.0 and dxn > 0.0) else -1.0
         for i in range(nx):
             x[i] = xt[i]
             resid[i] = resid_t[i]
             for c in range(nx):
                 jac[i, c] = jac_t[i, c]
         r = rt
-    return r, it
+    return r, it, at_x
 
 
 @njit(cache=True, error_model="numpy")
@@ -509,7 +530,6 @@ def solve_loaded_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, W, F, M
     Fl = np.zeros(3)
     Ml = np.zeros(3)
     out_s = np.zeros(m)
-    no_p = np.zeros((0, 3))
     for bi in range(B):
         al = alpha[bi]
         be = beta[bi]
@@ -520,9 +540,10 @@ def solve_loaded_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, W, F, M
         out_s[m - 1] = tip
         for i in range(nx):
             x[i] = x_init[bi, i]
-        r, it = _newton(al, be, x, L, straight, kappa[bi], EI[bi], ratio[bi], kink[bi], W[bi],
-                        F[bi], M[bi], tpos, ttyp, tidx, out_s, step, tol, max_iter, resid, jac,
-                        resid_t, jac_t, dx, xt, A, y, T, k, w, n0, wsum, ws, WS, no_p)
+        r, it, at_x = _newton(al, be, x, L, straight, kappa[bi], EI[bi], ratio[bi], kink[bi],
+                              W[bi], F[bi], M[bi], tpos, ttyp, tidx, out_s, m, step, tol,
+                              max_iter, points[bi], resid, jac, resid_t, jac_t, dx, xt, A, y, T,
+                              k, w, n0, wsum, ws, WS)
         for K in (8, 32):
             if r < tol:
                 break
@@ -535,16 +556,18 @@ def solve_loaded_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, W, F, M
                     Ml[c] = lam * M[bi, c]
                     for i in range(n):
                         Wl[i, c] = lam * W[bi, i, c]
-                r, itk = _newton(al, be, x, L, straight, kappa[bi], EI[bi], ratio[bi], kink[bi],
-                                 Wl, Fl, Ml, tpos, ttyp, tidx, out_s, step, tol, max_iter, resid,
-                                 jac, resid_t, jac_t, dx, xt, A, y, T, k, w, n0, wsum, ws, WS,
-                                 no_p)
+                r, itk, at_x = _newton(al, be, x, L, straight, kappa[bi], EI[bi], ratio[bi],
+                                       kink[bi], Wl, Fl, Ml, tpos, ttyp, tidx, out_s, m, step,
+                                       tol, max_iter, points[bi], resid, jac, resid_t, jac_t, dx,
+                                       xt, A, y, T, k, w, n0, wsum, ws, WS)
                 it += itk
                 if not r < tol:
+                    at_x = at_x and kk == K
                     break
-        _integrate(al, be, x, L, straight, kappa[bi], EI[bi], ratio[bi], kink[bi], W[bi], F[bi],
-                   M[bi], tpos, ttyp, tidx, out_s, m, step, False, points[bi], resid_t, jac_t,
-                   y, T, k, w, n0, wsum, ws, WS)
+        if not at_x:
+            _integrate(al, be, x, L, straight, kappa[bi], EI[bi], ratio[bi], kink[bi], W[bi],
+                       F[bi], M[bi], tpos, ttyp, tidx, out_s, m, step, False, points[bi],
+                       resid_t, jac_t, y, T, k, w, n0, wsum, ws, WS)
         finite = True
         for q in range(m):
             svals[bi, q] = out_s[q]

@@ -261,20 +261,43 @@ class PhysicsModel:
         moment = None if params.moment is None else arr("moment", params.moment, (B, 3))
         loaded = replace(params, weight=weight, force=force, moment=moment).loaded_rows()
         _wait_for_warmup()
-        pts, s, uz0, iters, resid, ok = _shooting.solve_batch(
-            alpha, beta, self._lengths, self._straight, kappa, EI, ratio, kink,
-            self.torsion, int(points), float(self.config.step_mm), float(self.config.tol),
-            int(self.config.max_iter), x0,
-        )
-        if loaded.any():
+
+        def unloaded(rows, m):
+            # the unloaded kernels, on all rows or (index array) a subset
+            if rows is None:
+                return _shooting.solve_batch(
+                    alpha, beta, self._lengths, self._straight, kappa, EI, ratio, kink,
+                    self.torsion, m, float(self.config.step_mm), float(self.config.tol),
+                    int(self.config.max_iter), x0)
+            c = np.ascontiguousarray
+            return _shooting.solve_batch(
+                c(alpha[rows]), c(beta[rows]), self._lengths, self._straight, c(kappa[rows]),
+                c(EI[rows]), c(ratio[rows]), c(kink[rows]), self.torsion, m,
+                float(self.config.step_mm), float(self.config.tol), int(self.config.max_iter),
+                c(x0[rows]))
+
+        if not loaded.any():
+            pts, s, uz0, iters, resid, ok = unloaded(None, int(points))
+        else:
+            pts = np.zeros((B, points, 3))
+            s = np.zeros((B, points))
+            uz0 = np.zeros((B, n))
+            iters = np.zeros(B, dtype=np.int64)
+            resid = np.zeros(B)
+            ok = np.zeros(B, dtype=bool)
+            free = np.flatnonzero(~loaded)
+            if len(free):
+                pts[free], s[free], uz0[free], iters[free], resid[free], ok[free] = unloaded(
+                    free, int(points))
             idx = np.flatnonzero(loaded)
-            zeros3 = np.zeros((B, 3))
             W = np.zeros((B, n, 3)) if weight is None else weight
-            F = zeros3 if force is None else force
-            M = zeros3 if moment is None else moment
+            F = np.zeros((B, 3)) if force is None else force
+            M = np.zeros((B, 3)) if moment is None else moment
+            # first guess from the unloaded solution of the loaded rows (33 points)
+            gp, gs, guz, _, _, gok = unloaded(idx, 33)
             lp, ls, luz, lit, lres = self._solve_loaded(
                 alpha[idx], beta[idx], kappa[idx], EI[idx], ratio[idx], kink[idx], W[idx],
-                F[idx], M[idx], pts[idx], s[idx], uz0[idx], ok[idx], int(points))
+                F[idx], M[idx], gp, gs, guz, gok, int(points))
             pts[idx], s[idx], uz0[idx], iters[idx], resid[idx] = lp, ls, luz, lit, lres
             ok[idx] = lres < self.config.tol
         ok = ok & np.all(np.isfinite(pts), axis=(1, 2))
@@ -288,12 +311,6 @@ class PhysicsModel:
         Returns points, s, uz(0), iterations, residual (1/mm) of those rows."""
         n = self.robot.n
         B = len(alpha)
-        if pts0.shape[1] < 33:
-            # a finer unloaded backbone for the first guess of the base moment
-            pts0, s0, uz00, _, _, ok0 = _shooting.solve_batch(
-                alpha, beta, self._lengths, self._straight, kappa, EI, ratio, kink, self.torsion,
-                33, float(self.config.step_mm), float(self.config.tol),
-                int(self.config.max_iter), np.ascontiguousarray(uz00))
         ratio = ratio if self.torsion else np.zeros_like(ratio)
         # torsional moments of the unloaded solution; zero where it failed or for the rigid model
         tau0 = np.where(ok0[:, None] & (ratio > 0), uz00 * EI / np.where(ratio > 0, ratio, 1.0), 0.0)
