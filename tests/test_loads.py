@@ -446,3 +446,25 @@ def test_gravity_uses_density():
     d2 = PhysicsModel(r2, loads=Loads(gravity=(0, -G, 0))).shape(q, 5).tip - un
     assert np.linalg.norm(d1) > 0.1
     assert np.linalg.norm(d2 - 2 * d1) < 2e-2 * np.linalg.norm(2 * d1)
+
+
+def test_continuation_when_newton_cannot_start():
+    """A first guess Newton cannot use (NaN) falls back to ramping the load up from the unloaded
+    solution: same answer as the normal solve."""
+    r = load_robot("seed1")
+    q = np.array([0.4, -1.2, 2.5, -60.0, -30.0, -10.0])
+    loads = Loads(gravity=(0.0, -G, 0.0), tip_force=(0.2, 0.0, 0.0))
+    m = PhysicsModel(r, loads=loads)
+    ref = m.shape(q[None], 9)
+    n = r.n
+    p = m.base_params(1)
+    unl = PhysicsModel(r)
+    unl.shape(q[None], 2)
+    tau = unl.last_info.uz0 * r.array("torsional_stiffness")
+    x_start = np.concatenate([tau, np.zeros((1, 2))], axis=1)
+    pts, _, x, it, res, ok = _loaded.solve_loaded_batch(
+        q[None, :n].copy(), q[None, n:].copy(), r.lengths, r.array("straight_length"), p.kappa,
+        p.EI, p.ratio, p.kink, p.weight, p.force, np.zeros((1, 3)), 9, 10.0, 1e-10, 30,
+        np.full((1, n + 2), np.nan), x_start)
+    assert ok[0] and it[0] >= 8                      # at least one Newton step per stage
+    assert np.max(np.abs(pts[0] - ref.points[0])) < 1e-7
