@@ -391,7 +391,7 @@ def test_load_effect_params():
     ps = {p.name: p for p in effect_params("load", r)}
     assert set(ps) == {"gx", "gy", "gz", "fx", "fy", "fz"}
     assert all(p.off == 0.0 and p.lo < 0 < p.hi for p in ps.values())
-    assert [k for k, p in ps.items() if p.fit] == ["gx", "gy"]
+    assert [k for k, p in ps.items() if p.fit] == ["gx", "gy", "fx", "fy"]
 
 
 def test_cli_simulate_with_load(tmp_path):
@@ -468,3 +468,26 @@ def test_continuation_when_newton_cannot_start():
         np.full((1, n + 2), np.nan), x_start)
     assert ok[0] and it[0] >= 8                      # at least one Newton step per stage
     assert np.max(np.abs(pts[0] - ref.points[0])) < 1e-7
+
+
+# ----------------------------------------------------------------------------- foreign generator
+@pytest.mark.parametrize("robot", ["seed1", "two_tube_nylon"])
+@pytest.mark.parametrize("torsion", [True, False])
+def test_agrees_with_the_foreign_generator(robot, torsion):
+    """tests/foreign (its own YAML parsing and loaded rod integration, no ctrplan import) with
+    its default load (horizontal gravity + tip force) and a gravity-only load."""
+    foreign = pytest.importorskip("tests.foreign")
+    r = load_robot(robot)
+    q = r.sample(8, seed=5)
+    tip_force = (0.0, -1e-5 * r.tubes[0].bending_stiffness, 0.0)     # the generator's default
+    for eff, loads in (({"load": {}}, Loads(gravity=(9.81, 0, 0), tip_force=tip_force)),
+                       ({"load": {"gravity": [0, -9.81, 3.0], "tip_force": [0, 0, 0]}},
+                        Loads(gravity=(0, -9.81, 3.0)))):
+        if torsion:
+            eff = {**eff, "torsion": {}}
+        theirs = foreign.backbones(robot, q, eff, points=15)
+        ours = PhysicsModel(r, torsion=torsion, loads=loads).shape(q, 15)
+        unloaded = PhysicsModel(r, torsion=torsion).shape(q, 15).points
+        assert ours.ok.all() and np.isfinite(theirs).all()
+        assert np.max(np.linalg.norm(theirs - unloaded, axis=2)) > 0.3
+        assert np.max(np.linalg.norm(theirs - ours.points, axis=2)) < 1e-3

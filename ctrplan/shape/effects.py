@@ -44,13 +44,13 @@ The vocabulary (DESIGN.md):
     Zero offsets of the joints: the tubes are at ``alpha_i + dalpha<i>``, ``beta_i + dbeta<i>``
     (rad, mm; off 0).
 ``load``
-    External loads (:class:`~ctrplan.shape.physics.Loads`, base frame): gravity ``gx, gy``
-    (m/s^2, fitted: the gravity component across the insertion axis, i.e. direction and
-    magnitude of the sag of a robot that is not vertical; weight per length from each tube's
-    ``density``, nitinol's where none is given, so a wrong density shows as a scaled g) and,
-    as form parameters set by hand (not fitted), ``gz`` (m/s^2) and a tip force ``fx, fy, fz``
-    (N). Off: all 0 (the unloaded kernel runs). On a rigid base the loaded model is
-    torsionally rigid (see :class:`~ctrplan.shape.physics.PhysicsModel`).
+    External loads (:class:`~ctrplan.shape.physics.Loads`, base frame). Fitted: gravity
+    ``gx, gy`` (m/s^2; the component across the insertion axis, i.e. direction and magnitude
+    of the sag of a robot that is not vertical; weight per length from each tube's ``density``,
+    nitinol's where none is given, so a wrong density shows as a scaled g) and a tip force
+    ``fx, fy`` (N). Set by hand (not fitted: along the axis they barely bend the robot):
+    ``gz`` (m/s^2) and ``fz`` (N). Off: all 0 (the unloaded kernel runs). On a rigid base the
+    loaded model is torsionally rigid (see :class:`~ctrplan.shape.physics.PhysicsModel`).
 
 A caveat written down once: on a compliant base the clearance tilt direction uses the base
 angles alpha (the rigid model's tube angles), not the twisted angles at the tube's end.
@@ -132,8 +132,8 @@ def effect_params(name: str, robot: Robot, base: str = "rigid") -> tuple[Param, 
     if name == "load":
         return tuple(Param(f"g{c}", 0.0, -30.0, 30.0, "m/s^2", f"gravity component {c} (base frame)",
                            fit=c != "z") for c in "xyz") + tuple(
-            Param(f"f{c}", 0.0, -5.0, 5.0, "N", f"tip force component {c} (base frame)", fit=False)
-            for c in "xyz")
+            Param(f"f{c}", 0.0, -5.0, 5.0, "N", f"tip force component {c} (base frame)",
+                  fit=c != "z") for c in "xyz")
     raise InputError("<effect>", name, f"unknown effect; known: {', '.join(EFFECT_NAMES)}")
 
 
