@@ -62,11 +62,19 @@ def test_far_from_reach_cannot_be_diagnosed(clean):
 
 
 def test_parameters_at_bounds_are_not_a_diagnosis(clean):
-    r, q, sw, d = clean
-    # an 80 mm sensor offset: registration translations are bounded at 50 mm
-    rep = diagnose(r, MeasuredData(q=q, tip=d.tip + np.array([80.0, 0.0, 0.0]), sweep=sw), seed=0)
+    from dataclasses import replace
+
+    from ctrplan.robot import Robot
+
+    r, q, sw, _ = clean
+    # the true tube 2 is 4x as curved as the robot file says; precurvature scales stop at 3
+    tubes = list(r.tubes)
+    tubes[1] = replace(tubes[1], curvature=4.0 * tubes[1].curvature)
+    truth = Robot(name="truth", tubes=tuple(tubes), beta_min=r.beta_min)
+    data = simulate(truth, q, {}, sweep=sw, noise_mm=0.2, seed=3)
+    rep = diagnose(r, data, seed=0)
     _insufficient(rep, ["bounds"])
-    assert "registration.tx" in rep.conclusion and rep.partial
+    assert "precurvature.scale2" in rep.conclusion and rep.partial
 
 
 def test_single_sweep_is_not_held_out_while_trained_on(clean):

@@ -58,7 +58,7 @@ def test_each_effect_changes_the_shape():
     on = {"torsion": {"compliance": 1.0}, "friction": {"lost1": 0.2},
           "clearance": {"length": 10.0}, "precurvature": {"scale1": 1.2},
           "stiffness": {"ratio1": 2.0}, "registration": {"tz": 1.0},
-          "joint_offset": {"dbeta1": -2.0}}
+          "joint_offset": {"dbeta1": -2.0}, "load": {"gy": 9.81}}
     assert set(on) == set(EFFECT_NAMES)
     for name, vals in on.items():
         tip = EffectModel(r, "rigid", {name: vals}).shape(q, 2).tip

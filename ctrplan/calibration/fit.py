@@ -98,6 +98,7 @@ class Problem:
             ratio=np.concatenate([preps[u].params.ratio if preps[u].torsion
                                   else np.zeros_like(preps[u].params.ratio) for u in uniq]),
             kink=np.concatenate([preps[u].params.kink for u in uniq]),
+            **_loads_of([preps[u].params for u in uniq]),
         )
         phys = self.model._compliant if tors else self.model._rigid
         pts = phys.solve(q, self.m, params).points
@@ -217,6 +218,17 @@ class Problem:
             out.values.setdefault(e, {})[p.name] = eff[e][p.name]
             out.sigma.setdefault(e, {})[p.name] = float(s)
         return out
+
+
+def _loads_of(params: Sequence[MechanicsParams]) -> dict[str, np.ndarray]:
+    """The load arrays of several parameter sets stacked (zeros where a set has none)."""
+    out: dict[str, np.ndarray] = {}
+    for name, tail in (("weight", params[0].EI.shape[1:] + (3,)), ("force", (3,)),
+                       ("moment", (3,))):
+        if any(getattr(p, name) is not None for p in params):
+            out[name] = np.concatenate([np.zeros((len(p.EI),) + tail) if getattr(p, name) is None
+                                        else getattr(p, name) for p in params])
+    return out
 
 
 def _same_mechanics(a: Mapping[str, Mapping[str, float]], b: Mapping[str, Mapping[str, float]]) -> bool:

@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from ctrplan.io import jsonable, save_figure, write_json_atomic, write_text_atomic
 from ctrplan.measured import MeasuredData
-from ctrplan.robot import Robot, Tube, wrap_angle
+from ctrplan.robot import Robot, wrap_angle
 
 
 def folded_robot(robot: Robot, effects: dict[str, dict[str, float]]) -> Robot:
@@ -38,7 +39,7 @@ def folded_robot(robot: Robot, effects: dict[str, dict[str, float]]) -> Robot:
         e = t.youngs_modulus
         if i < n - 1:
             e *= effects.get("stiffness", {}).get(f"ratio{i + 1}", 1.0)
-        tubes.append(Tube(t.od, t.id, t.straight_length, t.curved_length, k, e, t.poisson_ratio))
+        tubes.append(replace(t, curvature=k, youngs_modulus=e))
     return Robot(name=f"{robot.name}_calibrated", tubes=tuple(tubes), beta_min=robot.beta_min)
 
 

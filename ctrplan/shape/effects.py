@@ -43,6 +43,14 @@ The vocabulary (DESIGN.md):
 ``joint_offset``
     Zero offsets of the joints: the tubes are at ``alpha_i + dalpha<i>``, ``beta_i + dbeta<i>``
     (rad, mm; off 0).
+``load``
+    External loads (:class:`~ctrplan.shape.physics.Loads`, base frame). Fitted: gravity
+    ``gx, gy`` (m/s^2; the component across the insertion axis, i.e. direction and magnitude
+    of the sag of a robot that is not vertical; weight per length from each tube's ``density``,
+    nitinol's where none is given, so a wrong density shows as a scaled g) and a tip force
+    ``fx, fy`` (N). Set by hand (not fitted: along the axis they barely bend the robot):
+    ``gz`` (m/s^2) and ``fz`` (N). Off: all 0 (the unloaded kernel runs). On a rigid base the
+    loaded model is torsionally rigid (see :class:`~ctrplan.shape.physics.PhysicsModel`).
 
 A caveat written down once: on a compliant base the clearance tilt direction uses the base
 angles alpha (the rigid model's tube angles), not the twisted angles at the tube's end.
@@ -62,10 +70,10 @@ from numba import njit
 from ctrplan.errors import InputError
 from ctrplan.robot import Robot, load_robot
 from ctrplan.shape.base import Shape, check_q, direction_from_rows, radius_along
-from ctrplan.shape.physics import MechanicsParams, PhysicsConfig, PhysicsModel
+from ctrplan.shape.physics import MechanicsParams, PhysicsConfig, PhysicsModel, tube_weights
 
 EFFECT_NAMES = ("torsion", "friction", "clearance", "precurvature", "stiffness", "registration",
-                "joint_offset")
+                "joint_offset", "load")
 BASES = ("rigid", "compliant")
 
 #: Friction forms (the ``form`` code of the friction effect is the index):
@@ -147,6 +155,11 @@ def effect_params(name: str, robot: Robot, base: str = "rigid") -> tuple[Param, 
                      for i in range(n)) + tuple(
             Param(f"dbeta{i + 1}", 0.0, -10.0, 10.0, "mm", f"zero offset of beta{i + 1}")
             for i in range(n))
+    if name == "load":
+        return tuple(Param(f"g{c}", 0.0, -30.0, 30.0, "m/s^2", f"gravity component {c} (base frame)",
+                           fit=c != "z") for c in "xyz") + tuple(
+            Param(f"f{c}", 0.0, -5.0, 5.0, "N", f"tip force component {c} (base frame)",
+                  fit=c != "z") for c in "xyz")
     raise InputError("<effect>", name, f"unknown effect; known: {', '.join(EFFECT_NAMES)}")
 
 
@@ -490,8 +503,15 @@ def prepare(robot: Robot, base: str, effects: Mapping[str, Mapping[str, float]],
     if cl is not None and any(cl.get(h, 0.0) != 0.0 for h, _ in CLEARANCE_HARMONICS):
         kink = kink + clearance_harmonic_kinks(robot, q, [cl.get(h, 0.0) for h, _ in
                                                           CLEARANCE_HARMONICS])
-    return Prepared(q=q, params=MechanicsParams(kappa=kappa, EI=EI, ratio=ratio, kink=kink),
-                    torsion=torsion)
+    params = MechanicsParams(kappa=kappa, EI=EI, ratio=ratio, kink=kink)
+    ld = effects.get("load")
+    if ld is not None:
+        g = np.array([ld["gx"], ld["gy"], ld["gz"]])
+        f = np.array([ld["fx"], ld["fy"], ld["fz"]])
+        if np.any(g != 0.0) or np.any(f != 0.0):
+            params = replace(params, weight=np.tile(tube_weights(robot, g), (B, 1, 1)),
+                             force=np.tile(f, (B, 1)))
+    return Prepared(q=q, params=params, torsion=torsion)
 
 
 def to_sensor(effects: Mapping[str, Mapping[str, float]], points: np.ndarray) -> np.ndarray:
