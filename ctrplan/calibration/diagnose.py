@@ -559,6 +559,12 @@ def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_ga
     correction = np.zeros_like(prob.target_raw)
     while True:
         remaining = [c for c in cands if c not in current]
+        if steps:
+            # after the first step, re-screen only the effects that lowered the BIC before
+            # (an effect that explained nothing then rarely explains something now; this keeps
+            # the workflow's runtime within its budget)
+            prev = {c.effect: c.delta_bic for c in steps[-1].screened}
+            remaining = [c for c in remaining if prev.get(c, -1.0) < 0.0]
         if (not remaining and len(accepted_nuisances) == len(nuisances)) or \
                 len(current) >= max_effects:
             break
@@ -572,7 +578,11 @@ def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_ga
                 fixed = {**current, c: start}
                 key = (c, label)
                 frees[key] = names
-                results[key] = prob.fit(fixed, {c: names}, max_iter=screen_iter,
+                # later steps: a short screen (the leading candidates are refitted in full
+                # below), since every solve now carries the effects already found
+                results[key] = prob.fit(fixed, {c: names},
+                                        max_iter=screen_iter if not current else
+                                        max(2, screen_iter // 3),
                                         k_total=k_cur + len(names))
         # nuisances outside the vocabulary, fitted on top of the current model
         nuis: dict[str, tuple[FitResult, np.ndarray]] = {}
@@ -594,7 +604,8 @@ def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_ga
         # the screen holds the effects already added fixed; the leading candidates are refitted
         # jointly with them (their parameters may have absorbed part of the new effect)
         if current:
-            for key in ranked[:refit_top]:
+            lead = [k for k in ranked if results[k].bic() - cur.bic() < -bic_threshold]
+            for key in lead[:refit_top]:
                 free = {**free_cur, key[0]: frees[key]}
                 joint = prob.fit(results[key].effects, free, max_iter=fit_iter,
                                  k_total=k_nuis + sum(len(v) for v in free.values()))
