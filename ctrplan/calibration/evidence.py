@@ -196,9 +196,17 @@ def harmonics(robot: Robot, q: np.ndarray, res: np.ndarray, noise_sd: float | No
             item.update({"tested": False, "why": "the relative rotation covers less than 90 deg"})
             out.append(item)
             continue
+        orders = (1, 2) if spread >= 1.5 * math.pi else (1,)
+        X = X[:, : 1 + 2 * len(orders)]
+        Xs = X / np.maximum(np.linalg.norm(X, axis=0), 1e-12)
+        if np.linalg.cond(Xs) > 30.0:
+            item.update({"tested": False, "why": "the relative rotation does not vary enough "
+                         "independently of its harmonics (ill-conditioned)"})
+            out.append(item)
+            continue
         coef, r2, p = _ftest(X, res)
         harm = []
-        for h in (1, 2):
+        for h in orders:
             C = coef[2 * h - 1: 2 * h + 1]                     # (2, 3): cos, sin rows
             u, s, vt = np.linalg.svd(C)
             axis = vt[0]
@@ -209,8 +217,8 @@ def harmonics(robot: Robot, q: np.ndarray, res: np.ndarray, noise_sd: float | No
                          "direction": axis.tolist()})
         floor = (noise_sd or 0.0)
         item.update({"tested": True, "harmonics": harm, "r2": r2, "p_value": p,
-                     "significant": bool(p < P_SIGNIFICANT and harm[0]["amplitude_mm"] +
-                                         harm[1]["amplitude_mm"] > 2 * floor)})
+                     "significant": bool(p < P_SIGNIFICANT and sum(x["amplitude_mm"] for x in harm)
+                                         > 2 * floor)})
         out.append(item)
     return out
 

@@ -88,13 +88,38 @@ def markdown(rep) -> str:
                   f"{u['noise_mean_mm']:.3f} mm expected from the noise floor: "
                   f"{u['excess_mean_mm']:.3f} mm left ({100 * u['fraction_of_initial_excess']:.0f} % "
                   "of the initial excess). " + (f"It still correlates with: {corr}." if corr else
-                                                "No tested quantity explains it."), ""]
+                                                "No tested quantity explains it.")]
+        for o in u.get("outside_vocabulary", []):
+            lines.append(f"It follows {o['description']}: with that removed (not a vocabulary "
+                         f"effect) the held-out mean error would be "
+                         f"{o['heldout_mean_mm_once_removed']:.3f} mm.")
+        lines.append("")
     if rep.partial:
         lines += ["Partial fits (not named): " + ", ".join(rep.partial) + ".", ""]
+    from ctrplan.calibration.diagnose import headline
+
+    lr = rep.learned_residual
+    if lr and "heldout_mean_after_mm" in lr:
+        lines += ["## Learned residual (separate from the calibrated model)", "",
+                  f"A learned correction on top of the calibrated model ({lr['method']}). "
+                  + headline(lr["heldout_mean_before_mm"], lr["heldout_mean_after_mm"],
+                             lr["heldout_max_before_mm"], lr["heldout_max_after_mm"]) + ": "
+                  + ("offered (it lowers the held-out mean error)." if lr["offered"] else
+                     f"not offered: {lr.get('why')}."), ""]
     for k, s in enumerate(rep.steps, 1):
-        title = f"## Step {k}: {s.effect}" if s.accepted else f"## Step {k}: nothing more justified"
-        lines += [title, ""]
-        if s.accepted:
+        from ctrplan.calibration.diagnose import NUISANCES
+
+        if s.accepted and s.effect in NUISANCES:
+            lines += [f"## Step {k}: the residual follows {NUISANCES[s.effect]} "
+                      "(outside the effect vocabulary: not named, not in the calibrated model)", "",
+                      f"Removing it lowers the held-out mean tip error {s.error_before_mm:.3f} -> "
+                      f"{s.error_after_mm:.3f} mm (ΔBIC {s.delta_bic:.1f}); later steps are "
+                      "screened on the data with it removed.", ""]
+        elif s.accepted:
+            lines += [f"## Step {k}: {s.effect}" + (f" (form: {s.form})" if s.form else ""), ""]
+        else:
+            lines += [f"## Step {k}: nothing more justified", ""]
+        if s.accepted and s.effect not in NUISANCES:
             lines += ["| effect | parameter | fitted ± 1 sigma | held-out before (mm) | "
                       "held-out after (mm) | ΔBIC | held-out gain | runner-up (ΔBIC) |",
                       "|---|---|---|---|---|---|---|---|"]
@@ -114,14 +139,15 @@ def markdown(rep) -> str:
             if s.ambiguous:
                 lines += ["", f"Ambiguous at this step: {s.runner_up} explains the data almost as "
                               "well (ΔBIC within the ambiguity margin)."]
-        else:
+        elif not s.accepted:
             lines += [f"Best remaining candidate {s.runner_up}: ΔBIC {s.delta_bic:.1f}, held-out "
                       f"gain {100 * s.heldout_gain:.1f} % — not justified."]
-        lines += ["", "Screened candidates:", "", "| candidate | ΔBIC | held-out mean (mm) | justified |",
-                  "|---|---|---|---|"]
+        lines += ["", "Screened candidates (best form of each; `~` = outside the vocabulary):", "",
+                  "| candidate | form | ΔBIC | held-out mean (mm) | justified |",
+                  "|---|---|---|---|---|"]
         for c in s.screened:
-            lines.append(f"| {c.effect} | {c.delta_bic:.1f} | {c.test_mean_mm:.3f} | "
-                         f"{'yes' if c.justified else 'no'} |")
+            lines.append(f"| {c.effect} | {c.form or '-'} | {c.delta_bic:.1f} | "
+                         f"{c.test_mean_mm:.3f} | {'yes' if c.justified else 'no'} |")
         lines.append("")
     lines += ["## Files", "", "- `calibrated.yaml`: calibrated model (`--model calibrated.yaml`)",
               "- `calibrated_robot.yaml`: robot with precurvature/stiffness folded in (`--robot`)",
