@@ -73,6 +73,9 @@ def test_single_foreign_effect_named_and_halved(name):
         good += ok
         lines.append(f"seed {seed}: {rep.conclusion}; cut {100 * cut:.0f} % "
                      f"({rep.error_before_mm:.3f} -> {rep.error_after_mm:.3f} mm)")
+    cuts = [float(x.split("cut ")[1].split(" %")[0]) for x in lines]
+    print(f"\nSTAT single {name}: named and halved {good}/10; cut min {min(cuts):.0f} % "
+          f"median {np.median(cuts):.0f} %")
     assert good >= 9, f"{name}: {good}/10\n" + "\n".join(lines)
 
 
@@ -82,6 +85,7 @@ def test_no_effect_names_nothing():
         rep, _ = run({}, seed)
         if rep.effects:
             named.append(f"seed {seed}: {rep.conclusion}")
+    print(f"\nSTAT none: nothing named {20 - len(named)}/20 {named}")
     assert len(named) <= 1, named
 
 
@@ -93,6 +97,7 @@ def test_outside_effect_never_named_and_reported_unexplained(name):
         ok = rep.effects == [] and rep.unexplained is not None
         good += ok
         lines.append(f"seed {seed}: {rep.status.value}: {rep.conclusion}")
+    print(f"\nSTAT outside {name}: not named + unexplained {good}/10")
     assert good >= 9, f"{name}: {good}/10\n" + "\n".join(lines)
 
 
@@ -106,6 +111,11 @@ def test_three_effect_study():
     spec.loader.exec_module(mod)
     for seed in (0, 1, 2):
         res = mod.study(seed=seed)
+        print(f"\nSTAT study seed {seed}: {res['conclusion']}; traditional "
+              f"{res['traditional_mean_mm']:.2f} -> improved {res['improved_mean_mm']:.2f} mm; "
+              + "; ".join(f"{r['experiment']} {r['traditional_mean_mm']:.2f}/"
+                          f"{r['traditional_max_mm']:.2f} -> {r['improved_mean_mm']:.2f}/"
+                          f"{r['improved_max_mm']:.2f}" for r in res["table"]))
         assert {"clearance", "friction", "torsion"} <= set(res["effects"]), res["conclusion"]
         assert res["improved_mean_mm"] <= 0.3 * res["traditional_mean_mm"], res
         for row in res["table"]:        # the README's study table, per experiment

@@ -17,21 +17,32 @@ The vocabulary (DESIGN.md):
     a rigid base, 1 on a compliant base. Form parameter ``inner_factor`` (not fitted) scales
     the innermost tube's compliance further.
 ``friction``
-    Rotation lost in transmission, depending on the direction of motion. Each tube's actual base
-    angle follows the commanded one through a backlash (play) of half-width ``lost<i>`` rad:
-    moving up it lags by ``lost<i>``, after a reversal it stands still until the command has
-    crossed the dead band. Rows are taken in order as one continuous motion per sweep (the
-    ``time``/row order of measured data); each sweep starts settled (actual = commanded).
-    Form parameter ``presliding`` (rad, not fitted; 0 = ideal play) makes the lag build up
-    exponentially over that much rotation instead (a Dahl-type friction law).
+    Rotation lost in transmission, depending on the direction of motion; a family of forms
+    (form parameter ``form``, not fitted; :data:`FRICTION_FORMS`), chosen by diagnose like any
+    effect. ``dead_band`` (0): each tube's actual base angle follows the commanded one through a
+    backlash of half-width ``lost<i>`` rad (moving up it lags by ``lost<i>``; after a reversal it
+    stands still until the command has crossed the dead band); with ``presliding`` > 0 (rad) the
+    lag builds up exponentially over that much rotation instead (Dahl-type). ``lag`` (1): a
+    constant lag ``lost<i>`` against each tube's own direction of motion. ``relative`` (2): a lag
+    ``lost<i>`` against the direction of rotation relative to the adjacent tubes (a tube is
+    dragged along by a neighbour turning against it). ``end_moment`` (3): ``relative`` plus the
+    study's concentrated end moment: where outer tube o ends a torque ``mu |M|`` (``|M|`` its
+    bending moment there) twists tube o by ``+T l_o / GJ_o`` and tube o-1 by ``-T l / GJ``
+    (l: each tube's length from its base to that point), its sign following the direction of
+    relative rotation (the study's ``dtheta``); ``mu`` fitted. The direction of motion: given as
+    ``direction`` (B, 2n) in {-1, 0, +1} every row is a pure function of (q, direction) (the
+    settled lag); without it, rows are taken in order as one continuous motion per sweep (the
+    ``time``/row order of measured data), each sweep starting settled.
 ``clearance``
-    Where outer tube j ends, the tubes inside it tilt within the radial gap: the backbone frame
-    rotates by ``length * du`` (R <- R Exp([kx, ky, 0])), where ``du`` is the jump of the
-    (torsionally rigid) curvature vector across the tube's end. The tilt therefore depends on the
-    relative rotation of the tubes (largest when their curvatures oppose). ``length`` (mm) is the
-    length over which the inner tube already relaxes towards its own curvature inside the gap.
-    Form parameter ``limit`` (rad, not fitted; 0 = none) saturates the tilt at the angle the gap
-    allows: ``theta -> limit * tanh(theta / limit)``.
+    Where outer tube j ends, the tubes inside it tilt within the radial gap (a kink
+    R <- R Exp([kx, ky, 0]) of the backbone frame). Harmonic form (fitted ``c0, c1, s1, c2,
+    s2``, rad): the tilt ``c0 + c1 cos phi + s1 sin phi + c2 cos 2phi + s2 sin 2phi`` of the
+    relative rotation phi = alpha_(j-1) - alpha_j, about tube j-1's curvature axis, i.e. towards
+    its bending direction (as in the study); its peak may sit at any relative rotation (the
+    study found 205 deg). Gap form (fitted ``length``, mm): the frame rotates by
+    ``length * du``, where ``du`` is the jump of the (torsionally rigid) curvature vector across
+    the tube's end (largest when the curvatures oppose); form parameter ``limit`` (rad, not
+    fitted; 0 = none) saturates that tilt: ``theta -> limit * tanh(theta / limit)``.
 ``precurvature``
     Per-tube scale ``scale<i>`` of the precurvature (off 1).
 ``stiffness``
