@@ -66,14 +66,14 @@ SINGLE = [e for e in foreign.VOCAB_EFFECTS]
 
 @pytest.mark.parametrize("name", SINGLE)
 def test_single_foreign_effect_named_and_halved(name):
-    lines, good = [], 0
+    lines, cuts, good = [], [], 0
     for seed in SEEDS:
         rep, cut = run({name: {}}, seed)
         ok = name in rep.effects and cut >= 0.5
         good += ok
+        cuts.append(100 * cut)
         lines.append(f"seed {seed}: {rep.conclusion}; cut {100 * cut:.0f} % "
                      f"({rep.error_before_mm:.3f} -> {rep.error_after_mm:.3f} mm)")
-    cuts = [float(x.split("cut ")[1].split(" %")[0]) for x in lines]
     print(f"\nSTAT single {name}: named and halved {good}/10; cut min {min(cuts):.0f} % "
           f"median {np.median(cuts):.0f} %")
     assert good >= 9, f"{name}: {good}/10\n" + "\n".join(lines)
