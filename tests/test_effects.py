@@ -285,3 +285,33 @@ def test_error_quantiles_round_trip_through_calibrated_yaml(tmp_path):
     (tmp_path / "bad.yaml").write_text(text)
     with pytest.raises(InputError, match="error_quantiles.p99"):
         load_model(str(tmp_path / "bad.yaml"), "seed1")
+
+
+def test_end_moment_friction_twists_both_tubes_of_the_pair():
+    # hand-computed oracle (two_tube_nylon): where the outer tube ends (s = 174 mm, both tubes
+    # curved there) the torque mu |M| twists the inner tube by -T l_1/GJ_1 and the outer one by
+    # +T l_2/GJ_2, the sign following the relative direction (inner turning +, outer held)
+    r = load_robot("two_tube_nylon")
+    a1, a2, b1, b2, mu = 0.3, -0.5, -50.0, 0.0, 0.02
+    E, nu = 1700.0, 0.41
+    I = [math.pi / 64 * (4.5 ** 4 - 3.0 ** 4), math.pi / 64 * (6.8 ** 4 - 4.9 ** 4)]
+    EI = [E * i for i in I]
+    GJ = [E / (2 * (1 + nu)) * 2 * i for i in I]
+    k1, k2 = 0.010152284, 0.010309278
+    ux = (EI[0] * k1 * -math.sin(a1) + EI[1] * k2 * -math.sin(a2)) / (EI[0] + EI[1])
+    uy = (EI[0] * k1 * math.cos(a1) + EI[1] * k2 * math.cos(a2)) / (EI[0] + EI[1])
+    M = EI[1] * math.hypot(ux + k2 * math.sin(a2), uy - k2 * math.cos(a2))
+    expect = np.array([[a1 - mu * M * (174.0 - b1) / GJ[0], a2 + mu * M * (174.0 - b2) / GJ[1],
+                        b1, b2]])
+    q = np.array([[a1, a2, b1, b2]])
+    D = np.array([[1, 0, 0, 0]], dtype=np.int8)
+    m = EffectModel(r, "rigid", {"friction": {"form": 3.0, "mu": mu}})
+    got = m.shape(q, 2, direction=D).tip
+    np.testing.assert_allclose(got, PhysicsModel(r, torsion=False).shape(expect, 2).tip,
+                               atol=1e-9)
+    assert abs(expect[0, 0] - a1) > 1e-3                         # a visible twist
+    # reversed relative direction: the opposite twist; both turning the same way: none
+    np.testing.assert_allclose(m.shape(q, 2, direction=-D).tip, PhysicsModel(r, torsion=False).shape(
+        np.array([[2 * a1 - expect[0, 0], 2 * a2 - expect[0, 1], b1, b2]]), 2).tip, atol=1e-9)
+    np.testing.assert_array_equal(m.shape(q, 2, direction=np.array([[1, 1, 0, 0]])).tip,
+                                  PhysicsModel(r, torsion=False).shape(q, 2).tip)
