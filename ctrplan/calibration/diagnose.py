@@ -145,6 +145,7 @@ class DiagnoseReport:
     error_quantiles: dict[str, float] | None = None
     split: dict = field(default_factory=dict)
     learned_residual: dict | None = None
+    partial_values: dict = field(default_factory=dict)
 
     def model(self) -> EffectModel:
         """The calibrated shape model (with its held-out error quantiles)."""
@@ -172,6 +173,7 @@ class DiagnoseReport:
             "max_after_mm": self.max_after_mm, "error_quantiles": self.error_quantiles,
             "unexplained": self.unexplained, "warnings": list(self.warnings),
             "experiment": list(self.experiment), "partial_fits": list(self.partial),
+            "partial_values": self.partial_values,
             "learned_residual": self.learned_residual,
             "evidence": {"before": self.evidence_before, "after": self.evidence_after},
             "split": {"train_sweeps": self.train_sweeps, "test_sweeps": self.test_sweeps,
@@ -340,6 +342,37 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     excess0 = max(base_fit.test_mean - e_noise, 0.0)
     excess1 = max(cur.test_mean - e_noise, 0.0)
     remainder = excess1 / excess0 if excess0 > 0 else 0.0
+    if effects and remainder > max_remainder:
+        partial = [f"{s.effect} ({s.form})" if s.form else s.effect
+                   for s in steps if s.accepted and s.effect not in NUISANCES]
+        warnings.append(f"the best fits ({', '.join(partial)}) leave {100 * remainder:.0f} % of "
+                        "the held-out error above the noise floor: no effect of the vocabulary "
+                        "explains these data, so none is named")
+        effects = []
+    bounds = _at_bounds(current, robot, base) if current else []
+    if bounds:
+        warnings.append("parameters at a bound that is not their off value (the effect may be "
+                        "larger than its form allows, or another effect is being absorbed): "
+                        + ", ".join(bounds))
+        if effects:
+            partial = partial or [f"{s.effect} ({s.form})" if s.form else s.effect
+                                  for s in steps if s.accepted and s.effect not in NUISANCES]
+            effects = []
+            insufficient = ([f"fitted parameters at their bounds ({', '.join(bounds)})"],
+                            ["check the set-up for an effect beyond its physical range (e.g. a "
+                             "tracker origin far from the robot base, wrong units or tube "
+                             "parameters) and measure over the whole joint range"])
+            experiment += insufficient[1]
+    partial_values: dict = {}
+    if not effects and current:
+        # nothing named: the calibrated model is the base model; the fits are only reported
+        partial_values = current
+        current = {}
+        cur = base_fit
+        final_pred = base_pred
+        ev_after = ev_before
+        excess1 = max(cur.test_mean - e_noise, 0.0)
+        remainder = excess1 / excess0 if excess0 > 0 else 0.0
     unexplained = None
     if not insufficient and (cur.test_mean > 1.5 * e_noise + 0.05 or remainder > max_remainder) \
             and excess0 > 0:
@@ -357,27 +390,6 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
                 unexplained["correlates_with"].insert(0, {
                     "with": {"~drift": "time", "~field": "position"}[k],
                     "description": NUISANCES[k], "r2": None, "p_value": None})
-    if effects and remainder > max_remainder:
-        partial = [f"{s.effect} ({s.form})" if s.form else s.effect
-                   for s in steps if s.accepted]
-        warnings.append(f"the best fits ({', '.join(partial)}) leave {100 * remainder:.0f} % of "
-                        "the held-out error above the noise floor: no effect of the vocabulary "
-                        "explains these data, so none is named")
-        effects = []
-    bounds = _at_bounds(current, robot, base) if current else []
-    if bounds:
-        warnings.append("parameters at a bound that is not their off value (the effect may be "
-                        "larger than its form allows, or another effect is being absorbed): "
-                        + ", ".join(bounds))
-        if effects:
-            partial = partial or [f"{s.effect} ({s.form})" if s.form else s.effect
-                                  for s in steps if s.accepted]
-            effects = []
-            insufficient = ([f"fitted parameters at their bounds ({', '.join(bounds)})"],
-                            ["check the set-up for an effect beyond its physical range (e.g. a "
-                             "tracker origin far from the robot base, wrong units or tube "
-                             "parameters) and measure over the whole joint range"])
-            experiment += insufficient[1]
     forms = {s.effect: s.form for s in steps if s.accepted and s.effect in effects and s.form}
     amb = [s for s in steps if s.accepted and s.ambiguous and s.runner_up not in effects
            and s.effect in effects]
@@ -404,7 +416,9 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     else:
         status = DiagnoseStatus.NO_MISSING_EFFECT
         conclusion = "no missing effect"
-    last = next((s for s in reversed(steps) if s.accepted), None)
+    last = next((s for s in reversed(steps) if s.accepted and s.effect not in NUISANCES), None)
+    if not effects:
+        last = None
     err = prob.errors(final_pred)[test]
     quant = {"p50": float(np.percentile(err, 50)), "p95": float(np.percentile(err, 95)),
              "p99": float(np.percentile(err, 99)), "max": float(err.max())} if len(err) else None
@@ -427,7 +441,7 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
         settings=settings, elapsed_s=0.0, model_effects=current, forms=forms,
         evidence_before=ev_before, evidence_after=ev_after, unexplained=unexplained,
         warnings=warnings, experiment=experiment, partial=partial, error_quantiles=quant,
-        split=split, learned_residual=learned,
+        split=split, learned_residual=learned, partial_values=partial_values,
     )
     rep.elapsed_s = time.perf_counter() - t0
     if out is not None:
