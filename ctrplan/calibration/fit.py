@@ -239,7 +239,7 @@ def _same_mechanics(a: Mapping[str, Mapping[str, float]], b: Mapping[str, Mappin
 
 def _scale(p: Param) -> float:
     """A typical magnitude of a parameter (the unit of the optimiser's variable)."""
-    typical = {"mm": 1.0, "rad": 0.05, "1": 0.1}.get(p.unit, 1.0)
+    typical = p.typical or {"mm": 1.0, "rad": 0.05, "1": 0.1}.get(p.unit, 1.0)
     return min(typical, (p.hi - p.lo) / 2.0)
 
 

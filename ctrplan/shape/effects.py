@@ -122,6 +122,7 @@ class Param:
     unit: str
     doc: str
     fit: bool = True
+    typical: float | None = None   # a typical magnitude (the fit's step unit); None: by unit
 
 
 def effect_params(name: str, robot: Robot, base: str = "rigid") -> tuple[Param, ...]:
@@ -138,7 +139,7 @@ def effect_params(name: str, robot: Robot, base: str = "rigid") -> tuple[Param, 
                            "half-width)") for i in range(n)) + (
             Param("mu", 0.0, 0.0, 1.0, "1", "end-moment friction: a torque mu |M| where an "
                   "outer tube ends (|M| its bending moment there) twists both tubes of the pair "
-                  "(end_moment form)", fit=False),
+                  "(end_moment form)", fit=False, typical=0.01),
             Param("presliding", 0.0, 0.0, 1.0, "rad", "rotation over which the lag builds up "
                   "(0 = ideal backlash; dead_band form)", fit=False),
             Param("form", 0.0, 0.0, float(len(FRICTION_FORMS) - 1), "1",
