@@ -294,9 +294,9 @@ def test_end_moment_friction_twists_both_tubes_of_the_pair():
     r = load_robot("two_tube_nylon")
     a1, a2, b1, b2, mu = 0.3, -0.5, -50.0, 0.0, 0.02
     E, nu = 1700.0, 0.41
-    I = [math.pi / 64 * (4.5 ** 4 - 3.0 ** 4), math.pi / 64 * (6.8 ** 4 - 4.9 ** 4)]
-    EI = [E * i for i in I]
-    GJ = [E / (2 * (1 + nu)) * 2 * i for i in I]
+    inertia = [math.pi / 64 * (4.5 ** 4 - 3.0 ** 4), math.pi / 64 * (6.8 ** 4 - 4.9 ** 4)]
+    EI = [E * i for i in inertia]
+    GJ = [E / (2 * (1 + nu)) * 2 * i for i in inertia]
     k1, k2 = 0.010152284, 0.010309278
     ux = (EI[0] * k1 * -math.sin(a1) + EI[1] * k2 * -math.sin(a2)) / (EI[0] + EI[1])
     uy = (EI[0] * k1 * math.cos(a1) + EI[1] * k2 * math.cos(a2)) / (EI[0] + EI[1])
