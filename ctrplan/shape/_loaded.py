@@ -493,7 +493,9 @@ def solve_loaded_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, W, F, M
     length of each tube (N/mm, base frame); F : (B, 3) tip force N; M : (B, 3) tip moment N mm
     (base frame). x_init : (B, n + 2) first guess of (tau(0), mb_xy(0)) (N mm); x_start :
     (B, n + 2) the unloaded solution's unknowns, from which the load is ramped up (k/K of it,
-    K = 8 then 32) where Newton from x_init fails.
+    K = 8 then 32) where Newton from x_init fails; where that fails too, the torsional
+    compliance is ramped up (EI/GJ scaled by k/K, K = 16 then 64) from the torsionally rigid
+    loaded solution.
 
     Returns points (B, m, 3), s (B, m), x (B, n + 2), iterations (B,), residual (B,) (1/mm),
     ok (B,): converged (max residual < tol) and every point finite.
@@ -529,6 +531,7 @@ def solve_loaded_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, W, F, M
     Wl = np.zeros((n, 3))
     Fl = np.zeros(3)
     Ml = np.zeros(3)
+    rs = np.zeros(n)
     out_s = np.zeros(m)
     for bi in range(B):
         al = alpha[bi]
@@ -558,6 +561,31 @@ def solve_loaded_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, W, F, M
                         Wl[i, c] = lam * W[bi, i, c]
                 r, itk, at_x = _newton(al, be, x, L, straight, kappa[bi], EI[bi], ratio[bi],
                                        kink[bi], Wl, Fl, Ml, tpos, ttyp, tidx, out_s, m, step,
+                                       tol, max_iter, points[bi], resid, jac, resid_t, jac_t, dx,
+                                       xt, A, y, T, k, w, n0, wsum, ws, WS)
+                it += itk
+                if not r < tol:
+                    at_x = at_x and kk == K
+                    break
+        for K in (16, 64):
+            # near snapping the loaded branch through the unloaded solution may end (a fold):
+            # continuation in the torsional compliance instead, from the torsionally rigid
+            # loaded solution (EI/GJ = 0, well posed) to the nominal EI/GJ, at full load
+            if r < tol:
+                break
+            for i in range(n):
+                x[i] = 0.0
+            x[n] = x_init[bi, n]
+            x[n + 1] = x_init[bi, n + 1]
+            if not (math.isfinite(x[n]) and math.isfinite(x[n + 1])):
+                x[n] = 0.0
+                x[n + 1] = 0.0
+            for kk in range(0, K + 1):
+                lam = kk / K
+                for i in range(n):
+                    rs[i] = lam * ratio[bi, i]
+                r, itk, at_x = _newton(al, be, x, L, straight, kappa[bi], EI[bi], rs, kink[bi],
+                                       W[bi], F[bi], M[bi], tpos, ttyp, tidx, out_s, m, step,
                                        tol, max_iter, points[bi], resid, jac, resid_t, jac_t, dx,
                                        xt, A, y, T, k, w, n0, wsum, ws, WS)
                 it += itk
