@@ -37,8 +37,10 @@ same shooting. Integration is fixed-step RK4 between break points (curve starts,
 each interval cut into ``ceil(length / step)`` equal steps, with the variational equations
 riding along (exact derivative of the RK4 map: Newton converges quadratically). Output points
 inside a step are read off by cubic Hermite interpolation (p and p' = R e_z at both ends).
-``kink`` (clearance effect) rotates R where a tube ends; the total moment is continuous there,
-so mb is re-expressed in the rotated frame.
+``kink`` (clearance effect) rotates R where a tube ends: the bending moment turns with the frame
+(mb_xy <- (K^T mb)_xy) and the twisting moment carries over (the tubes' torsional moments are
+continuous; no axial moment acts at the kink). To first order in the kink angle the total
+moment is continuous.
 """
 
 from __future__ import annotations
@@ -210,8 +212,8 @@ def _rk4(y, T, n, nx, k, w, eisum_inv, n0, wsum, sens, s0, seg, step, out_s, m_o
 
 @njit(cache=True, error_model="numpy")
 def _kink(y, T, n, nx, sens, kx, ky):
-    """R <- R K with K = Exp([kx, ky, 0]); the total moment is continuous, so
-    mb_xy <- (K^T (mb_x, mb_y, sum tau))_xy. The tangent follows (K is constant)."""
+    """R <- R K with K = Exp([kx, ky, 0]); mb_xy <- (K^T (mb_x, mb_y, sum tau))_xy, the
+    twisting moment sum tau carries over. The tangent follows (K is constant)."""
     b = 3 * n
     th = math.sqrt(kx * kx + ky * ky)
     ex = kx / th
