@@ -9,7 +9,7 @@ import numpy as np
 from . import designs as D
 from . import effects as E
 from . import mechanics as M
-from .robot import Spec, load_spec, valid
+from .robot import Spec, load_spec
 
 
 @dataclass
@@ -32,7 +32,7 @@ class ForeignData:
     def n(self) -> int:
         return self.q.shape[1] // 2
 
-    def subset(self, mask) -> "ForeignData":
+    def subset(self, mask) -> ForeignData:
         m = np.asarray(mask)
         if m.dtype == bool:
             m = np.flatnonzero(m)
@@ -98,11 +98,12 @@ def _alpha_lag(eff, q, n, direction, sweep):
         q[:, :n] -= lag * d[:, :n]
         return q
     z = np.zeros(n)
+    a0 = q[:, :n].copy()
     for i in range(q.shape[0]):
         if i == 0 or sweep[i] != sweep[i - 1]:
             z = np.zeros(n)
         else:
-            da = q[i, :n] - q[i - 1, :n]
+            da = a0[i] - a0[i - 1]
             sg = np.sign(da)
             target = lag * sg
             z = np.where(sg != 0, target + (z - target) * np.exp(-np.abs(da) / ang), z)
@@ -111,11 +112,12 @@ def _alpha_lag(eff, q, n, direction, sweep):
 
 
 def truth(spec: Spec, q: np.ndarray, eff: dict, direction=None, sweep=None, points: int = 0,
-          h_max: float = 6.0):
+          h_max: float = 10.0):
     """Noise-free tips (N,3) and points (N,M,3) or None in the robot base frame (before tracker
     effects), and ok (N,) (mechanics converged)."""
     q = np.atleast_2d(np.asarray(q, float))
     n = spec.n
+    eff = E.resolve(eff, n, spec)       # idempotent on resolved parameters; {} -> defaults
     if "joint_offset" in eff:
         q = q.copy()
         q[:, :n] += E._per_tube(eff["joint_offset"]["alpha"], n, "alpha")

@@ -19,7 +19,7 @@ def _split(n, k):
 
 
 def _times(rng, counts):
-    t, out, t0 = [], [], 0.0
+    out, t0 = [], 0.0
     for c in counts:
         dt = DT * rng.uniform(0.8, 1.2, c)
         dt[0] = 0.0
@@ -81,8 +81,8 @@ def design(spec: Spec, name: str, n_rows: int, rng: np.random.Generator, sweeps:
         if name == "sweeps":
             lo = np.r_[np.full(n, -np.pi), np.zeros(n)]
             hi = np.r_[np.full(n, np.pi), np.ones(n)]
-            step_lo = np.r_[np.full(n, 0.01), np.full(n, 0.004)]
-            step_hi = np.r_[np.full(n, 0.06), np.full(n, 0.02)]
+            step_lo = np.r_[np.full(n, 0.02), np.full(n, 0.004)]
+            step_hi = np.r_[np.full(n, 0.10), np.full(n, 0.02)]
             x = _walk(rng, m, lo, hi, step_lo, step_hi)
             q = np.c_[x[:, :n], beta_from_unit(spec, x[:, n:])]
         else:

@@ -30,7 +30,9 @@ stiffness     {"scale": [per tube]}  E_i -> scale_i E_i (bending and torsion)
 load          {"gravity": [gx, gy, gz] m/s^2 in the base frame (default [9.81, 0, 0]:
               horizontal robot), "density": [kg/m^3 per tube] (default: the robot file's
               ``density`` or nitinol 6450), "tip_force": [Fx, Fy, Fz] N (default "auto":
-              (0, -1e-5 EI_1, 0) N, EI_1 of the innermost tube in N mm^2)}
+              (0, -1e-5 EI_1, 0) N, EI_1 of the innermost tube in N mm^2)}. The defaults apply
+              to {} only: with any key given, the keys not given are absent (gravity None, no
+              tip force), e.g. {"gravity": [0, -9.81, 0]} is gravity alone.
 joint_offset  {"alpha": [rad per tube], "beta": [mm per tube]}  true q = commanded q + offset
 registration  {"rotvec": [rad x3], "translation": [mm x3]}  sensor = Rot(rotvec) base + t
 distortion    {"amplitude": mm, "wavelength": mm}  smooth nonlinear tracker-field warp
@@ -70,7 +72,7 @@ def defaults(name: str, n: int, spec=None) -> dict:
     if name == "torsion":
         return {"gj_scale": 1.0}
     if name == "clearance":
-        return {"amplitude": 0.05, "phase_deg": 205.0, "harmonics": [0.5, 0.5]}
+        return {"amplitude": 0.065, "phase_deg": 205.0, "harmonics": [0.5, 0.5]}
     if name == "friction":
         return {"form": "end_moment", "mu": 0.08}
     if name == "precurvature":
@@ -114,6 +116,9 @@ def resolve(effects, n: int, spec=None) -> dict:
         unknown = set(params) - set(base)
         if unknown:
             raise ValueError(f"effect {name!r}: unknown parameter(s) {sorted(unknown)}")
+        if name == "load" and params:
+            # explicit loads: what is not given is absent (a gravity-only or force-only load)
+            base = {"gravity": None, "density": None, "tip_force": None}
         base.update(params)
         if name == "load" and isinstance(base.get("tip_force"), str):
             if base["tip_force"] != "auto" or spec is None:

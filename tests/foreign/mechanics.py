@@ -264,11 +264,6 @@ class _Problem:
                         None if self.rel_dir is None else self.rel_dir[idx])
 
 
-def _layout(n):
-    return dict(psi=slice(0, n), uz=slice(n, 2 * n), p=slice(2 * n, 2 * n + 3),
-                R=slice(2 * n + 3, 2 * n + 12), m=slice(2 * n + 12, 2 * n + 15))
-
-
 def _deriv(X, s, kap, EIp, GJ, EIt, nA, nB, n, full, torsion):
     """State derivative. Reduced state (full=False): [psi (n), u_z (n)]; full state adds
     p (3), R (9, row-major), m (3)."""
@@ -485,7 +480,7 @@ def _newton(pb, x, full, K, EIref, tol, max_iter, reduced_residual=False):
         accepted = np.zeros(active.size, bool)
         rnew = np.zeros_like(ra)
         pending = np.arange(active.size)
-        for t in range(5):
+        for _t in range(5):
             if pending.size == 0:
                 break
             trial = x[active[pending]] + lam[pending, None] * dx[pending]
@@ -518,29 +513,53 @@ def _newton(pb, x, full, K, EIref, tol, max_iter, reduced_residual=False):
     return x, conv
 
 
+def _line(pb, c, d, K, EIref):
+    """Residual of the first tube along the torque-balanced line u_z(0) = c d (two tubes)."""
+    return _eval(pb, c[:, None] * d, False, K, EIref, False)[:, 0]
+
+
+def _two_tube_stable(pb, spec, x, K, EIref):
+    """Two tubes: is the solution x on a stable branch? Along the torque-balanced line the tip
+    residual r(c) has an odd number of roots; the outer ones (slope of the same sign as the
+    chord r(+A) - r(-A)) are the stable equilibria, a middle one (opposite slope) is the
+    unstable equilibrium between two stable ones (the snapping regime)."""
+    B = x.shape[0]
+    amp = 4.0 * float(np.max(spec.kappa))
+    d = np.array([1.0, -spec.GJ[0] / spec.GJ[1]])
+    c = x[:, 0]
+    h = 1e-6
+    idx = np.tile(np.arange(B), 4)
+    cc = np.concatenate([c + h, c - h, np.full(B, amp), np.full(B, -amp)])
+    r = _line(pb.take(idx), cc, d, K, EIref).reshape(4, B)
+    return np.sign(r[0] - r[1]) == np.sign(r[2] - r[3])
+
+
 def _bracket_solve(pb, spec, K, EIref, m=81, iters=60):
     """Two tubes: on the torque-balanced line u_z(0) = c (1, -GJ_1/GJ_2) the residual is a
-    scalar function of c; bracket its root nearest c = 0 on a grid, then regula falsi
-    (Illinois). Robust where the twist is strongly nonlinear."""
+    scalar function of c; bracket the STABLE root (slope sign of the chord over the scan range)
+    nearest c = 0 on a grid, then regula falsi (Illinois). Robust where the twist is strongly
+    nonlinear, and it never returns the unstable middle equilibrium of a bistable pair."""
     B = pb.alpha.shape[0]
     amp = 4.0 * float(np.max(spec.kappa))
     d = np.array([1.0, -spec.GJ[0] / spec.GJ[1]])
     c = np.linspace(-amp, amp, m)
     idx = np.repeat(np.arange(B), m)
-    r = _eval(pb.take(idx), np.tile(c[:, None] * d, (B, 1)), False, K, EIref, False)[:, 0]
-    r = r.reshape(B, m)
+    r = _line(pb.take(idx), np.tile(c, B), d, K, EIref).reshape(B, m)
     sgn = np.sign(r)
-    ch = (sgn[:, :-1] * sgn[:, 1:]) <= 0
+    normal = np.sign(r[:, -1] - r[:, 0])[:, None]
+    ch = ((sgn[:, :-1] * sgn[:, 1:]) <= 0) & (np.sign(r[:, 1:] - r[:, :-1]) == normal)
     dist = np.where(ch, np.abs(0.5 * (c[:-1] + c[1:]))[None, :], np.inf)
     k = np.argmin(dist, axis=1)
-    found = np.isfinite(dist[np.arange(B), k])
+    rows = np.arange(B)
+    found = np.isfinite(dist[rows, k])
     a, b = c[k], c[k + 1]
-    fa, fb = r[np.arange(B), k], r[np.arange(B), k + 1]
+    fa, fb = r[rows, k], r[rows, k + 1]
     side = np.zeros(B)
+    cm = 0.5 * (a + b)
     for _ in range(iters):
         den = np.where(fb - fa != 0, fb - fa, 1.0)
         cm = np.where(fb - fa != 0, b - fb * (b - a) / den, 0.5 * (a + b))
-        fm = _eval(pb, cm[:, None] * d, False, K, EIref, False)[:, 0]
+        fm = _line(pb, cm, d, K, EIref)
         left = np.sign(fm) == np.sign(fa)
         # Illinois modification
         fb_new = np.where(left, fb * np.where(side == -1, 0.5, 1.0), fm)
@@ -594,7 +613,7 @@ def _m0_guess(pb, bb):
 
 
 def cosserat(spec: Spec, alpha, beta, *, torsion=True, gravity=None, tip_force=None,
-             clearance=None, friction_mu=0.0, rel_dir=None, h_max=6.0, tol=1e-10, max_iter=12):
+             clearance=None, friction_mu=0.0, rel_dir=None, h_max=10.0, tol=1e-10, max_iter=12):
     """Solve the (loaded) Cosserat rod BVP for a batch. gravity: (3,) m/s^2 in the base frame
     (None = no weight); tip_force: (3,) N. Returns a CosseratBackbone (with .ok per row).
 
@@ -618,6 +637,10 @@ def cosserat(spec: Spec, alpha, beta, *, torsion=True, gravity=None, tip_force=N
     pb0 = _Problem(spec, g, alpha, torsion, None, None, clearance, friction_mu, rel_dir)
     if torsion:
         x, conv = _newton(pb0, np.zeros((B, n)), False, K, EIref, tol, max_iter)
+        if n == 2 and conv.any():
+            # Newton may land on the unstable middle equilibrium where the pair is bistable
+            ci = np.flatnonzero(conv)
+            conv[ci[~_two_tube_stable(pb0.take(ci), spec, x[ci], K, EIref)]] = False
         if not conv.all():
             # multi-start for the rows Newton did not solve from u_z = 0 (strongly nonlinear
             # twist near a fold): scan starts on the torque-balanced set sum GJ u_z = 0 and

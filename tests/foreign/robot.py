@@ -63,7 +63,7 @@ class Spec:
         * A [mm^2] * 9.81."""
         return self.density * 1e-9 * self.area * 9.81
 
-    def scaled(self, kappa_scale=None, E_scale=None) -> "Spec":
+    def scaled(self, kappa_scale=None, E_scale=None) -> Spec:
         k = self.kappa if kappa_scale is None else self.kappa * np.asarray(kappa_scale, float)
         E = self.E if E_scale is None else self.E * np.asarray(E_scale, float)
         return replace(self, kappa=k, E=E)
