@@ -559,3 +559,13 @@ def test_kinks_with_loads_match_the_independent_integration(torsion):
     no_kink = m.shape(q[None], 15).points[0]
     assert np.max(np.linalg.norm(no_kink - want, axis=1)) > 1.0
     assert np.max(np.linalg.norm(shp.points[0] - want, axis=1)) < 1e-3
+
+
+def test_load_effect_model_file_round_trip(tmp_path):
+    r = load_robot("two_tube_nylon")
+    q = r.sample(5, seed=1)
+    m = EffectModel(r, "rigid", {"load": {"gx": 9.0, "fy": -0.2}})
+    m.save(tmp_path / "cal.yaml")
+    back = EffectModel.load(tmp_path / "cal.yaml")
+    assert back.effects == m.effects
+    assert np.array_equal(back.shape(q, 5).points, m.shape(q, 5).points)
