@@ -37,8 +37,10 @@ same shooting. Integration is fixed-step RK4 between break points (curve starts,
 each interval cut into ``ceil(length / step)`` equal steps, with the variational equations
 riding along (exact derivative of the RK4 map: Newton converges quadratically). Output points
 inside a step are read off by cubic Hermite interpolation (p and p' = R e_z at both ends).
-``kink`` (clearance effect) rotates R where a tube ends; the total moment is continuous there,
-so mb is re-expressed in the rotated frame.
+``kink`` (clearance effect) rotates R where a tube ends: the bending moment turns with the frame
+(mb_xy <- (K^T mb)_xy) and the twisting moment carries over (the tubes' torsional moments are
+continuous; no axial moment acts at the kink). To first order in the kink angle the total
+moment is continuous.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ctrplan.shape._kernel import _tube_events
+from ctrplan.shape._kernel import _tube_events, runtime
 
 
 @njit(cache=True, error_model="numpy")
@@ -210,8 +212,8 @@ def _rk4(y, T, n, nx, k, w, eisum_inv, n0, wsum, sens, s0, seg, step, out_s, m_o
 
 @njit(cache=True, error_model="numpy")
 def _kink(y, T, n, nx, sens, kx, ky):
-    """R <- R K with K = Exp([kx, ky, 0]); the total moment is continuous, so
-    mb_xy <- (K^T (mb_x, mb_y, sum tau))_xy. The tangent follows (K is constant)."""
+    """R <- R K with K = Exp([kx, ky, 0]); mb_xy <- (K^T (mb_x, mb_y, sum tau))_xy, the
+    twisting moment sum tau carries over. The tangent follows (K is constant)."""
     b = 3 * n
     th = math.sqrt(kx * kx + ky * ky)
     ex = kx / th
@@ -330,7 +332,7 @@ def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, W, F, M, tpo
                 w[i] = EI[i] * kappa[i] if (present and curved) else 0.0
             eisum_inv = 1.0 / eisum if eisum > 0.0 else 0.0
             ko = _rk4(y, T, n, nx, k, w, eisum_inv, n0, wsum, sens, s_now, seg, step, out_s,
-                      m_out, ko, out_p, ws[0], ws[1], ws[2], ws[3], ws[4], WS[0], WS[1], WS[2],
+                      m_out, runtime(ko), out_p, ws[0], ws[1], ws[2], ws[3], ws[4], WS[0], WS[1], WS[2],
                       WS[3], WS[4])
             s_now = s_next
         i = tidx[it]
@@ -428,42 +430,59 @@ def _solve_lin(jac, resid, dx, A):
 def _newton(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, out_s, m_out,
             step, tol, max_iter, pts, resid, jac, resid_t, jac_t, dx, xt, A, y, T, k, w, n0,
             wsum, ws, WS):
-    """Newton with backtracking on x (in place). Every pass also writes the output points
-    ``pts[:m_out]`` (cheap: Hermite interpolation), so the final pass is skipped when the last
-    pass was at the returned x. Once Newton is in its quadratic regime and predicts
-    convergence, the full step is tried without the variational equations.
+    """Newton on x (in place) with the Jacobian kept while it contracts well (chord steps
+    without the variational equations: about a sixth of the cost of a pass with them) and a
+    fresh Jacobian with a backtracking line search otherwise. Every pass also writes the
+    output points ``pts[:m_out]`` (cheap: Hermite interpolation), so no final pass is needed
+    when the last pass was at the returned x.
     Returns (residual, iterations, pts_at_x)."""
     nx = x.shape[0]
+    on, off = runtime(True), runtime(False)     # one compiled _integrate (see runtime)
     _integrate(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, out_s, m_out,
-               step, True, pts, resid, jac, y, T, k, w, n0, wsum, ws, WS)
+               step, on, pts, resid, jac, y, T, k, w, n0, wsum, ws, WS)
     r = _max_abs(resid)
     it = 0
-    quad = -1.0            # estimate of C in |resid after a full step| ~ C |dx|^2
-    at_x = True
+    at_x = True             # the last pass (and so pts) was at x
+    fresh = True            # jac was evaluated at x
+    chord = True            # try the full step with the kept Jacobian first
     while r >= tol and it < max_iter and math.isfinite(r):
         it += 1
         if not _solve_lin(jac, resid, dx, A):
             break
-        dxn = _max_abs(dx)
-        if quad > 0.0 and quad * dxn * dxn < 0.1 * tol:
+        if chord:
+            # the full step without the variational equations
             for i in range(nx):
                 xt[i] = x[i] + dx[i]
             _integrate(al, be, xt, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx,
-                       out_s, m_out, step, False, pts, resid_t, jac_t, y, T, k, w, n0, wsum,
+                       out_s, m_out, step, off, pts, resid_t, jac_t, y, T, k, w, n0, wsum,
                        ws, WS)
             rt = _max_abs(resid_t)
-            if rt < tol:
+            if rt < tol or rt < 0.1 * r:
                 for i in range(nx):
                     x[i] = xt[i]
-                return rt, it, True
+                    resid[i] = resid_t[i]
+                r = rt
+                at_x = True
+                fresh = False
+                continue
+            # not contracting: Newton steps until they contract strongly again
+            chord = False
+            at_x = False
+        if not fresh:
+            _integrate(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx,
+                       out_s, m_out, step, on, pts, resid, jac, y, T, k, w, n0, wsum, ws, WS)
+            r = _max_abs(resid)
+            at_x = True
+            fresh = True
+            if not _solve_lin(jac, resid, dx, A):
+                break
         t = 1.0
         accepted = False
-        rt = r
         for _ls in range(10):
             for i in range(nx):
                 xt[i] = x[i] + t * dx[i]
             _integrate(al, be, xt, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx,
-                       out_s, m_out, step, True, pts, resid_t, jac_t, y, T, k, w, n0, wsum,
+                       out_s, m_out, step, on, pts, resid_t, jac_t, y, T, k, w, n0, wsum,
                        ws, WS)
             rt = _max_abs(resid_t)
             if rt < r or rt < tol:
@@ -473,13 +492,15 @@ def _newton(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, o
         if not accepted:
             at_x = False
             break
-        quad = rt / (dxn * dxn) if (t == 1.0 and dxn > 0.0) else -1.0
+        chord = t == 1.0 and rt < 0.1 * r
         for i in range(nx):
             x[i] = xt[i]
             resid[i] = resid_t[i]
             for c in range(nx):
                 jac[i, c] = jac_t[i, c]
         r = rt
+        at_x = True
+        fresh = True
     return r, it, at_x
 
 
@@ -493,7 +514,9 @@ def solve_loaded_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, W, F, M
     length of each tube (N/mm, base frame); F : (B, 3) tip force N; M : (B, 3) tip moment N mm
     (base frame). x_init : (B, n + 2) first guess of (tau(0), mb_xy(0)) (N mm); x_start :
     (B, n + 2) the unloaded solution's unknowns, from which the load is ramped up (k/K of it,
-    K = 8 then 32) where Newton from x_init fails.
+    K = 8 then 32) where Newton from x_init fails; where that fails too, the torsional
+    compliance is ramped up (EI/GJ scaled by k/K, K = 16 then 64) from the torsionally rigid
+    loaded solution.
 
     Returns points (B, m, 3), s (B, m), x (B, n + 2), iterations (B,), residual (B,) (1/mm),
     ok (B,): converged (max residual < tol) and every point finite.
@@ -529,6 +552,7 @@ def solve_loaded_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, W, F, M
     Wl = np.zeros((n, 3))
     Fl = np.zeros(3)
     Ml = np.zeros(3)
+    rs = np.zeros(n)
     out_s = np.zeros(m)
     for bi in range(B):
         al = alpha[bi]
@@ -564,10 +588,35 @@ def solve_loaded_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, W, F, M
                 if not r < tol:
                     at_x = at_x and kk == K
                     break
+        for K in (16, 64):
+            # near snapping the loaded branch through the unloaded solution may end (a fold):
+            # continuation in the torsional compliance instead, from the torsionally rigid
+            # loaded solution (EI/GJ = 0, well posed) to the nominal EI/GJ, at full load
+            if r < tol:
+                break
+            for i in range(n):
+                x[i] = 0.0
+            x[n] = x_init[bi, n]
+            x[n + 1] = x_init[bi, n + 1]
+            if not (math.isfinite(x[n]) and math.isfinite(x[n + 1])):
+                x[n] = 0.0
+                x[n + 1] = 0.0
+            for kk in range(0, K + 1):
+                lam = kk / K
+                for i in range(n):
+                    rs[i] = lam * ratio[bi, i]
+                r, itk, at_x = _newton(al, be, x, L, straight, kappa[bi], EI[bi], rs, kink[bi],
+                                       W[bi], F[bi], M[bi], tpos, ttyp, tidx, out_s, m, step,
+                                       tol, max_iter, points[bi], resid, jac, resid_t, jac_t, dx,
+                                       xt, A, y, T, k, w, n0, wsum, ws, WS)
+                it += itk
+                if not r < tol:
+                    at_x = at_x and kk == K
+                    break
         if not at_x:
             _integrate(al, be, x, L, straight, kappa[bi], EI[bi], ratio[bi], kink[bi], W[bi],
-                       F[bi], M[bi], tpos, ttyp, tidx, out_s, m, step, False, points[bi],
-                       resid_t, jac_t, y, T, k, w, n0, wsum, ws, WS)
+                       F[bi], M[bi], tpos, ttyp, tidx, out_s, m, step, runtime(False),
+                       points[bi], resid_t, jac_t, y, T, k, w, n0, wsum, ws, WS)
         finite = True
         for q in range(m):
             svals[bi, q] = out_s[q]

@@ -152,11 +152,13 @@ class MechanicsParams:
 
 @dataclass(frozen=True)
 class SolveInfo:
-    """Diagnostics of a physics solve: uz0 (B, n) 1/mm, iterations (B,), residual (B,) 1/mm."""
+    """Diagnostics of a physics solve: uz0 (B, n) 1/mm, iterations (B,), residual (B,) 1/mm;
+    moment0 (B, 2) N mm or None: bending moment at s = 0 (base frame x, y; loaded solves)."""
 
     uz0: np.ndarray
     iterations: np.ndarray
     residual: np.ndarray
+    moment0: np.ndarray | None = None
 
 
 class PhysicsModel:
@@ -176,7 +178,8 @@ class PhysicsModel:
         solved as a boundary value problem with force and moment states
         (:mod:`ctrplan.shape._loaded`); the torsionally rigid model under loads is its limit of
         infinite torsional stiffness (tubes do not twist but carry torsional moments). With no
-        load the unloaded kernels run unchanged.
+        load the unloaded kernels run unchanged. The first loaded solve compiles the loaded
+        kernel (about 14 s of CPU on the development machine; numba caches it on disk).
     """
 
     def __init__(self, robot: Robot | str, torsion: bool = True, config: PhysicsConfig | None = None,
@@ -276,6 +279,7 @@ class PhysicsModel:
                 float(self.config.step_mm), float(self.config.tol), int(self.config.max_iter),
                 c(x0[rows]))
 
+        moment0 = None
         if not loaded.any():
             pts, s, uz0, iters, resid, ok = unloaded(None, int(points))
         else:
@@ -295,20 +299,23 @@ class PhysicsModel:
             M = np.zeros((B, 3)) if moment is None else moment
             # first guess from the unloaded solution of the loaded rows (33 points)
             gp, gs, guz, _, _, gok = unloaded(idx, 33)
-            lp, ls, luz, lit, lres = self._solve_loaded(
+            lp, ls, luz, lit, lres, lm = self._solve_loaded(
                 alpha[idx], beta[idx], kappa[idx], EI[idx], ratio[idx], kink[idx], W[idx],
                 F[idx], M[idx], gp, gs, guz, gok, int(points))
             pts[idx], s[idx], uz0[idx], iters[idx], resid[idx] = lp, ls, luz, lit, lres
+            moment0 = np.zeros((B, 2))
+            moment0[idx] = lm
             ok[idx] = lres < self.config.tol
         ok = ok & np.all(np.isfinite(pts), axis=(1, 2))
-        self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid)
+        self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid, moment0=moment0)
         return Shape(points=pts, s=s, radius=radius_along(r, q, s), ok=ok)
 
     def _solve_loaded(self, alpha, beta, kappa, EI, ratio, kink, W, F, M, pts0, s0, uz00, ok0,
                       points):
         """The loaded rows: first guess from the unloaded solution (its torsions, and the base
         moment of the loads about the base on the unloaded backbone), then the loaded kernel.
-        Returns points, s, uz(0), iterations, residual (1/mm) of those rows."""
+        Returns points, s, uz(0), iterations, residual (1/mm), base moment (N mm, x/y) of
+        those rows."""
         n = self.robot.n
         B = len(alpha)
         ratio = ratio if self.torsion else np.zeros_like(ratio)
@@ -330,4 +337,4 @@ class PhysicsModel:
             c(W), c(F), c(M), points, float(self.config.step_mm), float(self.config.tol),
             int(self.config.max_iter), c(x_init), c(x_start))
         uz0 = x[:, :n] * ratio / EI
-        return p, s, uz0, it, res
+        return p, s, uz0, it, res, x[:, n:]
