@@ -5,7 +5,9 @@ serial), medians over repeats of ``PhysicsModel.shape`` (the public call, Python
 included). Baselines run in the same process, because these machines are shared and noisy:
 the rigid model, and the tight scipy reference solver (:mod:`ctrplan.shape.reference`) one
 configuration at a time on a few configurations, which also gives the accuracy of the default
-step. Usage::
+step. Loads: the compliant and rigid models under gravity across the insertion axis
+(``Loads(gravity=(0, -9.81, 0))``, nitinol density) at batch 10,000, timed interleaved with the
+unloaded models in the same run (the ratio is the number to read). Usage::
 
     python benchmarks/bench_shape.py [--quick] [--out results.json]
 
@@ -29,7 +31,7 @@ import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ctrplan.robot import load_robot  # noqa: E402
-from ctrplan.shape.physics import PhysicsModel  # noqa: E402
+from ctrplan.shape.physics import Loads, PhysicsModel  # noqa: E402
 from ctrplan.shape.reference import reference_shape  # noqa: E402
 
 ROBOT = "seed1"
@@ -78,6 +80,32 @@ def run(quick: bool = False) -> dict:
             cpu, wall = _median_time(lambda m=m, q=q: m.shape(q, POINTS), repeats[B])
             per_shape[name][B] = cpu / B
             per_shape_wall[name][B] = wall / B
+
+    # loads: loaded vs unloaded at batch 10,000, interleaved in this run
+    gravity = Loads(gravity=(0.0, -9.80665, 0.0))
+    loaded_models = {"rigid_loaded": PhysicsModel(robot, torsion=False, loads=gravity),
+                     "compliant_loaded": PhysicsModel(robot, torsion=True, loads=gravity)}
+    for m in loaded_models.values():
+        m.shape(q_all[:2], POINTS)
+    pair = {"rigid": [], "rigid_loaded": [], "compliant": [], "compliant_loaded": []}
+    for _ in range(1 if quick else 3):
+        for name in pair:
+            m = loaded_models.get(name) or models[name]
+            pair[name].append(_median_time(lambda m=m: m.shape(q_all, POINTS), 1)[0] / len(q_all))
+    lp = {k: statistics.median(v) for k, v in pair.items()}
+    lshape = loaded_models["compliant_loaded"].shape(q_all, POINTS)
+    linfo = loaded_models["compliant_loaded"].last_info
+    sag = np.linalg.norm(lshape.tip - models["compliant"].shape(q_all, POINTS).tip, axis=1)
+    loads_res = {
+        "loads": "gravity (0, -9.80665, 0) m/s^2, nitinol 6450 kg/m^3", "batch": len(q_all),
+        "us_per_shape": {k: v * 1e6 for k, v in lp.items()},
+        "compliant_loaded_over_compliant": lp["compliant_loaded"] / lp["compliant"],
+        "rigid_loaded_over_rigid": lp["rigid_loaded"] / lp["rigid"],
+        "newton_iterations_mean": float(linfo.iterations.mean()),
+        "newton_iterations_max": int(linfo.iterations.max()),
+        "converged_fraction": float(lshape.ok.mean()),
+        "tip_sag_mm_median": float(np.median(sag)), "tip_sag_mm_max": float(sag.max()),
+    }
 
     comp = models["compliant"]
     shape = comp.shape(q_all, POINTS)
@@ -129,6 +157,7 @@ def run(quick: bool = False) -> dict:
         "target_compliant_10k_s": 1e-4,
         "meets_target": bool(c10k <= 1e-4),
         "table": table,
+        "loads": loads_res,
     }
 
 
@@ -155,6 +184,18 @@ def to_markdown(res: dict) -> str:
         f"{'met' if res['meets_target'] else 'NOT met'} "
         f"({res['anchor_over_compliant_10k']:.0f}x below the published 1.73 ms/shape anchor).",
     ]
+    ld = res.get("loads")
+    if ld:
+        us = ld["us_per_shape"]
+        lines += [
+            "",
+            f"Loads ({ld['loads']}), batch {ld['batch']:,}: compliant {us['compliant_loaded']:.0f} "
+            f"vs {us['compliant']:.1f} us/shape unloaded ({ld['compliant_loaded_over_compliant']:.1f}x), "
+            f"rigid {us['rigid_loaded']:.0f} vs {us['rigid']:.1f} ({ld['rigid_loaded_over_rigid']:.1f}x); "
+            f"Newton iterations mean {ld['newton_iterations_mean']:.2f}, max "
+            f"{ld['newton_iterations_max']}, converged {ld['converged_fraction'] * 100:.2f} %; "
+            f"tip sag median {ld['tip_sag_mm_median']:.2f} mm, max {ld['tip_sag_mm_max']:.2f} mm.",
+        ]
     return "\n".join(lines)
 
 

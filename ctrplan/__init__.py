@@ -26,6 +26,7 @@ _EXPORTS = {
     "ShapeModel": "ctrplan.shape.base",
     "PhysicsModel": "ctrplan.shape.physics",
     "PhysicsConfig": "ctrplan.shape.physics",
+    "Loads": "ctrplan.shape.physics",
     "LearnedModel": "ctrplan.shape.learned",
     "load_model": "ctrplan.shape.models",
     "load_scene": "ctrplan.collision.scene",

@@ -37,6 +37,8 @@ class Tube:
 
     Lengths in mm, ``curvature`` in 1/mm (the precurvature of the curved distal section, which
     bends the tube toward +x of its own frame), ``youngs_modulus`` in MPa (N/mm^2).
+    ``density`` (kg/m^3, optional) is used only by gravity loads; None means "not given"
+    (gravity then uses nitinol's :data:`DEFAULT_DENSITY`).
     """
 
     od: float
@@ -46,6 +48,7 @@ class Tube:
     curvature: float
     youngs_modulus: float
     poisson_ratio: float
+    density: float | None = None
 
     @property
     def length(self) -> float:
@@ -56,6 +59,17 @@ class Tube:
     def second_moment(self) -> float:
         """Area second moment of the annulus, mm^4."""
         return math.pi / 64.0 * (self.od**4 - self.id**4)
+
+    @property
+    def area(self) -> float:
+        """Cross-section area of the annulus, mm^2."""
+        return math.pi / 4.0 * (self.od**2 - self.id**2)
+
+    @property
+    def weight_density(self) -> float:
+        """Mass per unit length, kg/mm (``density``, or nitinol's when not given)."""
+        rho = DEFAULT_DENSITY if self.density is None else self.density
+        return rho * self.area * 1e-9
 
     @property
     def bending_stiffness(self) -> float:
@@ -69,7 +83,11 @@ class Tube:
         return shear * 2.0 * self.second_moment
 
 
-_TUBE_FIELDS = tuple(f.name for f in fields(Tube))
+#: Required tube fields (``density`` is optional).
+_TUBE_FIELDS = tuple(f.name for f in fields(Tube) if f.name != "density")
+
+#: Density (kg/m^3) used for gravity loads of a tube without ``density``: nitinol.
+DEFAULT_DENSITY = 6450.0
 
 
 @dataclass(frozen=True)
@@ -209,7 +227,9 @@ class Robot:
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {
             "name": self.name,
-            "tubes": [{k: float(getattr(t, k)) for k in _TUBE_FIELDS} for t in self.tubes],
+            "tubes": [{k: float(getattr(t, k)) for k in _TUBE_FIELDS}
+                      | ({} if t.density is None else {"density": float(t.density)})
+                      for t in self.tubes],
         }
         if self.beta_min is not None:
             d["beta_min"] = [float(b) for b in self.beta_min]
@@ -222,7 +242,8 @@ class Robot:
         from ctrplan.io import write_text_atomic
 
         text = (
-            "# ctrplan robot: lengths mm, curvature 1/mm, youngs_modulus MPa; tubes innermost first\n"
+            "# ctrplan robot: lengths mm, curvature 1/mm, youngs_modulus MPa, density kg/m^3; "
+            "tubes innermost first\n"
             + yaml.safe_dump(self.to_dict(), sort_keys=False)
         )
         write_text_atomic(path, text)
@@ -265,6 +286,11 @@ def _validate_tubes(tubes: tuple[Tube, ...], source: str) -> None:
             raise InputError(source, f"{where}.youngs_modulus", f"must be > 0, got {t.youngs_modulus}")
         if not 0 <= t.poisson_ratio < 0.5:
             raise InputError(source, f"{where}.poisson_ratio", f"must be in [0, 0.5), got {t.poisson_ratio}")
+        if t.density is not None and (isinstance(t.density, bool)
+                                      or not isinstance(t.density, (int, float))
+                                      or not math.isfinite(t.density) or t.density <= 0):
+            raise InputError(source, f"{where}.density",
+                             f"must be a finite number > 0 (kg/m^3), got {t.density!r}")
         if i > 0 and not tubes[i - 1].od < t.id:
             raise InputError(
                 source, f"{where}.id",
@@ -289,7 +315,7 @@ def robot_from_dict(data: Any, source: str = "<memory>") -> Robot:
     for i, t in enumerate(raw):
         if not isinstance(t, dict):
             raise InputError(source, f"tubes[{i}]", "must be a mapping")
-        unknown = set(t) - set(_TUBE_FIELDS)
+        unknown = set(t) - set(_TUBE_FIELDS) - {"density"}
         if unknown:
             raise InputError(source, f"tubes[{i}].{sorted(unknown)[0]}", "unknown key")
         missing = [k for k in _TUBE_FIELDS if k not in t]
@@ -301,6 +327,12 @@ def robot_from_dict(data: Any, source: str = "<memory>") -> Robot:
             if isinstance(v, bool) or not isinstance(v, (int, float)):
                 raise InputError(source, f"tubes[{i}].{k}", f"must be a number, got {v!r}")
             vals[k] = float(v)
+        if "density" in t:
+            v = t["density"]
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise InputError(source, f"tubes[{i}].density",
+                                 f"must be a number (kg/m^3), got {v!r}")
+            vals["density"] = float(v)
         tubes.append(Tube(**vals))
     beta_min = data.get("beta_min")
     if beta_min is not None:

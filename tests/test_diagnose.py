@@ -7,11 +7,12 @@ the fitted form: it is integrated with a finer step (5 mm vs 10 mm), and clearan
 up Dahl-style (``presliding``) instead of the fitted ideal backlash, torsion has a different
 compliance for the innermost tube (``inner_factor``).
 
-Done-when criteria (issue 6), checked per seed: the hidden effect is the first one named, its
-main parameter is recovered within 15 % of its distance from "off", and the held-out mean tip
-error drops by at least 50 %; no effect -> nothing named; two effects -> both named.
-The default run has one seed per case; the full matrix (10 seeds per effect, 20 without effect,
-statistics >= 9/10 and >= 19/20) is marked ``slow``.
+Per case (one seed each; fast): the hidden effect is the first one named, its main parameter is
+recovered within 15 % of its distance from "off" (when the winning form has that parameter), and
+the held-out mean tip error drops by at least 50 %; no effect -> nothing named; two effects ->
+both named. The statistics behind the README (10 seeds per effect, 20 without, effects outside
+the vocabulary, the three-effect study) run on the independent foreign generator in
+``tests/test_diagnose_foreign.py``. Honesty on bad data: ``tests/test_diagnose_honesty.py``.
 """
 
 from __future__ import annotations
@@ -62,8 +63,9 @@ def _single_ok(name, seed) -> tuple[bool, str]:
     got = rep.parameters.get(name, {}).get(main_p)
     msg = f"{name} seed {seed}: {rep.conclusion}; {main_p}={got} (true {true}); " \
           f"held-out {rep.error_before_mm:.3f} -> {rep.error_after_mm:.3f} mm"
-    ok = (bool(rep.effects) and rep.effects[0] == name and got is not None
-          and abs(got - true) <= 0.15 * abs(true - off)
+    has = got is not None or rep.forms.get(name) in ("harmonic", "harmonic2")
+    ok = (bool(rep.effects) and rep.effects[0] == name and has
+          and (got is None or abs(got - true) <= 0.15 * abs(true - off))
           and rep.error_after_mm <= 0.5 * rep.error_before_mm)
     return ok, msg
 
@@ -133,11 +135,18 @@ def test_cli_diagnose_writes_report_and_calibrated_model(tmp_path, capsys):
     assert rep["parameters"]["clearance"]["length"]["sigma"] > 0
     assert rep["steps"][0]["runner_up"] and rep["steps"][0]["delta_bic"] < -10
     md = (out / "report.md").read_text()
-    assert "| clearance | length |" in md and "runner-up" in md
+    assert md.splitlines()[0].startswith("Held-out tip error: mean ")
+    assert "| clearance | " in md and "runner-up" in md
+    assert "## Evidence from the data" in md and "## Evidence for each named effect" in md
+    assert set(rep["evidence"]["before"]) >= {"noise", "hysteresis", "harmonics", "insertion",
+                                              "procrustes"}
+    eq = rep["error_quantiles"]
+    assert 0 < eq["p50"] <= eq["p95"] <= eq["p99"] <= eq["max"] == pytest.approx(rep["max_after_mm"])
     for png in ("residuals_rotation", "residuals_insertion", "residuals_arclength",
                 "errors_by_step", "tip_paths"):
         assert (out / f"{png}.png").stat().st_size > 5000, png
     model = load_model(str(out / "calibrated.yaml"), "two_tube_nylon")
+    assert model.error_quantiles == pytest.approx(eq)
     data = read_measured(meas, lr("two_tube_nylon"))
     err = np.linalg.norm(model.shape(data.q, 2, sweep=data.sweep).tip - data.tip, axis=1).mean()
     assert err < 0.5 * rep["error_before_mm"]
@@ -154,50 +163,27 @@ def test_cli_diagnose_bad_input_exit_2(tmp_path, capsys):
     assert rc == 2 and "tip_z" in capsys.readouterr().err
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("name", list(SINGLE))
-def test_single_effect_matrix(name):
-    results = [_single_ok(name, seed) for seed in range(10, 20)]
-    good = sum(ok for ok, _ in results)
-    assert good >= 9, "\n".join(m for _, m in results)
-
-
-@pytest.mark.slow
-def test_no_effect_matrix():
-    named = []
-    for seed in range(20, 40):
-        r, data = _data({}, seed)
-        rep = diagnose(r, data, seed=seed)
-        if rep.effects:
-            named.append(f"seed {seed}: {rep.conclusion}")
-    assert len(named) <= 1, named
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("pair", list(PAIRS))
-def test_two_effects_matrix(pair):
-    hidden = PAIRS[pair]
-    for seed in range(3):
-        r, data = _data(hidden, 40 + seed)
-        rep = diagnose(r, data, seed=seed)
-        assert set(hidden) <= set(rep.effects), f"seed {seed}: {rep.conclusion}"
-
-
-def test_study_example_quick(tmp_path):
+def test_study_example_writes_the_study_table(tmp_path):
+    """examples/study_two_tube_nylon.py on the foreign generator: the study's table shape
+    (traditional vs improved, mean and max per experiment). Its numbers are asserted by the
+    statistical suite (tests/test_diagnose_foreign.py::test_three_effect_study)."""
     import importlib.util
     from pathlib import Path
 
+    pytest.importorskip("tests.foreign")
     path = Path(__file__).resolve().parents[1] / "examples" / "study_two_tube_nylon.py"
     spec = importlib.util.spec_from_file_location("study_two_tube_nylon", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    assert mod.main(["--quick", "--out", str(tmp_path)]) == 0
+    assert mod.main(["--out", str(tmp_path)]) == 0
     res = json.loads((tmp_path / "study.json").read_text())
     assert [r["experiment"] for r in res["table"]] == ["feed", "inner_rotation", "outer_rotation"]
-    assert set(res["effects"]) == {"clearance", "friction", "torsion"}
     for r in res["table"]:
-        assert r["improved_mean_mm"] < 0.5 * r["traditional_mean_mm"]
-    assert "| experiment | traditional mean (mm)" in (tmp_path / "study.md").read_text()
+        assert set(r) >= {"traditional_mean_mm", "traditional_max_mm", "improved_mean_mm",
+                          "improved_max_mm"}
+        assert r["improved_mean_mm"] < r["traditional_mean_mm"]
+    md = (tmp_path / "study.md").read_text()
+    assert "| experiment | traditional mean / max (mm) | improved mean / max (mm) |" in md
     for exp in res["table"]:
         assert (tmp_path / f"paths_{exp['experiment']}.png").stat().st_size > 5000
     assert (tmp_path / "report" / "report.json").exists()

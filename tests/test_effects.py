@@ -58,7 +58,7 @@ def test_each_effect_changes_the_shape():
     on = {"torsion": {"compliance": 1.0}, "friction": {"lost1": 0.2},
           "clearance": {"length": 10.0}, "precurvature": {"scale1": 1.2},
           "stiffness": {"ratio1": 2.0}, "registration": {"tz": 1.0},
-          "joint_offset": {"dbeta1": -2.0}}
+          "joint_offset": {"dbeta1": -2.0}, "load": {"gy": 9.81}}
     assert set(on) == set(EFFECT_NAMES)
     for name, vals in on.items():
         tip = EffectModel(r, "rigid", {name: vals}).shape(q, 2).tip
@@ -199,3 +199,119 @@ def test_bad_effects_are_input_errors():
         parse_effect_arg("friction:lost1")
     assert parse_effect_arg("friction:lost1=0.1, lost2=0.2") == ("friction", {"lost1": 0.1, "lost2": 0.2})
     assert parse_effect_arg("torsion") == ("torsion", {})
+
+
+# ------------------------------------------------------------------ forms and contracts (issue 12)
+def test_friction_with_direction_is_a_pure_function_of_q_and_direction():
+    from ctrplan.shape.base import needs_direction
+
+    r = load_robot("seed1")
+    q = _q(r, 30, seed=5)
+    rng = np.random.default_rng(0)
+    D = rng.integers(-1, 2, size=q.shape).astype(np.int8)
+    lost = {"lost1": 0.1, "lost2": 0.05, "lost3": 0.02}
+    phys = PhysicsModel(r, torsion=False)
+    for form in (0.0, 1.0):          # dead band and constant lag: settled lag against D
+        m = EffectModel(r, "rigid", {"friction": {**lost, "form": form}})
+        assert needs_direction(m)
+        tips = m.shape(q, 2, direction=D).tip
+        perm = rng.permutation(len(q))
+        np.testing.assert_array_equal(m.shape(q[perm], 2, direction=D[perm]).tip, tips[perm])
+        qa = q.copy()
+        qa[:, :3] -= D[:, :3] * np.array([0.1, 0.05, 0.02])     # oracle: commanded - lost * D
+        np.testing.assert_allclose(tips, phys.shape(qa, 2).tip, atol=1e-12)
+    # relative form: a tube is dragged by a neighbour turning against it
+    m = EffectModel(r, "rigid", {"friction": {"lost1": 0.1, "form": 2.0}})
+    D2 = np.zeros((1, 6), dtype=np.int8)
+    D2[0, 1] = 1                                                # tube 2 turns +, tube 1 held
+    qa = q[:1].copy()
+    qa[0, 0] += 0.1                                             # tube 1 is dragged along (+)
+    np.testing.assert_allclose(m.shape(q[:1], 2, direction=D2).tip, phys.shape(qa, 2).tip,
+                               atol=1e-12)
+    assert not needs_direction(EffectModel(r, "rigid", {"friction": {}}))
+
+
+def test_planning_model_drops_registration_and_is_pure():
+    r = load_robot("seed1")
+    q = _q(r, 12)
+    eff = {"registration": {"tx": 5.0}, "friction": {"lost1": 0.2},
+           "clearance": {"c1": 0.05}}
+    m = EffectModel(r, "rigid", eff, error_quantiles={"p50": 1, "p95": 2, "p99": 3, "max": 4})
+    pm = m.planning_model()
+    assert "registration" not in pm.effects and pm.error_quantiles == m.error_quantiles
+    # no direction known: no lag; rows independent of their order
+    ref = EffectModel(r, "rigid", {"clearance": {"c1": 0.05}}).shape(q, 4).points
+    np.testing.assert_array_equal(pm.shape(q, 4).points, ref)
+    np.testing.assert_array_equal(pm.shape(q[::-1], 4).points, ref[::-1])
+    D = np.ones_like(q, dtype=np.int8)
+    assert not np.allclose(pm.shape(q, 4, direction=D).points, ref)
+
+
+def test_clearance_harmonic_tilts_towards_bending_direction_with_free_phase():
+    from ctrplan.shape.effects import clearance_harmonic_kinks
+
+    r = load_robot("two_tube_nylon")
+    phi = np.linspace(-math.pi, math.pi, 73)
+    q = np.zeros((len(phi), 4))
+    q[:, 0] = phi - 0.4            # alpha1 - alpha2 = phi, alpha2 = -0.4
+    q[:, 1] = -0.4
+    q[:, 2:] = -10.0
+    peak = math.radians(205.0)
+    k = clearance_harmonic_kinks(r, q, [0.0, 0.1 * math.cos(peak), 0.1 * math.sin(peak), 0, 0])
+    assert np.all(k[:, 0] == 0.0)
+    # the rotation axis is tube 1's curvature axis (-sin a1, cos a1): tilt towards its bending
+    axis = np.stack([-np.sin(q[:, 0]), np.cos(q[:, 0])], 1)
+    t = (k[:, 1] * axis).sum(1)
+    np.testing.assert_allclose(np.abs(t), np.hypot(k[:, 1, 0], k[:, 1, 1]), atol=1e-12)
+    assert math.degrees(phi[np.argmax(t)]) % 360 == pytest.approx(205.0, abs=5.1)
+    np.testing.assert_allclose(t, 0.1 * np.cos(phi - peak), atol=1e-12)
+    # off is exact; the form changes the tip
+    base = EffectModel(r).shape(q, 2).tip
+    np.testing.assert_array_equal(EffectModel(r, "rigid", {"clearance": {"c0": 0.0}}).shape(q, 2).tip, base)
+    assert np.max(np.linalg.norm(EffectModel(r, "rigid", {"clearance": {"c0": 0.05}}).shape(q, 2).tip
+                                 - base, axis=1)) > 1.0
+
+
+def test_error_quantiles_round_trip_through_calibrated_yaml(tmp_path):
+    from ctrplan.shape.base import model_error_bound
+    from ctrplan.shape.models import load_model
+
+    eq = {"p50": 0.4, "p95": 1.1, "p99": 1.6, "max": 2.0}
+    m = EffectModel("seed1", "rigid", {"torsion": {"compliance": 0.8}}, error_quantiles=eq)
+    m.save(tmp_path / "calibrated.yaml")
+    m2 = load_model(str(tmp_path / "calibrated.yaml"), "seed1")
+    assert m2.error_quantiles == eq and model_error_bound(m2) == 1.6
+    text = (tmp_path / "calibrated.yaml").read_text().replace("p99: 1.6", "p99: -1")
+    (tmp_path / "bad.yaml").write_text(text)
+    with pytest.raises(InputError, match="error_quantiles.p99"):
+        load_model(str(tmp_path / "bad.yaml"), "seed1")
+
+
+def test_end_moment_friction_twists_both_tubes_of_the_pair():
+    # hand-computed oracle (two_tube_nylon): where the outer tube ends (s = 174 mm, both tubes
+    # curved there) the torque mu |M| twists the inner tube by -T l_1/GJ_1 and the outer one by
+    # +T l_2/GJ_2, the sign following the relative direction (inner turning +, outer held)
+    r = load_robot("two_tube_nylon")
+    a1, a2, b1, b2, mu = 0.3, -0.5, -50.0, 0.0, 0.02
+    E, nu = 1700.0, 0.41
+    inertia = [math.pi / 64 * (4.5 ** 4 - 3.0 ** 4), math.pi / 64 * (6.8 ** 4 - 4.9 ** 4)]
+    EI = [E * i for i in inertia]
+    GJ = [E / (2 * (1 + nu)) * 2 * i for i in inertia]
+    k1, k2 = 0.010152284, 0.010309278
+    ux = (EI[0] * k1 * -math.sin(a1) + EI[1] * k2 * -math.sin(a2)) / (EI[0] + EI[1])
+    uy = (EI[0] * k1 * math.cos(a1) + EI[1] * k2 * math.cos(a2)) / (EI[0] + EI[1])
+    M = EI[1] * math.hypot(ux + k2 * math.sin(a2), uy - k2 * math.cos(a2))
+    expect = np.array([[a1 - mu * M * (174.0 - b1) / GJ[0], a2 + mu * M * (174.0 - b2) / GJ[1],
+                        b1, b2]])
+    q = np.array([[a1, a2, b1, b2]])
+    D = np.array([[1, 0, 0, 0]], dtype=np.int8)
+    m = EffectModel(r, "rigid", {"friction": {"form": 3.0, "mu": mu}})
+    got = m.shape(q, 2, direction=D).tip
+    np.testing.assert_allclose(got, PhysicsModel(r, torsion=False).shape(expect, 2).tip,
+                               atol=1e-9)
+    assert abs(expect[0, 0] - a1) > 1e-3                         # a visible twist
+    # reversed relative direction: the opposite twist; both turning the same way: none
+    np.testing.assert_allclose(m.shape(q, 2, direction=-D).tip, PhysicsModel(r, torsion=False).shape(
+        np.array([[2 * a1 - expect[0, 0], 2 * a2 - expect[0, 1], b1, b2]]), 2).tip, atol=1e-9)
+    np.testing.assert_array_equal(m.shape(q, 2, direction=np.array([[1, 1, 0, 0]])).tip,
+                                  PhysicsModel(r, torsion=False).shape(q, 2).tip)

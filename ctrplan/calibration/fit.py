@@ -67,6 +67,8 @@ class Problem:
         target = data.points if data.points is not None else np.stack(
             [np.full_like(data.tip, np.nan), data.tip], axis=1)
         self.target = target                       # (B, m, 3); row 0 unused without shapes
+        self.target_raw = target
+        self.tip = data.tip
         self.use = slice(None) if data.points is not None else slice(1, 2)
         self.evals = 0
 
@@ -96,6 +98,7 @@ class Problem:
             ratio=np.concatenate([preps[u].params.ratio if preps[u].torsion
                                   else np.zeros_like(preps[u].params.ratio) for u in uniq]),
             kink=np.concatenate([preps[u].params.kink for u in uniq]),
+            **_loads_of([preps[u].params for u in uniq]),
         )
         phys = self.model._compliant if tors else self.model._rigid
         pts = phys.solve(q, self.m, params).points
@@ -108,8 +111,18 @@ class Problem:
 
     def errors(self, pts: np.ndarray) -> np.ndarray:
         """(B,) tip error (mm); non-finite predictions count as NONFINITE_MM."""
-        e = np.linalg.norm(pts[:, -1, :] - self.data.tip, axis=1)
+        e = np.linalg.norm(pts[:, -1, :] - self.tip, axis=1)
         return np.where(np.isfinite(e), e, NONFINITE_MM)
+
+    def set_correction(self, corr: np.ndarray | None) -> None:
+        """Subtract a sensor-side correction (B, m, 3) mm from the measurements (a nuisance
+        outside the effect vocabulary, e.g. a drift in time); None restores the data."""
+        if corr is None:
+            self.target = self.target_raw
+            self.tip = self.data.tip
+        else:
+            self.target = self.target_raw - corr
+            self.tip = self.data.tip - corr[:, -1, :]
 
     def residual(self, pts: np.ndarray, rows: np.ndarray) -> np.ndarray:
         r = (pts[rows][:, self.use, :] - self.target[rows][:, self.use, :]).ravel()
@@ -207,6 +220,17 @@ class Problem:
         return out
 
 
+def _loads_of(params: Sequence[MechanicsParams]) -> dict[str, np.ndarray]:
+    """The load arrays of several parameter sets stacked (zeros where a set has none)."""
+    out: dict[str, np.ndarray] = {}
+    for name, tail in (("weight", params[0].EI.shape[1:] + (3,)), ("force", (3,)),
+                       ("moment", (3,))):
+        if any(getattr(p, name) is not None for p in params):
+            out[name] = np.concatenate([np.zeros((len(p.EI),) + tail) if getattr(p, name) is None
+                                        else getattr(p, name) for p in params])
+    return out
+
+
 def _same_mechanics(a: Mapping[str, Mapping[str, float]], b: Mapping[str, Mapping[str, float]]) -> bool:
     ka = {k for k in a if k not in _SENSOR_SIDE}
     kb = {k for k in b if k not in _SENSOR_SIDE}
@@ -215,7 +239,10 @@ def _same_mechanics(a: Mapping[str, Mapping[str, float]], b: Mapping[str, Mappin
 
 def _scale(p: Param) -> float:
     """A typical magnitude of a parameter (the unit of the optimiser's variable)."""
-    typical = {"mm": 1.0, "rad": 0.05, "1": 0.1}.get(p.unit, 1.0)
+    # m/s^2 (load: gravity): light tubes sag little per m/s^2; a finer finite-difference step
+    # at load off would compare the loaded kernel with the unloaded one, whose discretisations
+    # differ by ~1e-4 mm
+    typical = p.typical or {"mm": 1.0, "rad": 0.05, "1": 0.1, "m/s^2": 10.0}.get(p.unit, 1.0)
     return min(typical, (p.hi - p.lo) / 2.0)
 
 

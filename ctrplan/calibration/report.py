@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from ctrplan.io import jsonable, save_figure, write_json_atomic, write_text_atomic
 from ctrplan.measured import MeasuredData
-from ctrplan.robot import Robot, Tube, wrap_angle
+from ctrplan.robot import Robot, wrap_angle
 
 
 def folded_robot(robot: Robot, effects: dict[str, dict[str, float]]) -> Robot:
@@ -38,7 +39,7 @@ def folded_robot(robot: Robot, effects: dict[str, dict[str, float]]) -> Robot:
         e = t.youngs_modulus
         if i < n - 1:
             e *= effects.get("stiffness", {}).get(f"ratio{i + 1}", 1.0)
-        tubes.append(Tube(t.od, t.id, t.straight_length, t.curved_length, k, e, t.poisson_ratio))
+        tubes.append(replace(t, curvature=k, youngs_modulus=e))
     return Robot(name=f"{robot.name}_calibrated", tubes=tuple(tubes), beta_min=robot.beta_min)
 
 
@@ -51,18 +52,74 @@ def _fmt(v: float | None, s: float | None = None) -> str:
 
 
 def markdown(rep) -> str:
-    lines = [f"# ctrplan diagnose: {rep.robot.name} ({rep.base} base)", "",
-             f"**Conclusion: {rep.conclusion}.**", "",
-             f"Held-out mean tip error {rep.error_before_mm:.3f} mm -> {rep.error_after_mm:.3f} mm "
-             f"(max {rep.max_before_mm:.3f} -> {rep.max_after_mm:.3f} mm).", "",
-             "Selection rule: an effect is added only when its BIC change is below "
-             f"-{rep.settings['bic_threshold']:g} (training residuals) AND it lowers the held-out "
-             f"mean tip error by at least {100 * rep.settings['min_heldout_gain']:.0f} %. "
-             f"Held-out sweeps: {', '.join(rep.test_sweeps)}.", ""]
+    from ctrplan.calibration.evidence import supporting
+
+    lines = [rep.headline() + ".", "",
+             f"# ctrplan diagnose: {rep.robot.name} ({rep.base} base)", "",
+             f"**Conclusion: {rep.conclusion}.**", ""]
+    if rep.warnings:
+        lines += ["**Warnings:**", ""] + [f"- {w}" for w in rep.warnings] + [""]
+    if rep.experiment:
+        lines += ["**What experiment would support a diagnosis:**", ""] + \
+            [f"- {w}" for w in rep.experiment] + [""]
+    lines += ["Selection rule: an effect is added only when its BIC change is below "
+              f"-{rep.settings['bic_threshold']:g} (training residuals) AND it lowers the held-out "
+              f"mean tip error by at least {100 * rep.settings['min_heldout_gain']:.0f} %; effects "
+              f"are named only when they leave at most "
+              f"{100 * rep.settings.get('max_remainder', 0.5):.0f} % of the held-out error above "
+              f"the noise floor. Held-out: {', '.join(rep.test_sweeps)} "
+              f"({rep.split.get('method', 'whole sweeps')}).", ""]
+    lines += _evidence_md(rep)
+    if rep.effects:
+        lines += ["## Evidence for each named effect", ""]
+        for e in rep.effects:
+            sup = supporting(e, rep.evidence_before)
+            form = rep.forms.get(e)
+            head = f"- **{e}**" + (f" (form: {form})" if form else "") + ": "
+            lines.append(head + ("; ".join(sup) if sup else "no data-only test singles it out; "
+                                 "named by the fit (BIC and held-out error) alone"))
+        lines.append("")
+    if rep.unexplained:
+        u = rep.unexplained
+        corr = ", ".join(f"{c['description']} (r2 {c['r2']:.2f})" if c.get("r2") is not None
+                         else c["description"] for c in u.get("correlates_with", []))
+        lines += ["## Unexplained remainder", "",
+                  f"Held-out mean error {u['heldout_mean_mm']:.3f} mm against "
+                  f"{u['noise_mean_mm']:.3f} mm expected from the noise floor: "
+                  f"{u['excess_mean_mm']:.3f} mm left ({100 * u['fraction_of_initial_excess']:.0f} % "
+                  "of the initial excess). " + (f"It still correlates with: {corr}." if corr else
+                                                "No tested quantity explains it.")]
+        for o in u.get("outside_vocabulary", []):
+            lines.append(f"It follows {o['description']}: with that removed (not a vocabulary "
+                         f"effect) the held-out mean error would be "
+                         f"{o['heldout_mean_mm_once_removed']:.3f} mm.")
+        lines.append("")
+    if rep.partial:
+        lines += ["Partial fits (not named): " + ", ".join(rep.partial) + ".", ""]
+    from ctrplan.calibration.diagnose import headline
+
+    lr = rep.learned_residual
+    if lr and "heldout_mean_after_mm" in lr:
+        lines += ["## Learned residual (separate from the calibrated model)", "",
+                  f"A learned correction on top of the calibrated model ({lr['method']}). "
+                  + headline(lr["heldout_mean_before_mm"], lr["heldout_mean_after_mm"],
+                             lr["heldout_max_before_mm"], lr["heldout_max_after_mm"]) + ": "
+                  + ("offered (it lowers the held-out mean error)." if lr["offered"] else
+                     f"not offered: {lr.get('why')}."), ""]
     for k, s in enumerate(rep.steps, 1):
-        title = f"## Step {k}: {s.effect}" if s.accepted else f"## Step {k}: nothing more justified"
-        lines += [title, ""]
-        if s.accepted:
+        from ctrplan.calibration.diagnose import NUISANCES
+
+        if s.accepted and s.effect in NUISANCES:
+            lines += [f"## Step {k}: the residual follows {NUISANCES[s.effect]} "
+                      "(outside the effect vocabulary: not named, not in the calibrated model)", "",
+                      f"Removing it lowers the held-out mean tip error {s.error_before_mm:.3f} -> "
+                      f"{s.error_after_mm:.3f} mm (ΔBIC {s.delta_bic:.1f}); later steps are "
+                      "screened on the data with it removed.", ""]
+        elif s.accepted:
+            lines += [f"## Step {k}: {s.effect}" + (f" (form: {s.form})" if s.form else ""), ""]
+        else:
+            lines += [f"## Step {k}: nothing more justified", ""]
+        if s.accepted and s.effect not in NUISANCES:
             lines += ["| effect | parameter | fitted ± 1 sigma | held-out before (mm) | "
                       "held-out after (mm) | ΔBIC | held-out gain | runner-up (ΔBIC) |",
                       "|---|---|---|---|---|---|---|---|"]
@@ -82,14 +139,15 @@ def markdown(rep) -> str:
             if s.ambiguous:
                 lines += ["", f"Ambiguous at this step: {s.runner_up} explains the data almost as "
                               "well (ΔBIC within the ambiguity margin)."]
-        else:
+        elif not s.accepted:
             lines += [f"Best remaining candidate {s.runner_up}: ΔBIC {s.delta_bic:.1f}, held-out "
                       f"gain {100 * s.heldout_gain:.1f} % — not justified."]
-        lines += ["", "Screened candidates:", "", "| candidate | ΔBIC | held-out mean (mm) | justified |",
-                  "|---|---|---|---|"]
+        lines += ["", "Screened candidates (best form of each; `~` = outside the vocabulary):", "",
+                  "| candidate | form | ΔBIC | held-out mean (mm) | justified |",
+                  "|---|---|---|---|---|"]
         for c in s.screened:
-            lines.append(f"| {c.effect} | {c.delta_bic:.1f} | {c.test_mean_mm:.3f} | "
-                         f"{'yes' if c.justified else 'no'} |")
+            lines.append(f"| {c.effect} | {c.form or '-'} | {c.delta_bic:.1f} | "
+                         f"{c.test_mean_mm:.3f} | {'yes' if c.justified else 'no'} |")
         lines.append("")
     lines += ["## Files", "", "- `calibrated.yaml`: calibrated model (`--model calibrated.yaml`)",
               "- `calibrated_robot.yaml`: robot with precurvature/stiffness folded in (`--robot`)",
@@ -97,6 +155,50 @@ def markdown(rep) -> str:
               "`tip_paths.png`" + (", `residuals_arclength.png`" if rep.settings.get("shapes_measured") else ""),
               ""]
     return "\n".join(lines)
+
+
+def _evidence_md(rep) -> list[str]:
+    e = rep.evidence_before
+    if not e:
+        return []
+    nf = e.get("noise", {})
+    sd = nf.get("sd_mm")
+    lines = ["## Evidence from the data (base model residual)", "",
+             "| test | result |", "|---|---|",
+             f"| rows / distinct configurations | {e['rows']} / {e['distinct_configurations']} |",
+             f"| noise floor | {_fmt(sd)} mm per axis ({nf.get('method')}) |",
+             f"| residual rms / above noise | {_fmt(e['residual_rms_mm'])} / "
+             f"{_fmt(e['excess_rms_mm'])} mm |"]
+    h = e.get("hysteresis", {})
+    if h.get("tested"):
+        lines.append(f"| hysteresis (opposite vs same direction) | gap {_fmt(h['median_gap_mm'])} mm, "
+                     f"ratio {_fmt(h['ratio'])}, p {h['p_value']:.1e}: "
+                     f"{'yes' if h['significant'] else 'no'} |")
+    else:
+        lines.append(f"| hysteresis | not tested: {h.get('why')} |")
+    for item in e.get("harmonics", []):
+        pair = f"{item['pair'][0]}-{item['pair'][1]}"
+        if item.get("tested"):
+            hs = ", ".join(f"order {x['order']}: {_fmt(x['amplitude_mm'])} mm at "
+                           f"{x['phase_deg']:.0f} deg" for x in item["harmonics"])
+            lines.append(f"| harmonics in relative rotation {pair} | {hs}; r2 {item['r2']:.2f}, "
+                         f"p {item['p_value']:.1e}: {'yes' if item['significant'] else 'no'} |")
+        else:
+            lines.append(f"| harmonics in relative rotation {pair} | not tested: {item.get('why')} |")
+    ins = e.get("insertion", {})
+    if ins.get("tested"):
+        lines.append(f"| trend with insertion | {_fmt(ins['slope_norm'])} mm/mm, r2 "
+                     f"{ins['r2']:.2f}: {'yes' if ins['significant'] else 'no'} |")
+    pr = e.get("procrustes", {})
+    if pr.get("tested"):
+        lines.append(f"| rigid transform (Procrustes) | removes {100 * pr['fraction_explained']:.0f} % "
+                     f"(rotation {pr['rotation_deg']:.2f} deg, rms {_fmt(pr['rms_before_mm'])} -> "
+                     f"{_fmt(pr['rms_after_mm'])} mm): {'yes' if pr['significant'] else 'no'} |")
+    for key, label in (("time", "trend with time"), ("position", "field of tip position")):
+        it = e.get(key, {})
+        if it.get("tested"):
+            lines.append(f"| {label} | r2 {it['r2']:.2f}: {'yes' if it['significant'] else 'no'} |")
+    return lines + [""]
 
 
 def write_report(rep, data: MeasuredData, out: str | os.PathLike, base_pred: np.ndarray,

@@ -51,7 +51,12 @@ def run(args: argparse.Namespace) -> int:
     rep = diagnose(robot, data, base=args.base, candidates=cands, holdout=args.holdout,
                    seed=args.seed, bic_threshold=args.bic_threshold, min_gain=args.min_gain,
                    out=args.out)
-    print(json.dumps({"conclusion": rep.conclusion, "effects": rep.effects,
+    print(json.dumps({"headline": rep.headline(), "status": rep.status.value,
+                      "conclusion": rep.conclusion, "effects": rep.effects,
                       "error_before_mm": round(rep.error_before_mm, 4),
-                      "error_after_mm": round(rep.error_after_mm, 4), "out": str(args.out)}))
+                      "error_after_mm": round(rep.error_after_mm, 4),
+                      "max_before_mm": round(rep.max_before_mm, 4),
+                      "max_after_mm": round(rep.max_after_mm, 4),
+                      "unexplained": rep.unexplained is not None, "warnings": rep.warnings,
+                      "out": str(args.out)}))
     return 0

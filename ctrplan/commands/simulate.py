@@ -20,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "sweep, optional backbone points) from the mechanics model with hidden "
                     "effects and Gaussian noise. Rows are in order of motion.",
         epilog="Effects: torsion, friction, clearance, precurvature, stiffness, registration, "
-               "joint_offset; e.g. --effect clearance:length=8 --effect friction:lost1=0.1,lost2=0.1. "
+               "joint_offset, load; e.g. --effect clearance:length=8 --effect friction:lost1=0.1,lost2=0.1. "
                "Experiments: feed, inner_rotation, outer_rotation, random_walk.")
     add_robot_arg(p)
     src = p.add_mutually_exclusive_group()

@@ -17,21 +17,32 @@ The vocabulary (DESIGN.md):
     a rigid base, 1 on a compliant base. Form parameter ``inner_factor`` (not fitted) scales
     the innermost tube's compliance further.
 ``friction``
-    Rotation lost in transmission, depending on the direction of motion. Each tube's actual base
-    angle follows the commanded one through a backlash (play) of half-width ``lost<i>`` rad:
-    moving up it lags by ``lost<i>``, after a reversal it stands still until the command has
-    crossed the dead band. Rows are taken in order as one continuous motion per sweep (the
-    ``time``/row order of measured data); each sweep starts settled (actual = commanded).
-    Form parameter ``presliding`` (rad, not fitted; 0 = ideal play) makes the lag build up
-    exponentially over that much rotation instead (a Dahl-type friction law).
+    Rotation lost in transmission, depending on the direction of motion; a family of forms
+    (form parameter ``form``, not fitted; :data:`FRICTION_FORMS`), chosen by diagnose like any
+    effect. ``dead_band`` (0): each tube's actual base angle follows the commanded one through a
+    backlash of half-width ``lost<i>`` rad (moving up it lags by ``lost<i>``; after a reversal it
+    stands still until the command has crossed the dead band); with ``presliding`` > 0 (rad) the
+    lag builds up exponentially over that much rotation instead (Dahl-type). ``lag`` (1): a
+    constant lag ``lost<i>`` against each tube's own direction of motion. ``relative`` (2): a lag
+    ``lost<i>`` against the direction of rotation relative to the adjacent tubes (a tube is
+    dragged along by a neighbour turning against it). ``end_moment`` (3): ``relative`` plus the
+    study's concentrated end moment: where outer tube o ends a torque ``mu |M|`` (``|M|`` its
+    bending moment there) twists tube o by ``+T l_o / GJ_o`` and tube o-1 by ``-T l / GJ``
+    (l: each tube's length from its base to that point), its sign following the direction of
+    relative rotation (the study's ``dtheta``); ``mu`` fitted. The direction of motion: given as
+    ``direction`` (B, 2n) in {-1, 0, +1} every row is a pure function of (q, direction) (the
+    settled lag); without it, rows are taken in order as one continuous motion per sweep (the
+    ``time``/row order of measured data), each sweep starting settled.
 ``clearance``
-    Where outer tube j ends, the tubes inside it tilt within the radial gap: the backbone frame
-    rotates by ``length * du`` (R <- R Exp([kx, ky, 0])), where ``du`` is the jump of the
-    (torsionally rigid) curvature vector across the tube's end. The tilt therefore depends on the
-    relative rotation of the tubes (largest when their curvatures oppose). ``length`` (mm) is the
-    length over which the inner tube already relaxes towards its own curvature inside the gap.
-    Form parameter ``limit`` (rad, not fitted; 0 = none) saturates the tilt at the angle the gap
-    allows: ``theta -> limit * tanh(theta / limit)``.
+    Where outer tube j ends, the tubes inside it tilt within the radial gap (a kink
+    R <- R Exp([kx, ky, 0]) of the backbone frame). Harmonic form (fitted ``c0, c1, s1, c2,
+    s2``, rad): the tilt ``c0 + c1 cos phi + s1 sin phi + c2 cos 2phi + s2 sin 2phi`` of the
+    relative rotation phi = alpha_(j-1) - alpha_j, about tube j-1's curvature axis, i.e. towards
+    its bending direction (as in the study); its peak may sit at any relative rotation (the
+    study found 205 deg). Gap form (fitted ``length``, mm): the frame rotates by
+    ``length * du``, where ``du`` is the jump of the (torsionally rigid) curvature vector across
+    the tube's end (largest when the curvatures oppose); form parameter ``limit`` (rad, not
+    fitted; 0 = none) saturates that tilt: ``theta -> limit * tanh(theta / limit)``.
 ``precurvature``
     Per-tube scale ``scale<i>`` of the precurvature (off 1).
 ``stiffness``
@@ -43,6 +54,14 @@ The vocabulary (DESIGN.md):
 ``joint_offset``
     Zero offsets of the joints: the tubes are at ``alpha_i + dalpha<i>``, ``beta_i + dbeta<i>``
     (rad, mm; off 0).
+``load``
+    External loads (:class:`~ctrplan.shape.physics.Loads`, base frame). Fitted: gravity
+    ``gx, gy`` (m/s^2; the component across the insertion axis, i.e. direction and magnitude
+    of the sag of a robot that is not vertical; weight per length from each tube's ``density``,
+    nitinol's where none is given, so a wrong density shows as a scaled g) and a tip force
+    ``fx, fy`` (N). Set by hand (not fitted: along the axis they barely bend the robot):
+    ``gz`` (m/s^2) and ``fz`` (N). Off: all 0 (the unloaded kernel runs). On a rigid base the
+    loaded model is torsionally rigid (see :class:`~ctrplan.shape.physics.PhysicsModel`).
 
 A caveat written down once: on a compliant base the clearance tilt direction uses the base
 angles alpha (the rigid model's tube angles), not the twisted angles at the tube's end.
@@ -61,12 +80,31 @@ from numba import njit
 
 from ctrplan.errors import InputError
 from ctrplan.robot import Robot, load_robot
-from ctrplan.shape.base import Shape, check_q, radius_along
-from ctrplan.shape.physics import MechanicsParams, PhysicsConfig, PhysicsModel
+from ctrplan.shape.base import Shape, check_q, direction_from_rows, radius_along
+from ctrplan.shape.physics import MechanicsParams, PhysicsConfig, PhysicsModel, tube_weights
 
 EFFECT_NAMES = ("torsion", "friction", "clearance", "precurvature", "stiffness", "registration",
-                "joint_offset")
+                "joint_offset", "load")
 BASES = ("rigid", "compliant")
+
+#: Friction forms (the ``form`` code of the friction effect is the index):
+#: ``dead_band`` a backlash taken in row order (Dahl-type with ``presliding`` > 0);
+#: ``lag`` a constant lag against each tube's own direction of motion;
+#: ``relative`` a constant lag against the direction of rotation relative to the adjacent tubes
+#: (a tube is dragged along by a neighbour turning against it; the study's ``dtheta``);
+#: ``end_moment`` ``relative`` plus the twist of a torque ``mu |M|`` where each outer tube ends
+#: (the study's concentrated end moment, ``beta'(L) = mu' |M| (1/k2z - 1/k1z)``; see
+#: :func:`end_moment_twist`).
+FRICTION_FORMS = ("dead_band", "lag", "relative", "end_moment")
+
+#: Harmonic coefficients of the clearance tilt in the relative rotation phi of the tube that ends
+#: and the next tube inside it: tilt(phi) = c0 + c1 cos phi + s1 sin phi + c2 cos 2phi + s2 sin 2phi
+#: (rad), about the inner tube's curvature axis (towards its bending direction).
+CLEARANCE_HARMONICS = (("c0", "constant tilt towards the inner tube's bending direction"),
+                       ("c1", "tilt, cos(relative rotation) term"),
+                       ("s1", "tilt, sin(relative rotation) term"),
+                       ("c2", "tilt, cos(2 relative rotation) term"),
+                       ("s2", "tilt, sin(2 relative rotation) term"))
 
 #: File kind written by :meth:`EffectModel.save` and recognised by ``load_model``.
 MODEL_KIND = "ctrplan-effect-model"
@@ -84,6 +122,7 @@ class Param:
     unit: str
     doc: str
     fit: bool = True
+    typical: float | None = None   # a typical magnitude (the fit's step unit); None: by unit
 
 
 def effect_params(name: str, robot: Robot, base: str = "rigid") -> tuple[Param, ...]:
@@ -96,15 +135,22 @@ def effect_params(name: str, robot: Robot, base: str = "rigid") -> tuple[Param, 
                       fit=False))
     if name == "friction":
         return tuple(Param(f"lost{i + 1}", 0.0, 0.0, 1.0, "rad",
-                           f"rotation lost in transmission of tube {i + 1} (backlash half-width)")
-                     for i in range(n)) + (
+                           f"rotation lost in transmission of tube {i + 1} (lag / dead-band "
+                           "half-width)") for i in range(n)) + (
+            Param("mu", 0.0, 0.0, 1.0, "1", "end-moment friction: a torque mu |M| where an "
+                  "outer tube ends (|M| its bending moment there) twists both tubes of the pair "
+                  "(end_moment form)", fit=False, typical=0.01),
             Param("presliding", 0.0, 0.0, 1.0, "rad", "rotation over which the lag builds up "
-                  "(0 = ideal backlash)", fit=False),)
+                  "(0 = ideal backlash; dead_band form)", fit=False),
+            Param("form", 0.0, 0.0, float(len(FRICTION_FORMS) - 1), "1",
+                  "friction form: " + ", ".join(f"{k} {f}" for k, f in enumerate(FRICTION_FORMS)),
+                  fit=False))
     if name == "clearance":
         return (Param("length", 0.0, 0.0, 100.0, "mm",
                       "tilt per unit curvature jump where an outer tube ends"),
                 Param("limit", 0.0, 0.0, 1.0, "rad", "largest tilt the gap allows (0 = none)",
-                      fit=False))
+                      fit=False)) + tuple(
+            Param(h, 0.0, -0.2, 0.2, "rad", doc) for h, doc in CLEARANCE_HARMONICS)
     if name == "precurvature":
         return tuple(Param(f"scale{i + 1}", 1.0, 0.3, 3.0, "1", f"precurvature scale of tube {i + 1}")
                      for i in range(n))
@@ -121,12 +167,52 @@ def effect_params(name: str, robot: Robot, base: str = "rigid") -> tuple[Param, 
                      for i in range(n)) + tuple(
             Param(f"dbeta{i + 1}", 0.0, -10.0, 10.0, "mm", f"zero offset of beta{i + 1}")
             for i in range(n))
+    if name == "load":
+        return tuple(Param(f"g{c}", 0.0, -30.0, 30.0, "m/s^2", f"gravity component {c} (base frame)",
+                           fit=c != "z") for c in "xyz") + tuple(
+            Param(f"f{c}", 0.0, -5.0, 5.0, "N", f"tip force component {c} (base frame)",
+                  fit=c != "z") for c in "xyz")
     raise InputError("<effect>", name, f"unknown effect; known: {', '.join(EFFECT_NAMES)}")
 
 
 def off_values(name: str, robot: Robot, base: str = "rigid") -> dict[str, float]:
     """All parameters of an effect at their off values."""
     return {p.name: p.off for p in effect_params(name, robot, base)}
+
+
+def effect_variants(name: str, robot: Robot, base: str = "rigid") -> list[tuple[str, dict[str, float], list[str]]]:
+    """The forms of effect ``name`` that diagnose screens: ``(form label, fixed form parameter
+    values, names of the fitted parameters)``. An effect with one form has a single variant
+    (label ``""``) fitting every parameter marked ``fit``."""
+    n = robot.n
+    if name == "friction":
+        lost = [f"lost{i + 1}" for i in range(n)]
+        return [("dead_band", {"form": 0.0, "presliding": 0.0}, lost),
+                ("presliding", {"form": 0.0}, [*lost, "presliding"]),
+                ("lag", {"form": 1.0, "presliding": 0.0}, lost),
+                ("relative", {"form": 2.0, "presliding": 0.0}, lost),
+                ("end_moment", {"form": 3.0, "presliding": 0.0}, ["mu"]),
+                ("end_moment+lag", {"form": 3.0, "presliding": 0.0}, ["mu", *lost])]
+    if name == "clearance":
+        harm = [h for h, _ in CLEARANCE_HARMONICS]
+        return [("harmonic", {"length": 0.0, "limit": 0.0}, harm[:3]),
+                ("harmonic2", {"length": 0.0, "limit": 0.0}, harm),
+                ("gap", {"limit": 0.0}, ["length"])]
+    return [("", {}, [p.name for p in effect_params(name, robot, base) if p.fit])]
+
+
+def effect_form(name: str, values: Mapping[str, float]) -> str:
+    """A short label of the form of a fitted effect (for reports)."""
+    if name == "friction":
+        f = FRICTION_FORMS[int(round(values.get("form", 0.0)))]
+        if f == "dead_band" and values.get("presliding", 0.0) > 0:
+            return "presliding"
+        return f
+    if name == "clearance":
+        harm = any(values.get(h, 0.0) != 0.0 for h, _ in CLEARANCE_HARMONICS)
+        gap = values.get("length", 0.0) != 0.0
+        return "harmonic+gap" if harm and gap else ("harmonic" if harm else "gap")
+    return ""
 
 
 def complete_effects(effects: Mapping[str, Mapping[str, float]] | None, robot: Robot, base: str,
@@ -269,6 +355,26 @@ def clearance_kinks(robot: Robot, q: np.ndarray, kappa: np.ndarray, EI: np.ndarr
     return kink
 
 
+def clearance_harmonic_kinks(robot: Robot, q: np.ndarray, coef) -> np.ndarray:
+    """Kink rotation vectors (B, n, 2) rad of the harmonic clearance form.
+
+    Where outer tube j (j >= 2) ends, the tubes inside tilt by
+    ``t(phi) = c0 + c1 cos phi + s1 sin phi + c2 cos 2phi + s2 sin 2phi`` towards the bending
+    direction of tube j-1 (rotation about its curvature axis), phi = alpha_(j-1) - alpha_j.
+    """
+    n = robot.n
+    B = len(q)
+    kink = np.zeros((B, n, 2))
+    c0, c1, s1, c2, s2 = (float(c) for c in coef)
+    for j in range(1, n):
+        a_in = q[:, j - 1]
+        phi = a_in - q[:, j]
+        t = c0 + c1 * np.cos(phi) + s1 * np.sin(phi) + c2 * np.cos(2 * phi) + s2 * np.sin(2 * phi)
+        kink[:, j, 0] = -np.sin(a_in) * t
+        kink[:, j, 1] = np.cos(a_in) * t
+    return kink
+
+
 @dataclass(frozen=True)
 class Prepared:
     """What goes into one kernel call: actual configurations and mechanics parameters."""
@@ -278,9 +384,100 @@ class Prepared:
     torsion: bool
 
 
+def relative_direction(robot: Robot, d: np.ndarray) -> np.ndarray:
+    """(B, n) direction of each tube's rotation relative to its adjacent tubes, from (B, n)
+    directions of the relative angles alpha_i - alpha_(i+1) (pairs, (B, n-1))."""
+    B = len(d)
+    n = robot.n
+    out = np.zeros((B, n))
+    for i in range(n - 1):
+        out[:, i] += d[:, i]
+        out[:, i + 1] -= d[:, i]
+    return np.clip(out, -1.0, 1.0)
+
+
+def _row_directions(angles: np.ndarray, sweep: np.ndarray | None) -> np.ndarray:
+    """(B, k) direction of the last motion of each angle column (rows in order of motion)."""
+    B, k = angles.shape
+    if k == 0:
+        return np.zeros((B, 0))
+    padded = np.hstack([angles, np.zeros((B, k))])      # direction_from_rows wraps the first half
+    return direction_from_rows(padded, sweep)[:, :k].astype(float)
+
+
+def friction_angles(robot: Robot, fr: Mapping[str, float], alpha: np.ndarray,
+                    sweep: np.ndarray | None = None, direction: np.ndarray | None = None,
+                    pure: bool = False, beta: np.ndarray | None = None) -> np.ndarray:
+    """Actual tube angles (B, n) from commanded ``alpha`` (B, n) under friction ``fr``.
+
+    With ``direction`` (B, 2n) in {-1, 0, 1} every row is a pure function of (alpha, direction)
+    (the settled state after moving that way: a lag of ``lost``); without it the rows are one
+    motion in order per sweep (``dead_band`` is then a backlash with its transients). ``pure``
+    without ``direction``: no direction known, no lag. ``beta`` (B, n) is needed by the
+    end-moment form.
+    """
+    n = robot.n
+    B = len(alpha)
+    lost = np.array([fr[f"lost{i + 1}"] for i in range(n)])
+    mu = float(fr.get("mu", 0.0))
+    form = FRICTION_FORMS[int(round(fr.get("form", 0.0)))]
+    if not (np.any(lost > 0.0) or (mu > 0.0 and form == "end_moment")):
+        return alpha
+    if direction is None and pure:
+        return alpha
+    if direction is None and form == "dead_band":
+        return _backlash(np.ascontiguousarray(alpha), sweep_starts(B, sweep), lost,
+                         float(fr["presliding"]))
+    dj = (np.asarray(direction, dtype=float)[:, :n] if direction is not None
+          else _row_directions(alpha, sweep))
+    if form in ("dead_band", "lag"):
+        return alpha - dj * lost[None, :]
+    pair = np.sign(dj[:, :-1] - dj[:, 1:])                    # inner minus outer, (B, n-1)
+    out = alpha - relative_direction(robot, pair) * lost[None, :]
+    if form == "end_moment" and mu > 0.0 and n > 1:
+        if beta is None:
+            raise ValueError("the end-moment friction form needs beta")
+        out = out + mu * end_moment_twist(robot, alpha, beta, pair)
+    return out
+
+
+def end_moment_twist(robot: Robot, alpha: np.ndarray, beta: np.ndarray,
+                     pair: np.ndarray) -> np.ndarray:
+    """(B, n) rotation (rad) per unit friction coefficient of the end-moment form (the study's
+    concentrated moment): where outer tube o ends, a torque T = s |M| (|M| the outer tube's
+    bending moment there in the rigid model, s = ``pair[:, o-1]`` the direction of the relative
+    rotation inner minus outer) twists tube o by +T l_o / GJ_o and tube o-1 by
+    -T l_(o-1) / GJ_(o-1), l being each tube's length from its base to that point."""
+    n = robot.n
+    kap = robot.array("curvature")
+    EI = robot.array("bending_stiffness")
+    GJ = robot.array("torsional_stiffness")
+    L = robot.lengths
+    straight = robot.array("straight_length")
+    out = np.zeros_like(alpha)
+    for o in range(1, n):
+        s_end = beta[:, o] + L[o]
+        s_in = s_end - 1e-6                                   # just inside the outer tube's end
+        present = s_in[:, None] < beta + L[None, :]
+        curved = s_in[:, None] >= beta + straight[None, :]
+        k = np.where(curved, kap[None, :], 0.0)
+        w = np.where(present, EI[None, :], 0.0)
+        tot = np.where(w.sum(1) > 0, w.sum(1), 1.0)
+        ux = -(w * k * np.sin(alpha)).sum(1) / tot
+        uy = (w * k * np.cos(alpha)).sum(1) / tot
+        M = EI[o] * np.hypot(ux + k[:, o] * np.sin(alpha[:, o]), uy - k[:, o] * np.cos(alpha[:, o]))
+        T = pair[:, o - 1] * M
+        out[:, o] += T * (s_end - beta[:, o]) / GJ[o]
+        out[:, o - 1] -= T * (s_end - beta[:, o - 1]) / GJ[o - 1]
+    return out
+
+
 def prepare(robot: Robot, base: str, effects: Mapping[str, Mapping[str, float]], q: np.ndarray,
-            sweep: np.ndarray | None = None) -> Prepared:
-    """Joint-space and mechanics stages of the effects (complete parameter dicts expected)."""
+            sweep: np.ndarray | None = None, direction: np.ndarray | None = None,
+            pure: bool = False) -> Prepared:
+    """Joint-space and mechanics stages of the effects (complete parameter dicts expected).
+
+    ``direction`` / ``pure``: see :func:`friction_angles`."""
     n = robot.n
     q = np.array(q, dtype=float)
     B = len(q)
@@ -291,10 +488,7 @@ def prepare(robot: Robot, base: str, effects: Mapping[str, Mapping[str, float]],
             q = q + off
     fr = effects.get("friction")
     if fr is not None:
-        lost = np.array([fr[f"lost{i + 1}"] for i in range(n)])
-        if np.any(lost > 0.0):
-            q[:, :n] = _backlash(np.ascontiguousarray(q[:, :n]), sweep_starts(B, sweep), lost,
-                                 float(fr["presliding"]))
+        q[:, :n] = friction_angles(robot, fr, q[:, :n], sweep, direction, pure, q[:, n:])
     kappa = np.broadcast_to(robot.array("curvature"), (B, n)).copy()
     EI = np.broadcast_to(robot.array("bending_stiffness"), (B, n)).copy()
     ratio = np.broadcast_to(robot.array("bending_stiffness") / robot.array("torsional_stiffness"),
@@ -318,8 +512,18 @@ def prepare(robot: Robot, base: str, effects: Mapping[str, Mapping[str, float]],
     cl = effects.get("clearance")
     if cl is not None and cl["length"] != 0.0:
         kink = clearance_kinks(robot, q, kappa, EI, float(cl["length"]), float(cl["limit"]))
-    return Prepared(q=q, params=MechanicsParams(kappa=kappa, EI=EI, ratio=ratio, kink=kink),
-                    torsion=torsion)
+    if cl is not None and any(cl.get(h, 0.0) != 0.0 for h, _ in CLEARANCE_HARMONICS):
+        kink = kink + clearance_harmonic_kinks(robot, q, [cl.get(h, 0.0) for h, _ in
+                                                          CLEARANCE_HARMONICS])
+    params = MechanicsParams(kappa=kappa, EI=EI, ratio=ratio, kink=kink)
+    ld = effects.get("load")
+    if ld is not None:
+        g = np.array([ld["gx"], ld["gy"], ld["gz"]])
+        f = np.array([ld["fx"], ld["fy"], ld["fz"]])
+        if np.any(g != 0.0) or np.any(f != 0.0):
+            params = replace(params, weight=np.tile(tube_weights(robot, g), (B, 1, 1)),
+                             force=np.tile(f, (B, 1)))
+    return Prepared(q=q, params=params, torsion=torsion)
 
 
 def to_sensor(effects: Mapping[str, Mapping[str, float]], points: np.ndarray) -> np.ndarray:
@@ -351,7 +555,8 @@ class EffectModel:
 
     def __init__(self, robot: Robot | str, base: str = "rigid",
                  effects: Mapping[str, Mapping[str, float]] | None = None,
-                 config: PhysicsConfig | None = None):
+                 config: PhysicsConfig | None = None,
+                 error_quantiles: Mapping[str, float] | None = None, pure: bool = False):
         self.robot = load_robot(robot)
         self.base = base
         self.effects = complete_effects(effects, self.robot, base)
@@ -359,18 +564,47 @@ class EffectModel:
         self._rigid = PhysicsModel(self.robot, torsion=False, config=self.config)
         self._compliant = PhysicsModel(self.robot, torsion=True, config=self.config)
         self.name = base + "".join(f"+{e}" for e in self.effects)
+        #: held-out tip residual norm quantiles (mm) of a calibrated model, or None
+        self.error_quantiles = dict(error_quantiles) if error_quantiles else None
+        #: True: friction is a pure function of (q, direction) even without direction
+        #: (no direction known = no lag); False: direction=None takes rows in order
+        self.pure = bool(pure)
+
+    @property
+    def needs_direction(self) -> bool:
+        """True when friction is on: shapes depend on the direction of the last motion."""
+        fr = self.effects.get("friction")
+        return bool(fr) and (any(v > 0.0 for k, v in fr.items() if k.startswith("lost"))
+                             or (fr.get("mu", 0.0) > 0.0 and round(fr.get("form", 0.0)) == 3))
 
     def __repr__(self) -> str:
         return f"EffectModel(robot={self.robot.name!r}, base={self.base!r}, effects={self.effects!r})"
 
     def with_effects(self, effects: Mapping[str, Mapping[str, float]]) -> EffectModel:
         """A copy with other effects (same robot, base and config)."""
-        return EffectModel(self.robot, self.base, effects, self.config)
+        return EffectModel(self.robot, self.base, effects, self.config, pure=self.pure)
 
-    def shape(self, q: np.ndarray, points: int = 20, sweep: np.ndarray | None = None) -> Shape:
-        """Backbones of a batch (one kernel call). q : (B, 2n) rad and mm."""
+    def planning_model(self) -> EffectModel:
+        """The model for collision checking: no sensor registration (points in the robot base
+        frame) and friction a pure function of (q, direction) (no lag where none is given)."""
+        eff = {k: v for k, v in self.effects.items() if k != "registration"}
+        return EffectModel(self.robot, self.base, eff, self.config, self.error_quantiles,
+                           pure=True)
+
+    def shape(self, q: np.ndarray, points: int = 20, sweep: np.ndarray | None = None,
+              direction: np.ndarray | None = None) -> Shape:
+        """Backbones of a batch (one kernel call). q : (B, 2n) rad and mm.
+
+        direction : (B, 2n) in {-1, 0, +1}, the direction of each joint's last motion; with it
+        every row is a pure function of (q, direction). Without it rows are one motion in order
+        (per ``sweep``), unless the model is ``pure``.
+        """
         q = check_q(self.robot, q)
-        return evaluate(self, q, points, sweep)
+        if direction is not None:
+            direction = np.asarray(direction)
+            if direction.shape != q.shape:
+                raise ValueError(f"direction must have shape {q.shape}, got {direction.shape}")
+        return evaluate(self, q, points, sweep, direction=direction)
 
     def backbone(self, q: np.ndarray, points: int = 20) -> np.ndarray:
         """(B, points, 3) backbone points, mm (sensor frame with registration, else base frame)."""
@@ -378,9 +612,12 @@ class EffectModel:
 
     # ------------------------------------------------------------------ files
     def to_dict(self) -> dict[str, Any]:
-        return {"kind": MODEL_KIND, "base": self.base, "robot": self.robot.to_dict(),
-                "effects": {k: dict(v) for k, v in self.effects.items()},
-                "units": "mm, rad; see ctrplan.shape.effects"}
+        d = {"kind": MODEL_KIND, "base": self.base, "robot": self.robot.to_dict(),
+             "effects": {k: dict(v) for k, v in self.effects.items()},
+             "units": "mm, rad; see ctrplan.shape.effects"}
+        if self.error_quantiles:
+            d["error_quantiles"] = {k: float(v) for k, v in self.error_quantiles.items()}
+        return d
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the model as YAML (robot + base + effects with parameters)."""
@@ -398,15 +635,27 @@ class EffectModel:
 
         if not isinstance(data, dict) or data.get("kind") != MODEL_KIND:
             raise InputError(source, "kind", f"not a {MODEL_KIND} file")
-        unknown = set(data) - {"kind", "base", "robot", "effects", "units", "notes"}
+        unknown = set(data) - {"kind", "base", "robot", "effects", "units", "notes",
+                               "error_quantiles"}
         if unknown:
             raise InputError(source, sorted(unknown)[0], "unknown key")
         robot = robot_from_dict(data.get("robot"), source=source)
         effects = data.get("effects") or {}
         if not isinstance(effects, dict):
             raise InputError(source, "effects", "must be a mapping")
+        eq = data.get("error_quantiles")
+        if eq is not None:
+            if not isinstance(eq, dict) or set(eq) - {"p50", "p95", "p99", "max"}:
+                raise InputError(source, "error_quantiles", "must be a mapping with keys "
+                                 "p50, p95, p99, max (mm)")
+            for k, v in eq.items():
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not \
+                        math.isfinite(v) or v < 0:
+                    raise InputError(source, f"error_quantiles.{k}",
+                                     f"must be a finite number >= 0 (mm), got {v!r}")
         return cls(robot, str(data.get("base", "rigid")),
-                   complete_effects(effects, robot, str(data.get("base", "rigid")), source))
+                   complete_effects(effects, robot, str(data.get("base", "rigid")), source),
+                   error_quantiles=eq)
 
     @classmethod
     def load(cls, path: str | os.PathLike, robot: Robot | str | None = None) -> EffectModel:
@@ -436,14 +685,16 @@ def is_effect_model_file(path: str | os.PathLike) -> bool:
 
 
 def evaluate(model: EffectModel, q: np.ndarray, points: int, sweep: np.ndarray | None = None,
-             effects: Mapping[str, Mapping[str, float]] | None = None) -> Shape:
+             effects: Mapping[str, Mapping[str, float]] | None = None,
+             direction: np.ndarray | None = None) -> Shape:
     """Shapes of ``q`` under ``model``'s robot/base with ``effects`` (default: the model's).
 
     One kernel call for the whole batch; ``effects`` must be complete (see
     :func:`complete_effects`).
     """
     eff = model.effects if effects is None else effects
-    prep = prepare(model.robot, model.base, eff, q, sweep)
+    prep = prepare(model.robot, model.base, eff, q, sweep, direction,
+                   pure=getattr(model, "pure", False))
     phys = model._compliant if prep.torsion else model._rigid
     shp = phys.solve(prep.q, points, prep.params)
     if "registration" in eff:

@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ctrplan.robot import Robot, load_robot
-from ctrplan.shape import _shooting
+from ctrplan.shape import _loaded, _shooting
 from ctrplan.shape.base import Shape, check_q, radius_along
 
 _warmup: subprocess.Popen | None = None
@@ -77,27 +77,88 @@ class PhysicsConfig:
             raise ValueError("max_iter must be >= 1")
 
 
+#: Standard gravity, m/s^2 (for ``Loads.gravity`` written as a direction times this).
+STANDARD_GRAVITY = 9.80665
+
+
+@dataclass(frozen=True)
+class Loads:
+    """External loads on the robot, all in the robot base frame (default: none).
+
+    gravity : (gx, gy, gz) m/s^2, acceleration of gravity. Each tube present beyond the
+        constraint plane weighs ``density * area * |g|`` per unit length (N/mm), with the
+        tube's ``density`` from the robot YAML (kg/m^3) or, where not given, nitinol's 6450.
+        (The parts behind the plane lie in the actuation unit and are supported.)
+    tip_force : (fx, fy, fz) N, a fixed-direction force at the tip (innermost tube's end).
+    tip_moment : (mx, my, mz) N mm, a fixed-direction moment at the tip; its component
+        along the tip tangent twists the innermost tube.
+    """
+
+    gravity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    tip_force: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    tip_moment: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        for name in ("gravity", "tip_force", "tip_moment"):
+            v = tuple(float(c) for c in getattr(self, name))
+            if len(v) != 3 or not all(np.isfinite(v)):
+                raise ValueError(f"Loads.{name} must be 3 finite numbers, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, v)
+
+    @property
+    def zero(self) -> bool:
+        """True when every load is exactly zero."""
+        return not any(self.gravity) and not any(self.tip_force) and not any(self.tip_moment)
+
+
+def tube_weights(robot: Robot, gravity: np.ndarray) -> np.ndarray:
+    """Weight per unit length of each tube (N/mm, base frame) under gravity (..., 3) m/s^2:
+    returns (..., n, 3). Mass per length is density * area (kg/mm; nitinol's density where
+    the tube gives none)."""
+    mass = robot.array("weight_density")                      # kg/mm
+    g = np.asarray(gravity, dtype=float)
+    return mass[:, None] * g[..., None, :]
+
+
 @dataclass(frozen=True)
 class MechanicsParams:
     """Per-configuration mechanical parameters handed to the kernel (effects modify these).
 
     kappa, EI, ratio : (B, n) precurvature 1/mm, bending stiffness N mm^2, EI/GJ.
     kink : (B, n, 2) rad, rotation of the backbone frame where tube j ends.
+    weight : (B, n, 3) N/mm or None, weight per unit length of each tube (base frame).
+    force : (B, 3) N or None, tip force (base frame).
+    moment : (B, 3) N mm or None, tip moment (base frame).
+    Configurations whose loads are all zero (or None) are solved by the unloaded kernel.
     """
 
     kappa: np.ndarray
     EI: np.ndarray
     ratio: np.ndarray
     kink: np.ndarray
+    weight: np.ndarray | None = None
+    force: np.ndarray | None = None
+    moment: np.ndarray | None = None
+
+    def loaded_rows(self) -> np.ndarray:
+        """(B,) bool: configurations with a nonzero load."""
+        B = len(self.kappa)
+        out = np.zeros(B, dtype=bool)
+        for a in (self.weight, self.force, self.moment):
+            if a is not None:
+                out |= np.asarray(a).reshape(B, -1).any(axis=1)
+        return out
 
 
 @dataclass(frozen=True)
 class SolveInfo:
-    """Diagnostics of a physics solve: uz0 (B, n) 1/mm, iterations (B,), residual (B,) 1/mm."""
+    """Diagnostics of a physics solve: uz0 (B, n) 1/mm, iterations (B,), residual (B,) 1/mm;
+    moment0 (B, 2) N mm or None: bending moment at s = 0 (base frame x, y; loaded solves)."""
 
     uz0: np.ndarray
     iterations: np.ndarray
     residual: np.ndarray
+    moment0: np.ndarray | None = None
 
 
 class PhysicsModel:
@@ -112,12 +173,21 @@ class PhysicsModel:
         torsionally rigid ("traditional") model.
     config : PhysicsConfig
         Integrator and solver settings.
+    loads : Loads
+        External loads (gravity, tip force/moment; default none). Loaded configurations are
+        solved as a boundary value problem with force and moment states
+        (:mod:`ctrplan.shape._loaded`); the torsionally rigid model under loads is its limit of
+        infinite torsional stiffness (tubes do not twist but carry torsional moments). With no
+        load the unloaded kernels run unchanged. The first loaded solve compiles the loaded
+        kernel (about 14 s of CPU on the development machine; numba caches it on disk).
     """
 
-    def __init__(self, robot: Robot | str, torsion: bool = True, config: PhysicsConfig | None = None):
+    def __init__(self, robot: Robot | str, torsion: bool = True, config: PhysicsConfig | None = None,
+                 loads: Loads | None = None):
         self.robot = load_robot(robot)
         self.torsion = bool(torsion)
         self.config = config or PhysicsConfig()
+        self.loads = loads if loads is not None and not loads.zero else None
         self.name = "physics" if self.torsion else "rigid"
         self.last_info: SolveInfo | None = None
         r = self.robot
@@ -129,17 +199,24 @@ class PhysicsModel:
         self._ratio = self._EI / r.array("torsional_stiffness")
 
     def __repr__(self) -> str:
-        return f"PhysicsModel(robot={self.robot.name!r}, torsion={self.torsion})"
+        extra = "" if self.loads is None else f", loads={self.loads!r}"
+        return f"PhysicsModel(robot={self.robot.name!r}, torsion={self.torsion}{extra})"
 
     def with_config(self, **kw) -> PhysicsModel:
         """A copy with some :class:`PhysicsConfig` fields changed."""
-        return PhysicsModel(self.robot, self.torsion, replace(self.config, **kw))
+        return PhysicsModel(self.robot, self.torsion, replace(self.config, **kw), self.loads)
 
     def base_params(self, B: int) -> MechanicsParams:
-        """The robot's nominal parameters broadcast to a batch of ``B``."""
+        """The robot's nominal parameters (and loads) broadcast to a batch of ``B``."""
         n = self.robot.n
-        return MechanicsParams(kappa=np.tile(self._kappa, (B, 1)), EI=np.tile(self._EI, (B, 1)),
-                               ratio=np.tile(self._ratio, (B, 1)), kink=np.zeros((B, n, 2)))
+        p = MechanicsParams(kappa=np.tile(self._kappa, (B, 1)), EI=np.tile(self._EI, (B, 1)),
+                            ratio=np.tile(self._ratio, (B, 1)), kink=np.zeros((B, n, 2)))
+        if self.loads is not None:
+            ld = self.loads
+            p = replace(p, weight=np.tile(tube_weights(self.robot, ld.gravity), (B, 1, 1)),
+                        force=np.tile(np.array(ld.tip_force), (B, 1)),
+                        moment=np.tile(np.array(ld.tip_moment), (B, 1)))
+        return p
 
     def shape(self, q: np.ndarray, points: int = 20) -> Shape:
         """Backbones of a batch. q : (B, 2n) rad and mm; returns a :class:`Shape` in mm."""
@@ -178,18 +255,90 @@ class PhysicsModel:
             return a
 
         x0 = np.zeros((B, n)) if uz_init is None else arr("uz_init", uz_init, (B, n))
+        kappa = arr("kappa", params.kappa, (B, n))
+        EI = arr("EI", params.EI, (B, n))
+        ratio = arr("ratio", params.ratio, (B, n))
+        kink = arr("kink", params.kink, (B, n, 2))
+        weight = None if params.weight is None else arr("weight", params.weight, (B, n, 3))
+        force = None if params.force is None else arr("force", params.force, (B, 3))
+        moment = None if params.moment is None else arr("moment", params.moment, (B, 3))
+        loaded = replace(params, weight=weight, force=force, moment=moment).loaded_rows()
         _wait_for_warmup()
-        pts, s, uz0, iters, resid, ok = _shooting.solve_batch(
-            alpha, beta, self._lengths, self._straight,
-            arr("kappa", params.kappa, (B, n)), arr("EI", params.EI, (B, n)),
-            arr("ratio", params.ratio, (B, n)), arr("kink", params.kink, (B, n, 2)),
-            self.torsion, int(points), float(self.config.step_mm), float(self.config.tol),
-            int(self.config.max_iter), x0,
-        )
+
+        def unloaded(rows, m):
+            # the unloaded kernels, on all rows or (index array) a subset
+            if rows is None:
+                return _shooting.solve_batch(
+                    alpha, beta, self._lengths, self._straight, kappa, EI, ratio, kink,
+                    self.torsion, m, float(self.config.step_mm), float(self.config.tol),
+                    int(self.config.max_iter), x0)
+            c = np.ascontiguousarray
+            return _shooting.solve_batch(
+                c(alpha[rows]), c(beta[rows]), self._lengths, self._straight, c(kappa[rows]),
+                c(EI[rows]), c(ratio[rows]), c(kink[rows]), self.torsion, m,
+                float(self.config.step_mm), float(self.config.tol), int(self.config.max_iter),
+                c(x0[rows]))
+
+        moment0 = None
+        if not loaded.any():
+            pts, s, uz0, iters, resid, ok = unloaded(None, int(points))
+        else:
+            pts = np.zeros((B, points, 3))
+            s = np.zeros((B, points))
+            uz0 = np.zeros((B, n))
+            iters = np.zeros(B, dtype=np.int64)
+            resid = np.zeros(B)
+            ok = np.zeros(B, dtype=bool)
+            free = np.flatnonzero(~loaded)
+            if len(free):
+                pts[free], s[free], uz0[free], iters[free], resid[free], ok[free] = unloaded(
+                    free, int(points))
+            idx = np.flatnonzero(loaded)
+            W = np.zeros((B, n, 3)) if weight is None else weight
+            F = np.zeros((B, 3)) if force is None else force
+            M = np.zeros((B, 3)) if moment is None else moment
+            # first guess from the unloaded solution of the loaded rows (33 points)
+            gp, gs, guz, _, _, gok = unloaded(idx, 33)
+            lp, ls, luz, lit, lres, lm = self._solve_loaded(
+                alpha[idx], beta[idx], kappa[idx], EI[idx], ratio[idx], kink[idx], W[idx],
+                F[idx], M[idx], gp, gs, guz, gok, int(points))
+            pts[idx], s[idx], uz0[idx], iters[idx], resid[idx] = lp, ls, luz, lit, lres
+            moment0 = np.zeros((B, 2))
+            moment0[idx] = lm
+            ok[idx] = lres < self.config.tol
         ok = ok & np.all(np.isfinite(pts), axis=(1, 2))
         ok &= chords_within_arc(pts, s)
-        self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid)
+        self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid, moment0=moment0)
         return Shape(points=pts, s=s, radius=radius_along(r, q, s), ok=ok)
+
+    def _solve_loaded(self, alpha, beta, kappa, EI, ratio, kink, W, F, M, pts0, s0, uz00, ok0,
+                      points):
+        """The loaded rows: first guess from the unloaded solution (its torsions, and the base
+        moment of the loads about the base on the unloaded backbone), then the loaded kernel.
+        Returns points, s, uz(0), iterations, residual (1/mm), base moment (N mm, x/y) of
+        those rows."""
+        n = self.robot.n
+        B = len(alpha)
+        ratio = ratio if self.torsion else np.zeros_like(ratio)
+        # torsional moments of the unloaded solution; zero where it failed or for the rigid model
+        tau0 = np.where(ok0[:, None] & (ratio > 0), uz00 * EI / np.where(ratio > 0, ratio, 1.0), 0.0)
+        x_start = np.concatenate([tau0, np.zeros((B, 2))], axis=1)
+        # base moment of the loads on the unloaded backbone (trapezoid over its points)
+        ends = beta + self._lengths                                    # (B, n)
+        present = s0[:, :, None] < ends[:, None, :] + 1e-9             # (B, m, n)
+        f = np.einsum("bmn,bnc->bmc", present.astype(float), W)        # (B, m, 3) N/mm
+        mom = np.cross(pts0, f)                                        # (B, m, 3)
+        ds = np.diff(s0, axis=1)[:, :, None]
+        m0 = M + np.cross(pts0[:, -1], F) + np.sum(0.5 * (mom[:, 1:] + mom[:, :-1]) * ds, axis=1)
+        m0 = np.where(np.isfinite(m0), m0, 0.0)
+        x_init = np.concatenate([tau0, m0[:, :2]], axis=1)
+        c = lambda a: np.ascontiguousarray(a, dtype=float)   # noqa: E731
+        p, s, x, it, res, _ = _loaded.solve_loaded_batch(
+            c(alpha), c(beta), self._lengths, self._straight, c(kappa), c(EI), c(ratio), c(kink),
+            c(W), c(F), c(M), points, float(self.config.step_mm), float(self.config.tol),
+            int(self.config.max_iter), c(x_init), c(x_start))
+        uz0 = x[:, :n] * ratio / EI
+        return p, s, uz0, it, res, x[:, n:]
 
 
 def chords_within_arc(points: np.ndarray, s: np.ndarray, rtol: float = 1e-4) -> np.ndarray:
