@@ -23,7 +23,7 @@ import threading
 from collections.abc import Iterator
 
 #: Seconds a command gets to stop by itself after Ctrl-C before the watchdog ends it.
-GRACE_S = 2.0
+GRACE_S = 1.5
 
 _WATCHDOG = r"""
 import os, select, signal, sys, time
