@@ -71,6 +71,42 @@ def _newton_step(jac, resid, dx, A, perm):
 
 
 @njit(cache=True, error_model="numpy")
+def _det(jac, A):
+    """Determinant of the n x n matrix ``jac`` (Gaussian elimination with partial pivoting in
+    the workspace ``A``); NaN when ``jac`` is not finite."""
+    n = jac.shape[0]
+    for i in range(n):
+        for j in range(n):
+            A[i, j] = jac[i, j]
+    det = 1.0
+    for k in range(n):
+        p = k
+        big = abs(A[k, k])
+        for i in range(k + 1, n):
+            if abs(A[i, k]) > big:
+                big = abs(A[i, k])
+                p = i
+        if not math.isfinite(big):
+            return math.nan
+        if big == 0.0:
+            return 0.0
+        if p != k:
+            det = -det
+            for j in range(n):
+                t = A[k, j]
+                A[k, j] = A[p, j]
+                A[p, j] = t
+        det *= A[k, k]
+        inv = 1.0 / A[k, k]
+        for i in range(k + 1, n):
+            f = A[i, k] * inv
+            if f != 0.0:
+                for j in range(k + 1, n):
+                    A[i, j] -= f * A[k, j]
+    return det
+
+
+@njit(cache=True, error_model="numpy")
 def _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx, out_s, m, step, tol,
             max_iter, may_shape, pts, resid, jac, resid_t, jac_t, dx, xt, A, perm,
             y, Y, a, w, pend, ws, WS, G):
@@ -134,6 +170,43 @@ def _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx, out_s, m, 
 
 
 @njit(cache=True, error_model="numpy")
+def _unstable_direction(jac, ra, ei, d, v, A, perm):
+    """Direction of the unstable mode of an unstable equilibrium, in the torque-balanced
+    hyperplane sum_i GJ_i uz_i(0) = 0 that holds every unloaded equilibrium (the total
+    torsional moment is conserved along s and vanishes at the tube ends): three inverse
+    iterations on the shooting Jacobian (its eigenvalue nearest zero is the one that changed
+    sign), each projected onto the hyperplane. Scaled to max |d_i| = 1; written into ``d``."""
+    n = d.shape[0]
+    gg = 0.0
+    for i in range(n):
+        g = ei[i] / ra[i] if ra[i] > 0.0 else 0.0
+        gg += g * g
+        d[i] = 1.0 if i % 2 == 0 else -1.0
+    for it in range(4):
+        # project: d <- d - (g.d / g.g) g
+        gd = 0.0
+        for i in range(n):
+            g = ei[i] / ra[i] if ra[i] > 0.0 else 0.0
+            gd += g * d[i]
+        for i in range(n):
+            g = ei[i] / ra[i] if ra[i] > 0.0 else 0.0
+            d[i] = d[i] - (gd / gg) * g if gg > 0.0 else d[i]
+        big = _max_abs(d)
+        if not big > 0.0:
+            for i in range(n):
+                d[i] = 1.0 if i == 0 else 0.0
+            return
+        for i in range(n):
+            d[i] /= big
+        if it == 3:
+            return
+        if not _newton_step(jac, d, v, A, perm):      # v = -jac^{-1} d
+            return
+        for i in range(n):
+            d[i] = v[i]
+
+
+@njit(cache=True, error_model="numpy")
 def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, step, tol,
                 max_iter, x_init):
     """Solve and integrate a batch of configurations.
@@ -144,13 +217,30 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
     kink : (B, n, 2) rad  (rotation where tube j ends)
     x_init : (B, n) initial guess of uz(0), 1/mm (ignored by the rigid model)
 
-    Returns points (B, m, 3), s (B, m), uz0 (B, n), iters (B,), residual (B,), ok (B,).
-    A configuration is ok when max |uz_i(end_i)| < tol was reached and every point is finite.
-    Newton (at most max_iter iterations, backtracking line search) starts from x_init; where
-    it fails (near snapping configurations the residual has local minima) the solve is
-    retried by continuation in the torsional compliance: EI/GJ scaled by k/K, k = 1..K
-    (K = 8, then 32), each stage started from the previous one's solution (at 0 the rigid
-    solution uz = 0 is exact). iters counts every Newton iteration.
+    Returns points (B, m, 3), s (B, m), uz0 (B, n), iters (B,), residual (B,), ok (B,),
+    detj (B,) and branch (B,) int8 (below).
+    A configuration is ok when max |uz_i(end_i)| < tol was reached at a STABLE equilibrium and
+    every point is finite. Newton (at most max_iter iterations, backtracking line search)
+    starts from x_init; where it fails (near snapping configurations the residual has local
+    minima) the solve is retried by continuation in the torsional compliance: EI/GJ scaled by
+    k/K, k = 1..K (K = 8, then 32), each stage started from the previous one's solution (at 0
+    the rigid solution uz = 0 is exact). iters counts every Newton iteration.
+
+    Stability (compliant model). ``detj`` = det(d uz(end) / d uz(0)), the shooting Jacobian at
+    the solution (from the variational equations Newton already integrates; where Newton
+    stopped on the predicted full step it is the Jacobian one step earlier, |dx| < 1e-5 of
+    the solution). The equilibrium is a minimum of the elastic energy iff det > 0 (for the
+    index <= 1 argument see :mod:`ctrplan.shape.physics`, ``stability``). Where det <= 0 the
+    unstable equilibrium is rejected and a stable one searched: Newton from the unstable root
+    pushed along its unstable mode (:func:`_unstable_direction`) by t = (0.1, 0.3, 1, 3) x
+    max kappa to each side, the first stable root per side kept; if neither side gives one,
+    continuation in the compliance (K = 8) from the rigid solution, kept if stable. With two
+    distinct stable roots the one with the smaller max |uz_i(0)| (the least twisted, nearest
+    the rigid solution uz = 0) is returned. ``branch``: 0 the first equilibrium was stable
+    (or the rigid model), 1 unstable rejected and one stable found, 2 unstable rejected and
+    two stable found (bistable: the returned one is the less twisted), 3 unstable rejected and
+    the stable one found by continuation, -1 unstable rejected and no stable one found
+    (ok = False).
     """
     B, n = alpha.shape
     points = np.zeros((B, m, 3))
@@ -159,6 +249,8 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
     iters = np.zeros(B, dtype=np.int64)
     rnorm = np.zeros(B)
     ok = np.zeros(B, dtype=np.bool_)
+    detj = np.ones(B)
+    branch = np.zeros(B, dtype=np.int8)
     # one workspace for the whole batch
     nst = 3 * n + 12
     y = np.zeros(nst)
@@ -183,6 +275,13 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
     xt = np.zeros(n)
     rs = np.zeros(n)
     out_s = np.zeros(m)
+    xu = np.zeros(n)
+    dvec = np.zeros(n)
+    vtmp = np.zeros(n)
+    roots = np.zeros((2, n))
+    rres = np.zeros(2)
+    rdet = np.zeros(2)
+    scales = np.array([0.1, 0.3, 1.0, 3.0])
     for bi in range(B):
         al = alpha[bi]
         be = beta[bi]
@@ -201,6 +300,7 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
         shaped = False          # the final (frame) pass has been run at x
         it = 0
         r = 0.0
+        stable = True
         if torsion:
             r, it, shaped = _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx,
                                     out_s, m, step, tol, max_iter, runtime(True), pts, resid, jac,
@@ -221,6 +321,89 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
                     it += itk
                     if not r < tol:
                         break
+            if r < tol:
+                dj = _det(jac, A)
+                detj[bi] = dj
+                if not dj > 0.0:
+                    # an unstable equilibrium: search stable ones to both sides of it
+                    amp = 0.0
+                    for i in range(n):
+                        amp = max(amp, abs(ka[i]))
+                    for i in range(n):
+                        xu[i] = x[i]
+                    _unstable_direction(jac, ra, ei, dvec, vtmp, A, perm)
+                    nfound = 0
+                    for side in range(2):
+                        sgn = 1.0 if side == 0 else -1.0
+                        for t in scales:
+                            for i in range(n):
+                                x[i] = xu[i] + sgn * t * amp * dvec[i]
+                            r2, it2, _sh = _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos,
+                                                   ttyp, tidx, out_s, m, step, tol, max_iter,
+                                                   runtime(False), pts, resid, jac, resid_t,
+                                                   jac_t, dx, xt, A, perm, y, Y, a, w, pend,
+                                                   ws, WS, G)
+                            it += it2
+                            if r2 < tol:
+                                d2 = _det(jac, A)
+                                if d2 > 0.0:
+                                    same = False
+                                    if nfound == 1:
+                                        diff = 0.0
+                                        for i in range(n):
+                                            diff = max(diff, abs(x[i] - roots[0, i]))
+                                        same = diff <= 1e-6 * amp
+                                    if not same:
+                                        for i in range(n):
+                                            roots[nfound, i] = x[i]
+                                        rres[nfound] = r2
+                                        rdet[nfound] = d2
+                                        nfound += 1
+                                    break
+                    code = 1
+                    if nfound == 0:
+                        # continuation in the compliance from the rigid solution
+                        for i in range(n):
+                            x[i] = 0.0
+                        K = 8
+                        r2 = math.inf
+                        for k in range(1, K + 1):
+                            for i in range(n):
+                                rs[i] = ra[i] * (k / K)
+                            r2, itk, _sh = _newton(al, be, x, L, straight, ka, ei, rs, kk, tpos,
+                                                   ttyp, tidx, out_s, m, step, tol, max_iter,
+                                                   runtime(False), pts, resid, jac, resid_t,
+                                                   jac_t, dx, xt, A, perm, y, Y, a, w, pend,
+                                                   ws, WS, G)
+                            it += itk
+                            if not r2 < tol:
+                                break
+                        if r2 < tol:
+                            d2 = _det(jac, A)
+                            if d2 > 0.0:
+                                for i in range(n):
+                                    roots[0, i] = x[i]
+                                rres[0] = r2
+                                rdet[0] = d2
+                                nfound = 1
+                                code = 3
+                    if nfound == 0:
+                        stable = False
+                        branch[bi] = -1
+                        for i in range(n):
+                            x[i] = xu[i]
+                    else:
+                        pick = 0
+                        if nfound == 2:
+                            code = 2
+                            if _max_abs(roots[1]) < _max_abs(roots[0]):
+                                pick = 1
+                        branch[bi] = code
+                        for i in range(n):
+                            x[i] = roots[pick, i]
+                        r = rres[pick]
+                        detj[bi] = rdet[pick]
+                    shaped = False
         if not shaped:
             _integrate(al, be, x, L, straight, ka, ei, ra, kk, torsion, tpos, ttyp, tidx,
                        out_s, m, step, runtime(True), runtime(False), pts, resid_t, jac_t,
@@ -235,5 +418,5 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
             uz0[bi, i] = x[i]
         iters[bi] = it
         rnorm[bi] = r
-        ok[bi] = r < tol and finite
-    return points, svals, uz0, iters, rnorm, ok
+        ok[bi] = r < tol and finite and stable
+    return points, svals, uz0, iters, rnorm, ok, detj, branch

@@ -153,12 +153,36 @@ class MechanicsParams:
 @dataclass(frozen=True)
 class SolveInfo:
     """Diagnostics of a physics solve: uz0 (B, n) 1/mm, iterations (B,), residual (B,) 1/mm;
-    moment0 (B, 2) N mm or None: bending moment at s = 0 (base frame x, y; loaded solves)."""
+    moment0 (B, 2) N mm or None: bending moment at s = 0 (base frame x, y; loaded solves).
+
+    Elastic stability of the unloaded compliant solves (see ``STABILITY`` in this module):
+    detj (B,) det of the shooting Jacobian d uz(end) / d uz(0) at the returned equilibrium
+    (> 0: stable; 1 for the rigid model, NaN for loaded rows, which are not checked);
+    branch (B,) int8: 0 the first equilibrium found was stable (or rigid / loaded row),
+    1 an unstable equilibrium was rejected and one stable found, 2 an unstable one rejected
+    and two stable ones found (returned: the less twisted, smaller max |uz(0)|), 3 unstable
+    rejected and the stable one found by continuation from the rigid solution, -1 unstable
+    rejected and none stable found (ok = False).
+    """
 
     uz0: np.ndarray
     iterations: np.ndarray
     residual: np.ndarray
     moment0: np.ndarray | None = None
+    detj: np.ndarray | None = None
+    branch: np.ndarray | None = None
+
+    @property
+    def bistable(self) -> np.ndarray | None:
+        """(B,) bool: two stable equilibria were found (the configuration can snap between
+        them). Searched only where the first equilibrium found was unstable, so False does not
+        prove uniqueness; see ``STABILITY``."""
+        return None if self.branch is None else self.branch == 2
+
+    @property
+    def unstable_rejected(self) -> np.ndarray | None:
+        """(B,) bool: an unstable equilibrium was found and rejected in this row."""
+        return None if self.branch is None else self.branch != 0
 
 
 class PhysicsModel:
@@ -280,8 +304,10 @@ class PhysicsModel:
 
         moment0 = None
         if not loaded.any():
-            pts, s, uz0, iters, resid, ok = unloaded(None, int(points))
+            pts, s, uz0, iters, resid, ok, detj, branch = unloaded(None, int(points))
         else:
+            detj = np.full(B, np.nan)
+            branch = np.zeros(B, dtype=np.int8)
             pts = np.zeros((B, points, 3))
             s = np.zeros((B, points))
             uz0 = np.zeros((B, n))
@@ -290,14 +316,14 @@ class PhysicsModel:
             ok = np.zeros(B, dtype=bool)
             free = np.flatnonzero(~loaded)
             if len(free):
-                pts[free], s[free], uz0[free], iters[free], resid[free], ok[free] = unloaded(
-                    free, int(points))
+                (pts[free], s[free], uz0[free], iters[free], resid[free], ok[free], detj[free],
+                 branch[free]) = unloaded(free, int(points))
             idx = np.flatnonzero(loaded)
             W = np.zeros((B, n, 3)) if weight is None else weight
             F = np.zeros((B, 3)) if force is None else force
             M = np.zeros((B, 3)) if moment is None else moment
             # first guess from the unloaded solution of the loaded rows (33 points)
-            gp, gs, guz, _, _, gok = unloaded(idx, 33)
+            gp, gs, guz, _, _, gok, _, _ = unloaded(idx, 33)
             lp, ls, luz, lit, lres, lm = self._solve_loaded(
                 alpha[idx], beta[idx], kappa[idx], EI[idx], ratio[idx], kink[idx], W[idx],
                 F[idx], M[idx], gp, gs, guz, gok, int(points))
@@ -306,7 +332,8 @@ class PhysicsModel:
             moment0[idx] = lm
             ok[idx] = lres < self.config.tol
         ok = ok & np.all(np.isfinite(pts), axis=(1, 2))
-        self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid, moment0=moment0)
+        self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid, moment0=moment0,
+                                   detj=detj, branch=branch)
         return Shape(points=pts, s=s, radius=radius_along(r, q, s), ok=ok)
 
     def _solve_loaded(self, alpha, beta, kappa, EI, ratio, kink, W, F, M, pts0, s0, uz00, ok0,
