@@ -4,6 +4,39 @@ The integration passes (and the equations) are in :mod:`ctrplan.shape._kernel`; 
 holds the n x n Newton step, the per-configuration Newton loop with its line search and the
 continuation fallback, and :func:`solve_batch`, the one entry point used by
 :class:`ctrplan.shape.physics.PhysicsModel`.
+
+Elastic stability of an unloaded equilibrium
+--------------------------------------------
+(Literature: Dupont et al., "Design and control of concentric-tube robots", T-RO 2010;
+Gilbert, Hendrick, Webster, "Elastic stability of concentric tube robots: a stability measure
+and design test", T-RO 2016; Ha, Park, Dupont, "Elastic stability of concentric tube robots
+subject to external loads", T-BME 2016.) With no load the backbone curvature is the
+stiffness-weighted mean of the rotated precurvatures, so the bending energy can be minimised
+out pointwise and the elastic energy becomes a functional of the tube angles psi(s) alone:
+
+    E[psi] = sum_i int_{beta_i}^{e_i} GJ_i psi_i'^2 / 2 ds + int V(psi, s) ds,
+    V = -1 / (2 EIsum) sum_ij w_i w_j cos(psi_i - psi_j),   w_j = EI_j kappa_j (curved, present)
+
+with psi_i(beta_i) = alpha_i (Dirichlet, at the actuator) and nothing imposed at the tube end
+e_i = beta_i + L_i. Its Euler-Lagrange equations are the kernel's (GJ_i psi_i'' = dV/dpsi_i)
+with the natural condition uz_i(e_i) = 0. An equilibrium is stable iff the second variation
+
+    Q[eta] = sum_i int GJ_i eta_i'^2 + int eta^T H eta,   H = d^2 V / dpsi^2,  eta_i(beta_i) = 0
+
+is positive definite. Its Jacobi fields with the Dirichlet end conditions are exactly the
+variational solutions Newton integrates: eta = U c with U_i(s) = (s - beta_i) e_i behind the
+constraint plane (d psi / d x, ``Y`` in the kernel) and K U'' = H U beyond, K = diag(GJ).
+Q has a zero eigenvalue iff some c != 0 also meets the natural ends, U_i'(e_i) c = 0 for all
+i, i.e. iff the shooting Jacobian J = d uz(e) / d uz(0) (J_ij = U_ij'(e_i)) is singular. More:
+by Forman's theorem for Sturm-Liouville operators (the Gel'fand-Yaglom identity with mixed
+boundary conditions) det(Q) / det(Q_0) = det J / det J_0, where Q_0 is the same operator with
+H = 0, which is positive definite with J_0 = I. So sign(det J) = (-1)^(number of negative
+eigenvalues of Q): det J > 0 is necessary for stability, and sufficient while the Morse index
+is at most 1 (index 2 needs two negative modes of the relative twist at once, i.e. at least
+five coexisting equilibria; not met by the shipped robots: tests/test_stability.py checks the
+positive definiteness of an independently discretised energy Hessian on every returned
+nylon solution). Note det J is the ratio of two determinants and passes zero exactly at the
+folds where a stable and an unstable branch meet (snap-through).
 """
 
 from __future__ import annotations
@@ -208,7 +241,7 @@ def _unstable_direction(jac, ra, ei, d, v, A, perm):
 
 @njit(cache=True, error_model="numpy")
 def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, step, tol,
-                max_iter, x_init):
+                max_iter, x_init, stability=True):
     """Solve and integrate a batch of configurations.
 
     alpha, beta : (B, n)  rad, mm
@@ -226,11 +259,12 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
     k/K, k = 1..K (K = 8, then 32), each stage started from the previous one's solution (at 0
     the rigid solution uz = 0 is exact). iters counts every Newton iteration.
 
-    Stability (compliant model). ``detj`` = det(d uz(end) / d uz(0)), the shooting Jacobian at
+    Stability (compliant model; skipped when ``stability`` is False: detj 1, branch 0, the
+    first equilibrium returned whatever its stability). ``detj`` = det(d uz(end) / d uz(0)), the shooting Jacobian at
     the solution (from the variational equations Newton already integrates; where Newton
     stopped on the predicted full step it is the Jacobian one step earlier, |dx| < 1e-5 of
-    the solution). The equilibrium is a minimum of the elastic energy iff det > 0 (for the
-    index <= 1 argument see :mod:`ctrplan.shape.physics`, ``stability``). Where det <= 0 the
+    the solution). The equilibrium is a minimum of the elastic energy iff det > 0 (derivation
+    and the index <= 1 proviso: the module docstring). Where det <= 0 the
     unstable equilibrium is rejected and a stable one searched: Newton from the unstable root
     pushed along its unstable mode (:func:`_unstable_direction`) by t = (0.1, 0.3, 1, 3) x
     max kappa to each side, the first stable root per side kept; if neither side gives one,
@@ -321,7 +355,7 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
                     it += itk
                     if not r < tol:
                         break
-            if r < tol:
+            if r < tol and stability:
                 dj = _det(jac, A)
                 detj[bi] = dj
                 if not dj > 0.0:

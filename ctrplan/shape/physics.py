@@ -62,11 +62,15 @@ class PhysicsConfig:
         ``seed1`` backbones agree with a tight scipy solution to about 1e-5 mm.
     tol : shooting tolerance on the distal torsion boundary values max_i |uz_i(end)| (1/mm).
     max_iter : Newton iterations before a configuration is reported as not converged.
+    stability : reject unstable equilibria of the unloaded compliant model and search stable
+        ones (:mod:`ctrplan.shape._shooting`); False returns the first equilibrium Newton finds (only for
+        comparisons and benchmarks: it may be unstable).
     """
 
     step_mm: float = 10.0
     tol: float = 1e-10
     max_iter: int = 30
+    stability: bool = True
 
     def __post_init__(self) -> None:
         if not self.step_mm > 0:
@@ -155,7 +159,7 @@ class SolveInfo:
     """Diagnostics of a physics solve: uz0 (B, n) 1/mm, iterations (B,), residual (B,) 1/mm;
     moment0 (B, 2) N mm or None: bending moment at s = 0 (base frame x, y; loaded solves).
 
-    Elastic stability of the unloaded compliant solves (see ``STABILITY`` in this module):
+    Elastic stability of the unloaded compliant solves (derivation: :mod:`ctrplan.shape._shooting`):
     detj (B,) det of the shooting Jacobian d uz(end) / d uz(0) at the returned equilibrium
     (> 0: stable; 1 for the rigid model, NaN for loaded rows, which are not checked);
     branch (B,) int8: 0 the first equilibrium found was stable (or rigid / loaded row),
@@ -176,7 +180,7 @@ class SolveInfo:
     def bistable(self) -> np.ndarray | None:
         """(B,) bool: two stable equilibria were found (the configuration can snap between
         them). Searched only where the first equilibrium found was unstable, so False does not
-        prove uniqueness; see ``STABILITY``."""
+        prove uniqueness."""
         return None if self.branch is None else self.branch == 2
 
     @property
@@ -294,13 +298,13 @@ class PhysicsModel:
                 return _shooting.solve_batch(
                     alpha, beta, self._lengths, self._straight, kappa, EI, ratio, kink,
                     self.torsion, m, float(self.config.step_mm), float(self.config.tol),
-                    int(self.config.max_iter), x0)
+                    int(self.config.max_iter), x0, bool(self.config.stability))
             c = np.ascontiguousarray
             return _shooting.solve_batch(
                 c(alpha[rows]), c(beta[rows]), self._lengths, self._straight, c(kappa[rows]),
                 c(EI[rows]), c(ratio[rows]), c(kink[rows]), self.torsion, m,
                 float(self.config.step_mm), float(self.config.tol), int(self.config.max_iter),
-                c(x0[rows]))
+                c(x0[rows]), bool(self.config.stability))
 
         moment0 = None
         if not loaded.any():
