@@ -189,7 +189,7 @@ def test_never_returns_an_unstable_equilibrium(nylon_uniform):
     d, model, shape, info = nylon_uniform
     sp = load_spec(ROBOT)
     assert shape.ok.all()
-    assert (info.branch != 0).sum() >= 15           # the snapping regime is exercised
+    assert (info.branch != 0).mean() > 0.08         # the snapping regime is exercised (README)
     assert np.all(info.detj > 0)
     n = sp.n
     for k in range(len(d.q)):
