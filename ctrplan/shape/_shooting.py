@@ -266,8 +266,9 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
     the solution). The equilibrium is a minimum of the elastic energy iff det > 0 (derivation
     and the index <= 1 proviso: the module docstring). Where det <= 0 the
     unstable equilibrium is rejected and a stable one searched: Newton from the unstable root
-    pushed along its unstable mode (:func:`_unstable_direction`) by t = (0.1, 0.3, 1, 3) x
-    max kappa to each side, the first stable root per side kept; if neither side gives one,
+    pushed along its unstable mode (:func:`_unstable_direction`) by t = 1, 0.3, 3, 0.1 x
+    max kappa (in that order: the first is usually beyond the residual's turning point) to
+    each side, the first stable root per side kept; if neither side gives one,
     continuation in the compliance (K = 8) from the rigid solution, kept if stable. With two
     distinct stable roots the one with the smaller max |uz_i(0)| (the least twisted, nearest
     the rigid solution uz = 0) is returned. ``branch``: 0 the first equilibrium was stable
@@ -315,7 +316,7 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
     roots = np.zeros((2, n))
     rres = np.zeros(2)
     rdet = np.zeros(2)
-    scales = np.array([0.1, 0.3, 1.0, 3.0])
+    scales = np.array([1.0, 0.3, 3.0, 0.1])
     for bi in range(B):
         al = alpha[bi]
         be = beta[bi]
