@@ -249,3 +249,24 @@ def test_stable_rows_are_bit_identical_to_the_unchecked_solve(nylon_uniform):
     sb = PhysicsModel(r, config=PhysicsConfig(stability=False)).shape(q)
     assert np.array_equal(sa.points, sb.points) and np.array_equal(sa.ok, sb.ok)
     assert np.all(a.last_info.branch == 0) and np.all(a.last_info.detj > 0)
+
+
+def test_the_other_stable_branch_of_a_bistable_row_is_reachable(nylon_uniform):
+    """uz0_alt of a bistable row starts Newton on the other stable equilibrium: the solve from
+    it keeps it (first equilibrium stable, branch 0), the oracle confirms it is a minimum too,
+    and its tip lies far from the returned one (the snap)."""
+    d, model, shape, info = nylon_uniform
+    sp = load_spec(ROBOT)
+    n = sp.n
+    rows = np.flatnonzero(info.bistable)
+    assert np.all(np.isfinite(info.uz0_alt[rows])) and np.all(np.isnan(info.uz0_alt[~info.bistable]))
+    rows = rows[:8]
+    q = d.q[rows]
+    alt = model.solve(q, 20, model.base_params(len(rows)), uz_init=info.uz0_alt[rows])
+    ai = model.last_info
+    assert alt.ok.all() and np.all(ai.branch == 0) and np.all(ai.detj > 0)
+    np.testing.assert_allclose(ai.uz0, info.uz0_alt[rows], atol=1e-9)
+    assert np.all(np.linalg.norm(alt.points[:, -1] - shape.points[rows, -1], axis=1) > 1.0)
+    for k in range(len(rows)):
+        lam, res = _hessian_min_eig(sp, q[k, :n], q[k, n:], ai.uz0[k], h=2.0)
+        assert lam > 0 and np.all(np.abs(res) < 1e-7)

@@ -251,7 +251,7 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
     x_init : (B, n) initial guess of uz(0), 1/mm (ignored by the rigid model)
 
     Returns points (B, m, 3), s (B, m), uz0 (B, n), iters (B,), residual (B,), ok (B,),
-    detj (B,) and branch (B,) int8 (below).
+    detj (B,), branch (B,) int8 and uz0alt (B, n) (below).
     A configuration is ok when max |uz_i(end_i)| < tol was reached at a STABLE equilibrium and
     every point is finite. Newton (at most max_iter iterations, backtracking line search)
     starts from x_init; where it fails (near snapping configurations the residual has local
@@ -273,7 +273,8 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
     distinct stable roots the one with the smaller max |uz_i(0)| (the least twisted, nearest
     the rigid solution uz = 0) is returned. ``branch``: 0 the first equilibrium was stable
     (or the rigid model), 1 unstable rejected and one stable found, 2 unstable rejected and
-    two stable found (bistable: the returned one is the less twisted), 3 unstable rejected and
+    two stable found (bistable: the returned one is the less twisted; the other one's uz(0) in
+    ``uz0alt``, NaN elsewhere), 3 unstable rejected and
     the stable one found by continuation, -1 unstable rejected and no stable one found
     (ok = False).
     """
@@ -286,6 +287,7 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
     ok = np.zeros(B, dtype=np.bool_)
     detj = np.ones(B)
     branch = np.zeros(B, dtype=np.int8)
+    uz0alt = np.full((B, n), np.nan)
     # one workspace for the whole batch
     nst = 3 * n + 12
     y = np.zeros(nst)
@@ -436,6 +438,8 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
                         branch[bi] = code
                         for i in range(n):
                             x[i] = roots[pick, i]
+                            if nfound == 2:
+                                uz0alt[bi, i] = roots[1 - pick, i]
                         r = rres[pick]
                         detj[bi] = rdet[pick]
                     shaped = False
@@ -454,4 +458,4 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
         iters[bi] = it
         rnorm[bi] = r
         ok[bi] = r < tol and finite and stable
-    return points, svals, uz0, iters, rnorm, ok, detj, branch
+    return points, svals, uz0, iters, rnorm, ok, detj, branch, uz0alt

@@ -167,6 +167,9 @@ class SolveInfo:
     and two stable ones found (returned: the less twisted, smaller max |uz(0)|), 3 unstable
     rejected and the stable one found by continuation from the rigid solution, -1 unstable
     rejected and none stable found (ok = False).
+    uz0_alt (B, n) 1/mm: where two stable equilibria were found (``bistable``) the uz(0) of
+    the one NOT returned, NaN elsewhere: ``model.solve(q, m, params, uz_init=uz0_alt)`` on
+    those rows gives the other branch's shape (Newton starts on it).
     """
 
     uz0: np.ndarray
@@ -175,6 +178,7 @@ class SolveInfo:
     moment0: np.ndarray | None = None
     detj: np.ndarray | None = None
     branch: np.ndarray | None = None
+    uz0_alt: np.ndarray | None = None
 
     @property
     def bistable(self) -> np.ndarray | None:
@@ -308,10 +312,11 @@ class PhysicsModel:
 
         moment0 = None
         if not loaded.any():
-            pts, s, uz0, iters, resid, ok, detj, branch = unloaded(None, int(points))
+            pts, s, uz0, iters, resid, ok, detj, branch, uz0_alt = unloaded(None, int(points))
         else:
             detj = np.full(B, np.nan)
             branch = np.zeros(B, dtype=np.int8)
+            uz0_alt = np.full((B, n), np.nan)
             pts = np.zeros((B, points, 3))
             s = np.zeros((B, points))
             uz0 = np.zeros((B, n))
@@ -321,13 +326,13 @@ class PhysicsModel:
             free = np.flatnonzero(~loaded)
             if len(free):
                 (pts[free], s[free], uz0[free], iters[free], resid[free], ok[free], detj[free],
-                 branch[free]) = unloaded(free, int(points))
+                 branch[free], uz0_alt[free]) = unloaded(free, int(points))
             idx = np.flatnonzero(loaded)
             W = np.zeros((B, n, 3)) if weight is None else weight
             F = np.zeros((B, 3)) if force is None else force
             M = np.zeros((B, 3)) if moment is None else moment
             # first guess from the unloaded solution of the loaded rows (33 points)
-            gp, gs, guz, _, _, gok, _, _ = unloaded(idx, 33)
+            gp, gs, guz, _, _, gok, _, _, _ = unloaded(idx, 33)
             lp, ls, luz, lit, lres, lm = self._solve_loaded(
                 alpha[idx], beta[idx], kappa[idx], EI[idx], ratio[idx], kink[idx], W[idx],
                 F[idx], M[idx], gp, gs, guz, gok, int(points))
@@ -337,7 +342,7 @@ class PhysicsModel:
             ok[idx] = lres < self.config.tol
         ok = ok & np.all(np.isfinite(pts), axis=(1, 2))
         self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid, moment0=moment0,
-                                   detj=detj, branch=branch)
+                                   detj=detj, branch=branch, uz0_alt=uz0_alt)
         return Shape(points=pts, s=s, radius=radius_along(r, q, s), ok=ok)
 
     def _solve_loaded(self, alpha, beta, kappa, EI, ratio, kink, W, F, M, pts0, s0, uz00, ok0,
