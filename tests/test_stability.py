@@ -270,3 +270,29 @@ def test_the_other_stable_branch_of_a_bistable_row_is_reachable(nylon_uniform):
     for k in range(len(rows)):
         lam, res = _hessian_min_eig(sp, q[k, :n], q[k, n:], ai.uz0[k], h=2.0)
         assert lam > 0 and np.all(np.abs(res) < 1e-7)
+
+
+def test_probe_flags_bistable_rows_whose_first_root_is_stable():
+    """PhysicsConfig(probe_bistable=True): rows whose first equilibrium is stable but which have
+    a second stable one (near the edges of the snapping range) are flagged too; shapes are
+    unchanged, and each flagged second equilibrium is a minimum of the oracle's energy."""
+    from ctrplan.robot import load_robot
+    from ctrplan.shape.physics import PhysicsConfig
+    rb = load_robot(ROBOT)
+    q = rb.sample(3000, seed=7)
+    plain = PhysicsModel(rb)
+    probed = PhysicsModel(rb, config=PhysicsConfig(probe_bistable=True))
+    a = plain.shape(q)
+    b = probed.shape(q)
+    ia, ib = plain.last_info, probed.last_info
+    assert np.array_equal(a.points, b.points) and np.array_equal(a.ok, b.ok)
+    assert np.all(ib.bistable[ia.bistable])
+    extra = np.flatnonzero(ib.branch == 4)
+    assert len(extra) >= 5
+    sp = load_spec(ROBOT)
+    n = sp.n
+    for k in extra[:6]:
+        for x in (ib.uz0[k], ib.uz0_alt[k]):
+            lam, res = _hessian_min_eig(sp, q[k, :n], q[k, n:], x, h=2.0)
+            assert lam > 0 and np.all(np.abs(res) < 1e-7), (k, lam)
+        assert np.abs(ib.uz0[k] - ib.uz0_alt[k]).max() > 1e-4

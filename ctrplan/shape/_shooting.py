@@ -241,7 +241,7 @@ def _unstable_direction(jac, ra, ei, d, v, A, perm):
 
 @njit(cache=True, error_model="numpy")
 def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, step, tol,
-                max_iter, x_init, stability=True):
+                max_iter, x_init, stability=True, probe=False):
     """Solve and integrate a batch of configurations.
 
     alpha, beta : (B, n)  rad, mm
@@ -276,7 +276,12 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
     two stable found (bistable: the returned one is the less twisted; the other one's uz(0) in
     ``uz0alt``, NaN elsewhere), 3 unstable rejected and
     the stable one found by continuation, -1 unstable rejected and no stable one found
-    (ok = False).
+    (ok = False); 4 (only with ``probe``) the first equilibrium was stable and a second stable
+    one was found by probing (returned: the first; the other in ``uz0alt``). ``probe``: for
+    rows with a stable first root where two curved tubes are rotated apart by more than 90 deg
+    at the actuators (where snapping occurs), Newton from the mirrored root pushed to the other
+    side (1 and 0.5 x max kappa along the torque-balanced direction) looks for a second stable
+    root; the returned shape is unchanged.
     """
     B, n = alpha.shape
     points = np.zeros((B, m, 3))
@@ -443,6 +448,44 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
                         r = rres[pick]
                         detj[bi] = rdet[pick]
                     shaped = False
+                elif probe and it > 0:
+                    # stable first root: probe for a second stable one where some pair of
+                    # curved tubes is rotated apart by more than 90 deg at the actuators
+                    apart = False
+                    for i in range(n):
+                        for j in range(i + 1, n):
+                            if ka[i] != 0.0 and ka[j] != 0.0 and math.cos(al[i] - al[j]) < 0.0:
+                                apart = True
+                    if apart:
+                        amp = 0.0
+                        for i in range(n):
+                            amp = max(amp, abs(ka[i]))
+                        for i in range(n):
+                            xu[i] = x[i]
+                        _unstable_direction(jac, ra, ei, dvec, vtmp, A, perm)
+                        c0 = 0.0
+                        for i in range(n):
+                            c0 += dvec[i] * xu[i]
+                        sgn = -1.0 if c0 >= 0.0 else 1.0       # towards the other side
+                        for t in (1.0, 0.5):
+                            for i in range(n):
+                                x[i] = -xu[i] + sgn * t * amp * dvec[i]
+                            r2, it2, _sh = _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos,
+                                                   ttyp, tidx, out_s, m, step, tol, max_iter,
+                                                   runtime(False), pts, resid, jac, resid_t,
+                                                   jac_t, dx, xt, A, perm, y, Y, a, w, pend,
+                                                   ws, WS, G)
+                            if r2 < tol and _det(jac, A) > 0.0:
+                                diff = 0.0
+                                for i in range(n):
+                                    diff = max(diff, abs(x[i] - xu[i]))
+                                if diff > 1e-6 * amp:
+                                    branch[bi] = 4
+                                    for i in range(n):
+                                        uz0alt[bi, i] = x[i]
+                                    break
+                        for i in range(n):
+                            x[i] = xu[i]
         if not shaped:
             _integrate(al, be, x, L, straight, ka, ei, ra, kk, torsion, tpos, ttyp, tidx,
                        out_s, m, step, runtime(True), runtime(False), pts, resid_t, jac_t,

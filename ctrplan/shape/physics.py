@@ -65,12 +65,17 @@ class PhysicsConfig:
     stability : reject unstable equilibria of the unloaded compliant model and search stable
         ones (:mod:`ctrplan.shape._shooting`); False returns the first equilibrium Newton finds (only for
         comparisons and benchmarks: it may be unstable).
+    probe_bistable : also probe rows whose first equilibrium is stable for a second stable
+        one where two curved tubes are rotated apart by more than 90 deg (``branch`` 4,
+        ``bistable`` True, the other in ``uz0_alt``; shapes unchanged). Costs about one more
+        Newton solve on those rows; for planning, which should avoid snapping configurations.
     """
 
     step_mm: float = 10.0
     tol: float = 1e-10
     max_iter: int = 30
     stability: bool = True
+    probe_bistable: bool = False
 
     def __post_init__(self) -> None:
         if not self.step_mm > 0:
@@ -166,7 +171,8 @@ class SolveInfo:
     1 an unstable equilibrium was rejected and one stable found, 2 an unstable one rejected
     and two stable ones found (returned: the less twisted, smaller max |uz(0)|), 3 unstable
     rejected and the stable one found by continuation from the rigid solution, -1 unstable
-    rejected and none stable found (ok = False).
+    rejected and none stable found (ok = False), 4 (with ``probe_bistable``) the first was
+    stable and a second stable one was found by probing (the first is returned).
     uz0_alt (B, n) 1/mm: where two stable equilibria were found (``bistable``) the uz(0) of
     the one NOT returned, NaN elsewhere: ``model.solve(q, m, params, uz_init=uz0_alt)`` on
     those rows gives the other branch's shape (Newton starts on it).
@@ -183,14 +189,15 @@ class SolveInfo:
     @property
     def bistable(self) -> np.ndarray | None:
         """(B,) bool: two stable equilibria were found (the configuration can snap between
-        them). Searched only where the first equilibrium found was unstable, so False does not
-        prove uniqueness."""
-        return None if self.branch is None else self.branch == 2
+        them). Searched where the first equilibrium found was unstable, and with
+        ``PhysicsConfig(probe_bistable=True)`` also where it was stable but two curved tubes
+        are rotated apart by > 90 deg; False does not prove uniqueness."""
+        return None if self.branch is None else (self.branch == 2) | (self.branch == 4)
 
     @property
     def unstable_rejected(self) -> np.ndarray | None:
         """(B,) bool: an unstable equilibrium was found and rejected in this row."""
-        return None if self.branch is None else self.branch != 0
+        return None if self.branch is None else (self.branch != 0) & (self.branch != 4)
 
 
 class PhysicsModel:
@@ -302,13 +309,14 @@ class PhysicsModel:
                 return _shooting.solve_batch(
                     alpha, beta, self._lengths, self._straight, kappa, EI, ratio, kink,
                     self.torsion, m, float(self.config.step_mm), float(self.config.tol),
-                    int(self.config.max_iter), x0, bool(self.config.stability))
+                    int(self.config.max_iter), x0, bool(self.config.stability),
+                    bool(self.config.probe_bistable))
             c = np.ascontiguousarray
             return _shooting.solve_batch(
                 c(alpha[rows]), c(beta[rows]), self._lengths, self._straight, c(kappa[rows]),
                 c(EI[rows]), c(ratio[rows]), c(kink[rows]), self.torsion, m,
                 float(self.config.step_mm), float(self.config.tol), int(self.config.max_iter),
-                c(x0[rows]), bool(self.config.stability))
+                c(x0[rows]), bool(self.config.stability), bool(self.config.probe_bistable))
 
         moment0 = None
         if not loaded.any():
