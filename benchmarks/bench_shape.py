@@ -121,7 +121,7 @@ def run(quick: bool = False) -> dict:
         tv = {k: [] for k in sm}
         for _ in range(1 if quick else 3):
             for k, m in sm.items():
-                tv[k].append(_median_time(lambda m=m: m.shape(qs, POINTS), 1)[0] / len(qs))
+                tv[k].append(_median_time(lambda m=m, qs=qs: m.shape(qs, POINTS), 1)[0] / len(qs))
         sm["checked"].shape(qs, POINTS)
         br = sm["checked"].last_info.branch
         med = {k: statistics.median(v) for k, v in tv.items()}
