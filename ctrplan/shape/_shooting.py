@@ -270,10 +270,12 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
     max kappa (in that order: the first is usually beyond the residual's turning point) to
     each side, the first stable root per side kept; if neither side gives one,
     continuation in the compliance (K = 8) from the rigid solution, kept if stable. With two
-    distinct stable roots the one with the smaller max |uz_i(0)| (the least twisted, nearest
-    the rigid solution uz = 0) is returned. ``branch``: 0 the first equilibrium was stable
+    distinct stable roots the one nearest the initial guess x_init (max norm) is returned: with
+    the default x_init = 0 the least twisted one (nearest the rigid solution uz = 0); with a
+    warm start from the previous configuration of a motion, the branch the robot is on (it
+    snaps only where that branch ends). ``branch``: 0 the first equilibrium was stable
     (or the rigid model), 1 unstable rejected and one stable found, 2 unstable rejected and
-    two stable found (bistable: the returned one is the less twisted; the other one's uz(0) in
+    two stable found (bistable: the returned one is the nearer x_init; the other one's uz(0) in
     ``uz0alt``, NaN elsewhere), 3 unstable rejected and
     the stable one found by continuation, -1 unstable rejected and no stable one found
     (ok = False); 4 (only with ``probe``) the first equilibrium was stable and a second stable
@@ -438,7 +440,15 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
                         pick = 0
                         if nfound == 2:
                             code = 2
-                            if _max_abs(roots[1]) < _max_abs(roots[0]):
+                            # the one nearest the initial guess (max norm): with x_init = 0
+                            # the less twisted one; with a warm start from the previous
+                            # configuration of a motion, the branch the robot is on
+                            d0 = 0.0
+                            d1 = 0.0
+                            for i in range(n):
+                                d0 = max(d0, abs(roots[0, i] - x_init[bi, i]))
+                                d1 = max(d1, abs(roots[1, i] - x_init[bi, i]))
+                            if d1 < d0:
                                 pick = 1
                         branch[bi] = code
                         for i in range(n):

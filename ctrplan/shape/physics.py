@@ -169,7 +169,8 @@ class SolveInfo:
     (> 0: stable; 1 for the rigid model, NaN for loaded rows, which are not checked);
     branch (B,) int8: 0 the first equilibrium found was stable (or rigid / loaded row),
     1 an unstable equilibrium was rejected and one stable found, 2 an unstable one rejected
-    and two stable ones found (returned: the less twisted, smaller max |uz(0)|), 3 unstable
+    and two stable ones found (returned: the one nearer ``uz_init``, i.e. by default the less
+    twisted, smaller max |uz(0)|; a warm start keeps a motion on its branch), 3 unstable
     rejected and the stable one found by continuation from the rigid solution, -1 unstable
     rejected and none stable found (ok = False), 4 (with ``probe_bistable``) the first was
     stable and a second stable one was found by probing (the first is returned).
