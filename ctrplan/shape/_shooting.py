@@ -32,10 +32,10 @@ by Forman's theorem for Sturm-Liouville operators (the Gel'fand-Yaglom identity 
 boundary conditions) det(Q) / det(Q_0) = det J / det J_0, where Q_0 is the same operator with
 H = 0, which is positive definite with J_0 = I. So sign(det J) = (-1)^(number of negative
 eigenvalues of Q): det J > 0 is necessary for stability, and sufficient while the Morse index
-is at most 1 (index 2 needs two negative modes of the relative twist at once, i.e. at least
-five coexisting equilibria; not met by the shipped robots: tests/test_stability.py checks the
-positive definiteness of an independently discretised energy Hessian on every returned
-nylon solution). Note det J is the ratio of two determinants and passes zero exactly at the
+is at most 1 (index 2 needs two negative modes of the relative twist at once, a much longer
+or more compliant overlap than where snapping begins; not checked here. On the shipped
+robots tests/test_stability.py checks the positive definiteness of an independently
+discretised energy Hessian on every returned two_tube_nylon solution). Note det J is the ratio of two determinants and passes zero exactly at the
 folds where a stable and an unstable branch meet (snap-through).
 """
 
