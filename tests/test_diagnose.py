@@ -38,6 +38,7 @@ SINGLE = {
     "torsion": ({"torsion": {"compliance": 1.0, "inner_factor": 1.1}}, "compliance", 1.0, 0.0),
     "precurvature": ({"precurvature": {"scale1": 1.15}}, "scale1", 1.15, 1.0),
     "stiffness": ({"stiffness": {"ratio1": 1.5}}, "ratio1", 1.5, 1.0),
+    "load": ({"load": {"fy": -0.05, "gx": 9.81}}, "fy", -0.05, 0.0),
     "registration": ({"registration": {"tx": 3.0, "ty": -2.0, "rx": 0.03}}, "tx", 3.0, 0.0),
     "joint_offset": ({"joint_offset": {"dalpha1": 0.1, "dbeta2": -3.0}}, "dalpha1", 0.1, 0.0),
 }

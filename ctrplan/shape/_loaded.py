@@ -50,7 +50,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ctrplan.shape._kernel import _tube_events
+from ctrplan.shape._kernel import _tube_events, runtime
 
 
 @njit(cache=True, error_model="numpy")
@@ -332,7 +332,7 @@ def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, W, F, M, tpo
                 w[i] = EI[i] * kappa[i] if (present and curved) else 0.0
             eisum_inv = 1.0 / eisum if eisum > 0.0 else 0.0
             ko = _rk4(y, T, n, nx, k, w, eisum_inv, n0, wsum, sens, s_now, seg, step, out_s,
-                      m_out, ko, out_p, ws[0], ws[1], ws[2], ws[3], ws[4], WS[0], WS[1], WS[2],
+                      m_out, runtime(ko), out_p, ws[0], ws[1], ws[2], ws[3], ws[4], WS[0], WS[1], WS[2],
                       WS[3], WS[4])
             s_now = s_next
         i = tidx[it]
@@ -437,8 +437,9 @@ def _newton(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, o
     when the last pass was at the returned x.
     Returns (residual, iterations, pts_at_x)."""
     nx = x.shape[0]
+    on, off = runtime(True), runtime(False)     # one compiled _integrate (see runtime)
     _integrate(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, out_s, m_out,
-               step, True, pts, resid, jac, y, T, k, w, n0, wsum, ws, WS)
+               step, on, pts, resid, jac, y, T, k, w, n0, wsum, ws, WS)
     r = _max_abs(resid)
     it = 0
     at_x = True             # the last pass (and so pts) was at x
@@ -453,7 +454,7 @@ def _newton(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, o
             for i in range(nx):
                 xt[i] = x[i] + dx[i]
             _integrate(al, be, xt, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx,
-                       out_s, m_out, step, False, pts, resid_t, jac_t, y, T, k, w, n0, wsum,
+                       out_s, m_out, step, off, pts, resid_t, jac_t, y, T, k, w, n0, wsum,
                        ws, WS)
             rt = _max_abs(resid_t)
             if rt < tol or rt < 0.1 * r:
@@ -469,7 +470,7 @@ def _newton(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, o
             at_x = False
         if not fresh:
             _integrate(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx,
-                       out_s, m_out, step, True, pts, resid, jac, y, T, k, w, n0, wsum, ws, WS)
+                       out_s, m_out, step, on, pts, resid, jac, y, T, k, w, n0, wsum, ws, WS)
             r = _max_abs(resid)
             at_x = True
             fresh = True
@@ -481,7 +482,7 @@ def _newton(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, o
             for i in range(nx):
                 xt[i] = x[i] + t * dx[i]
             _integrate(al, be, xt, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx,
-                       out_s, m_out, step, True, pts, resid_t, jac_t, y, T, k, w, n0, wsum,
+                       out_s, m_out, step, on, pts, resid_t, jac_t, y, T, k, w, n0, wsum,
                        ws, WS)
             rt = _max_abs(resid_t)
             if rt < r or rt < tol:
@@ -614,8 +615,8 @@ def solve_loaded_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, W, F, M
                     break
         if not at_x:
             _integrate(al, be, x, L, straight, kappa[bi], EI[bi], ratio[bi], kink[bi], W[bi],
-                       F[bi], M[bi], tpos, ttyp, tidx, out_s, m, step, False, points[bi],
-                       resid_t, jac_t, y, T, k, w, n0, wsum, ws, WS)
+                       F[bi], M[bi], tpos, ttyp, tidx, out_s, m, step, runtime(False),
+                       points[bi], resid_t, jac_t, y, T, k, w, n0, wsum, ws, WS)
         finite = True
         for q in range(m):
             svals[bi, q] = out_s[q]

@@ -218,7 +218,8 @@ class PhysicsModel:
         solved as a boundary value problem with force and moment states
         (:mod:`ctrplan.shape._loaded`); the torsionally rigid model under loads is its limit of
         infinite torsional stiffness (tubes do not twist but carry torsional moments). With no
-        load the unloaded kernels run unchanged.
+        load the unloaded kernels run unchanged. The first loaded solve compiles the loaded
+        kernel (about 14 s of CPU on the development machine; numba caches it on disk).
     """
 
     def __init__(self, robot: Robot | str, torsion: bool = True, config: PhysicsConfig | None = None,
