@@ -296,3 +296,27 @@ def test_probe_flags_bistable_rows_whose_first_root_is_stable():
             lam, res = _hessian_min_eig(sp, q[k, :n], q[k, n:], x, h=2.0)
             assert lam > 0 and np.all(np.abs(res) < 1e-7), (k, lam)
         assert np.abs(ib.uz0[k] - ib.uz0_alt[k]).max() > 1e-4
+
+
+def test_of_two_stable_roots_the_one_nearest_the_initial_guess_is_returned(nylon_uniform):
+    """Warm start exactly on the unstable equilibrium (from the unchecked solve): it is
+    rejected and, of the two stable ones, the nearer the initial guess is returned (default
+    guess 0: the less twisted one)."""
+    from ctrplan.shape.physics import PhysicsConfig
+    d, model, shape, info = nylon_uniform
+    rows = np.flatnonzero(info.branch == 2)[:10]
+    q = d.q[rows]
+    xa, xb = info.uz0[rows], info.uz0_alt[rows]
+    # default guess 0: the returned one is the less twisted
+    assert np.all(np.abs(xa).max(axis=1) <= np.abs(xb).max(axis=1))
+    unchecked = PhysicsModel(ROBOT, config=PhysicsConfig(stability=False))
+    unchecked.shape(q)
+    xu = unchecked.last_info.uz0
+    warm = PhysicsModel(ROBOT)
+    warm.solve(q, 20, warm.base_params(len(rows)), uz_init=xu)
+    wi = warm.last_info
+    assert np.all(wi.branch == 2)
+    nearer_a = np.abs(xa - xu).max(axis=1) < np.abs(xb - xu).max(axis=1)
+    assert nearer_a.any() and (~nearer_a).any()      # the rule decides both ways here
+    expect = np.where(nearer_a[:, None], xa, xb)
+    np.testing.assert_allclose(wi.uz0, expect, atol=1e-9)
