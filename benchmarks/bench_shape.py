@@ -31,7 +31,7 @@ import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ctrplan.robot import load_robot  # noqa: E402
-from ctrplan.shape.physics import Loads, PhysicsModel  # noqa: E402
+from ctrplan.shape.physics import Loads, PhysicsConfig, PhysicsModel  # noqa: E402
 from ctrplan.shape.reference import reference_shape  # noqa: E402
 
 ROBOT = "seed1"
@@ -107,6 +107,29 @@ def run(quick: bool = False) -> dict:
         "tip_sag_mm_median": float(np.median(sag)), "tip_sag_mm_max": float(sag.max()),
     }
 
+    # elastic stability check (det of the shooting Jacobian, search for a stable root where it
+    # is <= 0) vs the unchecked solve, interleaved in this run; seed1 (never unstable) and
+    # two_tube_nylon (physical GJ: ~12 % of uniform configurations hit an unstable root)
+    stab_res = {}
+    for rname in (ROBOT, "two_tube_nylon"):
+        rb = load_robot(rname)
+        qs = rb.sample(2_000 if quick else 10_000, seed=SEED)
+        sm = {"checked": PhysicsModel(rb, torsion=True),
+              "unchecked": PhysicsModel(rb, torsion=True, config=PhysicsConfig(stability=False))}
+        for m in sm.values():
+            m.shape(qs[:2], POINTS)
+        tv = {k: [] for k in sm}
+        for _ in range(1 if quick else 3):
+            for k, m in sm.items():
+                tv[k].append(_median_time(lambda m=m, qs=qs: m.shape(qs, POINTS), 1)[0] / len(qs))
+        sm["checked"].shape(qs, POINTS)
+        br = sm["checked"].last_info.branch
+        med = {k: statistics.median(v) for k, v in tv.items()}
+        stab_res[rname] = {"batch": len(qs), "us_per_shape": {k: v * 1e6 for k, v in med.items()},
+                           "checked_over_unchecked": med["checked"] / med["unchecked"],
+                           "unstable_rejected_fraction": float((br != 0).mean()),
+                           "bistable_fraction": float((br == 2).mean())}
+
     comp = models["compliant"]
     shape = comp.shape(q_all, POINTS)
     info = comp.last_info
@@ -158,6 +181,7 @@ def run(quick: bool = False) -> dict:
         "meets_target": bool(c10k <= 1e-4),
         "table": table,
         "loads": loads_res,
+        "stability": stab_res,
     }
 
 
@@ -195,6 +219,15 @@ def to_markdown(res: dict) -> str:
             f"Newton iterations mean {ld['newton_iterations_mean']:.2f}, max "
             f"{ld['newton_iterations_max']}, converged {ld['converged_fraction'] * 100:.2f} %; "
             f"tip sag median {ld['tip_sag_mm_median']:.2f} mm, max {ld['tip_sag_mm_max']:.2f} mm.",
+        ]
+    for rname, st in (res.get("stability") or {}).items():
+        us = st["us_per_shape"]
+        lines += [
+            "",
+            f"Stability check ({rname}, compliant, batch {st['batch']:,}): {us['checked']:.1f} vs "
+            f"{us['unchecked']:.1f} us/shape unchecked ({st['checked_over_unchecked']:.3f}x); "
+            f"unstable roots rejected in {st['unstable_rejected_fraction'] * 100:.1f} % of rows, "
+            f"two stable found in {st['bistable_fraction'] * 100:.1f} %.",
         ]
     return "\n".join(lines)
 

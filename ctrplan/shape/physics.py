@@ -62,11 +62,20 @@ class PhysicsConfig:
         ``seed1`` backbones agree with a tight scipy solution to about 1e-5 mm.
     tol : shooting tolerance on the distal torsion boundary values max_i |uz_i(end)| (1/mm).
     max_iter : Newton iterations before a configuration is reported as not converged.
+    stability : reject unstable equilibria of the unloaded compliant model and search stable
+        ones (:mod:`ctrplan.shape._shooting`); False returns the first equilibrium Newton finds (only for
+        comparisons and benchmarks: it may be unstable).
+    probe_bistable : also probe rows whose first equilibrium is stable for a second stable
+        one where two curved tubes are rotated apart by more than 90 deg (``branch`` 4,
+        ``bistable`` True, the other in ``uz0_alt``; shapes unchanged). Costs about one more
+        Newton solve on those rows; for planning, which should avoid snapping configurations.
     """
 
     step_mm: float = 10.0
     tol: float = 1e-10
     max_iter: int = 30
+    stability: bool = True
+    probe_bistable: bool = False
 
     def __post_init__(self) -> None:
         if not self.step_mm > 0:
@@ -153,12 +162,43 @@ class MechanicsParams:
 @dataclass(frozen=True)
 class SolveInfo:
     """Diagnostics of a physics solve: uz0 (B, n) 1/mm, iterations (B,), residual (B,) 1/mm;
-    moment0 (B, 2) N mm or None: bending moment at s = 0 (base frame x, y; loaded solves)."""
+    moment0 (B, 2) N mm or None: bending moment at s = 0 (base frame x, y; loaded solves).
+
+    Elastic stability of the unloaded compliant solves (derivation: :mod:`ctrplan.shape._shooting`):
+    detj (B,) det of the shooting Jacobian d uz(end) / d uz(0) at the returned equilibrium
+    (> 0: stable; 1 for the rigid model, NaN for loaded rows, which are not checked);
+    branch (B,) int8: 0 the first equilibrium found was stable (or rigid / loaded row),
+    1 an unstable equilibrium was rejected and one stable found, 2 an unstable one rejected
+    and two stable ones found (returned: the one nearer ``uz_init``, i.e. by default the less
+    twisted, smaller max |uz(0)|; a warm start keeps a motion on its branch), 3 unstable
+    rejected and the stable one found by continuation from the rigid solution, -1 unstable
+    rejected and none stable found (ok = False), 4 (with ``probe_bistable``) the first was
+    stable and a second stable one was found by probing (the first is returned).
+    uz0_alt (B, n) 1/mm: where two stable equilibria were found (``bistable``) the uz(0) of
+    the one NOT returned, NaN elsewhere: ``model.solve(q, m, params, uz_init=uz0_alt)`` on
+    those rows gives the other branch's shape (Newton starts on it).
+    """
 
     uz0: np.ndarray
     iterations: np.ndarray
     residual: np.ndarray
     moment0: np.ndarray | None = None
+    detj: np.ndarray | None = None
+    branch: np.ndarray | None = None
+    uz0_alt: np.ndarray | None = None
+
+    @property
+    def bistable(self) -> np.ndarray | None:
+        """(B,) bool: two stable equilibria were found (the configuration can snap between
+        them). Searched where the first equilibrium found was unstable, and with
+        ``PhysicsConfig(probe_bistable=True)`` also where it was stable but two curved tubes
+        are rotated apart by > 90 deg; False does not prove uniqueness."""
+        return None if self.branch is None else (self.branch == 2) | (self.branch == 4)
+
+    @property
+    def unstable_rejected(self) -> np.ndarray | None:
+        """(B,) bool: an unstable equilibrium was found and rejected in this row."""
+        return None if self.branch is None else (self.branch != 0) & (self.branch != 4)
 
 
 class PhysicsModel:
@@ -271,18 +311,22 @@ class PhysicsModel:
                 return _shooting.solve_batch(
                     alpha, beta, self._lengths, self._straight, kappa, EI, ratio, kink,
                     self.torsion, m, float(self.config.step_mm), float(self.config.tol),
-                    int(self.config.max_iter), x0)
+                    int(self.config.max_iter), x0, bool(self.config.stability),
+                    bool(self.config.probe_bistable))
             c = np.ascontiguousarray
             return _shooting.solve_batch(
                 c(alpha[rows]), c(beta[rows]), self._lengths, self._straight, c(kappa[rows]),
                 c(EI[rows]), c(ratio[rows]), c(kink[rows]), self.torsion, m,
                 float(self.config.step_mm), float(self.config.tol), int(self.config.max_iter),
-                c(x0[rows]))
+                c(x0[rows]), bool(self.config.stability), bool(self.config.probe_bistable))
 
         moment0 = None
         if not loaded.any():
-            pts, s, uz0, iters, resid, ok = unloaded(None, int(points))
+            pts, s, uz0, iters, resid, ok, detj, branch, uz0_alt = unloaded(None, int(points))
         else:
+            detj = np.full(B, np.nan)
+            branch = np.zeros(B, dtype=np.int8)
+            uz0_alt = np.full((B, n), np.nan)
             pts = np.zeros((B, points, 3))
             s = np.zeros((B, points))
             uz0 = np.zeros((B, n))
@@ -291,14 +335,14 @@ class PhysicsModel:
             ok = np.zeros(B, dtype=bool)
             free = np.flatnonzero(~loaded)
             if len(free):
-                pts[free], s[free], uz0[free], iters[free], resid[free], ok[free] = unloaded(
-                    free, int(points))
+                (pts[free], s[free], uz0[free], iters[free], resid[free], ok[free], detj[free],
+                 branch[free], uz0_alt[free]) = unloaded(free, int(points))
             idx = np.flatnonzero(loaded)
             W = np.zeros((B, n, 3)) if weight is None else weight
             F = np.zeros((B, 3)) if force is None else force
             M = np.zeros((B, 3)) if moment is None else moment
             # first guess from the unloaded solution of the loaded rows (33 points)
-            gp, gs, guz, _, _, gok = unloaded(idx, 33)
+            gp, gs, guz, _, _, gok, _, _, _ = unloaded(idx, 33)
             lp, ls, luz, lit, lres, lm = self._solve_loaded(
                 alpha[idx], beta[idx], kappa[idx], EI[idx], ratio[idx], kink[idx], W[idx],
                 F[idx], M[idx], gp, gs, guz, gok, int(points))
@@ -308,7 +352,8 @@ class PhysicsModel:
             ok[idx] = lres < self.config.tol
         ok = ok & np.all(np.isfinite(pts), axis=(1, 2))
         ok &= chords_within_arc(pts, s)
-        self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid, moment0=moment0)
+        self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid, moment0=moment0,
+                                   detj=detj, branch=branch, uz0_alt=uz0_alt)
         return Shape(points=pts, s=s, radius=radius_along(r, q, s), ok=ok)
 
     def _solve_loaded(self, alpha, beta, kappa, EI, ratio, kink, W, F, M, pts0, s0, uz00, ok0,
