@@ -83,12 +83,11 @@ def _retracted_start(robot, validator, world, samples, seed) -> tuple[np.ndarray
     rng = np.random.default_rng(seed)
     q = np.repeat(q0[None], samples, axis=0)
     q[:, :n] = rng.uniform(-math.pi, math.pi, (samples, n))
-    shape = validator.shapes(q)
-    rep = world.check(shape)
-    free = ~np.asarray(rep.collides, dtype=bool)
+    collides, clearance, _ = validator.check_states(q)
+    free = ~collides
     if not free.any():
         return q0, False
-    clear = np.where(free, np.asarray(rep.clearance_mm, dtype=float), -np.inf)
+    clear = np.where(free, clearance, -np.inf)
     return q[int(np.argmax(clear))], True
 
 
