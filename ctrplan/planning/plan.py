@@ -71,7 +71,7 @@ class PlanStatus(str, Enum):
     GOAL_IN_COLLISION = "GOAL_IN_COLLISION"      # reachable, but every reaching configuration collides
     TIMEOUT = "TIMEOUT"                          # no collision-free path within the budget
     VERIFICATION_FAILED = "VERIFICATION_FAILED"  # the path failed an exact check and repair failed
-    ERROR = "ERROR"                              # bad input (batch jobs only; plan_to_target raises)
+    INPUT_ERROR = "INPUT_ERROR"                  # bad input (batch jobs; plan_to_target raises InputError)
 
 
 @dataclass(frozen=True)

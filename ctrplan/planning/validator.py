@@ -273,12 +273,14 @@ class BatchValidator:
         return ok
 
     def check_states(self, q: np.ndarray, points: int | None = None,
-                     direction: np.ndarray | None = None, exact: bool = False):
+                     direction: np.ndarray | None = None, exact: bool = False,
+                     joints: bool = True):
         """(collides (B,), clearance_mm (B,), contact (B,)) of a batch with the world's
-        ``check`` (``check_exact`` if ``exact``): worst case over the direction variants."""
+        ``check`` (``check_exact`` if ``exact``): worst case over the direction variants.
+        ``joints`` : joint-constraint violations count as collisions (contact "joints")."""
         q = np.atleast_2d(np.asarray(q, dtype=float))
         B = len(q)
-        collides = ~self.joint_valid(q)
+        collides = ~self.joint_valid(q) if joints else np.zeros(B, dtype=bool)
         clearance = np.full(B, np.inf)
         contact = np.full(B, "", dtype=object)
         contact[collides] = "joints"
