@@ -37,7 +37,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np  # noqa: E402
-
 from hard_problems import ROBOT, load_problems, scenes, verify_path  # noqa: E402
 
 PLANNERS = ("rrtconnect", "rrt", "rrtstar", "bitstar", "prm", "kpiece")
@@ -148,7 +147,9 @@ def summarize(records: list[dict]) -> list[dict]:
         for planner in [p for p in PLANNERS if any(r["planner"] == p for r in records)]:
             rs = [r for r in records if r["model"] == model and r["planner"] == planner]
             ok = [r for r in rs if r["success"]]
-            med = (lambda k: statistics.median(r[k] for r in ok) if ok else float("nan"))
+            def med(k, ok=ok):
+                return statistics.median(r[k] for r in ok) if ok else float("nan")
+
             rows.append({
                 "model": model, "planner": planner, "plans": len(rs), "success": len(ok),
                 "success_rate": len(ok) / len(rs) if rs else float("nan"),

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from ctrplan.cli import main
-from ctrplan.planning import PlanConfig, PlanStatus, plan_to_target
+from ctrplan.planning import PlanConfig, plan_to_target
 from ctrplan.planning.plan import planning_model_of, scene_by_name
 from ctrplan.planning.validator import BatchValidator, unwrap_path
 from ctrplan.shape.base import Shape

@@ -658,7 +658,7 @@ def _stage_planning(run: _Run, start: np.ndarray, source: GoalSource,
                       ik_reaching=source.reaching, ik_evaluations=source.evaluations,
                       states_validated=validator.counters.states)
     if outcome.path is None:
-        why = ("the time cap of {:.2f} s".format(run.time_limit) if outcome.time_cap_hit
+        why = (f"the time cap of {run.time_limit:.2f} s" if outcome.time_cap_hit
                else f"the budget of {cfg.max_states} states")
         raise _Stop(run.finish(PlanStatus.TIMEOUT, f"no collision-free path found within {why} "
                                f"({outcome.goals_used} goal configurations)"))
