@@ -163,6 +163,20 @@ def summarize(records: list[dict]) -> list[dict]:
     return rows
 
 
+def markdown(table: list[dict]) -> str:
+    """The README table: success, time, path length, clearance per planning model and planner."""
+    lines = ["| model | planner | success (10 s cap) | time median / p90 (s) | path length median "
+             "(metric mm) | clearance median, planning model (mm) | clearance min, physics (mm) "
+             "| re-check failures |", "|---|---|---|---|---|---|---|---|"]
+    for r in table:
+        lines.append(f"| {r['model']} | {r['planner']} | {r['success']}/{r['plans']} "
+                     f"({100 * r['success_rate']:.0f} %) | {r['time_median_s']:.2f} / "
+                     f"{r['time_p90_s']:.2f} | {r['length_median']:.0f} | "
+                     f"{r['clearance_median_mm']:.2f} | {r['clearance_physics_min_mm']:.2f} | "
+                     f"{r['recheck_failures']} |")
+    return "\n".join(lines)
+
+
 def run(models, planners, runs: int, time_limit: float, per_scene: int | None, out: Path,
         scene_list=None) -> dict:
     import numba
@@ -218,6 +232,7 @@ def main(argv: list[str] | None = None) -> int:
               f"({100 * r['success_rate']:.0f}%), time median {r['time_median_s']:.2f} s "
               f"p90 {r['time_p90_s']:.2f} s, length {r['length_median']:.0f}, clearance "
               f"{r['clearance_median_mm']:.2f} mm, recheck failures {r['recheck_failures']}")
+    print(markdown(res["table"]))
     return 0
 
 
