@@ -144,8 +144,8 @@ def search(scene_name: str, count: int = 5, samples: int = 60000, seed: int = 0,
         if any(np.linalg.norm(target - np.array(p["target"])) < 10.0 for p in problems):
             continue
         tried += 1
-        r = plan_to_target(robot, scene, target, model=physics, seed=seed, time_limit=60.0,
-                           start=start, config=PlanConfig(max_states=2_000_000))
+        r = plan_to_target(robot, scene, target, model=physics, seed=seed, time_limit=20.0,
+                           start=start, config=PlanConfig(max_states=1_000_000))
         if not r.success or r.counts.get("direct", 0):
             continue
         ok, clearance = verify_path(robot, scene, r.path)
