@@ -218,6 +218,7 @@ def run(models, planners, runs: int, time_limit: float, per_scene: int | None, o
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one problem per scene")
+    ap.add_argument("--per-scene", type=int, default=None, help="first K problems per scene")
     ap.add_argument("--models", nargs="+", default=list(MODELS))
     ap.add_argument("--planners", nargs="+", default=list(PLANNERS))
     ap.add_argument("--scenes", nargs="+", default=None)
@@ -225,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--time", type=float, default=10.0, help="time cap per plan, s")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "hard"))
     args = ap.parse_args(argv)
-    res = run(args.models, args.planners, args.runs, args.time, 1 if args.quick else None,
+    res = run(args.models, args.planners, args.runs, args.time, 1 if args.quick else args.per_scene,
               Path(args.out), args.scenes)
     for r in res["table"]:
         print(f"{r['model']:>8} {r['planner']:>10}: {r['success']}/{r['plans']} "

@@ -53,10 +53,13 @@ def scenes() -> list[str]:
     return sorted(p.stem for p in HERE.glob("*.json"))
 
 
-def verify_path(robot, scene, path: np.ndarray, factor: int = 8) -> tuple[bool, float]:
+def verify_path(robot, scene, path: np.ndarray, factor: int = 8,
+                exact: bool = False) -> tuple[bool, float]:
     """Independent re-check: the path densified ``factor`` x the planner's edge resolution
-    (own interpolation, rotations along the shorter arc), physics backbone, exact FCL on
-    capsules of radius + sagitta bound (no prefilter). Returns (collision-free, min distance)."""
+    (own interpolation, rotations along the shorter arc), physics backbone, FCL verdicts on
+    capsules of radius + sagitta bound (``check``: the distance-field prefilter only skips FCL
+    where its conservative bound proves the verdict; ``exact=True`` sends every state to FCL).
+    Returns (collision-free, smallest FCL distance)."""
     import math
 
     from ctrplan.collision.capsules import curvature_bound
@@ -66,7 +69,7 @@ def verify_path(robot, scene, path: np.ndarray, factor: int = 8) -> tuple[bool, 
 
     cfg = PlanConfig().validator
     model = PhysicsModel(robot)
-    world = CollisionWorld(scene, prefilter=False, curvature_per_mm=curvature_bound(robot))
+    world = _world(scene, curvature_bound(robot), prefilter=not exact)
     n = robot.n
     res = cfg.resolution_mm / factor
     states = [np.asarray(path[0], dtype=float)]
@@ -80,7 +83,7 @@ def verify_path(robot, scene, path: np.ndarray, factor: int = 8) -> tuple[bool, 
     if not robot.is_valid(q).all():
         return False, -1.0
     shape = model.shape(q, points=cfg.points)
-    rep = world.check_exact(shape)          # FCL on every state (no prefilter)
+    rep = world.check_exact(shape) if exact else world.check(shape)
     if rep.collides.any():
         return False, -1.0
     # the smallest FCL distance: states in order of their conservative lower bound (rep's
@@ -97,17 +100,21 @@ def verify_path(robot, scene, path: np.ndarray, factor: int = 8) -> tuple[bool, 
     return True, best
 
 
-_RANKED: dict[int, object] = {}
+_WORLDS: dict[tuple, object] = {}
+
+
+def _world(scene, curvature: float, prefilter: bool = True):
+    from ctrplan.collision.world import CollisionWorld
+
+    key = (id(scene), curvature, prefilter)
+    if key not in _WORLDS:
+        _WORLDS[key] = CollisionWorld(scene, prefilter=prefilter, curvature_per_mm=curvature)
+    return _WORLDS[key]
 
 
 def _ranked(world):
     """The same scene with the prefilter on: FCL distances by branch and bound over pairs."""
-    from ctrplan.collision.world import CollisionWorld
-
-    w = _RANKED.get(id(world))
-    if w is None:
-        w = _RANKED[id(world)] = CollisionWorld(world.scene, curvature_per_mm=world.curvature_per_mm)
-    return w
+    return _world(world.scene, world.curvature_per_mm, True)
 
 
 def search(scene_name: str, count: int = 5, samples: int = 60000, seed: int = 0,
