@@ -1,8 +1,8 @@
 """The fixed hard benchmark and the independent re-check of plans.
 
 Oracles: the re-check (``benchmarks/hard_problems.verify_path``) interpolates paths itself at 8x
-the planner's edge resolution and asks exact FCL (no distance-field prefilter) about the
-physics model's backbone with capsules of radius + sagitta bound; the benchmark logs are read
+the planner's edge resolution and asks FCL about the physics model's backbone with capsules of
+radius + sagitta bound (the known solutions with every state sent to FCL); the benchmark logs are read
 back with OMPL's own log reader (``ompl.tools.readBenchmarkLog``).
 """
 
@@ -37,7 +37,7 @@ def test_hard_problem_straight_edge_collides_and_known_solution_is_free(scene, s
     sc = scene_by_name(scene)
     straight, _ = verify_path(seed1, sc, np.stack([prob.start, prob.goal]))
     assert not straight
-    free, clearance = verify_path(seed1, sc, prob.solution)
+    free, clearance = verify_path(seed1, sc, prob.solution, exact=True)
     assert free and clearance >= 0.0
     assert np.allclose(prob.solution[0], prob.start)
     tip = PhysicsModel(seed1).shape(prob.solution[-1:], points=2).tip[0]
