@@ -160,7 +160,7 @@ def test_ompl_calls_the_python_motion_validator_and_a_seed_reproduces_the_path(r
         assert v.edge_valid(a, b)
 
 
-@pytest.mark.parametrize("planner", ["rrtconnect", "rrt", "rrtstar", "bitstar", "prm", "kpiece"])
+@pytest.mark.parametrize("planner", ["rrtconnect", "rrt", "rrtstar", "bitstar", "kpiece"])
 def test_planners_by_name(robot, physics, planner):
     start, goal, _, world = sphere_problem(robot, physics)
     v = BatchValidator(robot, physics, world)
@@ -173,6 +173,9 @@ def test_planners_by_name(robot, physics, planner):
 def test_unknown_planner_is_an_input_error():
     with pytest.raises(InputError, match="unknown planner"):
         ompl_space.check_planner("astar")
+    # PRM deadlocks with Python validity checkers (second C++ thread vs the held GIL): refused
+    with pytest.raises(InputError, match="deadlocks"):
+        ompl_space.check_planner("PRM")
 
 
 # ---------------------------------------------------------------------- plan_to_target

@@ -49,7 +49,7 @@ def add_planning_args(p: argparse.ArgumentParser) -> None:
                    help="shipped robot name (seed1, two_tube_nylon) or robot YAML path (default seed1)")
     add_model_arg(p, default="learned")
     p.add_argument("--planner", default="rrtconnect",
-                   help="rrtconnect (default), rrt, rrtstar, bitstar, prm, prmstar, kpiece, bkpiece, lbkpiece")
+                   help="rrtconnect (default), rrt, rrtstar, bitstar, kpiece, bkpiece, lbkpiece (prm is refused: it deadlocks with Python validity checkers)")
     p.add_argument("--time", type=float, default=5.0, help="time limit per plan, s (default 5)")
     p.add_argument("--tolerance", type=float, default=1.0,
                    help="accepted tip-to-target distance, mm (default 1)")

@@ -15,8 +15,8 @@ configurations never leaves it).
 Validity. Every edge is checked by ``checker.edge_valid`` (:class:`ctrplan.planning.validator.BatchValidator`) — one batched shape call and
 one batched collision query over all interpolated states, both end states included (OMPL's
 RRTConnect grows its goal tree with the new state as the *first* argument). OMPL still calls
-the per-state checker for start/goal states and for samples of some planners (PRM, BIT*); that
-call goes through a cache, and PRM gets a sampler that validates samples in batches.
+the per-state checker for start/goal states and for samples of some planners (BIT*); that
+call goes through a cache, and samplers validate samples in batches.
 """
 
 from __future__ import annotations
@@ -46,17 +46,27 @@ PLANNERS: dict[str, str] = {
     "rrt": "RRT",
     "rrtstar": "RRTstar",
     "bitstar": "BITstar",
-    "prm": "PRM",
-    "prmstar": "PRMstar",
     "kpiece": "KPIECE1",
     "bkpiece": "BKPIECE1",
     "lbkpiece": "LBKPIECE1",
 }
 
 
+#: Planners refused with the reason: OMPL's PRM checks for a solution in a second C++ thread that
+#: calls the Python motion validator, while the OMPL 2.x bindings keep the GIL held in the main
+#: thread's ``solve`` (waiting for PRM's graph lock): a deadlock, seen in the hard benchmark.
+UNSAFE_PLANNERS = {
+    "prm": "OMPL's PRM validates edges from a second thread and deadlocks with Python validity "
+           "checkers in the OMPL 2.x bindings; use rrtconnect, rrt, rrtstar, bitstar or kpiece",
+}
+UNSAFE_PLANNERS["prmstar"] = UNSAFE_PLANNERS["prm"]
+
+
 def check_planner(name: str) -> str:
     """Normalise a planner name (case-insensitive) or raise :class:`InputError`."""
     key = str(name).strip().lower()
+    if key in UNSAFE_PLANNERS:
+        raise InputError("--planner", "", f"{name!r}: {UNSAFE_PLANNERS[key]}")
     if key not in PLANNERS:
         raise InputError("--planner", "", f"unknown planner {name!r} (choose from {', '.join(PLANNERS)})")
     return key
