@@ -104,7 +104,7 @@ class PlanConfig:
         (metric mm); 0 returns the simplified waypoints only.
     output_points : backbone points per returned backbone.
     repair_attempts : re-planning rounds for segments that fail verification.
-    optimize : let anytime planners (RRT*, BIT*, PRM) use the whole budget.
+    optimize : let anytime planners (RRT*, BIT*) use the whole budget.
     try_direct : before OMPL, try the straight edge from the start to the nearest goals
         (``planner`` is then ``"direct"``); False always runs the planner.
     """

@@ -310,8 +310,8 @@ def solve(
     Budget. With ``max_states``, the budget is the number of states the checker validates
     (``checker.counters.states``): the run is split into ``slices`` of that budget and
     ``time_limit`` is only a wall-clock cap (``time_cap_hit`` says when it stopped the run). The
-    same seed then gives the same path on any machine load, for the single-threaded planners
-    (PRM grows its roadmap in a second thread and is only reproducible up to that). Without
+    same seed then gives the same path on any machine load (every offered planner is
+    single-threaded). Without
     ``max_states``, the slices are fractions of ``time_limit`` (the result depends on speed).
 
     After a slice without a solution ``more_goals()`` (if given) may return extra goal
