@@ -356,7 +356,14 @@ def _solve(js: JointSpace, link: _Link, start, goals, planner, time_limit, range
         # the objective makes OMPL fall back to its generic rejection sampler.
         obj = ob.MultiOptimizationObjective(si)
         obj.addObjective(ob.PathLengthOptimizationObjective(si), 1.0)
-        pdef.setOptimizationObjective(obj)
+    else:
+        obj = ob.PathLengthOptimizationObjective(si)
+    if not optimize:
+        # Any path is good enough: anytime planners (RRT*, BIT*) add their solution to the
+        # problem only when they stop, so the exact-solution condition alone never fires for
+        # them and they would run to the cap.
+        obj.setCostThreshold(ob.Cost(math.inf))
+    pdef.setOptimizationObjective(obj)
     pl = make_planner(planner, si, range_mm)
     pl.setProblemDefinition(pdef)
     pl.setup()
