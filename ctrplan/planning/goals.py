@@ -35,6 +35,10 @@ def target_blocked(scene, world, target_scene: np.ndarray, tip_radius_mm: float)
     rep = world.check(probe)
     if bool(np.asarray(rep.collides)[0]):
         contact = str(np.asarray(rep.contact)[0]) or "anatomy"
+        margin = float(getattr(world, "margin_mm", 0.0) or 0.0)
+        if margin > 0:
+            return (f"the target is within the tip radius ({tip_radius_mm:g} mm) + margin "
+                    f"({margin:.3g} mm) of {contact!r}")
         return f"the target is within the tip radius ({tip_radius_mm:g} mm) of {contact!r}"
     return ""
 
