@@ -72,18 +72,25 @@ def path_length(path: np.ndarray, n: int, alpha_weight_mm: float) -> float:
 
 def run_one(problem, model: str, planner: str, seed: int, time_limit: float,
             margin: float | None = None) -> dict:
-    from ctrplan.planning import PlanConfig, plan_to_target
-    from ctrplan.planning.plan import scene_by_name
+    from ctrplan.planning.plan import resolve_model, scene_by_name
     from ctrplan.robot import load_robot
-
-    from ctrplan.planning.plan import resolve_model
 
     robot = load_robot(ROBOT)
     scene = scene_by_name(problem.scene)
-    if model == "learned":
-        m = resolve_model("learned", robot)
-        if getattr(m, "error_quantiles", None) is None:
-            m.error_quantiles = {"p99": LEARNED_P99_MM}
+    m = resolve_model(model, robot)
+    patched = model == "learned" and margin is None and getattr(m, "error_quantiles", None) is None
+    if patched:
+        m.error_quantiles = {"p99": LEARNED_P99_MM}
+    try:
+        return _run_one(problem, model, planner, seed, time_limit, margin, robot, scene)
+    finally:
+        if patched:
+            m.error_quantiles = None
+
+
+def _run_one(problem, model, planner, seed, time_limit, margin, robot, scene) -> dict:
+    from ctrplan.planning import PlanConfig, plan_to_target
+
     # the planners are what is measured: no straight start-goal shortcut (for the learned model
     # the straight edge to its own IK goals can be free where the physics one is not)
     cfg = PlanConfig(try_direct=False, margin_mm=margin)

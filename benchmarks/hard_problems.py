@@ -63,7 +63,6 @@ def verify_path(robot, scene, path: np.ndarray, factor: int = 8,
     import math
 
     from ctrplan.collision.capsules import curvature_bound
-    from ctrplan.collision.world import CollisionWorld
     from ctrplan.planning import PlanConfig
     from ctrplan.shape.physics import PhysicsModel
 
