@@ -25,6 +25,8 @@ import time
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -38,11 +40,17 @@ TIME_LIMIT = 5.0
 STAGES = ("ik", "planning", "simplification", "verification")
 
 
+def _robot():
+    from ctrplan.robot import load_robot
+
+    return load_robot(ROBOT)
+
+
 def _pct(x: list[float], q: float) -> float:
     return float(np.percentile(x, q)) if x else float("nan")
 
 
-def run(quick: bool = False) -> dict:
+def run(quick: bool = False, recheck: bool = False) -> dict:
     # numba's pool through its API: NUMBA_NUM_THREADS set after numba is imported (as under
     # `ctrplan bench`) makes numba refuse every later compile in the process
     numba.set_num_threads(1)
@@ -64,6 +72,11 @@ def run(quick: bool = False) -> dict:
                     r = plan_to_target(ROBOT, scene, t.position, model=model, planner=PLANNER,
                                        time_limit=TIME_LIMIT, seed=seed)
                     cpu = time.thread_time() - c0
+                    free = None
+                    if recheck and r.success:
+                        from hard_problems import verify_path
+
+                        free = verify_path(_robot(), scene, r.path)[0]
                     plans.append({
                         "scene": scene_name, "target": t.name, "seed": seed, "model": model,
                         "status": r.status.value, "success": r.success,
@@ -71,6 +84,8 @@ def run(quick: bool = False) -> dict:
                         "tip_error_mm": r.tip_error_mm if r.success else None,
                         "tip_error_physics_mm": r.tip_error_physics_mm if r.success else None,
                         "direct": r.counts.get("direct", 0),
+                        "recheck_free": free,
+                        "min_clearance_reference_mm": r.min_clearance_reference_mm if r.success else None,
                         **{f"{s}_s": r.timings.get(s, 0.0) for s in STAGES},
                     })
     table = []
@@ -93,6 +108,8 @@ def run(quick: bool = False) -> dict:
         row["tip_error_physics_median_mm"] = (
             statistics.median(p["tip_error_physics_mm"] for p in ok) if ok else float("nan"))
         row["direct_fraction"] = sum(p["direct"] for p in rs) / len(rs)
+        row["recheck_failures"] = sum(1 for p in ok if p["recheck_free"] is False)
+        row["rechecked"] = sum(1 for p in ok if p["recheck_free"] is not None)
         statuses: dict[str, int] = {}
         for p in rs:
             statuses[p["status"]] = statuses.get(p["status"], 0) + 1
@@ -113,8 +130,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="two targets per scene, one seed")
     ap.add_argument("--out", default=None, help="write the results as JSON here")
+    ap.add_argument("--recheck", action="store_true",
+                    help="re-check every successful path independently (8x densified, physics, FCL)")
     args = ap.parse_args(argv)
-    res = run(quick=args.quick)
+    res = run(quick=args.quick, recheck=args.recheck)
     for r in res["table"]:
         print(f"{r['scene']:>15} {r['model']:>8}: {r['plans']:4d} plans, success "
               f"{100 * r['success_rate']:5.1f}%, wall median {r['median_s']:.2f} s p90 {r['p90_s']:.2f} s, "

@@ -35,6 +35,7 @@ _EXPORTS = {
     "plan_to_target": "ctrplan.planning.plan",
     "PlanResult": "ctrplan.planning.plan",
     "PlanStatus": "ctrplan.planning.plan",
+    "PlanConfig": "ctrplan.planning.plan",
     "diagnose": "ctrplan.calibration.diagnose",
 }
 

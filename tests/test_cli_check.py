@@ -36,7 +36,9 @@ def test_check_writes_verdicts(tmp_path, configs, seed1):
                  "--out", str(out)]) == 0
     rows = _read(out)
     assert list(rows[0]) == ["collides", "clearance_mm", "contact"] and len(rows) == len(q)
-    expect = CollisionWorld("skull_base").check_exact(PhysicsModel(seed1).shape(q, points=21))
+    # physics: margin auto = 0; capsules padded by the sagitta bound of seed1's largest curvature
+    expect = CollisionWorld("skull_base", curvature_per_mm=0.0093354).check_exact(
+        PhysicsModel(seed1).shape(q, points=21))
     got = np.array([int(r["collides"]) for r in rows], dtype=bool)
     np.testing.assert_array_equal(got, expect.collides)
     assert not got[-3:].any()                     # the targets' configurations are free

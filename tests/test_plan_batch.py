@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from ctrplan.errors import InputError
+from ctrplan.planning import PlanStatus
 from ctrplan.planning.batch import Job, make_jobs, read_targets, run_batch, summarize
 
 
@@ -103,7 +104,8 @@ def test_bad_job_is_recorded_not_fatal(tmp_path):
     from ctrplan.planning.batch import run_job
 
     res = run_job(Job("airway", "far", (0.0, 0.0, float("nan")), model="learned"))
-    assert res["status"] == "ERROR" and not res["success"] and "--target" in res["message"]
+    assert res.status is PlanStatus.INPUT_ERROR and not res.success and "--target" in res.message
+    assert res.plan is None and res.to_json()["status"] == "INPUT_ERROR"
 
 
 # Pool and Ray tests use targets beyond the robot's reach: they answer at once, so the tests

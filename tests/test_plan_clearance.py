@@ -30,10 +30,12 @@ def test_min_clearance_is_the_exact_minimum():
     # the prefilter's clearances really are lower bounds of the FCL distances
     assert np.all(np.asarray(check.clearance_mm) <= brute + 1e-9)
     # with a budget that lets it settle, branch and bound finds the exact minimum
-    value, measured = path_min_clearance(validator, world, check, None, max_pairs=10**6)
+    value, exact, measured = path_min_clearance(validator, world, check, None, max_pairs=10**6)
+    assert exact
     assert abs(value - float(brute.min())) < 1e-9
     # with a small budget it returns a valid lower bound, never more than the truth
-    low, used = path_min_clearance(validator, world, check, None, batch=4, max_pairs=3)
+    low, low_exact, used = path_min_clearance(validator, world, check, None, batch=4, max_pairs=3)
+    assert not low_exact
     assert used <= 8 and low <= brute.min() + 1e-9
     assert 0.0 < result.min_clearance_mm <= brute.min() + 1e-9
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -161,7 +160,7 @@ def test_ompl_calls_the_python_motion_validator_and_a_seed_reproduces_the_path(r
         assert v.edge_valid(a, b)
 
 
-@pytest.mark.parametrize("planner", ["rrtconnect", "rrt", "rrtstar", "bitstar", "prm", "kpiece"])
+@pytest.mark.parametrize("planner", ["rrtconnect", "rrt", "rrtstar", "bitstar", "kpiece"])
 def test_planners_by_name(robot, physics, planner):
     start, goal, _, world = sphere_problem(robot, physics)
     v = BatchValidator(robot, physics, world)
@@ -174,6 +173,9 @@ def test_planners_by_name(robot, physics, planner):
 def test_unknown_planner_is_an_input_error():
     with pytest.raises(InputError, match="unknown planner"):
         ompl_space.check_planner("astar")
+    # PRM deadlocks with Python validity checkers (second C++ thread vs the held GIL): refused
+    with pytest.raises(InputError, match="deadlocks"):
+        ompl_space.check_planner("PRM")
 
 
 # ---------------------------------------------------------------------- plan_to_target
@@ -253,13 +255,11 @@ def test_plan_json_has_the_design_fields(airway_plan):
     json.dumps(d, allow_nan=False)
 
 
-def test_impossible_target_is_unreachable_within_a_second(robot, airway):
-    plan_to_target(robot, airway, [1e4, 0, 0], model="physics")      # warm the caches
-    t0 = time.perf_counter()
+def test_impossible_target_is_unreachable(robot, airway):
+    # (how fast this answer comes is measured in benchmarks/, not asserted here)
     r = plan_to_target(robot, airway, airway.to_scene(np.array([0.0, 0.0, 900.0])), model="physics")
-    elapsed = time.perf_counter() - t0
     assert r.status is PlanStatus.UNREACHABLE and not r.success
-    assert elapsed < 1.0
+    assert r.counts.get("ik_evaluations", 0) == 0          # decided by the reach bound, no IK
     assert len(r.path) == 0 and r.to_json()["tip_error_mm"] is None
 
 
@@ -276,11 +276,9 @@ def test_target_inside_an_obstacle(robot):
     carotid = scene.mesh("internal_carotid_right").mesh
     point = carotid.centroid
     assert carotid.contains(point[None])[0]
-    t0 = time.perf_counter()
     r = plan_to_target(robot, scene, point, model="physics")
     assert r.status is PlanStatus.TARGET_IN_COLLISION, r.message
     assert "internal_carotid_right" in r.message
-    assert time.perf_counter() - t0 < 30
 
 
 def test_start_in_collision(robot, physics):

@@ -3,8 +3,19 @@
 A backbone of ``m`` points gives ``m - 1`` capsules (segments swept by a sphere). The radius of
 capsule ``k`` is the outer radius of the outermost tube present anywhere on the segment from
 point ``k`` to point ``k + 1`` (the larger of the two end radii: radii only shrink toward the
-tip), plus an optional safety margin. Because a tube's distal end may fall strictly inside a
-segment, taking the larger end radius over-covers the robot, never under-covers it.
+tip), plus an optional safety margin, plus the segment's **sagitta bound**. Because a tube's
+distal end may fall strictly inside a segment, taking the larger end radius over-covers the
+robot, never under-covers it.
+
+Sagitta bound. The backbone between two samples is an arc, not the chord the capsule follows. For
+a curve ``c(s)`` parameterised by arc length whose curvature is at most ``kappa`` on a segment of
+arc length ``h``, the error ``e(s) = c(s) - chord(s)`` vanishes at both ends and
+``|e''| <= kappa``, so ``|e(s)| <= kappa s (h - s) / 2 <= kappa h^2 / 8`` (the linear
+interpolation bound, applied to ``u . e`` for every unit vector ``u``). Padding each capsule by
+``kappa h^2 / 8`` therefore makes the capsule chain cover the continuous tube, not only its
+samples. The physics models' backbone curvature is an EI-weighted mean of the precurvature
+vectors of the tubes present, so its magnitude never exceeds the largest precurvature
+(:func:`curvature_bound`).
 """
 
 from __future__ import annotations
@@ -66,11 +77,59 @@ class Capsules:
         return trimesh.util.concatenate(parts)
 
 
-def capsules_from_points(points: np.ndarray, radius: np.ndarray, margin_mm: float = 0.0) -> Capsules:
+def sagitta_bound(arc_mm: np.ndarray, curvature_per_mm: float) -> np.ndarray:
+    """Largest distance (mm) of a curve of arc length ``arc_mm`` and curvature at most
+    ``curvature_per_mm`` from its chord: ``kappa h^2 / 8`` (see the module docstring)."""
+    return float(curvature_per_mm) * np.square(np.asarray(arc_mm, dtype=float)) / 8.0
+
+
+def arc_from_chord(chord_mm: np.ndarray, curvature_per_mm: float) -> np.ndarray:
+    """An upper bound of the arc length of a curve with curvature at most ``kappa`` whose chord
+    is ``chord_mm`` (Schur's comparison: the chord is at least the circle's, ``2/k sin(k h/2)``).
+    Where the chord is too long for a bound (``kappa c >= 2`` ... never for a tube backbone
+    sampled at >= 2 points) the half circumference ``pi / kappa`` is used."""
+    c = np.asarray(chord_mm, dtype=float)
+    k = float(curvature_per_mm)
+    if k <= 0:
+        return c
+    x = np.clip(k * c / 2.0, 0.0, 1.0)
+    return 2.0 / k * np.arcsin(x)
+
+
+def curvature_bound(model_or_robot) -> float:
+    """Upper bound (1/mm) of the backbone curvature a shape model can produce.
+
+    A model may state its own bound as ``max_curvature`` (1/mm; e.g. a model with external
+    loads). Otherwise: the largest precurvature of the robot's tubes (times the ``precurvature``
+    effect's scales for a calibrated model), which bounds the curvature of the physics models
+    (torsionally rigid or compliant): their bending curvature is the EI-weighted mean of the
+    tubes' rotated precurvature vectors.
+    """
+    own = getattr(model_or_robot, "max_curvature", None)
+    if own is not None:
+        v = float(own)
+        if not (np.isfinite(v) and v >= 0):
+            raise ValueError(f"max_curvature must be a finite number >= 0, got {own!r}")
+        return v
+    robot = getattr(model_or_robot, "robot", model_or_robot)
+    kappa = np.abs(np.asarray(robot.array("curvature"), dtype=float))
+    effects = getattr(model_or_robot, "effects", None) or {}
+    pc = effects.get("precurvature") if isinstance(effects, dict) else None
+    if pc:
+        scale = np.array([abs(float(pc.get(f"scale{i + 1}", 1.0))) for i in range(len(kappa))])
+        kappa = kappa * np.maximum(scale, 1.0)
+    return float(kappa.max()) if kappa.size else 0.0
+
+
+def capsules_from_points(points: np.ndarray, radius: np.ndarray, margin_mm: float = 0.0,
+                         curvature_per_mm: float = 0.0, s: np.ndarray | None = None) -> Capsules:
     """Capsules from backbones.
 
     points : (B, m, 3) mm; radius : (B, m) mm outer radius at each point (the outermost tube
-    present); margin_mm : added to every radius. Returns ``m - 1`` capsules per configuration.
+    present); margin_mm : added to every radius; curvature_per_mm : a bound of the backbone's
+    curvature: every capsule grows by its sagitta bound ``kappa h^2 / 8`` with ``h`` the arc
+    length of its segment, from ``s`` (B, m) mm when given, else bounded from the chord.
+    Returns ``m - 1`` capsules per configuration.
     """
     points = np.asarray(points, dtype=float)
     radius = np.asarray(radius, dtype=float)
@@ -80,13 +139,25 @@ def capsules_from_points(points: np.ndarray, radius: np.ndarray, margin_mm: floa
         raise ValueError(f"radius must have shape {points.shape[:2]}, got {radius.shape}")
     if not margin_mm >= 0:
         raise ValueError(f"margin_mm must be >= 0, got {margin_mm}")
+    if not (np.isfinite(curvature_per_mm) and curvature_per_mm >= 0):
+        raise ValueError(f"curvature_per_mm must be a finite number >= 0, got {curvature_per_mm}")
     r = np.maximum(radius[:, :-1], radius[:, 1:]) + float(margin_mm)
+    if curvature_per_mm > 0:
+        if s is not None:
+            s = np.asarray(s, dtype=float)
+            arc = np.abs(np.diff(np.broadcast_to(s, points.shape[:2]), axis=1))
+            # never less than the chord (an arc is at least as long as its chord)
+            arc = np.maximum(arc, np.linalg.norm(np.diff(points, axis=1), axis=-1))
+        else:
+            arc = arc_from_chord(np.linalg.norm(np.diff(points, axis=1), axis=-1), curvature_per_mm)
+        r = r + sagitta_bound(arc, curvature_per_mm)
     return Capsules(a=points[:, :-1, :], b=points[:, 1:, :], radius=r)
 
 
-def capsules_from_shape(shape: Shape, margin_mm: float = 0.0) -> Capsules:
-    """Capsules of a :class:`~ctrplan.shape.base.Shape` (robot base frame, mm)."""
-    return capsules_from_points(shape.points, shape.radius, margin_mm)
+def capsules_from_shape(shape: Shape, margin_mm: float = 0.0, curvature_per_mm: float = 0.0) -> Capsules:
+    """Capsules of a :class:`~ctrplan.shape.base.Shape` (robot base frame, mm), padded by the
+    sagitta bound of ``curvature_per_mm`` over each segment's arc length ``diff(shape.s)``."""
+    return capsules_from_points(shape.points, shape.radius, margin_mm, curvature_per_mm, shape.s)
 
 
 def rotation_z_to(d: np.ndarray) -> np.ndarray:

@@ -54,6 +54,11 @@ class CollisionWorld:
         The scene (or a shipped name / folder).
     margin_mm : float
         Safety margin added to every capsule radius.
+    curvature_per_mm : float
+        Bound of the backbone curvature (1/mm, :func:`~ctrplan.collision.capsules.curvature_bound`
+        of the shape model): each capsule is padded by its segment's sagitta bound so that the
+        capsule chain covers the continuous backbone between samples. 0 checks the chords only
+        (points that really are the whole geometry, e.g. a probe).
     prefilter : bool
         Use the conservative distance-field prefilter (same verdicts, faster).
     field_config : FieldConfig
@@ -61,7 +66,8 @@ class CollisionWorld:
     """
 
     def __init__(self, scene: Scene | str, margin_mm: float = 0.0, prefilter: bool = True,
-                 field_config: FieldConfig | None = None, cache=True):
+                 field_config: FieldConfig | None = None, cache=True,
+                 curvature_per_mm: float = 0.0):
         self.scene = load_scene(scene)
         meshes = self.scene.collision_meshes
         if not meshes:
@@ -69,6 +75,9 @@ class CollisionWorld:
         if not (np.isfinite(margin_mm) and margin_mm >= 0):
             raise InputError("margin_mm", "", f"must be a finite number >= 0, got {margin_mm}")
         self.margin_mm = float(margin_mm)
+        if not (np.isfinite(curvature_per_mm) and curvature_per_mm >= 0):
+            raise InputError("curvature_per_mm", "", f"must be a finite number >= 0, got {curvature_per_mm}")
+        self.curvature_per_mm = float(curvature_per_mm)
         self.names = np.array([m.name for m in meshes] + [""], dtype=object)
         self.prefilter = bool(prefilter)
         self.field_config = field_config or FieldConfig()
@@ -90,8 +99,9 @@ class CollisionWorld:
 
     # ------------------------------------------------------------------ geometry
     def capsules(self, shape: Shape) -> Capsules:
-        """Capsules of a shape (robot base frame) in the scene frame, margin included."""
-        return capsules_from_shape(shape, self.margin_mm).transformed(self.pose)
+        """Capsules of a shape (robot base frame) in the scene frame, margin and sagitta bound
+        included."""
+        return capsules_from_shape(shape, self.margin_mm, self.curvature_per_mm).transformed(self.pose)
 
     @property
     def fields(self):

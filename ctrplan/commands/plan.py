@@ -5,11 +5,42 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import re
 
 from ctrplan.commands._common import add_model_arg, output_path
 from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
+
+
+#: A value such as ``-5,20,0`` or ``-1e-3`` (argparse would take it for an option).
+NEGATIVE_VALUE = re.compile(r"^-\.?\d[\d.,eE+\-\s]*$")
+
+
+def allow_negative_values(p: argparse.ArgumentParser) -> None:
+    """Let option values start with a minus sign (``--target -5,20,0``): argparse treats a
+    token that starts with ``-`` and is not a plain number as an option unless the parser's
+    negative-number pattern accepts it."""
+    p._negative_number_matcher = NEGATIVE_VALUE
+
+
+def add_margin_arg(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--margin", default="auto", metavar="MM|auto",
+                   help=f"clearance added to the tube radii {what}, mm; 'auto' (default) = the "
+                        "model's error bound (p99 of its held-out deviation; 0 for physics)")
+
+
+def parse_margin(text) -> float | None:
+    """``--margin``: a number >= 0 (mm), or ``auto`` (None)."""
+    if text is None or str(text).strip().lower() == "auto":
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        raise InputError("--margin", "", f"must be a number (mm) or auto, got {text!r}") from None
+    if not (math.isfinite(v) and v >= 0):
+        raise InputError("--margin", "", f"must be a number >= 0 (mm) or auto, got {text!r}")
+    return v
 
 
 def add_planning_args(p: argparse.ArgumentParser) -> None:
@@ -18,34 +49,74 @@ def add_planning_args(p: argparse.ArgumentParser) -> None:
                    help="shipped robot name (seed1, two_tube_nylon) or robot YAML path (default seed1)")
     add_model_arg(p, default="learned")
     p.add_argument("--planner", default="rrtconnect",
-                   help="rrtconnect (default), rrt, rrtstar, bitstar, prm, prmstar, kpiece, bkpiece, lbkpiece")
+                   help="rrtconnect (default), rrt, rrtstar, bitstar, kpiece, bkpiece, lbkpiece (prm is refused: it deadlocks with Python validity checkers)")
     p.add_argument("--time", type=float, default=5.0, help="time limit per plan, s (default 5)")
     p.add_argument("--tolerance", type=float, default=1.0,
                    help="accepted tip-to-target distance, mm (default 1)")
+    add_margin_arg(p, "while planning")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "plan", help="plan a collision-free motion to a target point",
         description="Plan a collision-free motion of the robot from its retracted configuration "
-                    "to put the tip at a target point (mm, scene frame), and write plan.json "
-                    "(success, status, path, tip_path, tip_error_mm, planning_time_s, "
-                    "min_clearance_mm, planner, seed, robot, model, scene, timings, counts). "
+                    "(or --start) to put the tip at a target point (mm, scene frame), and write "
+                    "plan.json (success, status, path with continuous rotations, tip_path, "
+                    "tip_error_mm, planning_time_s, min_clearance_mm and min_clearance_exact "
+                    "under the planning model and the reference model, margin_mm, planner = "
+                    "what solved it ('direct' for the straight edge), seed, robot, model, scene, "
+                    "time_cap_hit, timings, counts). The search budget is a count of validated "
+                    "states, so a seed gives the same path on any machine load; --time is a cap. "
                     "Exit code 0 on success, 1 when no plan was found (TIMEOUT, ...), 2 for bad "
                     "input, an unreachable target or a target inside anatomy (plan.json is "
                     "still written for the latter two).")
     p.add_argument("--scene", required=True, help="shipped scene name or scene folder")
-    p.add_argument("--target", required=True,
-                   help="X,Y,Z in mm (scene frame), or the name of one of the scene's example targets")
+    p.add_argument("--target", required=True, nargs="+", metavar="X,Y,Z",
+                   help="X,Y,Z or X Y Z in mm (scene frame; negative values welcome: "
+                        "--target -5,20,0), or the name of one of the scene's example targets")
+    p.add_argument("--start", default="retracted", nargs="+", metavar="retracted|A1,..,Bn",
+                   help="start configuration: 'retracted' (default; the tube rotations are "
+                        "changed only if it collides) or 2n values alpha1..alphaN (rad), "
+                        "beta1..betaN (mm), comma- or space-separated")
     add_planning_args(p)
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--out", required=True, help="output plan .json")
+    allow_negative_values(p)
     p.set_defaults(func=run)
 
 
+def _numbers(tokens, field: str, count: int | None = None) -> list[float] | None:
+    """Comma- and/or space-separated numbers (None if any token is not a number)."""
+    parts = [s.strip() for tok in ([tokens] if isinstance(tokens, str) else tokens)
+             for s in str(tok).split(",") if s.strip()]
+    try:
+        vals = [float(s) for s in parts]
+    except ValueError:
+        return None
+    if count is not None and len(vals) != count:
+        return None
+    if not all(math.isfinite(v) for v in vals):
+        raise InputError(field, "", f"must be finite numbers, got {' '.join(map(str, tokens))!r}")
+    return vals
+
+
+def parse_start(tokens, robot) -> object:
+    """``--start``: 'retracted' or 2n numbers -> "retracted" or a list of floats."""
+    tokens = [tokens] if isinstance(tokens, str) else list(tokens)
+    if len(tokens) == 1 and tokens[0].strip().lower() == "retracted":
+        return "retracted"
+    vals = _numbers(tokens, "--start")
+    if vals is None or len(vals) != robot.dof:
+        raise InputError("--start", "", f"must be 'retracted' or {robot.dof} numbers alpha1..alpha{robot.n} "
+                         f"(rad), beta1..beta{robot.n} (mm), got {' '.join(tokens)!r}")
+    return vals
+
+
 def parse_target(text: str, scene) -> tuple[list[float], str]:
-    """``X,Y,Z`` (mm) or a target name of the scene -> (position, name)."""
-    parts = [s.strip() for s in str(text).split(",")]
+    """``X,Y,Z`` / ``X Y Z`` (mm) or a target name of the scene -> (position, name)."""
+    tokens = [text] if isinstance(text, str) else list(text)
+    text = " ".join(tokens)
+    parts = [s.strip() for tok in tokens for s in str(tok).split(",") if s.strip()]
     if len(parts) == 3:
         try:
             xyz = [float(s) for s in parts]
@@ -72,7 +143,7 @@ def one_thread() -> None:
 def run(args: argparse.Namespace) -> int:
     one_thread()
     from ctrplan.io import write_json_atomic
-    from ctrplan.planning.plan import PlanStatus, plan_to_target, scene_by_name
+    from ctrplan.planning.plan import PlanConfig, PlanStatus, plan_to_target, scene_by_name
     from ctrplan.planning.space import check_planner
     from ctrplan.robot import load_robot
 
@@ -83,8 +154,11 @@ def run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     scene = scene_by_name(args.scene)
     target, name = parse_target(args.target, scene)
+    start = parse_start(args.start, robot)
+    config = PlanConfig(margin_mm=parse_margin(args.margin))
     result = plan_to_target(robot, scene, target, model=args.model, planner=args.planner,
-                            time_limit=args.time, seed=args.seed, tolerance_mm=args.tolerance)
+                            time_limit=args.time, seed=args.seed, tolerance_mm=args.tolerance,
+                            config=config, start=start)
     plan = result.to_json()
     plan["scene"] = args.scene
     if name:

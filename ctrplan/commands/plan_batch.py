@@ -60,10 +60,14 @@ def run(args: argparse.Namespace) -> int:
     if args.model not in MODEL_NAMES and not Path(args.model).exists():
         raise InputError("--model", "", f"{args.model!r} is not a model name "
                                         f"({', '.join(MODEL_NAMES)}) or an existing file")
+    from ctrplan.commands.plan import parse_margin
+
+    margin = parse_margin(args.margin)
     targets = read_targets(args.targets, args.scene)
     jobs = make_jobs(targets, seeds=range(args.seeds), robot=args.robot,
                      model=args.model, planner=planner, time_limit=float(args.time),
-                     tolerance_mm=float(args.tolerance))
+                     tolerance_mm=float(args.tolerance),
+                     margin="auto" if margin is None else repr(margin))
     summary = run_batch(jobs, out, workers=args.workers, ray_address=args.ray)
     for row in summary.rows:
         print(f"{row['scene']:>16}: {row['success']}/{row['jobs']} succeeded "

@@ -48,6 +48,7 @@ class Job:
     planner: str = "rrtconnect"
     time_limit: float = 5.0
     tolerance_mm: float = 1.0
+    margin: str = "auto"          # "auto" or a number of mm (as text)
 
     @property
     def id(self) -> str:
@@ -144,26 +145,59 @@ def make_jobs(targets: Iterable[tuple[str, str, tuple[float, float, float]]], se
 
 
 # ---------------------------------------------------------------------- one job
-def run_job(job: Job | dict) -> dict:
-    """Run one job (in any process); returns the plan JSON plus the job's fields.
+@dataclass(frozen=True)
+class JobResult:
+    """What one job produced.
 
-    Errors from bad input become ``status: "ERROR"`` with the message, so one bad row does
-    not stop a batch.
+    job : the Job. status : a :class:`~ctrplan.planning.plan.PlanStatus` (``INPUT_ERROR`` when
+    the job's input was bad: one bad row does not stop a batch). message : why.
+    plan : the plan.json fields (:meth:`PlanResult.to_json`), or None for bad input.
     """
-    from ctrplan.planning.plan import plan_to_target, scene_by_name
+
+    job: Job
+    status: Any  # PlanStatus (imported lazily: the batch module stays light)
+    message: str
+    plan: dict | None = None
+
+    @property
+    def success(self) -> bool:
+        return self.status.value == "SUCCESS"
+
+    def to_json(self) -> dict:
+        """The job's JSON file: the plan fields plus the job's fields and id."""
+        base = {"job_id": self.job.id, **asdict(self.job), "target": list(self.job.target)}
+        plan = dict(self.plan) if self.plan is not None else {}
+        plan.update(success=self.success, status=self.status.value, message=self.message)
+        plan["scene"] = self.job.scene
+        out = {**plan, **base}
+        if self.plan is not None:   # what solved it ("direct" for the straight edge)
+            out["planner"] = self.plan["planner"]
+        return out
+
+
+def run_job(job: Job | dict) -> JobResult:
+    """Run one job (in any process). Bad input becomes status ``INPUT_ERROR`` with the message."""
+    from ctrplan.planning.plan import PlanConfig, PlanStatus, plan_to_target, scene_by_name
 
     if isinstance(job, dict):
         job = Job(**{**job, "target": tuple(job["target"])})
-    base = {"job_id": job.id, **asdict(job), "target": list(job.target)}
+    try:
+        margin = None if str(job.margin).strip().lower() == "auto" else float(job.margin)
+    except ValueError:
+        return JobResult(job, PlanStatus.INPUT_ERROR, f"--margin: must be a number or auto, got {job.margin!r}")
     try:
         scene = scene_by_name(job.scene)
         result = plan_to_target(job.robot, scene, job.target, model=job.model, planner=job.planner,
-                                time_limit=job.time_limit, seed=job.seed, tolerance_mm=job.tolerance_mm)
+                                time_limit=job.time_limit, seed=job.seed, tolerance_mm=job.tolerance_mm,
+                                config=PlanConfig(margin_mm=margin))
     except InputError as exc:
-        return {**base, "success": False, "status": "ERROR", "message": str(exc)}
-    plan = result.to_json()
-    plan["scene"] = job.scene
-    return {**plan, **base}
+        return JobResult(job, PlanStatus.INPUT_ERROR, str(exc))
+    return JobResult(job, result.status, result.message, result.to_json())
+
+
+def _run_job_json(job: dict) -> dict:
+    """run_job for worker processes: the JSON-ready dict crosses the process boundary."""
+    return run_job(job).to_json()
 
 
 # ---------------------------------------------------------------------- a batch
@@ -228,7 +262,7 @@ def run_batch(jobs: Sequence[Job], out: str | os.PathLike, workers: int = 1,
             _run_ray(todo, ray_address, workers, record)
         elif workers <= 1:
             for job in todo:
-                record(run_job(job))
+                record(run_job(job).to_json())
         else:
             _run_pool(todo, workers, record)
     finally:
@@ -246,7 +280,7 @@ def _run_pool(todo: Sequence[Job], workers: int, record) -> None:
     # spawn, not fork: torch, numba and OMPL threads do not survive a fork reliably.
     with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
                              initializer=_worker_init) as ex:
-        futures = [ex.submit(run_job, asdict(job)) for job in todo]
+        futures = [ex.submit(_run_job_json, asdict(job)) for job in todo]
         for fut in as_completed(futures):
             record(fut.result())
 
@@ -275,7 +309,7 @@ def _run_ray(todo: Sequence[Job], address: str, workers: int, record) -> None:
                 raise InputError("--ray", "", f"cannot connect to Ray at {address!r}: {exc}") from None
         started = True
     try:
-        remote = ray.remote(num_cpus=1)(run_job)
+        remote = ray.remote(num_cpus=1)(_run_job_json)
         pending = [remote.remote(asdict(job)) for job in todo]
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
@@ -288,7 +322,8 @@ def _run_ray(todo: Sequence[Job], address: str, workers: int, record) -> None:
 
 # ---------------------------------------------------------------------- tables
 JOB_COLUMNS = ("job_id", "scene", "target_name", "x", "y", "z", "seed", "robot", "model", "planner",
-               "status", "success", "planning_time_s", "tip_error_mm", "min_clearance_mm", "message")
+               "status", "success", "planning_time_s", "tip_error_mm", "min_clearance_mm", "min_clearance_exact",
+               "min_clearance_reference_mm", "margin_mm", "message")
 
 
 def summarize(results: Sequence[dict]) -> list[dict]:

@@ -35,6 +35,10 @@ def target_blocked(scene, world, target_scene: np.ndarray, tip_radius_mm: float)
     rep = world.check(probe)
     if bool(np.asarray(rep.collides)[0]):
         contact = str(np.asarray(rep.contact)[0]) or "anatomy"
+        margin = float(getattr(world, "margin_mm", 0.0) or 0.0)
+        if margin > 0:
+            return (f"the target is within the tip radius ({tip_radius_mm:g} mm) + margin "
+                    f"({margin:.3g} mm) of {contact!r}")
         return f"the target is within the tip radius ({tip_radius_mm:g} mm) of {contact!r}"
     return ""
 
@@ -83,12 +87,11 @@ def _retracted_start(robot, validator, world, samples, seed) -> tuple[np.ndarray
     rng = np.random.default_rng(seed)
     q = np.repeat(q0[None], samples, axis=0)
     q[:, :n] = rng.uniform(-math.pi, math.pi, (samples, n))
-    shape = validator.shapes(q)
-    rep = world.check(shape)
-    free = ~np.asarray(rep.collides, dtype=bool)
+    collides, clearance, _ = validator.check_states(q)
+    free = ~collides
     if not free.any():
         return q0, False
-    clear = np.where(free, np.asarray(rep.clearance_mm, dtype=float), -np.inf)
+    clear = np.where(free, clearance, -np.inf)
     return q[int(np.argmax(clear))], True
 
 

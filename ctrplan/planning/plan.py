@@ -1,16 +1,30 @@
-"""Plan to a target: IK goals, OMPL search, simplification, exact verification.
+"""Plan to a target: IK goals, OMPL search, simplification, verification on two models.
 
-:func:`plan_to_target` is the product's main job. Stages (timed separately):
+:func:`plan_to_target` is the product's main job. It reads as its five stages (timed
+separately):
 
-1. **Checks** — start (the retracted configuration) collision-free, target within reach (the
-   tip can never be farther from the base than the longest tube), target not inside anatomy.
+1. **Checks** — the start (the retracted configuration, or the one given) collision-free, the
+   target within reach (the tip can never be farther from the base than the longest tube), the
+   target not inside anatomy.
 2. **IK** — many seeds refined together on the planning model (:mod:`ctrplan.planning.ik`);
    solutions within ``tolerance_mm`` that are collision-free become OMPL goal states.
-3. **Planning** — OMPL with the batched motion validator (:mod:`ctrplan.planning.space`);
-   more goals are added if a time slice passes without a solution.
+3. **Planning** — the straight edge to the nearest goals, else OMPL with the batched motion
+   validator (:mod:`ctrplan.planning.space`); more goals are added after a slice without a
+   solution.
 4. **Simplification** — vertex reduction and shortcutting with the same validator.
-5. **Verification** — every state at ``resolution / verify_factor`` checked with exact FCL;
-   a failing segment is re-planned with a finer validator, else the plan is not a success.
+5. **Verification** — every state at ``resolution / verify_factor`` checked with exact verdicts
+   on the planning model (a failing segment is re-planned with a finer validator), then again
+   with the reference model (physics, or the calibrated model itself) at margin 0.
+
+Safety. The planning model is made fit for collision checking
+(:func:`planning_model_of`: no sensor registration, friction a pure function of q and the
+direction of motion). Capsules are padded by the sagitta bound of the model's curvature bound
+(they cover the continuous backbone) and by the margin (``PlanConfig.margin_mm``; ``None`` =
+``auto``: the planning model's error bound, :func:`~ctrplan.shape.base.model_error_bound`).
+
+Determinism. Search budgets are counts (states validated, IK rounds, simplifier rounds, FCL
+distance queries); the time limit is only a cap, reported as ``time_cap_hit`` when it stopped
+the search. The same seed gives the same path on any machine load unless the cap was hit.
 """
 
 from __future__ import annotations
@@ -36,9 +50,11 @@ from ctrplan.planning.goals import (
 )
 from ctrplan.planning.validator import (
     BatchValidator,
+    PathCheck,
     ValidatorConfig,
     interpolate_path,
     motion_mm,
+    unwrap_path,
 )
 from ctrplan.robot import Robot, load_robot
 
@@ -51,10 +67,11 @@ class PlanStatus(str, Enum):
     SUCCESS = "SUCCESS"
     UNREACHABLE = "UNREACHABLE"                  # no configuration puts the tip within tolerance
     TARGET_IN_COLLISION = "TARGET_IN_COLLISION"  # the target lies inside anatomy (or outside the lumen)
-    START_IN_COLLISION = "START_IN_COLLISION"    # the retracted start configuration collides
+    START_IN_COLLISION = "START_IN_COLLISION"    # the start configuration collides
     GOAL_IN_COLLISION = "GOAL_IN_COLLISION"      # reachable, but every reaching configuration collides
-    TIMEOUT = "TIMEOUT"                          # no collision-free path within the time limit
-    VERIFICATION_FAILED = "VERIFICATION_FAILED"  # the path failed the exact check and repair failed
+    TIMEOUT = "TIMEOUT"                          # no collision-free path within the budget
+    VERIFICATION_FAILED = "VERIFICATION_FAILED"  # the path failed an exact check and repair failed
+    INPUT_ERROR = "INPUT_ERROR"                  # bad input (batch jobs; plan_to_target raises InputError)
 
 
 @dataclass(frozen=True)
@@ -67,20 +84,29 @@ class PlanConfig:
     max_goals : goal states handed to OMPL per round.
     ik_rounds : IK rounds (each on the next-nearest workspace samples) before giving up on
         finding a collision-free goal; later rounds also run while planning, between slices.
-    margin_mm : extra clearance required while planning (the final check uses 0).
+    margin_mm : clearance (mm) added to every capsule while planning and in the planning
+        model's verification; ``None`` = auto: the planning model's error bound (p99 of its
+        held-out deviation; 0 for physics). The reference re-check uses margin 0.
+    sagitta : pad capsules by the sagitta bound of the model's curvature bound (False checks
+        only the chords between backbone samples: not safe, for comparisons).
+    max_states : the search budget in states validated (deterministic); the time limit is a cap.
+    repair_states : the same for each repair of a segment that failed verification.
     range_mm : longest edge the tree planners add (metric mm); None = OMPL's default.
     verify_factor : verification resolution is ``validator.resolution_mm / verify_factor``.
     verify_points : backbone points in the verification (None = validator.points).
     verify_fcl_all : send every verification state to FCL (``check_exact``). By default the
         world's ``check`` is used: its verdicts are FCL's too, the distance-field prefilter only
         skips FCL where its conservative bound proves a state free or colliding.
+    reference : re-verify the final path with this model at margin 0: "physics" (default; a
+        calibrated model is re-verified with itself), or None to skip.
+    clearance_pairs : FCL distance queries allowed for each reported minimum clearance.
     output_step_mm : the returned path is subdivided so states are at most this far apart
         (metric mm); 0 returns the simplified waypoints only.
     output_points : backbone points per returned backbone.
     repair_attempts : re-planning rounds for segments that fail verification.
-    optimize : let anytime planners (RRT*, BIT*, PRM) use the whole time limit.
+    optimize : let anytime planners (RRT*, BIT*) use the whole budget.
     try_direct : before OMPL, try the straight edge from the start to the nearest goals
-        (``counts["direct"]`` says whether it was taken); False always runs the planner.
+        (``planner`` is then ``"direct"``); False always runs the planner.
     """
 
     validator: ValidatorConfig = field(default_factory=ValidatorConfig)
@@ -88,11 +114,16 @@ class PlanConfig:
     table_size: int = 8192
     max_goals: int = 12
     ik_rounds: int = 3
-    margin_mm: float = 0.0
+    margin_mm: float | None = None
+    sagitta: bool = True
+    max_states: int = 300_000
+    repair_states: int = 50_000
     range_mm: float | None = 80.0
     verify_factor: int = 4
     verify_points: int | None = None
     verify_fcl_all: bool = False
+    reference: str | None = "physics"
+    clearance_pairs: int = 300
     output_step_mm: float = 5.0
     output_points: int = 32
     repair_attempts: int = 2
@@ -100,22 +131,34 @@ class PlanConfig:
     optimize: bool = False
     try_direct: bool = True
 
+    def __post_init__(self) -> None:
+        if self.margin_mm is not None and not (math.isfinite(self.margin_mm) and self.margin_mm >= 0):
+            raise InputError("--margin", "", f"must be a number >= 0 (mm) or auto, got {self.margin_mm!r}")
+        if not (isinstance(self.max_states, int) and self.max_states > 0):
+            raise InputError("max_states", "", f"must be a positive integer, got {self.max_states!r}")
+
 
 @dataclass(frozen=True)
 class PlanResult:
     """Result of :func:`plan_to_target`.
 
-    path : (K, 2n) configurations (rad, mm) from the start to the goal; consecutive states are
-        joined by straight lines in joint space (rotations along the shorter arc). Empty (0, 2n)
-        when there is no path.
+    path : (K, 2n) configurations (rad, mm) from the start to the goal; rotations are
+        continuous (unwrapped), so linear interpolation between consecutive states is exactly
+        the motion that was verified. Empty (0, 2n) when there is no path.
     backbones : (K, m, 3) mm, scene frame — the planning model's backbone along the path.
     tip_path : (K, 3) mm, scene frame.
     target : (3,) mm, scene frame.
     tip_error_mm : planning model's tip distance to the target at the final configuration
         (nan without a path); tip_error_physics_mm : the same with the physics model.
-    min_clearance_mm : smallest clearance (mm) over the verified states of the path: the exact
-        FCL minimum when :func:`path_min_clearance` settles it within its budget, otherwise a
-        valid lower bound of it (never more than the truth); nan without a path.
+    min_clearance_mm : smallest distance (mm) from the tube (capsules of radius + sagitta
+        bound, margin not included) to the anatomy over the verified states, planning model;
+        ``min_clearance_exact`` says whether it is FCL's exact minimum (True) or a lower bound
+        (False: the distance-query budget did not settle it). nan without a path.
+    min_clearance_reference_mm, min_clearance_reference_exact : the same for the reference
+        model (``reference_model``: physics, or the calibrated model) at margin 0.
+    planner : what solved it: the OMPL planner's name, or ``"direct"`` for the straight edge.
+    margin_mm : the margin used (mm); ``margin_auto`` whether it came from the model's bound.
+    time_cap_hit : the wall-clock cap stopped the search (the result may depend on load).
     timings : seconds per stage: setup (loading the model, scene and collision world, the
         workspace table and the start configuration: cached per process, so ~0 after the first
         plan), checks, ik, planning, simplification, verification, and total.
@@ -143,6 +186,15 @@ class PlanResult:
     scene: str
     tolerance_mm: float
     time_limit_s: float
+    min_clearance_exact: bool = False
+    min_clearance_reference_mm: float = math.nan
+    min_clearance_reference_exact: bool = False
+    reference_model: str = ""
+    margin_mm: float = 0.0
+    margin_auto: bool = False
+    curvature_bound_per_mm: float = 0.0
+    time_cap_hit: bool = False
+    requested_planner: str = ""
 
     def to_json(self) -> dict[str, Any]:
         """The DESIGN.md plan fields (plus diagnostics), JSON-ready (no NaN: null instead)."""
@@ -156,7 +208,15 @@ class PlanResult:
             "tip_error_physics_mm": _num(self.tip_error_physics_mm),
             "planning_time_s": _num(self.planning_time_s),
             "min_clearance_mm": _num(self.min_clearance_mm),
+            "min_clearance_exact": bool(self.min_clearance_exact),
+            "min_clearance_reference_mm": _num(self.min_clearance_reference_mm),
+            "min_clearance_reference_exact": bool(self.min_clearance_reference_exact),
+            "reference_model": self.reference_model,
+            "margin_mm": float(self.margin_mm),
+            "margin_auto": bool(self.margin_auto),
+            "curvature_bound_per_mm": float(self.curvature_bound_per_mm),
             "planner": self.planner,
+            "requested_planner": self.requested_planner,
             "seed": int(self.seed),
             "robot": self.robot,
             "model": self.model,
@@ -164,6 +224,7 @@ class PlanResult:
             "target": [float(v) for v in self.target],
             "tolerance_mm": float(self.tolerance_mm),
             "time_limit_s": float(self.time_limit_s),
+            "time_cap_hit": bool(self.time_cap_hit),
             "timings": {k: float(v) for k, v in self.timings.items()},
             "counts": {k: int(v) for k, v in self.counts.items()},
         }
@@ -204,17 +265,71 @@ def scene_by_name(spec: str | os.PathLike):
     return scene
 
 
-def world_for(scene, margin_mm: float = 0.0):
-    """The CollisionWorld of a scene (cached per scene object and margin)."""
+def world_for(scene, margin_mm: float = 0.0, curvature_per_mm: float = 0.0):
+    """The CollisionWorld of a scene (cached per scene object, margin and curvature bound)."""
     from ctrplan.collision.world import CollisionWorld
 
-    key = (id(scene), float(margin_mm))
+    key = (id(scene), float(margin_mm), float(curvature_per_mm))
     hit = _WORLDS.get(key)
     if hit is not None and hit[0]() is scene:
         return hit[1]
-    world = CollisionWorld(scene, margin_mm=margin_mm)
+    world = CollisionWorld(scene, margin_mm=margin_mm, curvature_per_mm=curvature_per_mm)
     _WORLDS[key] = (weakref.ref(scene), world)
     return world
+
+
+class _RowwiseModel:
+    """A calibrated model whose friction depends on the order of the rows, made a pure function
+    of each row (every row its own motion): the stand-in for ``planning_model()`` on models
+    that do not have it yet."""
+
+    needs_direction = False
+
+    def __init__(self, inner):
+        self.inner = inner
+        self.robot = inner.robot
+        self.name = inner.name
+        self.effects = getattr(inner, "effects", None)
+        self.error_quantiles = getattr(inner, "error_quantiles", None)
+
+    def shape(self, q, points: int = 20):
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        return self.inner.shape(q, points=points, sweep=np.arange(len(q)))
+
+    def backbone(self, q, points: int = 20):
+        return self.shape(q, points).points
+
+
+_PLANNING_MODELS: dict[int, tuple[weakref.ref | None, Any]] = {}
+
+
+def planning_model_of(model):
+    """The model fit for collision checking: ``model.planning_model()`` when it has one (no
+    sensor registration, friction a pure function of q and the direction of motion); for a
+    calibrated model without it, the same effects without ``registration`` and with each row
+    its own motion; otherwise the model itself. Cached per model object."""
+    hit = _PLANNING_MODELS.get(id(model))
+    if hit is not None and (hit[0] is None or hit[0]() is model):
+        return hit[1]
+    make = getattr(model, "planning_model", None)
+    if callable(make):
+        pm = make()
+    else:
+        effects = getattr(model, "effects", None)
+        pm = model
+        if isinstance(effects, dict) and hasattr(model, "with_effects") and (
+                "registration" in effects or "friction" in effects):
+            pm = model.with_effects({k: v for k, v in effects.items() if k != "registration"})
+            if getattr(model, "error_quantiles", None) is not None:
+                pm.error_quantiles = model.error_quantiles
+            if "friction" in effects:
+                pm = _RowwiseModel(pm)
+    try:
+        ref = weakref.ref(model)
+    except TypeError:
+        ref = None
+    _PLANNING_MODELS[id(model)] = (ref, pm)
+    return pm
 
 
 def _scene_label(spec, scene) -> str:
@@ -259,6 +374,58 @@ def _check_args(time_limit: float, tolerance_mm: float, seed: int) -> None:
 
 
 # ---------------------------------------------------------------------- main entry
+@dataclass
+class _Run:
+    """Everything one :func:`plan_to_target` call works with (built by :func:`_prepare`)."""
+
+    robot: Robot
+    scene: Any
+    target: np.ndarray
+    target_base: np.ndarray
+    model: Any                  # the planning model
+    reference: Any              # the reference model (None: the planning model itself)
+    world: Any                  # margin + sagitta
+    validator: BatchValidator
+    cfg: PlanConfig
+    planner: str
+    seed: int
+    tolerance_mm: float
+    time_limit: float
+    t_call: float
+    margin_mm: float
+    margin_auto: bool
+    curvature: float
+    meta: dict
+    timings: dict = field(default_factory=dict)
+    counts: dict = field(default_factory=dict)
+    deadline: float = math.inf
+    time_cap_hit: bool = False
+
+    def clock(self, stage: str, t0: float) -> None:
+        self.timings[stage] = self.timings.get(stage, 0.0) + time.perf_counter() - t0
+
+    def finish(self, status: PlanStatus, message: str, **kw) -> PlanResult:
+        self.timings["total"] = time.perf_counter() - self.t_call
+        self.counts.update({f"validator_{k}": v for k, v in self.validator.counters.as_dict().items()})
+        n = self.robot.n
+        fields_ = dict(path=np.zeros((0, 2 * n)), backbones=np.zeros((0, self.cfg.output_points, 3)),
+                       tip_path=np.zeros((0, 3)), tip_error_mm=math.nan,
+                       tip_error_physics_mm=math.nan, min_clearance_mm=math.nan)
+        fields_.update(kw)
+        log.debug("plan: %s (%s) in %.3f s", status.value, message, self.timings["total"])
+        return PlanResult(success=status is PlanStatus.SUCCESS, status=status, message=message,
+                          planning_time_s=self.timings["total"] - self.timings["setup"],
+                          timings=dict(self.timings), counts=dict(self.counts),
+                          time_cap_hit=self.time_cap_hit, **fields_, **self.meta)
+
+
+class _Stop(Exception):
+    """A stage ended the plan (carries the result)."""
+
+    def __init__(self, result: PlanResult):
+        self.result = result
+
+
 def plan_to_target(
     robot: Robot | str,
     scene,
@@ -272,7 +439,7 @@ def plan_to_target(
     world=None,
     start=None,
 ) -> PlanResult:
-    """Plan a collision-free motion from the retracted configuration to put the tip at ``target``.
+    """Plan a collision-free motion from the start configuration to put the tip at ``target``.
 
     Parameters
     ----------
@@ -280,117 +447,195 @@ def plan_to_target(
     scene : Scene or shipped name / scene folder.
     target : (3,) mm, scene frame.
     model : "learned", "physics", "rigid", a model file, or a shape model object. Planning,
-        IK and verification use this model; the final tip error is also measured with physics.
+        IK and the first verification use its planning model (:func:`planning_model_of`);
+        the final path is re-verified with ``config.reference`` (physics; a calibrated model
+        with itself) and the final tip error is also measured with physics.
     planner : one of :data:`ctrplan.planning.space.PLANNERS` (default RRTConnect).
-    time_limit : seconds for the call without setup (IK, planning, verification; the planner
-        gets what the earlier stages leave, at least half).
+    time_limit : a wall-clock cap (s) for the call without setup; the search budget is
+        ``config.max_states`` states validated, so a seed's result does not depend on load
+        unless the cap is hit (``time_cap_hit``).
     seed : seeds numpy and OMPL; the same seed gives the same path (planners stop at the first
         solution unless ``config.optimize``).
     tolerance_mm : tip-to-target distance accepted (planning model).
     config : PlanConfig.
-    world : a CollisionWorld to use instead of building one for the scene (with margin).
-    start : (2n,) start configuration; default the retracted one (:func:`retracted_start`).
+    world : a CollisionWorld to use instead of building one for the scene (it then carries the
+        margin and curvature bound; ``config.margin_mm`` is only reported).
+    start : (2n,) start configuration, or None / "retracted" for the retracted one
+        (:func:`retracted_start`).
 
     Raises
     ------
     InputError
-        Unknown robot, scene, model or planner; non-finite target; bad time limit or tolerance.
+        Unknown robot, scene, model or planner; non-finite target; bad time limit, tolerance,
+        margin or start.
     """
+    run = _prepare(robot, scene, target, model, planner, time_limit, seed, tolerance_mm,
+                   config, world)
+    try:
+        start = _stage_checks(run, start)                              # 1. checks
+        source, goals = _stage_ik(run)                                 # 2. IK goals
+        path, solver = _stage_planning(run, start, source, goals)      # 3. planning
+        path = _stage_simplification(run, path)                        # 4. simplification
+        check, ref_check, path = _stage_verification(run, path)        # 5. verification
+    except _Stop as stop:
+        return stop.result
+    return _output(run, path, solver, check, ref_check)
+
+
+def _prepare(robot, scene, target, model, planner, time_limit, seed, tolerance_mm, config,
+             world) -> _Run:
+    """Inputs checked, models, scene, collision world and validator (cached per process)."""
     t_call = time.perf_counter()
+    from ctrplan.collision.capsules import curvature_bound
     from ctrplan.planning import space as _space
+    from ctrplan.shape.base import model_error_bound
 
     cfg = config or PlanConfig()
     _check_args(time_limit, tolerance_mm, seed)
-    planner = _space.check_planner(planner)
+    requested = _space.check_planner(planner)
     target = check_target(target)
     robot = load_robot(robot)
     scene_spec = scene
     if isinstance(scene, (str, os.PathLike)):
         scene = scene_by_name(scene)
     model_spec = model
-    model = resolve_model(model, robot)
-    if getattr(model, "robot", robot) != robot:
-        raise InputError("--model", "", f"the model was made for robot {model.robot.name!r}, "
+    given = resolve_model(model, robot)
+    if getattr(given, "robot", robot) != robot and not _same_tubes(given.robot, robot):
+        raise InputError("--model", "", f"the model was made for robot {given.robot.name!r}, "
                          f"not {robot.name!r}")
+    pmodel = planning_model_of(given)
+    try:
+        auto = cfg.margin_mm is None
+        margin = model_error_bound(pmodel) if auto else float(cfg.margin_mm)
+    except ValueError as exc:
+        raise InputError("--margin", "", f"auto: {exc}") from None
+    curvature = curvature_bound(pmodel) if cfg.sagitta else 0.0
     if world is None:
-        world = world_for(scene, cfg.margin_mm)
-    seed = int(seed)
-    timings = {"setup": time.perf_counter() - t_call, "checks": 0.0, "ik": 0.0, "planning": 0.0,
-               "simplification": 0.0, "verification": 0.0, "total": 0.0}
-    counts: dict[str, int] = {}
-    n = robot.n
-    empty = dict(path=np.zeros((0, 2 * n)), backbones=np.zeros((0, cfg.output_points, 3)),
-                 tip_path=np.zeros((0, 3)), tip_error_mm=math.nan, tip_error_physics_mm=math.nan,
-                 min_clearance_mm=math.nan)
-    meta = dict(target=target, planner=planner, seed=seed, robot=robot.name,
-                model=_model_label(model_spec, model), scene=_scene_label(scene_spec, scene),
-                tolerance_mm=float(tolerance_mm), time_limit_s=float(time_limit))
+        world = world_for(scene, margin, curvature)
+    # The reference re-check: physics at margin 0; a calibrated model is its own reference
+    # (re-checked at margin 0 when planning used a margin); the planning model itself needs
+    # no second check (its margin-padded check implies the margin-0 one).
+    reference, ref_label = None, ""
+    if cfg.reference is not None:
+        if isinstance(getattr(given, "effects", None), dict) and cfg.reference == "physics":
+            ref_label = _model_label(model_spec, given)
+            reference = pmodel if margin > 0 else None
+        else:
+            ref_label = str(cfg.reference)
+            if getattr(pmodel, "name", "") != cfg.reference or margin > 0:
+                reference = planning_model_of(resolve_model(cfg.reference, robot))
+    meta = dict(target=target, planner=requested, requested_planner=requested, seed=int(seed),
+                robot=robot.name, model=_model_label(model_spec, given),
+                scene=_scene_label(scene_spec, scene), tolerance_mm=float(tolerance_mm),
+                time_limit_s=float(time_limit), margin_mm=float(margin), margin_auto=auto,
+                curvature_bound_per_mm=float(curvature), reference_model=ref_label)
+    run = _Run(robot=robot, scene=scene, target=target, target_base=scene.to_base(target[None])[0],
+               model=pmodel, reference=reference, world=world,
+               validator=BatchValidator(robot, pmodel, world, cfg.validator), cfg=cfg,
+               planner=requested, seed=int(seed), tolerance_mm=float(tolerance_mm),
+               time_limit=float(time_limit), t_call=t_call, margin_mm=margin, margin_auto=auto,
+               curvature=curvature, meta=meta)
+    run.timings = {"setup": time.perf_counter() - t_call, "checks": 0.0, "ik": 0.0,
+                   "planning": 0.0, "simplification": 0.0, "verification": 0.0, "total": 0.0}
+    return run
 
-    vcfg = cfg.validator
-    validator = BatchValidator(robot, model, world, vcfg)
 
-    def finish(status: PlanStatus, message: str, **kw) -> PlanResult:
-        timings["total"] = time.perf_counter() - t_call
-        counts.update({f"validator_{k}": v for k, v in validator.counters.as_dict().items()})
-        fields_ = {**empty, **kw}
-        log.debug("plan: %s (%s) in %.3f s", status.value, message, timings["total"])
-        return PlanResult(success=status is PlanStatus.SUCCESS, status=status, message=message,
-                          planning_time_s=timings["total"] - timings["setup"], timings=dict(timings),
-                          counts=dict(counts), **fields_, **meta)
+def _same_tubes(a: Robot, b: Robot) -> bool:
+    return a.n == b.n and np.allclose(a.lengths, b.lengths)
 
-    # 1. checks ------------------------------------------------------------------------
+
+def _stage_checks(run: _Run, start) -> np.ndarray:
+    """Stage 1: reach, start configuration, target. Returns the start (2n,)."""
     t0 = time.perf_counter()
-    target_base = scene.to_base(target[None])[0]
+    robot, validator = run.robot, run.validator
     reach = _ik.max_reach_mm(robot)
-    far = float(np.linalg.norm(target_base)) - reach
-    if far > tolerance_mm:
-        timings["checks"] = time.perf_counter() - t0
-        return finish(PlanStatus.UNREACHABLE,
-                      f"the target is {far:.1f} mm beyond the robot's reach ({reach:.1f} mm from the base)")
-    if start is None:
+    far = float(np.linalg.norm(run.target_base)) - reach
+    if far > run.tolerance_mm:
+        run.clock("checks", t0)
+        raise _Stop(run.finish(PlanStatus.UNREACHABLE, f"the target is {far:.1f} mm beyond the "
+                               f"robot's reach ({reach:.1f} mm from the base)"))
+    retracted = start is None or (isinstance(start, str) and start == "retracted")
+    if retracted:
         t1 = time.perf_counter()
-        start, adjusted = retracted_start(robot, validator, world)   # cached per model/world
-        timings["setup"] += time.perf_counter() - t1
+        start, adjusted = retracted_start(robot, validator, run.world)  # cached per model/world
+        run.timings["setup"] += time.perf_counter() - t1
         t0 += time.perf_counter() - t1
-        counts["start_rotated"] = int(adjusted)
+        run.counts["start_rotated"] = int(adjusted)
     else:
-        start = np.asarray(start, dtype=float).reshape(-1)
-        if start.shape != (robot.dof,) or not validator.joint_valid(start[None])[0]:
-            raise InputError("start", "", f"must be {robot.dof} values inside the joint constraints "
-                             f"of robot {robot.name!r}")
+        start = check_start(start, robot, validator)
+    # The cap counts from here: setup (loading, caches) is not part of the plan's time.
+    run.deadline = time.perf_counter() + run.time_limit
     if not validator.states_valid(start[None])[0]:
-        timings["checks"] = time.perf_counter() - t0
-        return finish(PlanStatus.START_IN_COLLISION,
-                      "the start configuration (retracted, any tube rotation) collides with the scene")
-    blocked = target_blocked(scene, world, target, float(robot.tubes[0].od) / 2.0)
-    timings["checks"] = time.perf_counter() - t0
+        run.clock("checks", t0)
+        which = "retracted, any tube rotation" if retracted else "given with --start"
+        raise _Stop(run.finish(PlanStatus.START_IN_COLLISION,
+                               f"the start configuration ({which}) collides with the scene"))
+    blocked = target_blocked(run.scene, run.world, run.target, float(robot.tubes[0].od) / 2.0)
+    run.clock("checks", t0)
     if blocked:
-        return finish(PlanStatus.TARGET_IN_COLLISION, blocked)
+        raise _Stop(run.finish(PlanStatus.TARGET_IN_COLLISION, blocked))
+    return start
 
-    # 2. IK goals ----------------------------------------------------------------------
+
+def check_start(start, robot: Robot, validator: BatchValidator | None = None) -> np.ndarray:
+    """A start configuration as a (2n,) array inside the joint constraints, or InputError."""
+    try:
+        q = np.asarray(start, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError("--start", "", f"must be 'retracted' or {robot.dof} numbers "
+                         f"(alpha1..alpha{robot.n} rad, beta1..beta{robot.n} mm), got {start!r}") from None
+    if q.shape != (robot.dof,) or not np.all(np.isfinite(q)):
+        raise InputError("--start", "", f"must be 'retracted' or {robot.dof} finite numbers "
+                         f"(alpha1..alpha{robot.n} rad, beta1..beta{robot.n} mm), got {q.size}")
+    with np.errstate(invalid="ignore"):
+        ok = bool(np.all(robot.constraint_violations(q[None]) >= -1e-7))
+    if not ok:
+        raise InputError("--start", "", f"violates the joint constraints of robot {robot.name!r} "
+                         f"(betas must satisfy the tube order and lengths)")
+    return q
+
+
+def _stage_ik(run: _Run) -> tuple[GoalSource, np.ndarray]:
+    """Stage 2: IK rounds until collision-free goals exist (or the reason there are none)."""
     t0 = time.perf_counter()
-    table = _ik.workspace_table(model, cfg.table_size)               # cached per model
-    timings["setup"] += time.perf_counter() - t0
+    table = _ik.workspace_table(run.model, run.cfg.table_size)         # cached per model
+    run.timings["setup"] += time.perf_counter() - t0
+    run.deadline += time.perf_counter() - t0
     t0 = time.perf_counter()
-    source = GoalSource(model, robot, validator, table, target_base, float(tolerance_mm), cfg,
-                         np.random.default_rng([seed, 1]))
+    source = GoalSource(run.model, run.robot, run.validator, table, run.target_base,
+                        run.tolerance_mm, run.cfg, np.random.default_rng([run.seed, 1]))
     goals = source.next()
-    while len(goals) == 0 and source.rounds < cfg.ik_rounds:
+    while len(goals) == 0 and source.rounds < run.cfg.ik_rounds:
         goals = source.next()
-    timings["ik"] = time.perf_counter() - t0
-    counts.update(ik_rounds=source.rounds, ik_reaching=source.reaching,
-                  ik_evaluations=source.evaluations, goals=len(goals))
+    run.clock("ik", t0)
+    run.counts.update(ik_rounds=source.rounds, ik_reaching=source.reaching,
+                      ik_evaluations=source.evaluations, goals=len(goals))
     if len(goals) == 0:
         if source.reaching == 0:
-            return finish(PlanStatus.UNREACHABLE,
-                          f"no configuration puts the tip within {tolerance_mm:g} mm of the target "
-                          f"(best {source.best_error_mm:.2f} mm after {source.rounds} IK rounds)")
-        if target_outside_lumen(scene, target):
-            return finish(PlanStatus.TARGET_IN_COLLISION, "the target lies outside the lumen walls")
-        return finish(PlanStatus.GOAL_IN_COLLISION,
-                      f"{source.reaching} configurations reach the target but all of them collide")
+            raise _Stop(run.finish(
+                PlanStatus.UNREACHABLE, f"no configuration puts the tip within {run.tolerance_mm:g} "
+                f"mm of the target (best {source.best_error_mm:.2f} mm after {source.rounds} IK rounds)"))
+        if target_outside_lumen(run.scene, run.target):
+            raise _Stop(run.finish(PlanStatus.TARGET_IN_COLLISION, "the target lies outside the lumen walls"))
+        raise _Stop(run.finish(PlanStatus.GOAL_IN_COLLISION, f"{source.reaching} configurations "
+                               "reach the target but all of them collide"))
+    return source, goals
 
-    # 3-4. planning and simplification ---------------------------------------------------
+
+def _stage_planning(run: _Run, start: np.ndarray, source: GoalSource,
+                    goals: np.ndarray) -> tuple[np.ndarray, str]:
+    """Stage 3: the straight edge to one of the nearest goals, else OMPL. Returns (waypoints,
+    what solved it)."""
+    from ctrplan.planning import space as _space
+
+    cfg, validator = run.cfg, run.validator
+    t0 = time.perf_counter()
+    direct = _direct_path(validator, start, goals) if cfg.try_direct else None
+    run.counts["direct"] = int(direct is not None)
+    if direct is not None:
+        run.clock("planning", t0)
+        run.counts["states_validated"] = validator.counters.states
+        return direct, "direct"
     refresh_s = [0.0]
 
     def more_goals() -> np.ndarray:
@@ -399,80 +644,126 @@ def plan_to_target(
         refresh_s[0] += time.perf_counter() - t
         return g
 
-    budget = max(0.5 * time_limit,
-                 time_limit - (time.perf_counter() - t_call - timings["setup"]))
-    t0 = time.perf_counter()
-    direct = _direct_path(validator, start, goals) if cfg.try_direct else None
-    counts["direct"] = int(direct is not None)
-    if direct is not None:
-        outcome = _space.OmplOutcome("exact", direct, 0, 0.0, 0.0, len(goals))
-    else:
-        outcome = _space.solve(robot, validator, start, goals, planner=planner, time_limit=budget,
-                               seed=seed, alpha_weight_mm=vcfg.alpha_weight_mm,
-                               range_mm=cfg.range_mm, more_goals=more_goals,
-                               simplify=cfg.simplify, optimize=cfg.optimize)
+    outcome = _space.solve(run.robot, validator, start, goals, planner=run.planner,
+                           time_limit=max(0.0, run.deadline - time.perf_counter()),
+                           seed=run.seed, alpha_weight_mm=cfg.validator.alpha_weight_mm,
+                           range_mm=cfg.range_mm, more_goals=more_goals, simplify=cfg.simplify,
+                           optimize=cfg.optimize, max_states=cfg.max_states)
+    run.time_cap_hit |= outcome.time_cap_hit
     # IK rounds run while planning (goal refresh) count as IK time.
-    timings["ik"] += refresh_s[0]
-    timings["planning"] = (time.perf_counter() - t0) - outcome.simplification_s - refresh_s[0]
-    timings["simplification"] = outcome.simplification_s
-    counts.update(goals=outcome.goals_used, ik_rounds=source.rounds, ik_reaching=source.reaching,
-                  ik_evaluations=source.evaluations)
-    counts["states_validated"] = validator.counters.states
+    run.timings["ik"] += refresh_s[0]
+    run.timings["planning"] += (time.perf_counter() - t0) - outcome.simplification_s - refresh_s[0]
+    run.timings["simplification"] += outcome.simplification_s
+    run.counts.update(goals=outcome.goals_used, ik_rounds=source.rounds,
+                      ik_reaching=source.reaching, ik_evaluations=source.evaluations,
+                      states_validated=validator.counters.states)
     if outcome.path is None:
-        return finish(PlanStatus.TIMEOUT, f"no collision-free path found in {budget:.2f} s "
-                      f"({outcome.goals_used} goal configurations)")
-    path = outcome.path
-    if cfg.simplify and len(path) > 2:
-        t0 = time.perf_counter()
-        path = validator.shortcut(path)
-        timings["simplification"] += time.perf_counter() - t0
-    counts["states_validated"] = validator.counters.states
+        why = (f"the time cap of {run.time_limit:.2f} s" if outcome.time_cap_hit
+               else f"the budget of {cfg.max_states} states")
+        raise _Stop(run.finish(PlanStatus.TIMEOUT, f"no collision-free path found within {why} "
+                               f"({outcome.goals_used} goal configurations)"))
+    return outcome.path, run.planner
 
-    # 5. exact verification (and repair) ---------------------------------------------------
+
+def _stage_simplification(run: _Run, path: np.ndarray) -> np.ndarray:
+    """Stage 4: greedy shortcutting with the same validator (a count of edges, not a time)."""
+    if run.cfg.simplify and len(path) > 2:
+        t0 = time.perf_counter()
+        path = run.validator.shortcut(path)
+        run.clock("simplification", t0)
+    run.counts["states_validated"] = run.validator.counters.states
+    return path
+
+
+def _stage_verification(run: _Run, path: np.ndarray) -> tuple[PathCheck, PathCheck | None, np.ndarray]:
+    """Stage 5: exact check on the planning model at the fine resolution (failing segments
+    re-planned), then the reference model's check at margin 0."""
+    cfg, validator = run.cfg, run.validator
     t0 = time.perf_counter()
-    vres = vcfg.resolution_mm / max(1, cfg.verify_factor)
-    vpoints = cfg.verify_points or vcfg.points
+    vres = cfg.validator.resolution_mm / max(1, cfg.verify_factor)
+    vpoints = cfg.verify_points or cfg.validator.points
     check = validator.check_path(path, vres, points=vpoints, fcl_all=cfg.verify_fcl_all)
     attempts = 0
     while not check.ok and attempts < cfg.repair_attempts:
         attempts += 1
-        path = _repair(robot, model, world, path, check.bad_segments, cfg, seed + attempts,
-                       vres / (2 * attempts), budget=max(0.5, 0.25 * time_limit))
-        if path is None:
+        repaired = _repair(run.robot, run.model, run.world, path, check.bad_segments, cfg,
+                           run.seed + attempts, vres / (2 * attempts),
+                           budget=max(0.5, run.deadline - time.perf_counter()))
+        if repaired is None:
             break
+        path = repaired
         check = validator.check_path(path, vres, points=vpoints, fcl_all=cfg.verify_fcl_all)
-    timings["verification"] = time.perf_counter() - t0
-    counts.update(verification_states=len(check.states) if path is not None else 0,
-                  repairs=attempts, waypoints=0 if path is None else len(path))
-    if path is None or not check.ok:
+    run.counts.update(verification_states=len(check.states), repairs=attempts, waypoints=len(path))
+    if not check.ok:
+        run.clock("verification", t0)
         bad = check.contact[check.first_bad] if check.first_bad >= 0 else ""
-        return finish(PlanStatus.VERIFICATION_FAILED,
-                      f"the path touches {bad or 'the scene'} when checked exactly at "
-                      f"{vres:g} mm and could not be repaired")
+        raise _Stop(run.finish(PlanStatus.VERIFICATION_FAILED, f"the path touches {bad or 'the scene'} "
+                               f"when checked exactly at {vres:g} mm and could not be repaired"))
+    ref_check = None
+    if run.reference is not None:
+        ref_val = _reference_validator(run)
+        ref_check = ref_val.check_path(path, vres, points=vpoints, fcl_all=cfg.verify_fcl_all)
+        run.counts["reference_states"] = len(ref_check.states)
+        if not ref_check.ok:
+            run.clock("verification", t0)
+            bad = ref_check.contact[ref_check.first_bad]
+            raise _Stop(run.finish(PlanStatus.VERIFICATION_FAILED,
+                                   f"the {run.meta['reference_model']} model's backbone along the "
+                                   f"path touches {bad or 'the scene'} (checked at {vres:g} mm)"))
+    run.clock("verification", t0)
+    return check, ref_check, path
 
-    # Output: the path subdivided for display/execution, backbones in the scene frame.
+
+def _reference_validator(run: _Run) -> BatchValidator:
+    from ctrplan.collision.capsules import curvature_bound
+
+    ref = run.reference
+    curvature = curvature_bound(ref) if run.cfg.sagitta else 0.0
+    world = world_for(run.scene, 0.0, curvature)
+    return BatchValidator(run.robot, ref, world, run.cfg.validator)
+
+
+def _output(run: _Run, path: np.ndarray, solver: str, check: PathCheck,
+            ref_check: PathCheck | None) -> PlanResult:
+    """The path subdivided for execution (rotations unwrapped), backbones in the scene frame,
+    tip errors and the clearances under both models."""
+    cfg, n = run.cfg, run.robot.n
+    t0 = time.perf_counter()
     out_q = path
     if cfg.output_step_mm > 0:
-        out_q, _ = interpolate_path(path, n, vcfg.alpha_weight_mm, cfg.output_step_mm)
-    shape = model.shape(out_q, points=cfg.output_points)
-    backbones = scene.to_scene(shape.points)
-    tip_err = float(np.linalg.norm(shape.tip[-1] - target_base))
+        out_q, _ = interpolate_path(path, n, cfg.validator.alpha_weight_mm, cfg.output_step_mm)
+    out_q = unwrap_path(out_q, n)
+    shape = run.model.shape(out_q, points=cfg.output_points)
+    backbones = run.scene.to_scene(shape.points)
+    tip_err = float(np.linalg.norm(shape.tip[-1] - run.target_base))
     tip_err_phys = tip_err
-    if getattr(model, "name", "") != "physics":
-        phys = resolve_model("physics", robot)
-        tip_err_phys = float(np.linalg.norm(phys.shape(out_q[-1:], points=2).tip[0] - target_base))
-    counts["path_states"] = len(out_q)
-    t0 = time.perf_counter()
-    min_clear, exact_calls = path_min_clearance(validator, world, check, vpoints)
-    timings["verification"] += time.perf_counter() - t0
-    counts["clearance_exact_states"] = exact_calls
-    return finish(PlanStatus.SUCCESS, "ok", path=out_q, backbones=backbones,
-                  tip_path=backbones[:, -1, :], tip_error_mm=tip_err,
-                  tip_error_physics_mm=tip_err_phys, min_clearance_mm=min_clear)
+    if getattr(run.model, "name", "") != "physics":
+        phys = resolve_model("physics", run.robot)
+        tip_err_phys = float(np.linalg.norm(phys.shape(out_q[-1:], points=2).tip[0] - run.target_base))
+    run.counts["path_states"] = len(out_q)
+    vpoints = cfg.verify_points or cfg.validator.points
+    clear, exact, calls = path_min_clearance(run.validator, run.world, check, vpoints,
+                                             max_pairs=cfg.clearance_pairs)
+    run.counts["clearance_exact_states"] = calls
+    extra = dict(min_clearance_mm=clear + run.margin_mm if math.isfinite(clear) else clear,
+                 min_clearance_exact=exact)
+    if ref_check is not None:
+        ref_val = _reference_validator(run)
+        rc, rexact, _ = path_min_clearance(ref_val, ref_val.world, ref_check, vpoints,
+                                           max_pairs=cfg.clearance_pairs)
+        extra.update(min_clearance_reference_mm=rc, min_clearance_reference_exact=rexact)
+    elif cfg.reference is not None:   # the planning model is the reference, margin 0
+        extra.update(min_clearance_reference_mm=extra["min_clearance_mm"],
+                     min_clearance_reference_exact=exact)
+    run.clock("verification", t0)
+    run.meta["planner"] = solver
+    return run.finish(PlanStatus.SUCCESS, "ok", path=out_q, backbones=backbones,
+                      tip_path=backbones[:, -1, :], tip_error_mm=tip_err,
+                      tip_error_physics_mm=tip_err_phys, **extra)
 
 
 def path_min_clearance(validator: BatchValidator, world, check, points: int | None,
-                       batch: int = 16, max_pairs: int = 300) -> tuple[float, int]:
+                       batch: int = 16, max_pairs: int = 300) -> tuple[float, bool, int]:
     """Smallest clearance (mm) over the verified states of a path, by branch and bound.
 
     The world's conservative clearance of every state is a lower bound of its FCL distance.
@@ -482,26 +773,30 @@ def path_min_clearance(validator: BatchValidator, world, check, points: int | No
     is the exact minimum. The work is capped at ``max_pairs`` FCL distance queries (about 2 ms
     each; a count, not a time, so the same path always gives the same value); if that does not
     settle it, the result is a valid lower bound, at least 0 (the states passed the exact
-    collision check). Returns (value, states measured).
+    collision check). Returns (value, exact, states measured).
     """
     bounds = np.asarray(check.clearance_mm, dtype=float)
     if len(bounds) == 0:
-        return math.nan, 0
+        return math.nan, False, 0
+    direction = getattr(check, "direction", None)
     order = np.argsort(bounds, kind="stable")
     best = math.inf
     done, left = 0, int(max_pairs)
+    settled = True
     while done < len(order):
         idx = order[done:done + batch]
-        shape = validator.shapes(check.states[idx], points=points)
-        values, used = world.clearance_bounded(shape, below=best, max_pairs=left)
-        best = min(best, float(np.min(values)))
+        for d in validator.variants(check.states[idx], None if direction is None else direction[idx]):
+            shape = validator.shapes(check.states[idx], points=points, direction=d)
+            values, used = world.clearance_bounded(shape, below=best, max_pairs=left)
+            best = min(best, float(np.min(values)))
+            left -= used
+            settled &= left > 0
         done += len(idx)
-        left -= used
         if done >= len(order) or best <= bounds[order[done]]:
-            return max(0.0, best), done
+            return max(0.0, best), bool(settled and best >= 0), done
         if left <= 0:
             break
-    return max(0.0, min(best, float(bounds[order[done]]))), done
+    return max(0.0, min(best, float(bounds[order[done]]))), False, done
 
 
 def _direct_path(validator: BatchValidator, start: np.ndarray, goals: np.ndarray,
@@ -520,7 +815,8 @@ def _direct_path(validator: BatchValidator, start: np.ndarray, goals: np.ndarray
 
 def _repair(robot, model, world, path: np.ndarray, bad_segments: list[int], cfg: PlanConfig,
             seed: int, resolution_mm: float, budget: float) -> np.ndarray | None:
-    """Re-plan the segments that failed verification with a finer validator; None on failure."""
+    """Re-plan the segments that failed verification with a finer validator; None on failure.
+    Each segment's search is budgeted in states (``cfg.repair_states``); ``budget`` (s) is a cap."""
     from ctrplan.planning import space as _space
 
     strict = BatchValidator(robot, model, world, replace(cfg.validator, resolution_mm=resolution_mm))
@@ -530,7 +826,7 @@ def _repair(robot, model, world, path: np.ndarray, bad_segments: list[int], cfg:
         pieces.append(path[last:j])
         sub = _space.solve(robot, strict, path[j], path[j + 1][None], planner="rrtconnect",
                            time_limit=budget, seed=seed, alpha_weight_mm=cfg.validator.alpha_weight_mm,
-                           range_mm=cfg.range_mm, simplify=cfg.simplify)
+                           range_mm=cfg.range_mm, simplify=cfg.simplify, max_states=cfg.repair_states)
         if sub.path is None:
             log.debug("plan: repair of segment %d failed", j)
             return None

@@ -15,8 +15,8 @@ configurations never leaves it).
 Validity. Every edge is checked by ``checker.edge_valid`` (:class:`ctrplan.planning.validator.BatchValidator`) — one batched shape call and
 one batched collision query over all interpolated states, both end states included (OMPL's
 RRTConnect grows its goal tree with the new state as the *first* argument). OMPL still calls
-the per-state checker for start/goal states and for samples of some planners (PRM, BIT*); that
-call goes through a cache, and PRM gets a sampler that validates samples in batches.
+the per-state checker for start/goal states and for samples of some planners (BIT*); that
+call goes through a cache, and samplers validate samples in batches.
 """
 
 from __future__ import annotations
@@ -46,17 +46,27 @@ PLANNERS: dict[str, str] = {
     "rrt": "RRT",
     "rrtstar": "RRTstar",
     "bitstar": "BITstar",
-    "prm": "PRM",
-    "prmstar": "PRMstar",
     "kpiece": "KPIECE1",
     "bkpiece": "BKPIECE1",
     "lbkpiece": "LBKPIECE1",
 }
 
 
+#: Planners refused with the reason: OMPL's PRM checks for a solution in a second C++ thread that
+#: calls the Python motion validator, while the OMPL 2.x bindings keep the GIL held in the main
+#: thread's ``solve`` (waiting for PRM's graph lock): a deadlock, seen in the hard benchmark.
+UNSAFE_PLANNERS = {
+    "prm": "OMPL's PRM validates edges from a second thread and deadlocks with Python validity "
+           "checkers in the OMPL 2.x bindings; use rrtconnect, rrt, rrtstar, bitstar or kpiece",
+}
+UNSAFE_PLANNERS["prmstar"] = UNSAFE_PLANNERS["prm"]
+
+
 def check_planner(name: str) -> str:
     """Normalise a planner name (case-insensitive) or raise :class:`InputError`."""
     key = str(name).strip().lower()
+    if key in UNSAFE_PLANNERS:
+        raise InputError("--planner", "", f"{name!r}: {UNSAFE_PLANNERS[key]}")
     if key not in PLANNERS:
         raise InputError("--planner", "", f"unknown planner {name!r} (choose from {', '.join(PLANNERS)})")
     return key
@@ -258,6 +268,9 @@ class OmplOutcome:
     goal_index : index (into all goals handed over) of the goal the path ends at, or -1.
     planning_s, simplification_s : wall-clock seconds of the stages.
     goals_used : number of goal states given to OMPL.
+    states : states the checker validated during the run (planning and simplification).
+    time_cap_hit : the wall-clock cap stopped the run before its state budget was spent (the
+        result then depends on the machine's speed and load).
     """
 
     status: str
@@ -266,6 +279,13 @@ class OmplOutcome:
     planning_s: float
     simplification_s: float
     goals_used: int
+    states: int = 0
+    time_cap_hit: bool = False
+
+
+def _states_of(checker) -> int:
+    counters = getattr(checker, "counters", None)
+    return int(getattr(counters, "states", 0))
 
 
 def solve(
@@ -281,32 +301,41 @@ def solve(
     more_goals=None,
     slices: tuple[float, ...] = (0.4, 0.3, 0.3),
     simplify: bool = True,
-    simplify_time: float = 1.0,
+    simplify_rounds: int = 3,
     optimize: bool = False,
+    max_states: int | None = None,
 ) -> OmplOutcome:
     """Plan from ``start`` (2n,) to any of ``goals`` (G, 2n) with OMPL.
 
-    The time limit is split into ``slices``; after a slice without a solution ``more_goals()``
-    (if given) may return extra goal configurations ``(G', 2n)``, which are added to the goal
-    set before planning resumes (tree-based planners keep their trees between slices). Unless
-    ``optimize``, planning stops at the first exact solution (anytime planners included), which
-    keeps a seeded run reproducible. The solution is then simplified (vertex reduction,
-    shortcutting, collapsing close vertices) with the same validator.
+    Budget. With ``max_states``, the budget is the number of states the checker validates
+    (``checker.counters.states``): the run is split into ``slices`` of that budget and
+    ``time_limit`` is only a wall-clock cap (``time_cap_hit`` says when it stopped the run). The
+    same seed then gives the same path on any machine load (every offered planner is
+    single-threaded). Without
+    ``max_states``, the slices are fractions of ``time_limit`` (the result depends on speed).
+
+    After a slice without a solution ``more_goals()`` (if given) may return extra goal
+    configurations ``(G', 2n)``, which are added to the goal set before planning resumes
+    (tree-based planners keep their trees between slices). Unless ``optimize``, planning stops
+    at the first exact solution (anytime planners included). The solution is then simplified
+    (``simplify_rounds`` rounds of vertex reduction and collapsing close vertices; counted, not
+    timed) with the same validator.
     """
     seed_ompl(seed)
     js = JointSpace(robot, alpha_weight_mm)
     link = _Link(js, checker, seed)
     try:
         return _solve(js, link, start, goals, planner, time_limit, range_mm, more_goals, slices,
-                      simplify, simplify_time, optimize)
+                      simplify, simplify_rounds, optimize, max_states)
     finally:
         link.detach()
         js.si.clearValidStateSamplerAllocator()
 
 
 def _solve(js: JointSpace, link: _Link, start, goals, planner, time_limit, range_mm, more_goals,
-           slices, simplify, simplify_time, optimize) -> OmplOutcome:
+           slices, simplify, simplify_rounds, optimize, max_states) -> OmplOutcome:
     si = js.si
+    checker = link.checker
     si.setStateValidityChecker(_StateChecker(si, link))
     si.setMotionValidator(_MotionValidator(si, link))
     si.setValidStateSamplerAllocator(lambda si_: _BatchSampler(si_, link))
@@ -327,28 +356,53 @@ def _solve(js: JointSpace, link: _Link, start, goals, planner, time_limit, range
         # the objective makes OMPL fall back to its generic rejection sampler.
         obj = ob.MultiOptimizationObjective(si)
         obj.addObjective(ob.PathLengthOptimizationObjective(si), 1.0)
-        pdef.setOptimizationObjective(obj)
+    else:
+        obj = ob.PathLengthOptimizationObjective(si)
+    if not optimize:
+        # Any path is good enough: anytime planners (RRT*, BIT*) add their solution to the
+        # problem only when they stop, so the exact-solution condition alone never fires for
+        # them and they would run to the cap.
+        obj.setCostThreshold(ob.Cost(math.inf))
+    pdef.setOptimizationObjective(obj)
     pl = make_planner(planner, si, range_mm)
     pl.setProblemDefinition(pdef)
     pl.setup()
 
     t0 = time.perf_counter()
+    s0 = _states_of(checker)
     deadline = t0 + float(time_limit)
     fractions = list(slices) or [1.0]
     status = None
+    cap_hit = False
+    done = 0.0
     for k, frac in enumerate(fractions):
-        remaining = deadline - time.perf_counter()
-        if remaining <= 0:
-            break
         last = k == len(fractions) - 1
-        budget = remaining if last else min(remaining, frac * float(time_limit))
-        ptc = ob.timedPlannerTerminationCondition(budget)
+        if time.perf_counter() >= deadline:
+            cap_hit = max_states is not None
+            break
+        if max_states is not None:
+            done = 1.0 if last else min(1.0, done + frac)
+            limit = s0 + int(round(done * int(max_states)))
+            if _states_of(checker) >= limit:
+                continue
+
+            def stop(limit=limit) -> bool:
+                return _states_of(checker) >= limit or time.perf_counter() >= deadline
+
+            ptc = ob.PlannerTerminationCondition(stop)
+        else:
+            remaining = deadline - time.perf_counter()
+            budget = remaining if last else min(remaining, frac * float(time_limit))
+            ptc = ob.timedPlannerTerminationCondition(budget)
         if not optimize:
             ptc = ob.plannerOrTerminationCondition(ptc, ob.exactSolnPlannerTerminationCondition(pdef))
         status = pl.solve(ptc)
         if link.exc is not None:
             raise link.exc
         if pdef.hasExactSolution():
+            break
+        if max_states is not None and time.perf_counter() >= deadline:
+            cap_hit = True
             break
         if more_goals is not None and not last:
             extra = more_goals()
@@ -364,22 +418,22 @@ def _solve(js: JointSpace, link: _Link, start, goals, planner, time_limit, range
     if not pdef.hasExactSolution():
         approx = pdef.hasApproximateSolution()
         log.debug("planner %s: %s after %.2f s", planner, status, planning_s)
-        return OmplOutcome("approximate" if approx else "timeout", None, -1, planning_s, 0.0, len(all_goals))
+        return OmplOutcome("approximate" if approx else "timeout", None, -1, planning_s, 0.0,
+                           len(all_goals), _states_of(checker) - s0, cap_hit)
 
     path = pdef.getSolutionPath()
     t1 = time.perf_counter()
     if simplify and path.getStateCount() > 2:
         ps = og.PathSimplifier(si)
-        end = time.perf_counter() + simplify_time
         # Why not simplifyMax: its B-spline smoothing validates single states outside our
-        # batched edge checks; ropeShortcutPath subdivides the path at 1 metric unit (mm) and
-        # then tries O(K^2) shortcuts. These two steps only use checkMotion on few edges.
-        for _ in range(3):
+        # batched edge checks. These two steps only use checkMotion on few edges; a fixed
+        # number of rounds (not a time) keeps the result independent of the machine's speed.
+        for _ in range(max(0, int(simplify_rounds))):
             changed = ps.reduceVertices(path)
             changed |= ps.collapseCloseVertices(path)
             if link.exc is not None:
                 raise link.exc
-            if not changed or time.perf_counter() > end:
+            if not changed:
                 break
     simplification_s = time.perf_counter() - t1
     q = np.array([js.to_q(s) for s in path.getStates()])
@@ -388,7 +442,8 @@ def _solve(js: JointSpace, link: _Link, start, goals, planner, time_limit, range
     goal_index = int(np.argmin(dists)) if dists else -1
     if goal_index >= 0 and dists[goal_index] < 1e-6:
         q[-1] = all_goals[goal_index]  # exact goal values (no round trip through the state)
-    return OmplOutcome("exact", q, goal_index, planning_s, simplification_s, len(all_goals))
+    return OmplOutcome("exact", q, goal_index, planning_s, simplification_s, len(all_goals),
+                       _states_of(checker) - s0, cap_hit)
 
 
 def _wrapdiff(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:

@@ -4,6 +4,13 @@ A configuration is valid when it satisfies the joint constraints, the shape mode
 trustworthy backbone, and the backbone (swept by the tube radii) does not touch the scene.
 Validity is a pure function of q: nothing here changes the world.
 
+Direction of motion. For a model whose shape depends on the direction of the last motion
+(``needs_direction(model)``: friction), validity stays a pure function of q and the motion: a
+state on an edge is evaluated with the edge's direction (sign of ``q1 - q0`` per joint); where a
+joint's direction is unknown (a joint that does not move on the edge, a single state) both
+``+1`` and ``-1`` are checked and the state is valid only if both are (the worst case of the
+dead band).
+
 Edges are straight lines in joint space (rotations along the shorter arc) interpolated so that
 the estimated backbone motion between consecutive states is at most ``resolution_mm``; the
 estimate is ``alpha_weight_mm * sum|d alpha| + ||d beta||`` (mm), the same metric OMPL uses.
@@ -18,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ctrplan.robot import Robot
-from ctrplan.shape.base import Shape
+from ctrplan.shape.base import Shape, needs_direction
 
 #: Slack (mm) on the joint constraints for interpolated states (round-off only).
 JOINT_TOL_MM = 1e-7
@@ -83,6 +90,23 @@ def motion_mm(q0: np.ndarray, q1: np.ndarray, n: int, alpha_weight_mm: float) ->
     """Estimated backbone motion (mm) between configurations. q0, q1 : (..., 2n) -> (...)."""
     d = joint_delta(q0, q1, n)
     return alpha_weight_mm * np.abs(d[..., :n]).sum(-1) + np.linalg.norm(d[..., n:], axis=-1)
+
+
+def edge_direction(q0: np.ndarray, q1: np.ndarray, n: int) -> np.ndarray:
+    """(2n,) int8 direction of motion along the edge q0 -> q1 (rotations along the shorter
+    arc): +1, -1, or 0 where the joint does not move."""
+    return np.sign(joint_delta(q0, q1, n)).astype(np.int8)
+
+
+def unwrap_path(path: np.ndarray, n: int) -> np.ndarray:
+    """The path with continuous rotations: each state's alphas are the previous state's plus
+    the shorter-arc difference, so linear interpolation between consecutive states is the
+    motion the validator checked."""
+    out = np.array(np.atleast_2d(path), dtype=float, copy=True)
+    if len(out) > 1:
+        d = wrap(np.diff(out[:, :n], axis=0))
+        out[1:, :n] = out[0, :n] + np.cumsum(d, axis=0)
+    return out
 
 
 def interpolate(q0: np.ndarray, q1: np.ndarray, n: int, alpha_weight_mm: float,
@@ -161,6 +185,8 @@ class PathCheck:
     contact: np.ndarray
     first_bad: int
     bad_segments: list[int] = field(default_factory=list)
+    #: (S, 2n) direction of motion of each state (direction-aware models), else None
+    direction: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:
@@ -186,6 +212,8 @@ class BatchValidator:
     def __init__(self, robot: Robot, model, world, config: ValidatorConfig | None = None):
         self.robot = robot
         self.model = model
+        #: the model takes the direction of motion (then unknown directions are checked both ways)
+        self.directional = needs_direction(model)
         self.world = world
         self.config = config or ValidatorConfig()
         self.n = robot.n
@@ -201,40 +229,92 @@ class BatchValidator:
             ok = np.all(self.robot.constraint_violations(q) >= -JOINT_TOL_MM, axis=1)
         return finite & ok
 
-    def shapes(self, q: np.ndarray, points: int | None = None) -> Shape:
-        """Shapes of a batch (one model call). q : (B, 2n)."""
+    def shapes(self, q: np.ndarray, points: int | None = None, direction: np.ndarray | None = None) -> Shape:
+        """Shapes of a batch (one model call). q : (B, 2n); direction : (B, 2n) or (2n,) in
+        {-1, +1} (used only by direction-aware models; required by them)."""
         self.counters.shape_calls += 1
         self.counters.states += len(q)
-        return self.model.shape(np.asarray(q, dtype=float), points=points or self.config.points)
+        q = np.asarray(q, dtype=float)
+        points = points or self.config.points
+        if self.directional:
+            if direction is None:
+                raise ValueError("a direction-aware model needs the direction of motion")
+            d = np.broadcast_to(np.asarray(direction, dtype=np.int8), q.shape)
+            return self.model.shape(q, points=points, direction=np.ascontiguousarray(d))
+        return self.model.shape(q, points=points)
 
-    def states_valid(self, q: np.ndarray) -> np.ndarray:
-        """(B,) bool validity of a batch: one shape call, one collision query."""
+    def variants(self, q: np.ndarray, direction: np.ndarray | None = None) -> list[np.ndarray | None]:
+        """Directions to evaluate a batch with: [None] for an ordinary model; for a
+        direction-aware one the given direction with its unknown (0) entries set to +1 and to
+        -1 (one variant when nothing is unknown)."""
+        if not self.directional:
+            return [None]
+        q = np.atleast_2d(q)
+        d = np.zeros(q.shape, dtype=np.int8) if direction is None else \
+            np.broadcast_to(np.asarray(direction, dtype=np.int8), q.shape)
+        if not (d == 0).any():
+            return [d]
+        return [np.where(d == 0, 1, d).astype(np.int8), np.where(d == 0, -1, d).astype(np.int8)]
+
+    def states_valid(self, q: np.ndarray, direction: np.ndarray | None = None) -> np.ndarray:
+        """(B,) bool validity of a batch: one shape call, one collision query (two of each for
+        a direction-aware model with unknown directions)."""
         q = np.atleast_2d(np.asarray(q, dtype=float))
         ok = self.joint_valid(q)
         if ok.any():
             idx = np.flatnonzero(ok)
-            shape = self.shapes(q[idx])
-            self.counters.collision_calls += 1
-            ok[idx] = ~np.asarray(self.world.collides(shape), dtype=bool)
+            free = np.ones(len(idx), dtype=bool)
+            for d in self.variants(q[idx], None if direction is None
+                                   else np.broadcast_to(direction, q.shape)[idx]):
+                shape = self.shapes(q[idx], direction=d)
+                self.counters.collision_calls += 1
+                free &= ~np.asarray(self.world.collides(shape), dtype=bool)
+            ok[idx] = free
         return ok
 
-    def first_invalid(self, q: np.ndarray) -> int:
+    def check_states(self, q: np.ndarray, points: int | None = None,
+                     direction: np.ndarray | None = None, exact: bool = False,
+                     joints: bool = True):
+        """(collides (B,), clearance_mm (B,), contact (B,)) of a batch with the world's
+        ``check`` (``check_exact`` if ``exact``): worst case over the direction variants.
+        ``joints`` : joint-constraint violations count as collisions (contact "joints")."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        B = len(q)
+        collides = ~self.joint_valid(q) if joints else np.zeros(B, dtype=bool)
+        clearance = np.full(B, np.inf)
+        contact = np.full(B, "", dtype=object)
+        contact[collides] = "joints"
+        for d in self.variants(q, direction):
+            shape = self.shapes(q, points=points, direction=d)
+            self.counters.collision_calls += 1
+            rep = self.world.check_exact(shape) if exact else self.world.check(shape)
+            hit = np.asarray(rep.collides, dtype=bool)
+            newly = hit & ~collides
+            contact[newly] = np.asarray(rep.contact, dtype=object)[newly]
+            collides |= hit
+            clearance = np.minimum(clearance, np.asarray(rep.clearance_mm, dtype=float))
+        return collides, clearance, contact
+
+    def first_invalid(self, q: np.ndarray, direction: np.ndarray | None = None) -> int:
         """Index of the first invalid state of an ordered batch (B, 2n), or -1 if all are valid.
 
         Joint limits are checked for all states; the states before the first joint violation go
         through one shape call and one collision query that stops at the first collision.
+        direction : (2n,) direction of motion along the batch (direction-aware models).
         """
         q = np.atleast_2d(np.asarray(q, dtype=float))
         jv = self.joint_valid(q)
         k0 = int(np.argmin(jv)) if not jv.all() else len(q)
         if k0 == 0:
             return 0
-        shape = self.shapes(q[:k0])
-        self.counters.collision_calls += 1
-        k = int(self.world.first_collision(shape))
-        if k >= 0:
-            return k
-        return k0 if k0 < len(q) else -1
+        first = k0 if k0 < len(q) else -1
+        for d in self.variants(q[:k0], direction):
+            shape = self.shapes(q[:k0], direction=d)
+            self.counters.collision_calls += 1
+            k = int(self.world.first_collision(shape))
+            if k >= 0:
+                first = k if first < 0 else min(first, k)
+        return first
 
     # ------------------------------------------------------------------ OMPL callbacks
     def edge_states(self, q0: np.ndarray, q1: np.ndarray, resolution_mm: float | None = None) -> np.ndarray:
@@ -244,7 +324,8 @@ class BatchValidator:
     def edge_valid(self, q0: np.ndarray, q1: np.ndarray) -> bool:
         """Whether the straight edge q0 -> q1 (both ends included) is valid."""
         self.counters.edges += 1
-        ok = self.first_invalid(self.edge_states(q0, q1)) < 0
+        d = edge_direction(q0, q1, self.n) if self.directional else None
+        ok = self.first_invalid(self.edge_states(q0, q1), d) < 0
         if not ok:
             self.counters.edges_invalid += 1
         return ok
@@ -318,20 +399,32 @@ class BatchValidator:
         c = self.config
         states, seg = interpolate_path(path, self.n, c.alpha_weight_mm, resolution_mm)
         S = len(states)
+        path = np.atleast_2d(np.asarray(path, dtype=float))
+        direction = None
+        if self.directional and len(path) > 1:
+            dirs = np.array([edge_direction(a, b, self.n) for a, b in zip(path[:-1], path[1:])])
+            direction = dirs[seg]
+            # a waypoint joins two edges: its direction is unknown where they differ
+            joins = np.flatnonzero(np.r_[False, seg[1:] != seg[:-1]])
+            for i in joins:
+                direction[i] = np.where(dirs[seg[i] - 1] == dirs[seg[i]], dirs[seg[i]], 0)
         collides = np.zeros(S, dtype=bool)
         clearance = np.full(S, np.inf)
         contact = np.full(S, "", dtype=object)
         jv = self.joint_valid(states)
         for a in range(0, S, chunk):
             b = min(S, a + chunk)
-            shape = self.shapes(states[a:b], points=points)
-            self.counters.collision_calls += 1
-            rep = self.world.check_exact(shape) if fcl_all else self.world.check(shape)
-            collides[a:b] = np.asarray(rep.collides, dtype=bool)
-            clearance[a:b] = np.asarray(rep.clearance_mm, dtype=float)
-            contact[a:b] = np.asarray(rep.contact, dtype=object)
+            for d in self.variants(states[a:b], None if direction is None else direction[a:b]):
+                shape = self.shapes(states[a:b], points=points, direction=d)
+                self.counters.collision_calls += 1
+                rep = self.world.check_exact(shape) if fcl_all else self.world.check(shape)
+                hit = np.asarray(rep.collides, dtype=bool)
+                newly = hit & ~collides[a:b]
+                contact[a:b][newly] = np.asarray(rep.contact, dtype=object)[newly]
+                collides[a:b] |= hit
+                clearance[a:b] = np.minimum(clearance[a:b], np.asarray(rep.clearance_mm, dtype=float))
         collides |= ~jv
         bad = np.flatnonzero(collides)
         first = int(bad[0]) if len(bad) else -1
         return PathCheck(states, seg, collides, clearance, contact, first,
-                         sorted({int(s) for s in seg[bad]}))
+                         sorted({int(s) for s in seg[bad]}), direction)

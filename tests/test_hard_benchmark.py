@@ -1,0 +1,109 @@
+"""The fixed hard benchmark and the independent re-check of plans.
+
+Oracles: the re-check (``benchmarks/hard_problems.verify_path``) interpolates paths itself at 8x
+the planner's edge resolution and asks FCL about the physics model's backbone with capsules of
+radius + sagitta bound (the known solutions with every state sent to FCL); the benchmark logs are read
+back with OMPL's own log reader (``ompl.tools.readBenchmarkLog``).
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+from bench_hard import PLANNERS, RUN_PROPERTIES, run, write_log  # noqa: E402
+from hard_problems import load_problems, scenes, verify_path  # noqa: E402
+
+from ctrplan.planning.plan import scene_by_name  # noqa: E402
+from ctrplan.shape.physics import PhysicsModel  # noqa: E402
+
+
+def test_every_scene_has_hard_problems():
+    names = scenes()
+    assert set(names) >= {"airway", "bronchial_tree", "neuro", "skull_base"}
+    for s in names:
+        assert len(load_problems(s)) >= 2, s
+
+
+@pytest.mark.parametrize("scene", ["airway", "bronchial_tree", "neuro", "skull_base"])
+def test_hard_problem_straight_edge_collides_and_known_solution_is_free(scene, seed1):
+    prob = load_problems(scene)[0]
+    sc = scene_by_name(scene)
+    straight, _ = verify_path(seed1, sc, np.stack([prob.start, prob.goal]))
+    assert not straight
+    free, clearance = verify_path(seed1, sc, prob.solution, exact=True)
+    assert free and clearance >= 0.0
+    assert np.allclose(prob.solution[0], prob.start)
+    tip = PhysicsModel(seed1).shape(prob.solution[-1:], points=2).tip[0]
+    assert np.linalg.norm(sc.to_scene(tip[None])[0] - prob.target) <= 1.0 + 1e-6
+
+
+def test_benchmark_log_is_read_by_ompls_reader(tmp_path):
+    import ompl.tools as ot
+
+    recs = [{"problem": "p", "scene": "airway", "model": "physics", "planner": p, "seed": s,
+             "status": "SUCCESS" if s == 0 else "TIMEOUT", "success": s == 0, "time": 1.5 + s,
+             "states_validated": 1000, "time_cap_hit": s == 1, "direct": False,
+             **({"length": 120.0, "segments": 3, "clearance": 0.4, "clearance_exact": True,
+                 "clearance_physics": 0.3, "recheck_free": True, "recheck_clearance": 0.31,
+                 "tip_error_physics": 0.5} if s == 0 else {})}
+            for p in ("rrtconnect", "prm") for s in (0, 1)]
+    log = tmp_path / "x.log"
+    write_log(log, "ctrplan_test", recs, ["rrtconnect", "prm"], 10.0, 2, 3.0, "setup text")
+    db = tmp_path / "x.db"
+    ot.readBenchmarkLog(str(db), [str(log)], False)
+    con = sqlite3.connect(db)
+    assert con.execute("select count(*) from experiments").fetchone()[0] == 1
+    rows = con.execute("select p.name, r.solved, r.time, r.solution_length, r.plan_status "
+                       "from runs r join plannerConfigs p on r.plannerid = p.id order by r.id").fetchall()
+    assert [r[0] for r in rows] == ["geometric_rrtconnect"] * 2 + ["geometric_prm"] * 2
+    assert [r[1] for r in rows] == [1, 0, 1, 0] and rows[0][2] == 1.5 and rows[0][3] == 120.0
+    assert rows[1][3] is None and rows[1][4] == 5           # TIMEOUT's enum index
+    cols = {c[1] for c in con.execute("pragma table_info(runs)")}
+    assert {"_".join(n.split()) for n, _ in RUN_PROPERTIES} <= cols
+
+
+@pytest.mark.statistical
+def test_best_planner_solves_the_hard_set_and_every_plan_passes_the_recheck(tmp_path):
+    """RRTConnect on the README's hard set (first 2 problems per scene), 10 s cap: with the
+    physics planning model >= 95 % success (the README's threshold); with the learned planning
+    model at margin 0 (the unsafe setting: only the physics re-check stands between it and the
+    anatomy) any success is allowed, but every successful path of both must be collision-free
+    in the independent re-check. About 2-4 min on 2 shared cores."""
+    phys = run(["physics"], ["rrtconnect"], 1, 10.0, 2, tmp_path / "physics")
+    learned = run(["learned"], ["rrtconnect"], 1, 10.0, 2, tmp_path / "learned", margin=0.0)
+    assert len(phys["problems"]) == 8
+    assert phys["table"][0]["success_rate"] >= 0.95, phys["table"]
+    for res in (phys, learned):
+        ok = [r for r in res["records"] if r["success"]]
+        assert all(r["recheck_free"] for r in ok)
+        assert all(r["recheck_clearance"] >= 0 for r in ok)
+    assert len(list((tmp_path / "physics").glob("*/*.log"))) == 8
+    assert "rrtconnect" in PLANNERS
+
+
+@pytest.mark.statistical
+@pytest.mark.parametrize("model", ["learned", "physics"])
+def test_shipped_targets_plans_pass_the_recheck(model, seed1):
+    """Two shipped targets per scene (the shipped benchmark set), margin 0 (the setting that
+    leans most on the re-check), every successful plan re-checked."""
+    from ctrplan.collision.scene import list_scenes
+    from ctrplan.planning import PlanConfig, plan_to_target
+
+    done = 0
+    for s in list_scenes():
+        sc = scene_by_name(s)
+        for t, seed in ((sc.targets[0], 0), (sc.targets[len(sc.targets) // 2], 1)):
+            r = plan_to_target(seed1, sc, t.position, model=model, seed=seed, time_limit=10.0,
+                               config=PlanConfig(margin_mm=0.0))
+            if r.success:
+                free, _ = verify_path(seed1, sc, r.path)
+                assert free, (s, t.name, model)
+                done += 1
+    assert done >= 4
