@@ -27,7 +27,7 @@ def main() -> None:
         for t in scene.targets[: 2 if args.quick else None]:
             targets.append((name, t.name, tuple(float(v) for v in t.position)))
 
-    jobs = make_jobs(targets, seeds=(0,), model="learned", time_limit=2.0 if args.quick else 5.0)
+    jobs = make_jobs(targets, seeds=(0,), model="physics", time_limit=2.0 if args.quick else 5.0)
     summary = run_batch(jobs, args.out or tempfile.mkdtemp(prefix="ctrplan_offline_"), workers=args.workers)
 
     print(f"{summary.total} jobs ({summary.ran} run now, {summary.skipped} already done) -> {summary.out}")

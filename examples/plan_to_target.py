@@ -15,7 +15,7 @@ args = parser.parse_args()
 robot = ctrplan.load_robot("seed1")                      # three nitinol tubes (shipped)
 scene = ctrplan.load_scene("airway")                     # trachea + main bronchi, mm
 target = scene.targets[0]                                # a reachable example target
-result = ctrplan.plan_to_target(robot, scene, target.position, model="learned",
+result = ctrplan.plan_to_target(robot, scene, target.position, model="physics",
                                 time_limit=2.0 if args.quick else 5.0, seed=0)
 
 print(f"{target.name}: {result.status.name}, tip error {result.tip_error_mm:.3f} mm, "

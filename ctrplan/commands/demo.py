@@ -1,6 +1,6 @@
 """``ctrplan demo``: the main job on the shipped defaults.
 
-Plans the ``seed1`` robot with the learned model to a shipped target in a shipped scene, prints
+Plans the ``seed1`` robot with the physics model to a shipped target in a shipped scene, prints
 a short summary, and writes ``plan.json``, ``demo.png`` and a self-contained ``demo.html``.
 """
 
@@ -21,13 +21,13 @@ DEFAULT_ROBOT = "seed1"
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="plan on the shipped defaults and write a figure and an HTML view",
-                       description="Plan the seed1 robot (learned model) to a shipped target in a "
+                       description="Plan the seed1 robot (physics model) to a shipped target in a "
                                    "shipped scene; print a summary; write plan.json, demo.png and "
                                    "demo.html (interactive, works offline) to --out.")
     p.add_argument("--scene", default=DEFAULT_SCENE, help=f"shipped scene or folder (default {DEFAULT_SCENE})")
     p.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot (default {DEFAULT_ROBOT})")
     p.add_argument("--target", default=None, help="target name in the scene (default: the first one)")
-    p.add_argument("--model", default="learned", help="shape model (default learned)")
+    p.add_argument("--model", default="physics", help="shape model (default physics: margin 0; the learned model plans with its error bound as margin)")
     p.add_argument("--time", type=float, default=5.0, help="planning time limit, s (default 5)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="demo_out", help="output folder (default demo_out)")

@@ -44,7 +44,7 @@ class Job:
     target: tuple[float, float, float]
     seed: int = 0
     robot: str = "seed1"
-    model: str = "learned"
+    model: str = "physics"
     planner: str = "rrtconnect"
     time_limit: float = 5.0
     tolerance_mm: float = 1.0
