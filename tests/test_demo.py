@@ -46,7 +46,7 @@ def test_demo_writes_what_it_names(demo_outputs):
     assert plan["success"] is True and plan["status"] == "SUCCESS"
     assert plan["tip_error_mm"] <= 1.0
     assert plan["min_clearance_mm"] >= 0.0
-    assert plan["robot"] == "seed1" and plan["model"] == "learned"
+    assert plan["robot"] == "seed1" and plan["model"] == "physics"
     assert "status SUCCESS" in stdout
 
 

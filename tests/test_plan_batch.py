@@ -76,7 +76,7 @@ def test_summary_rates_and_percentiles():
 
 def test_batch_writes_one_json_per_job_and_resumes(tmp_path, airway_targets):
     targets = [("airway", n, p) for n, p in airway_targets[:2]]
-    jobs = make_jobs(targets, seeds=[0], model="learned", time_limit=5.0)
+    jobs = make_jobs(targets, seeds=[0], model="physics", time_limit=5.0)
     out = tmp_path / "res"
     first = run_batch(jobs, out)
     assert (first.total, first.skipped, first.ran) == (2, 0, 2)
@@ -84,7 +84,7 @@ def test_batch_writes_one_json_per_job_and_resumes(tmp_path, airway_targets):
     assert [f.stem for f in files] == sorted(j.id for j in jobs)
     for f in files:
         d = json.loads(f.read_text())
-        assert d["status"] == "SUCCESS" and d["scene"] == "airway" and d["model"] == "learned"
+        assert d["status"] == "SUCCESS" and d["scene"] == "airway" and d["model"] == "physics"
         assert len(d["path"]) >= 2
     with open(out / "summary.csv") as fh:
         rows = list(csv.DictReader(fh))
