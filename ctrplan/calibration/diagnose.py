@@ -158,7 +158,7 @@ class DiagnoseReport:
                         self.max_after_mm)
 
     def to_dict(self) -> dict:
-        """JSON-ready dict (the report.json fields of DESIGN.md and more)."""
+        """JSON-ready dict (the report.json fields of docs/conventions.md and more)."""
         from dataclasses import asdict
 
         steps = [asdict(s) for s in self.steps]
@@ -475,8 +475,8 @@ def _data_check(robot: Robot, data: MeasuredData, evb: dict, pred_tip: np.ndarra
         reasons.append(f"even after the best rigid transform the tips are "
                        f"{pr['rms_after_mm']:.1f} mm (rms) from the model, far beyond any "
                        f"effect's reach at this robot's size ({span:.0f} mm)")
-        todo.append("check the robot file, the units (mm, rad) and that the columns are in "
-                    "DESIGN.md order")
+        todo.append("check the robot file, the units (mm, rad) and that the columns are in the "
+                    "order of docs/conventions.md")
     return (reasons, todo) if reasons else None
 
 

@@ -2,7 +2,7 @@
 
 Files in the output folder:
 
-``report.json``          DESIGN.md fields (effects, parameters, steps, error_before_mm,
+``report.json``          docs/conventions.md fields (effects, parameters, steps, error_before_mm,
                          error_after_mm) plus conclusion, split, diagnostics and settings.
 ``report.md``            a table per step (effect, fitted parameters +- uncertainty, held-out error
                          before/after, statistic, runner-up) and the conclusion.

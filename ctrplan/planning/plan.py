@@ -197,7 +197,7 @@ class PlanResult:
     requested_planner: str = ""
 
     def to_json(self) -> dict[str, Any]:
-        """The DESIGN.md plan fields (plus diagnostics), JSON-ready (no NaN: null instead)."""
+        """The plan.json fields of docs/conventions.md (plus diagnostics), JSON-ready (no NaN: null instead)."""
         return {
             "success": bool(self.success),
             "status": self.status.value,

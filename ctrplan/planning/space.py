@@ -8,7 +8,7 @@ State space. ``q = [alpha_1..alpha_n, beta_1..beta_n]`` is a compound of n ``SO2
 (rotations wrap to (-pi, pi]) weighted by ``alpha_weight_mm`` (mm of backbone motion per rad)
 and one bounded ``RealVector(n)`` of translations (mm, weight 1), so OMPL's distance
 ``sum_i w |d alpha_i| + ||d beta||`` is an estimate of backbone motion in mm. The box bounds of
-beta come from the robot; the coupled joint constraints of DESIGN.md are enforced by the
+beta come from the robot; the coupled joint constraints of docs/conventions.md are enforced by the
 validity checks (the constraint set is convex in beta, so a straight edge between two valid
 configurations never leaves it).
 

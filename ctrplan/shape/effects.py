@@ -9,7 +9,7 @@ inputs). Effects act at three stages of one batched :meth:`PhysicsModel.solve` c
    :class:`~ctrplan.shape.physics.MechanicsParams` handed to the kernel;
 3. sensor (``registration``): the rigid transform from the robot base to the sensor frame.
 
-The vocabulary (DESIGN.md):
+The vocabulary (docs/conventions.md):
 
 ``torsion``
     Torsional compliance of the tubes. ``compliance`` scales every tube's EI/GJ; 0 is the

@@ -185,7 +185,7 @@ def real_data(robot: Robot | str, n: int, seed: int = 1, points: int = 20,
 
 
 def from_measured(path: str, robot: Robot) -> ShapeData:
-    """Measured shapes from a CSV with backbone columns p1_x..pM_z (DESIGN.md)."""
+    """Measured shapes from a CSV with backbone columns p1_x..pM_z (docs/conventions.md)."""
     from ctrplan.errors import InputError
     from ctrplan.measured import read_measured
 
