@@ -79,6 +79,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"ctrplan {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception:
+        # Ctrl-C inside a library (numba compiling, say) can surface as another exception
+        if interrupt.interrupted():
+            print(f"ctrplan {args.command}: interrupted", file=sys.stderr)
+            return 130
+        raise
 
 
 def check_common_args(args: argparse.Namespace) -> None:

@@ -98,6 +98,22 @@ class _PathPipe:
 _pipe: _PathPipe | None = None
 
 
+_interrupted = False
+
+
+def interrupted() -> bool:
+    """True once Ctrl-C (SIGINT) reached this process inside :func:`guard`. Code interrupted
+    in a library (numba compiling, say) may surface as another exception; the command line
+    reports it as an interruption, not as a failure."""
+    return _interrupted
+
+
+def _on_sigint(signum, frame) -> None:
+    global _interrupted
+    _interrupted = True
+    raise KeyboardInterrupt
+
+
 def pending_added(path: str) -> None:
     if _pipe is not None:
         _pipe.send("+" + path)
@@ -136,10 +152,12 @@ def guard(grace: float = GRACE_S) -> Iterator[None]:
     except ValueError:
         old = None
     _pipe = _PathPipe(path_w)
+    old_handler = signal.signal(signal.SIGINT, _on_sigint)
     try:
         yield
     finally:
         _pipe = None
+        signal.signal(signal.SIGINT, old_handler)
         if old is not None:
             signal.set_wakeup_fd(old)
         os.close(wake_w)
