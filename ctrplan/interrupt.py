@@ -114,6 +114,17 @@ def _on_sigint(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
+def _quiet_unraisable(hook):
+    """An unraisable-exception hook that stays silent after Ctrl-C: a KeyboardInterrupt raised
+    inside a C callback (llvmlite's object cache while numba compiles, say) is reported through
+    this hook with a traceback, which a user who pressed Ctrl-C must not see."""
+    def quiet(unraisable) -> None:
+        if _interrupted or isinstance(unraisable.exc_value, KeyboardInterrupt):
+            return
+        hook(unraisable)
+    return quiet
+
+
 def pending_added(path: str) -> None:
     if _pipe is not None:
         _pipe.send("+" + path)
@@ -153,11 +164,14 @@ def guard(grace: float = GRACE_S) -> Iterator[None]:
         old = None
     _pipe = _PathPipe(path_w)
     old_handler = signal.signal(signal.SIGINT, _on_sigint)
+    old_hook = sys.unraisablehook
+    sys.unraisablehook = _quiet_unraisable(old_hook)
     try:
         yield
     finally:
         _pipe = None
         signal.signal(signal.SIGINT, old_handler)
+        sys.unraisablehook = old_hook
         if old is not None:
             signal.set_wakeup_fd(old)
         os.close(wake_w)
