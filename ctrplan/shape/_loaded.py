@@ -51,6 +51,7 @@ import numpy as np
 from numba import njit
 
 from ctrplan.shape._kernel import _tube_events, runtime
+from ctrplan.shape._shooting import _newton_step
 
 
 @njit(cache=True, error_model="numpy")
@@ -384,49 +385,6 @@ def _max_abs(v):
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_lin(jac, resid, dx, A):
-    """dx = -jac^{-1} resid (Gaussian elimination, partial pivoting); False if singular."""
-    n = resid.shape[0]
-    for i in range(n):
-        for j in range(n):
-            A[i, j] = jac[i, j]
-        dx[i] = -resid[i]
-    for kk in range(n):
-        p = kk
-        big = abs(A[kk, kk])
-        for i in range(kk + 1, n):
-            if abs(A[i, kk]) > big:
-                big = abs(A[i, kk])
-                p = i
-        if not (big > 0.0) or not math.isfinite(big):
-            return False
-        if p != kk:
-            for j in range(n):
-                t = A[kk, j]
-                A[kk, j] = A[p, j]
-                A[p, j] = t
-            t = dx[kk]
-            dx[kk] = dx[p]
-            dx[p] = t
-        inv = 1.0 / A[kk, kk]
-        for i in range(kk + 1, n):
-            f = A[i, kk] * inv
-            if f != 0.0:
-                for j in range(kk + 1, n):
-                    A[i, j] -= f * A[kk, j]
-                dx[i] -= f * dx[kk]
-    for kk in range(n - 1, -1, -1):
-        t = dx[kk]
-        for j in range(kk + 1, n):
-            t -= A[kk, j] * dx[j]
-        dx[kk] = t / A[kk, kk]
-    for i in range(n):
-        if not math.isfinite(dx[i]):
-            return False
-    return True
-
-
-@njit(cache=True, error_model="numpy")
 def _newton(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, out_s, m_out,
             step, tol, max_iter, pts, resid, jac, resid_t, jac_t, dx, xt, A, y, T, k, w, n0,
             wsum, ws, WS):
@@ -447,7 +405,7 @@ def _newton(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, o
     chord = True            # try the full step with the kept Jacobian first
     while r >= tol and it < max_iter and math.isfinite(r):
         it += 1
-        if not _solve_lin(jac, resid, dx, A):
+        if not _newton_step(jac, resid, dx, A):
             break
         if chord:
             # the full step without the variational equations
@@ -474,7 +432,7 @@ def _newton(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, o
             r = _max_abs(resid)
             at_x = True
             fresh = True
-            if not _solve_lin(jac, resid, dx, A):
+            if not _newton_step(jac, resid, dx, A):
                 break
         t = 1.0
         accepted = False

@@ -59,7 +59,7 @@ def _max_abs(v):
 
 
 @njit(cache=True, error_model="numpy")
-def _newton_step(jac, resid, dx, A, perm):
+def _newton_step(jac, resid, dx, A):
     """dx = -jac^{-1} resid by Gaussian elimination with partial pivoting (n is tiny).
     Returns False when the Jacobian is singular or not finite."""
     n = resid.shape[0]
@@ -67,7 +67,6 @@ def _newton_step(jac, resid, dx, A, perm):
         for j in range(n):
             A[i, j] = jac[i, j]
         dx[i] = -resid[i]
-        perm[i] = i
     for k in range(n):
         p = k
         big = abs(A[k, k])
@@ -141,7 +140,7 @@ def _det(jac, A):
 
 @njit(cache=True, error_model="numpy")
 def _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx, out_s, m, step, tol,
-            max_iter, may_shape, pts, resid, jac, resid_t, jac_t, dx, xt, A, perm,
+            max_iter, may_shape, pts, resid, jac, resid_t, jac_t, dx, xt, A,
             y, Y, a, w, pend, ws, WS, G):
     """Shooting on uz(0) = x (updated in place) by Newton with a backtracking line search.
 
@@ -159,7 +158,7 @@ def _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx, out_s, m, 
     quad = -1.0         # estimate of C in |resid after a full step| ~ C |dx|^2
     while r >= tol and it < max_iter and math.isfinite(r):
         it += 1
-        if not _newton_step(jac, resid, dx, A, perm):
+        if not _newton_step(jac, resid, dx, A):
             break
         dxn = _max_abs(dx)
         if may_shape and quad > 0.0 and quad * dxn * dxn < 0.1 * tol:
@@ -203,7 +202,7 @@ def _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx, out_s, m, 
 
 
 @njit(cache=True, error_model="numpy")
-def _unstable_direction(jac, ra, ei, d, v, A, perm):
+def _unstable_direction(jac, ra, ei, d, v, A):
     """Direction of the unstable mode of an unstable equilibrium, in the torque-balanced
     hyperplane sum_i GJ_i uz_i(0) = 0 that holds every unloaded equilibrium (the total
     torsional moment is conserved along s and vanishes at the tube ends): three inverse
@@ -233,7 +232,7 @@ def _unstable_direction(jac, ra, ei, d, v, A, perm):
             d[i] /= big
         if it == 3:
             return
-        if not _newton_step(jac, d, v, A, perm):      # v = -jac^{-1} d
+        if not _newton_step(jac, d, v, A):      # v = -jac^{-1} d
             return
         for i in range(n):
             d[i] = v[i]
@@ -313,7 +312,6 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
     resid_t = np.zeros(n)
     jac_t = np.zeros((n, n))
     A = np.zeros((n, n))
-    perm = np.zeros(n, dtype=np.int64)
     dx = np.zeros(n)
     x = np.zeros(n)
     xt = np.zeros(n)
@@ -348,7 +346,7 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
         if torsion:
             r, it, shaped = _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx,
                                     out_s, m, step, tol, max_iter, runtime(True), pts, resid, jac,
-                                    resid_t, jac_t, dx, xt, A, perm, y, Y, a, w, pend, ws, WS, G)
+                                    resid_t, jac_t, dx, xt, A, y, Y, a, w, pend, ws, WS, G)
             for K in (8, 32):
                 if r < tol:
                     break
@@ -360,7 +358,7 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
                         rs[i] = ra[i] * lam
                     r, itk, shaped = _newton(al, be, x, L, straight, ka, ei, rs, kk, tpos, ttyp,
                                              tidx, out_s, m, step, tol, max_iter, k == K, pts,
-                                             resid, jac, resid_t, jac_t, dx, xt, A, perm,
+                                             resid, jac, resid_t, jac_t, dx, xt, A,
                                              y, Y, a, w, pend, ws, WS, G)
                     it += itk
                     if not r < tol:
@@ -375,7 +373,7 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
                         amp = max(amp, abs(ka[i]))
                     for i in range(n):
                         xu[i] = x[i]
-                    _unstable_direction(jac, ra, ei, dvec, vtmp, A, perm)
+                    _unstable_direction(jac, ra, ei, dvec, vtmp, A)
                     nfound = 0
                     for side in range(2):
                         sgn = 1.0 if side == 0 else -1.0
@@ -385,7 +383,7 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
                             r2, it2, _sh = _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos,
                                                    ttyp, tidx, out_s, m, step, tol, max_iter,
                                                    runtime(False), pts, resid, jac, resid_t,
-                                                   jac_t, dx, xt, A, perm, y, Y, a, w, pend,
+                                                   jac_t, dx, xt, A, y, Y, a, w, pend,
                                                    ws, WS, G)
                             it += it2
                             if r2 < tol:
@@ -417,7 +415,7 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
                             r2, itk, _sh = _newton(al, be, x, L, straight, ka, ei, rs, kk, tpos,
                                                    ttyp, tidx, out_s, m, step, tol, max_iter,
                                                    runtime(False), pts, resid, jac, resid_t,
-                                                   jac_t, dx, xt, A, perm, y, Y, a, w, pend,
+                                                   jac_t, dx, xt, A, y, Y, a, w, pend,
                                                    ws, WS, G)
                             it += itk
                             if not r2 < tol:
@@ -472,7 +470,7 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
                             amp = max(amp, abs(ka[i]))
                         for i in range(n):
                             xu[i] = x[i]
-                        _unstable_direction(jac, ra, ei, dvec, vtmp, A, perm)
+                        _unstable_direction(jac, ra, ei, dvec, vtmp, A)
                         c0 = 0.0
                         for i in range(n):
                             c0 += dvec[i] * xu[i]
@@ -483,7 +481,7 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
                             r2, it2, _sh = _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos,
                                                    ttyp, tidx, out_s, m, step, tol, max_iter,
                                                    runtime(False), pts, resid, jac, resid_t,
-                                                   jac_t, dx, xt, A, perm, y, Y, a, w, pend,
+                                                   jac_t, dx, xt, A, y, Y, a, w, pend,
                                                    ws, WS, G)
                             if r2 < tol and _det(jac, A) > 0.0:
                                 diff = 0.0
