@@ -50,7 +50,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ctrplan.shape._kernel import _tube_events, runtime
+from ctrplan.shape._kernel import _hermite_out, _tube_events, runtime
 from ctrplan.shape._shooting import _newton_step
 
 
@@ -188,26 +188,8 @@ def _rk4(y, T, n, nx, k, w, eisum_inv, n0, wsum, sens, s0, seg, step, out_s, m_o
                 for c in range(nx):
                     T[r, c] += h6 * (K1[r, c] + 2.0 * K2[r, c] + 2.0 * K3[r, c] + K4[r, c])
         if want:
-            pbx = y[b + 9]
-            pby = y[b + 10]
-            pbz = y[b + 11]
-            tbx = y[b + 2]
-            tby = y[b + 5]
-            tbz = y[b + 8]
-            while ko < m_out and out_s[ko] < s_end and out_s[ko] <= sb:
-                th = (out_s[ko] - sa) / h
-                if th < 0.0:
-                    th = 0.0
-                th2 = th * th
-                th3 = th2 * th
-                h00 = 2.0 * th3 - 3.0 * th2 + 1.0
-                h10 = (th3 - 2.0 * th2 + th) * h
-                h01 = -2.0 * th3 + 3.0 * th2
-                h11 = (th3 - th2) * h
-                out_p[ko, 0] = h00 * pax + h10 * tax + h01 * pbx + h11 * tbx
-                out_p[ko, 1] = h00 * pay + h10 * tay + h01 * pby + h11 * tby
-                out_p[ko, 2] = h00 * paz + h10 * taz + h01 * pbz + h11 * tbz
-                ko += 1
+            ko = _hermite_out(out_s, out_p, ko, m_out, s_end, sa, sb, h, pax, pay, paz, tax, tay,
+                              taz, y, b)
     return ko
 
 
