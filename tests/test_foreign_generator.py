@@ -296,12 +296,14 @@ ALL = VOCAB_EFFECTS + OUTSIDE_EFFECTS
 
 def test_effects_off_reproduce_the_base_exactly():
     off = {
-        "clearance": {"amplitude": 0.0}, "friction": {"mu": 0.0},
-        "precurvature": {"scale": [1.0, 1.0, 1.0]}, "stiffness": {"scale": [1.0, 1.0, 1.0]},
+        "clearance": {"amplitude": 0.0, "lean": 0.0, "jump": 0.0}, "friction": {"mu": 0.0},
+        "precurvature": {"scale": [1.0, 1.0, 1.0], "ramp": [0.0] * 3},
+        "stiffness": {"scale": [1.0, 1.0, 1.0], "curved": [1.0] * 3, "torsion": [1.0] * 3},
         "load": {"gravity": None, "tip_force": None},
-        "joint_offset": {"alpha": [0.0] * 3, "beta": [0.0] * 3},
-        "registration": {"rotvec": [0.0] * 3, "translation": [0.0] * 3},
-        "distortion": {"amplitude": 0.0}, "drift": {"amplitude": 0.0},
+        "joint_offset": {"alpha": [0.0] * 3, "beta": [0.0] * 3, "periodic": [0.0] * 3,
+                         "beta_scale": [0.0] * 3},
+        "registration": {"rotvec": [0.0] * 3, "translation": [0.0] * 3, "scale": 0.0},
+        "distortion": {"amplitude": 0.0}, "drift": {"amplitude": 0.0, "step": 0.0},
     }
     for robot_effects in ({}, {"torsion": {}}):
         base = generate("seed1", "sweeps", n=120, effects=robot_effects, noise_mm=0.1, seed=5, points=5)
@@ -322,8 +324,11 @@ def test_every_effect_at_default_moves_the_tip(robot):
     for name in ALL:
         d = generate(robot, "sweeps", n=300, effects={name: {}}, noise_mm=0.0, seed=2)
         mean = np.linalg.norm(d.tip_clean - base.tip_clean, axis=1).mean()
-        # torsion is physical (GJ from E, nu): 0.46 mm on seed1, ~11-13 mm on the nylon pair
+        # torsion is physical (GJ from E, nu): ~1 mm on seed1, ~11-13 mm on the nylon pair;
+        # end-moment friction with its contact-length term is large on the nylon pair
         lo, hi = (0.3, 20.0) if name == "torsion" else (0.5, 8.0)
+        if name == "friction" and robot == "two_tube_nylon":
+            hi = 20.0
         assert lo < mean < hi, (name, mean)
 
 
@@ -334,7 +339,8 @@ def test_clearance_peaks_at_its_phase():
     assert valid(sp, q).all()
     for phase in (205.0, 90.0):
         base, _, _ = truth(sp, q, {})
-        cl, _, _ = truth(sp, q, {"clearance": {"amplitude": 0.05, "phase_deg": phase, "harmonics": [0.5, 0.5]}})
+        cl, _, _ = truth(sp, q, {"clearance": {"amplitude": 0.05, "phase_deg": phase,
+                                               "harmonics": [0.5, 0.5], "lean": 0.0, "jump": 0.0}})
         dev = np.linalg.norm(cl - base, axis=1)
         peak = np.rad2deg(phi[np.argmax(dev)])
         assert abs((peak - phase + 180) % 360 - 180) <= 5.0
@@ -495,16 +501,24 @@ def _kabsch_residual(a, b):
 
 def test_outside_effects_are_not_rigid_transforms():
     base = generate("seed1", "sweeps", n=400, effects={}, noise_mm=0.0, seed=3)
+    rigid = generate("seed1", "sweeps", n=400, effects={"registration": {"scale": 0.0}},
+                     noise_mm=0.0, seed=3)
+    assert _kabsch_residual(base.tip_clean, rigid.tip_clean) < 1e-9    # scale 0: rigid
     reg = generate("seed1", "sweeps", n=400, effects={"registration": {}}, noise_mm=0.0, seed=3)
-    assert _kabsch_residual(base.tip_clean, reg.tip_clean) < 1e-9       # registration is rigid
+    assert _kabsch_residual(base.tip_clean, reg.tip_clean) > 0.2       # the scale error
     for name in OUTSIDE_EFFECTS:
         d = generate("seed1", "sweeps", n=400, effects={name: {}}, noise_mm=0.0, seed=3)
-        assert _kabsch_residual(base.tip_clean, d.tip_clean) > 0.5, name
-    # drift grows with time: last rows displaced by the amplitude, first rows not at all
+        assert _kabsch_residual(base.tip_clean, d.tip_clean) > 0.3, name
+    # drift: exponential settling plus a step, closed form in the fraction of recording time
     d = generate("seed1", "sweeps", n=400, effects={"drift": {}}, noise_mm=0.0, seed=3)
-    dev = np.linalg.norm(d.tip_clean - base.tip_clean, axis=1)
-    assert dev[0] < 1e-9 and abs(dev[-1] - 4.0) < 1e-9
-    assert np.corrcoef(d.time, dev)[0, 1] > 0.99
+    p = d.effects["drift"]
+    t = (d.time - d.time.min()) / np.ptp(d.time)
+    u = np.array(p["direction"]) / np.linalg.norm(p["direction"])
+    v = np.array(p["step_direction"]) / np.linalg.norm(p["step_direction"])
+    tau = p["settle"]
+    expect = (p["amplitude"] * ((1 - np.exp(-t / tau)) / (1 - np.exp(-1 / tau)))[:, None] * u
+              + p["step"] * (t >= p["step_at"])[:, None] * v)
+    np.testing.assert_allclose(d.tip_clean - base.tip_clean, expect, atol=1e-9)
 
 
 def test_presliding_builds_up_after_a_reversal():
@@ -517,9 +531,11 @@ def test_presliding_builds_up_after_a_reversal():
     eff = {"friction": {"form": "presliding", "lag": 0.06, "angle": 0.25}}
     qe = _alpha_lag(eff, q, 1, directions(q, sweep), sweep)
     lag = q[:, 0] - qe[:, 0]
-    # closed form of z' = (c - z)/angle per unit rotation from z=0: c (1 - exp(-a/angle))
-    np.testing.assert_allclose(lag[:41], 0.06 * (1 - np.exp(-a[:41] / 0.25)), atol=1e-12)
-    assert lag[-1] < -0.05 and np.all(np.diff(lag[41:]) < 0)
+    # Dahl exponent 2, w = 1 - z/c: w' = -w^2/angle per unit rotation from w = 1:
+    # w = 1 / (1 + a/angle), lag = c (1 - w) (NOT ctrplan's exponential c (1 - exp(-a/angle)))
+    np.testing.assert_allclose(lag[:41], 0.06 * (1 - 1 / (1 + a[:41] / 0.25)), atol=1e-12)
+    assert np.max(np.abs(lag[:41] - 0.06 * (1 - np.exp(-a[:41] / 0.25)))) > 5e-3
+    assert lag[-1] < -0.04 and np.all(np.diff(lag[41:]) < 0)
 
 
 def test_robot_from_yaml_path_equals_shipped_name(tmp_path):
@@ -601,6 +617,7 @@ def test_conventions_agree_with_ctrplan_physics():
         d = generate(robot, "uniform", n=100, effects={}, seed=4)
         for torsion in tors:
             theirs = np.asarray(PhysicsModel(robot, torsion=torsion).shape(d.q, points=20).points)
-            mine = backbones(robot, d.q, {"torsion": {}} if torsion else {}, points=20)
+            plain = {"torsion": {"gj_scale": 1.0, "coupling": 0.0}}
+            mine = backbones(robot, d.q, plain if torsion else {}, points=20)
             dev = np.linalg.norm(theirs - mine, axis=2).max()
             assert dev < (1e-3 if torsion else 1e-9), (robot, torsion, dev)
