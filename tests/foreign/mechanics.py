@@ -742,6 +742,19 @@ def cosserat(spec: Spec, alpha, beta, *, torsion=True, gravity=None, tip_force=N
                 xb, cb = _newton(pb0.take(bad), xs, False, K, EIref, tol, max_iter)
             x[bad] = xb
             conv[bad] = cb
+        if not conv.all() and cpl is not None:
+            # compliant couplings: continue from the solution without them (the branch the
+            # robot is on as the coupling compliance grows from 0)
+            bad = np.flatnonzero(~conv)
+            pbb = pb0.take(bad)
+            xb = np.zeros((bad.size, n))
+            cb = np.ones(bad.size, bool)
+            for f in (0.0, 0.25, 0.5, 0.75, 1.0):
+                pbb.coupling = f * cpl
+                xb, cf = _newton(pbb, xb, False, K, EIref, tol, max_iter)
+                cb &= cf
+            x[bad] = xb
+            conv[bad] = cb
         ok &= conv
     else:
         x = np.zeros((B, 0))
