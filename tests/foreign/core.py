@@ -214,6 +214,16 @@ def truth(spec: Spec, q: np.ndarray, eff: dict, direction=None, sweep=None, poin
         ok = np.ones(q.shape[0], bool)
     tip = bb.tip()
     pts = bb.points(points) if points else None
+    c_b = float(load.get("base_compliance") or 0.0) if load is not None else 0.0
+    if c_b:
+        # a compliant mount: the whole robot turns about the base origin by c_b times the
+        # bending moment the loads put on it there (m(0), base frame, its x and y components)
+        m0 = bb.info["m0"]
+        rv = c_b * np.c_[m0[:, 0], m0[:, 1], np.zeros(len(m0))]
+        Rb = np.stack([E.rotation_matrix(r) for r in rv])
+        tip = np.einsum("bij,bj->bi", Rb, tip)
+        if pts is not None:
+            pts = np.einsum("bij,bmj->bmi", Rb, pts)
     return tip, pts, ok
 
 

@@ -74,12 +74,18 @@ load          {"gravity": [gx, gy, gz] m/s^2 in the base frame (default [9.81, 0
               ``density`` or nitinol 6450), "tip_force": [Fx, Fy, Fz] N (default "auto":
               (0, -1e-5 EI_1, 0) N, EI_1 of the innermost tube in N mm^2), "lumen_density":
               kg/m^3 of what fills the innermost tube's lumen (a wire, a fibre, fluid; default
-              5000)}. The defaults apply to {} only: with any key given, the keys not given are
-              absent (gravity None, no tip force, empty lumen), e.g. {"gravity": [0, -9.81, 0]}
-              is gravity alone.
-              Why not ctrplan's: its weight per length is g times each tube's own density from
-              the robot file (one scale for all tubes); the filled lumen makes the innermost
-              tube relatively heavier.
+              5000), "tether": N/mm (default 1.5e-4) and "anchor": [3] mm (default "auto":
+              (0.15, 0, 1.0) L_1): a cable (the tracker sensor's lead, a tissue attachment)
+              pulls the tip toward the anchor with F = tether (anchor - tip) (fixed point in the
+              tip), "base_compliance": rad per N mm (default 0): the mount turns the whole
+              robot about the base origin by that times the loads' bending moment there}.
+              The defaults apply to {} only: with any key given, the keys not given are absent
+              (gravity None, no tip force, empty lumen, no tether, rigid mount), e.g.
+              {"gravity": [0, -9.81, 0]} is gravity alone.
+              Why not ctrplan's: its loads are a constant gravity (times each tube's density
+              from the robot file, one scale for all tubes) and a constant tip force; the
+              tether's force depends on where the tip is (the filled lumen alone would be
+              nearly absorbed by a larger g).
 joint_offset  {"alpha": [rad per tube], "beta": [mm per tube], "periodic": [rad per tube],
                "periodic_phase": [rad per tube], "beta_scale": [per tube]}
               true alpha = alpha + offset + periodic sin(alpha + periodic_phase) (an eccentric
@@ -154,7 +160,7 @@ def defaults(name: str, n: int, spec=None) -> dict:
                 "torsion": _alt(n, 1.0, 0.8, 1.1)}
     if name == "load":
         return {"gravity": [9.81, 0.0, 0.0], "density": None, "tip_force": "auto",
-                "lumen_density": 5000.0, "tether": 4e-4, "anchor": "auto"}
+                "lumen_density": 5000.0, "tether": 1.5e-4, "anchor": "auto", "base_compliance": 0.0}
     if name == "joint_offset":
         return {"alpha": _alt(n, 0.05, -0.06, 0.04), "beta": _alt(n, -1.5, -1.0, -0.5),
                 "periodic": _alt(n, 0.03, 0.025, 0.02), "periodic_phase": _alt(n, 0.7, 2.1, -1.3),
@@ -204,7 +210,7 @@ def resolve(effects, n: int, spec=None) -> dict:
         if name == "load" and params:
             # explicit loads: what is not given is absent (a gravity-only or force-only load)
             base = {"gravity": None, "density": None, "tip_force": None, "lumen_density": None,
-                    "tether": None, "anchor": "auto"}
+                    "base_compliance": None, "tether": None, "anchor": "auto"}
         base.update(params)
         if name == "load" and isinstance(base.get("tip_force"), str):
             if base["tip_force"] != "auto" or spec is None:

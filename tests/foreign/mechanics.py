@@ -774,4 +774,5 @@ def cosserat(spec: Spec, alpha, beta, *, torsion=True, gravity=None, tip_force=N
     XL, T, rec = _integrate(pb, X0, True, K, record=True)
     r = _residual(pb, XL, T, EIref)
     ok = ok & conv & (np.max(np.abs(r), axis=1) < 1e-8)
-    return CosseratBackbone(g, rec[0], rec[1], rec[2], ok, dict(K=K, x=x, state_end=XL))
+    return CosseratBackbone(g, rec[0], rec[1], rec[2], ok,
+                            dict(K=K, x=x, state_end=XL, m0=X0[:, 2 * n + 12:2 * n + 15].copy()))
