@@ -98,11 +98,13 @@ registration  {"rotvec": [rad x3], "translation": [mm x3], "scale": [x3] or scal
               scale is off by a fraction of a percent). Default scale (0.008, -0.006, 0.01).
               Why not ctrplan's: its registration is rigid (no scale).
 distortion    {"amplitude": mm, "width": mm or "auto", "centres": [[3] x k] mm or "auto",
-               "vectors": [[3] x k]}  a localised tracker-field warp (metal near the field
-              generator): p + amplitude sum_k v_k exp(-|p - c_k|^2 / (2 width^2)); "auto" places
-              three centres in the robot's workspace, width 0.1 L_1 (L_1 the innermost tube's
-              length).  Why not ctrplan's nuisance: its field is a cubic polynomial of the
-              measured position; Gaussian bumps of width ~30 mm inside a ~100 mm workspace are not.
+               "vectors": [[3] x k] or "auto"}  a rough tracker-field warp (metal parts near
+              the field generator): p + amplitude sum_k v_k exp(-|p - c_k|^2 / (2 width^2)), v_k
+              unit vectors; "auto": 36 centres on a grid over the workspace (spacing 0.1 L_1,
+              :func:`distortion_grid`), width 0.05 L_1 (L_1 the innermost tube's length, 16 mm
+              on seed1). Why not ctrplan's nuisance: its field is a cubic polynomial of the
+              measured position; a field varying over ~16 mm inside a ~100 mm workspace is not
+              (a cubic fit leaves 20-50 % of it on seed1 sweeps).
 drift         {"amplitude": mm, "direction": [3], "settle": 0.15, "step": mm, "step_at": 0.6,
                "step_direction": [3]}  sensor drift: an exponential settling
               amplitude (1 - exp(-t / tau)) / (1 - exp(-1 / tau)) along ``direction``
@@ -169,8 +171,7 @@ def defaults(name: str, n: int, spec=None) -> dict:
         return {"rotvec": [0.012, -0.009, 0.015], "translation": [1.2, -0.9, 1.5],
                 "scale": [0.012, -0.008, 0.015]}
     if name == "distortion":
-        return {"amplitude": 2.5, "width": "auto", "centres": "auto",
-                "vectors": [[0.8, -0.4, 0.45], [-0.3, 0.7, -0.65], [0.5, 0.5, -0.7]]}
+        return {"amplitude": 2.5, "width": "auto", "centres": "auto", "vectors": "auto"}
     if name == "drift":
         return {"amplitude": 4.0, "direction": [0.6, -0.48, 0.64], "settle": 0.15, "step": 1.5,
                 "step_at": 0.6, "step_direction": [-0.5, 0.7, 0.5]}
@@ -187,8 +188,14 @@ def friction_defaults(form: str) -> dict:
     raise ValueError(f"unknown friction form {form!r}; known: {FRICTION_FORMS}")
 
 
-#: distortion centres ("auto"), in units of the innermost tube's length L_1, sensor frame
-DISTORTION_CENTRES = ((0.10, -0.06, 0.70), (-0.12, 0.08, 0.56), (0.0, 0.12, 0.80))
+def distortion_grid(L1: float) -> tuple[list, list]:
+    """The "auto" distortion: centres on a grid over the workspace, x, y in {-0.1, 0, 0.1} L_1,
+    z in {0.5, 0.6, 0.7, 0.8} L_1 (sensor frame), and fixed pseudo-random displacement directions
+    (numpy default_rng(12345), normalised)."""
+    g = (-0.1, 0.0, 0.1)
+    C = np.array([(x, y, z) for x in g for y in g for z in (0.5, 0.6, 0.7, 0.8)]) * L1
+    V = np.random.default_rng(12345).normal(size=C.shape)
+    return C.tolist(), V.tolist()
 
 
 def resolve(effects, n: int, spec=None) -> dict:
@@ -229,9 +236,12 @@ def resolve(effects, n: int, spec=None) -> dict:
         if name == "distortion":
             L1 = float(spec.L[0]) if spec is not None else 300.0
             if isinstance(base.get("width"), str):
-                base["width"] = 0.1 * L1
+                base["width"] = 0.05 * L1
+            C, V = distortion_grid(L1)
             if isinstance(base.get("centres"), str):
-                base["centres"] = [[L1 * c for c in cc] for cc in DISTORTION_CENTRES]
+                base["centres"] = C
+            if isinstance(base.get("vectors"), str):
+                base["vectors"] = V
         out[name] = copy.deepcopy(base)
     return out
 
