@@ -286,7 +286,7 @@ STUDY_EFFECTS = {
     "torsion": {"gj_scale": 6.0, "coupling": [40.0, 20.0]},
     "clearance": {"amplitude": 0.15, "phase_deg": 205.0, "harmonics": [0.5, 0.32, 0.18],
                   "lean": 0.015, "jump": "gap"},
-    "friction": {"form": "end_moment", "mu": 0.06, "contact": 0.5},
+    "friction": {"form": "end_moment", "mu": 0.06, "contact": 12.0},
 }
 # The generator's own forms (outside ctrplan's families, tests/foreign/effects.py): clearance with
 # a second harmonic, a sideways lean and a jump within the gap; end-moment friction growing with

@@ -34,14 +34,15 @@ clearance     {"amplitude": rad, "phase_deg": 205, "harmonics": [h0, h1, h2, ...
               translation jump in any form).
 friction      {"form": "end_moment" | "coulomb_lag" | "presliding", ...}
               end_moment (the study's end moment, with friction growing with contact length):
-              a torque T = s mu (|M| + contact EI_o kappa_o l_c / L_o) at the distal end of each
-              outer tube o (|M| its bending moment there, EI_o kappa_o its nominal bending moment,
+              a torque T = s mu (|M| + contact M_c l_c / L_o) at the distal end of each
+              outer tube o (|M| its bending moment there, M_c = EI_o EI_i / (EI_o + EI_i)
+              |kappa_o - kappa_i| the moment scale of the contact with the tube i inside it,
               l_c its exposed length = the contact
               length with the tube inside it, L_o its length, s the sign of the relative rotation
               direction of the pair, inner minus outer), +T on the outer tube and -T on the inner
               one; with torsion in the Cosserat boundary conditions, without as the rotation
               correction dtheta = T l / GJ of each tube (l: its length from its base to that
-              point).  {"mu": 0.045, "contact": 2.0}  (contact 0: the study's form)
+              point).  {"mu": 0.03, "contact": 12.0}  (contact 0: the study's form)
               Why not ctrplan's: its end_moment torque is mu |M| (no term growing with the
               exposed length), its lag forms constant angles.
               coulomb_lag: each tube's transmitted rotation lags its command in the direction of
@@ -180,7 +181,7 @@ def defaults(name: str, n: int, spec=None) -> dict:
 
 def friction_defaults(form: str) -> dict:
     if form == "end_moment":
-        return {"form": form, "mu": 0.045, "contact": 2.0}
+        return {"form": form, "mu": 0.03, "contact": 12.0}
     if form == "coulomb_lag":
         return {"form": form, "lag": 0.06, "beta_lag": 0.0, "growth": 1.8}
     if form == "presliding":

@@ -170,14 +170,17 @@ def _arc(ux, uy, h):
 
 
 def end_torque(spec, g, o, M, mu, contact, rel):
-    """Friction torque where outer tube o ends (N mm): T = s mu (|M| + contact M_o l_c / L_o),
+    """Friction torque where outer tube o ends (N mm): T = s mu (|M| + contact M_c l_c / L_o),
     s = ``rel`` the direction of the relative rotation of the pair (inner minus outer), |M| the
-    outer tube's bending moment there, M_o = EI_o kappa_o its nominal bending moment, l_c = its
-    exposed length (the contact length with the tube inside it in front of the plane), L_o its
-    length. ``contact`` 0 is the study's concentrated end moment."""
+    outer tube's bending moment there, M_c = EI_o EI_i / (EI_o + EI_i) |kappa_o - kappa_i| the
+    moment scale of the pair's contact (i = o - 1; their curvature mismatch, nominal), l_c = the
+    outer tube's exposed length (the contact length in front of the plane), L_o its length.
+    ``contact`` 0 is the study's concentrated end moment."""
     T = np.abs(M)
     if contact:
-        T = T + contact * spec.EI[o] * spec.kappa[o] * g.ends[:, o] / spec.L[o]
+        i = o - 1
+        Mc = spec.EI[o] * spec.EI[i] / (spec.EI[o] + spec.EI[i]) * abs(spec.kappa[o] - spec.kappa[i])
+        T = T + contact * Mc * g.ends[:, o] / spec.L[o]
     return mu * rel * T
 
 
