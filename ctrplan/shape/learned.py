@@ -780,7 +780,8 @@ class LearnedModel:
         model.error_quantiles = eq
         model.domain = domain
         keep = ("training", "metrics", "data", "created", "command", "ctrplan_version",
-                "error_quantiles_source", "variant")
+                "error_quantiles_source", "variant", "error_profile", "error_profile_source",
+                "selection")
         model.meta = {k: meta[k] for k in keep if k in meta}
         model.source = src
         return model
