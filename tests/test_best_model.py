@@ -116,7 +116,9 @@ def test_best_with_tip_only_data_writes_no_profile(tmp_path):
     assert getattr(best, "error_profile", None) is None and "error_profile" not in getattr(best, "meta", {})
     test = np.asarray(table["split"]["test_row_indices"])
     assert set(np.asarray(d.sweep)[test]) == set(table["split"]["test_sweeps"])
-    tip_dev = np.linalg.norm(best.backbone(md.q[test], 2)[:, -1] - md.tip[test], axis=1) \
-        if not getattr(best, "needs_direction", False) else None
-    if tip_dev is not None:
-        assert table["candidates"][res.winner]["mean_mm"] == pytest.approx(tip_dev.mean(), rel=1e-6)
+    # tip deviations recomputed with the generator's own directions of motion (rows in order)
+    target = np.stack([np.zeros((len(test), 3)), md.tip[test]], axis=1)
+    dev = _deviations(best, md.q[test], np.asarray(d.direction)[test], target)
+    assert np.all(dev[:, 0] < 1e-9)                                # the base point stays put
+    assert table["candidates"][res.winner]["mean_mm"] == pytest.approx(dev[:, 1].mean(), rel=1e-6)
+    assert best.error_quantiles["max"] == pytest.approx(dev[:, 1].max(), rel=1e-6)

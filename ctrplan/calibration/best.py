@@ -36,6 +36,7 @@ the learned models work in the robot base frame, as planning needs.
 
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 import os
@@ -241,7 +242,10 @@ def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: 
                             points=None if data.points is None else data.points[dev])
     log.info("best model: %d test rows held out (%s), diagnose on %d rows", int(test.sum()),
              split["method"], int(dev.sum()))
-    rep = diagnose(robot, dev_data, base=base, seed=seed, out=out, **(diagnose_kwargs or {}))
+    dkw = dict(diagnose_kwargs or {})
+    if "learned_residual" in inspect.signature(diagnose).parameters:
+        dkw.setdefault("learned_residual", False)   # superseded by the candidates below
+    rep = diagnose(robot, dev_data, base=base, seed=seed, out=out, **dkw)
     calibrated = rep.model()
     effects = {k: dict(v) for k, v in calibrated.effects.items()}
     frame_effects = {k: v for k, v in effects.items() if k != "registration"}
