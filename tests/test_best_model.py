@@ -122,3 +122,41 @@ def test_best_with_tip_only_data_writes_no_profile(tmp_path):
     assert np.all(dev[:, 0] < 1e-9)                                # the base point stays put
     assert table["candidates"][res.winner]["mean_mm"] == pytest.approx(dev[:, 1].mean(), rel=1e-6)
     assert best.error_quantiles["max"] == pytest.approx(dev[:, 1].max(), rel=1e-6)
+
+
+def test_registration_is_inverted_into_the_robot_frame():
+    from scipy.spatial.transform import Rotation
+
+    from ctrplan.calibration.best import to_robot_frame
+
+    rng = np.random.default_rng(0)
+    p = rng.normal(0, 50, (7, 5, 3))
+    rv, t = np.array([0.1, -0.2, 0.05]), np.array([3.0, -1.0, 2.0])
+    sensor = Rotation.from_rotvec(rv).apply(p.reshape(-1, 3)).reshape(p.shape) + t
+    eff = {"registration": {"tx": t[0], "ty": t[1], "tz": t[2], "rx": rv[0], "ry": rv[1], "rz": rv[2]}}
+    np.testing.assert_allclose(to_robot_frame(eff, sensor), p, atol=1e-9)
+    np.testing.assert_array_equal(to_robot_frame({}, sensor), sensor)
+
+
+def test_test_split_holds_out_whole_sweeps_or_contiguous_blocks():
+    from ctrplan.calibration.best import test_split
+    from ctrplan.measured import MeasuredData
+
+    N = 200
+    q = np.zeros((N, 6))
+    q[:, 3] = np.arange(N) * 0.01
+    many = MeasuredData(q=q, tip=np.zeros((N, 3)), sweep=np.repeat([f"s{k}" for k in range(10)], 20).astype(object))
+    test, lab, desc = test_split(many, 0.2, seed=1)
+    held = set(desc["test_sweeps"])
+    assert len(held) == 2 and set(np.asarray(many.sweep)[test]) == held
+    assert not held & set(np.asarray(many.sweep)[~test])
+    one = MeasuredData(q=q, tip=np.zeros((N, 3)))                  # one continuous trajectory
+    test, lab, desc = test_split(one, 0.2, seed=1)
+    assert 0.15 * N <= test.sum() <= 0.25 * N
+    starts = np.flatnonzero(np.diff(test.astype(int)) == 1)        # contiguous blocks, not rows
+    assert len(starts) <= 2
+    dev_labels = set(lab[~test].tolist())
+    assert len(dev_labels) >= 3 and not dev_labels & set(lab[test].tolist())
+    for name in dev_labels:                                        # each dev label is contiguous
+        idx = np.flatnonzero(lab == name)
+        assert np.all(np.diff(idx) == 1)
