@@ -160,3 +160,15 @@ def test_test_split_holds_out_whole_sweeps_or_contiguous_blocks():
     for name in dev_labels:                                        # each dev label is contiguous
         idx = np.flatnonzero(lab == name)
         assert np.all(np.diff(idx) == 1)
+
+
+@pytest.mark.parametrize("frac", ["0", "1.5"])
+def test_bad_test_fraction_exits_2_without_output(tmp_path, capsys, frac):
+    from tests.foreign import generate
+
+    d = generate(robot="seed1", design="uniform", n=30, effects={}, noise_mm=0.2, seed=1)
+    d.write_csv(tmp_path / "m.csv")
+    out = tmp_path / "out"
+    assert main(["-q", "diagnose", "--robot", "seed1", "--data", str(tmp_path / "m.csv"), "--best",
+                 "--test-fraction", frac, "--out", str(out)]) == 2
+    assert "--test-fraction" in capsys.readouterr().err and not out.exists()

@@ -56,6 +56,8 @@ __all__ = ["best_model", "BestResult", "test_split", "CANDIDATES"]
 
 #: candidate names, in order of simplicity (ties go to the first)
 CANDIDATES = ("nominal", "calibrated", "calibrated+learned", "learned")
+#: fewer development rows than this: no learned candidates (nothing to train and validate on)
+MIN_LEARNED_ROWS = 20
 #: the comparison metric
 METRIC = "max deviation along the shaft per test configuration (tip deviation with tip-only data), mm"
 
@@ -264,6 +266,11 @@ def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: 
             "calibrated": "diagnose's calibrated model" + (
                 f" ({', '.join(frame_effects)})" if frame_effects else " (no effect kept: nominal)")}
     selections: dict[str, Any] = {}
+    skipped = None
+    if learned and int(dev.sum()) < MIN_LEARNED_ROWS:
+        skipped = f"learned candidates skipped: {int(dev.sum())} development rows (< {MIN_LEARNED_ROWS})"
+        log.info("best model: %s", skipped)
+        learned = False
     if learned:
         torch_threads = torch.get_num_threads()
         sdata = T.ShapeData(data.q, target, source=str(getattr(data, "source", "measured")),
@@ -314,6 +321,8 @@ def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: 
                      report=rep, shapes=shapes)
     split["frame"] = ("robot base frame (measured points mapped with the calibrated registration)"
                       if "registration" in effects else "robot base frame (no registration calibrated)")
+    if skipped:
+        split["note"] = skipped
     split["directions"] = "from the row order of the whole data set" if ordered else "none (rows are independent samples)"
     res.elapsed_s = time.perf_counter() - t0
     if out is not None:
