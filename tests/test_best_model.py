@@ -172,3 +172,25 @@ def test_bad_test_fraction_exits_2_without_output(tmp_path, capsys, frac):
     assert main(["-q", "diagnose", "--robot", "seed1", "--data", str(tmp_path / "m.csv"), "--best",
                  "--test-fraction", frac, "--out", str(out)]) == 2
     assert "--test-fraction" in capsys.readouterr().err and not out.exists()
+
+
+def test_error_profile_round_trips_through_the_calibrated_yaml_and_bad_ones_are_refused(tmp_path):
+    from ctrplan.errors import InputError
+    from ctrplan.shape.effects import EffectModel
+
+    prof = {"fractions": [0.0, 0.5, 1.0], "p50": [0.1, 0.5, 1.0], "p95": [0.2, 0.9, 2.0],
+            "p99": [0.3, 1.1, 2.5], "max": [0.4, 1.5, 3.0]}
+    m = EffectModel("seed1", "rigid", {"precurvature": {"scale1": 1.05}},
+                    error_quantiles={"p50": 1.0, "p95": 2.0, "p99": 2.5, "max": 3.0}, error_profile=prof)
+    m.save(tmp_path / "c.yaml")
+    back = load_model(str(tmp_path / "c.yaml"), "seed1")
+    assert back.error_profile == prof and back.planning_model().error_profile == prof
+    import yaml
+
+    doc = yaml.safe_load((tmp_path / "c.yaml").read_text())
+    for key, value in (("fractions", [0.0, 1.5, 1.0]), ("p99", [0.3, float("nan"), 2.5]),
+                       ("max", [0.4, 1.5]), ("p96", [0.2, 0.9, 2.0])):
+        bad = {**doc, "error_profile": {**prof, key: value}}
+        (tmp_path / "bad.yaml").write_text(yaml.safe_dump(bad))
+        with pytest.raises(InputError, match="error_profile"):
+            load_model(str(tmp_path / "bad.yaml"), "seed1")
