@@ -202,12 +202,18 @@ def split(data: ShapeData, fractions: Sequence[float] = (0.8, 0.1, 0.1),
     """Seeded train/validation/test split (each part gets at least one row).
 
     Data with at least 3 sweeps is split by whole sweeps (rows of a sweep stay together,
-    roughly the row fractions; held-out sweeps), otherwise by random rows."""
+    roughly the row fractions; held-out sweeps). Measured rows in order of motion with fewer
+    sweeps (directions known or sweep ids given) are cut into contiguous blocks (about
+    :data:`SPLIT_BLOCKS` in all, labelled ``"<sweep>#block<k>"``) split the same way, so that held-out
+    rows are not the neighbours of training rows; other data (simulated, independent rows) by
+    random rows."""
     N = len(data)
     if N < 3:
         raise ValueError(f"need at least 3 rows to split, got {N}")
     if data.sweep is not None and len(np.unique(data.sweep)) >= 3:
         return split_sweeps(data, fractions, seed)
+    if (data.sweep is not None or data.direction is not None) and N >= SPLIT_BLOCKS:
+        return split_sweeps(dataclasses.replace(data, sweep=block_labels(data)), fractions, seed)
     perm = np.random.default_rng(seed).permutation(N)
     n_val = max(1, int(round(fractions[1] * N)))
     n_test = max(1, int(round(fractions[2] * N)))
@@ -216,6 +222,35 @@ def split(data: ShapeData, fractions: Sequence[float] = (0.8, 0.1, 0.1),
         raise ValueError(f"too few rows ({N}) for a train/validation/test split")
     return (data.subset(perm[:n_train]), data.subset(perm[n_train:n_train + n_val]),
             data.subset(perm[n_train + n_val:]))
+
+
+#: contiguous blocks :func:`split` cuts measured rows with fewer than 3 sweeps into
+SPLIT_BLOCKS = 10
+BLOCK_TAG = "#block"
+
+
+def block_labels(data: ShapeData, blocks: int = SPLIT_BLOCKS) -> np.ndarray:
+    """(N,) labels ``"<sweep>#block<k>"``: each sweep (all rows when there are no sweep ids) cut
+    into contiguous blocks, about ``blocks`` in all."""
+    N = len(data)
+    sw = np.full(N, "0", dtype=object) if data.sweep is None else np.asarray(data.sweep).astype(str)
+    names = list(dict.fromkeys(sw.tolist()))
+    per = max(1, int(math.ceil(blocks / len(names))))
+    lab = np.empty(N, dtype=object)
+    for name in names:
+        rows = np.flatnonzero(sw == name)
+        nb = max(1, min(per, len(rows)))
+        k = (np.arange(len(rows)) * nb) // len(rows)
+        lab[rows] = [f"{name}{BLOCK_TAG}{j}" for j in k]
+    return lab
+
+
+def split_kind(part: ShapeData) -> str:
+    """How a split part was held out: "whole sweeps", "contiguous blocks" or "rows"."""
+    if part.sweep is None:
+        return "rows"
+    sw = np.asarray(part.sweep).astype(str)
+    return "contiguous blocks" if len(sw) and all(BLOCK_TAG in x for x in sw[:1]) else "whole sweeps"
 
 
 def split_sweeps(data: ShapeData, fractions: Sequence[float] = (0.8, 0.1, 0.1),
@@ -626,7 +661,7 @@ def finish(model: LearnedModel, seen: ShapeData, test: ShapeData, label: str,
                             source="sim: uniform over the robot's joint limits")
     dev = shape_errors(predict(model, test), test.points)
     eq = model.set_error_quantiles(dev.max(axis=1))
-    part = "held-out test split" + (" (whole sweeps)" if test.sweep is not None else "")
+    part = f"held-out test split ({split_kind(test)})"
     model.meta["error_quantiles_source"] = {
         "data": test.source, "part": part, **_part(test),
         "metric": "max deviation along the shaft per configuration, mm"}
@@ -970,7 +1005,8 @@ def sweep(robot: Robot | str, sim: ShapeData, real: ShapeData,
         "data": {"sim": sim.describe(), "real": real.describe(),
                  "splits": {"sim": [len(s_tr), len(s_va), len(s_te)],
                             "real": [len(r_tr), len(r_va), len(r_te)]},
-                 "real_split_by": "sweep" if r_te.sweep is not None else "row"},
+                 "real_split_by": {"whole sweeps": "sweep", "contiguous blocks": "contiguous block",
+                                   "rows": "row"}[split_kind(r_te)]},
         "physics": evaluate(phys, r_te), "physics_sim_test": summary_metrics(evaluate(phys, s_te)),
         "runs": [],
     }
