@@ -139,19 +139,19 @@ def test_registration_is_inverted_into_the_robot_frame():
 
 
 def test_test_split_holds_out_whole_sweeps_or_contiguous_blocks():
-    from ctrplan.calibration.best import test_split
+    from ctrplan.calibration.best import holdout_split
     from ctrplan.measured import MeasuredData
 
     N = 200
     q = np.zeros((N, 6))
     q[:, 3] = np.arange(N) * 0.01
     many = MeasuredData(q=q, tip=np.zeros((N, 3)), sweep=np.repeat([f"s{k}" for k in range(10)], 20).astype(object))
-    test, lab, desc = test_split(many, 0.2, seed=1)
+    test, lab, desc = holdout_split(many, 0.2, seed=1)
     held = set(desc["test_sweeps"])
     assert len(held) == 2 and set(np.asarray(many.sweep)[test]) == held
     assert not held & set(np.asarray(many.sweep)[~test])
     one = MeasuredData(q=q, tip=np.zeros((N, 3)))                  # one continuous trajectory
-    test, lab, desc = test_split(one, 0.2, seed=1)
+    test, lab, desc = holdout_split(one, 0.2, seed=1)
     assert 0.15 * N <= test.sum() <= 0.25 * N
     starts = np.flatnonzero(np.diff(test.astype(int)) == 1)        # contiguous blocks, not rows
     assert len(starts) <= 2

@@ -52,7 +52,7 @@ from ctrplan.robot import Robot, load_robot
 
 log = logging.getLogger("ctrplan")
 
-__all__ = ["best_model", "BestResult", "test_split", "CANDIDATES"]
+__all__ = ["best_model", "BestResult", "holdout_split", "CANDIDATES"]
 
 #: candidate names, in order of simplicity (ties go to the first)
 CANDIDATES = ("nominal", "calibrated", "calibrated+learned", "learned")
@@ -93,7 +93,7 @@ def _ordered(sw: np.ndarray) -> bool:
     return len(set(sw.tolist())) < max(2, len(sw) // 2)
 
 
-def test_split(data: MeasuredData, test_fraction: float = 0.2, seed: int = 0,
+def holdout_split(data: MeasuredData, test_fraction: float = 0.2, seed: int = 0,
                blocks: int = 10) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """(test mask, development sweep labels (B,) object, description) - see the module
     docstring. Development labels are the sweep ids, or ``"<sweep>#<block>"`` when the data
@@ -120,16 +120,10 @@ def test_split(data: MeasuredData, test_fraction: float = 0.2, seed: int = 0,
         test = np.isin(lab.astype(str), held)
         return test, lab, {"method": "random rows held out (rows are independent samples)",
                            "test_rows": int(test.sum())}
-    per = max(2, int(math.ceil(blocks / len(names))))
-    lab = np.empty(N, dtype=object)
-    order: list[str] = []
-    for name in names:
-        rows = np.flatnonzero(sw == name)
-        nb = max(1, min(per, len(rows)))
-        b = (np.arange(len(rows)) * nb) // len(rows)
-        for j in range(nb):
-            order.append(f"{name}#{j}")
-        lab[rows] = [f"{name}#{j}" for j in b]
+    from ctrplan.shape.training import block_labels
+
+    lab = block_labels(sw, N, blocks)
+    order = list(dict.fromkeys(lab.tolist()))
     L = len(order)
     k = min(max(1, int(round(test_fraction * L))), max(1, L - 3))
     held = sorted({order[min(L - 1, int((i + 0.5) * L / k))] for i in range(k)})
@@ -233,7 +227,7 @@ def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: 
     sw = np.asarray(data.sweeps()).astype(str)
     ordered = _ordered(sw)
     direction = (direction_from_rows(data.q, sw) if ordered else np.zeros(data.q.shape, dtype=np.int8))
-    test, labels, split = test_split(data, test_fraction, seed)
+    test, labels, split = holdout_split(data, test_fraction, seed)
     dev = ~test
     split.update({"rows": len(data), "test_rows_count": int(test.sum()), "dev_rows": int(dev.sum()),
                   "test_row_indices": np.flatnonzero(test).tolist(),

@@ -213,7 +213,7 @@ def split(data: ShapeData, fractions: Sequence[float] = (0.8, 0.1, 0.1),
     if data.sweep is not None and len(np.unique(data.sweep)) >= 3:
         return split_sweeps(data, fractions, seed)
     if (data.sweep is not None or data.direction is not None) and N >= SPLIT_BLOCKS:
-        return split_sweeps(dataclasses.replace(data, sweep=block_labels(data)), fractions, seed)
+        return split_sweeps(dataclasses.replace(data, sweep=block_labels(data.sweep, N)), fractions, seed)
     perm = np.random.default_rng(seed).permutation(N)
     n_val = max(1, int(round(fractions[1] * N)))
     n_test = max(1, int(round(fractions[2] * N)))
@@ -229,13 +229,12 @@ SPLIT_BLOCKS = 10
 BLOCK_TAG = "#block"
 
 
-def block_labels(data: ShapeData, blocks: int = SPLIT_BLOCKS) -> np.ndarray:
-    """(N,) labels ``"<sweep>#block<k>"``: each sweep (all rows when there are no sweep ids) cut
-    into contiguous blocks, about ``blocks`` in all."""
-    N = len(data)
-    sw = np.full(N, "0", dtype=object) if data.sweep is None else np.asarray(data.sweep).astype(str)
+def block_labels(sweep: np.ndarray | None, N: int, blocks: int = SPLIT_BLOCKS) -> np.ndarray:
+    """(N,) labels ``"<sweep>#block<k>"``: each sweep (all N rows when ``sweep`` is None) cut
+    into contiguous blocks, about ``blocks`` in all (at least 2 per sweep where it has 2 rows)."""
+    sw = np.full(N, "0", dtype=object) if sweep is None else np.asarray(sweep).astype(str)
     names = list(dict.fromkeys(sw.tolist()))
-    per = max(1, int(math.ceil(blocks / len(names))))
+    per = max(2, int(math.ceil(blocks / len(names))))
     lab = np.empty(N, dtype=object)
     for name in names:
         rows = np.flatnonzero(sw == name)
