@@ -76,7 +76,7 @@ def test_best_model_is_the_candidate_with_the_lowest_recomputed_test_error(best_
     dev = _deviations(best, q, dirs, pts)
     np.testing.assert_allclose(dev, devs[winner], atol=1e-6)
     mx = dev.max(axis=1)
-    prof = best.meta["error_profile"] if hasattr(best, "meta") else best.error_profile
+    prof = best.error_profile
     np.testing.assert_allclose(prof["fractions"], np.linspace(0, 1, 20))
     for k, p in (("p50", 50), ("p95", 95), ("p99", 99), ("max", 100)):
         assert best.error_quantiles[k] == pytest.approx(np.percentile(mx, p), rel=1e-6)
@@ -113,7 +113,7 @@ def test_best_with_tip_only_data_writes_no_profile(tmp_path):
     assert set(table["candidates"]) == {"nominal", "calibrated", "calibrated+learned"}
     assert all("error_profile" not in v for v in table["candidates"].values())
     best = load_model(str(tmp_path / table["files"]["best_model"]), "seed1")
-    assert getattr(best, "error_profile", None) is None and "error_profile" not in getattr(best, "meta", {})
+    assert best.error_profile is None
     test = np.asarray(table["split"]["test_row_indices"])
     assert set(np.asarray(d.sweep)[test]) == set(table["split"]["test_sweeps"])
     # tip deviations recomputed with the generator's own directions of motion (rows in order)

@@ -213,7 +213,7 @@ def test_train_without_variant_flags_chooses_by_validation_error(tmp_path, sweep
     q, pts, d = _rows_of(sweeps_csv, ts)
     pred = m.shape(q, 20, direction=d).points if m.needs_direction else m.backbone(q, 20)
     dev = np.sqrt(((pred - pts) ** 2).sum(axis=2))
-    prof = m.meta["error_profile"]
+    prof = m.error_profile
     np.testing.assert_allclose(prof["fractions"], np.arange(20) / 19)
     for k, p in (("p50", 50), ("p95", 95), ("p99", 99), ("max", 100)):
         np.testing.assert_allclose(prof[k], np.percentile(dev, p, axis=0), rtol=1e-4, atol=1e-5)

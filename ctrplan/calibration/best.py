@@ -358,15 +358,13 @@ def _attach_bound(model: Any, row: dict[str, Any], shapes: bool, split: dict[str
     prof = row.get("error_profile") if shapes else None
     src = {"part": "best-model test rows (" + split["method"] + ")",
            "rows": row["rows"], "metric": METRIC}
-    if hasattr(model, "meta"):                    # learned model: metadata
+    model.error_profile = dict(prof) if prof else None
+    if hasattr(model, "meta"):                    # learned model: where the numbers come from
         model.meta["error_quantiles_source"] = src
-        model.meta.pop("error_profile", None)
+        model.meta.pop("error_profile_source", None)
         if prof:
-            model.meta["error_profile"] = prof
             model.meta["error_profile_source"] = {**src, "metric": "distance of the backbone point "
                                                   "at each arc-length fraction, mm"}
-    else:
-        model.error_profile = dict(prof) if prof else None
 
 
 def _write(res: BestResult, models: dict[str, Any], out: Path) -> None:

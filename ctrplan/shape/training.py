@@ -664,10 +664,10 @@ def finish(model: LearnedModel, seen: ShapeData, test: ShapeData, label: str,
     model.meta["error_quantiles_source"] = {
         "data": test.source, "part": part, **_part(test),
         "metric": "max deviation along the shaft per configuration, mm"}
-    model.meta.pop("error_profile", None)
+    model.error_profile = None
     model.meta.pop("error_profile_source", None)
     if profile and test.points.shape[1] >= 2:
-        model.meta["error_profile"] = error_profile(dev)
+        model.error_profile = error_profile(dev)
         model.meta["error_profile_source"] = {
             "data": test.source, "part": part, **_part(test),
             "metric": "distance of the backbone point at each arc-length fraction, mm"}
