@@ -21,8 +21,9 @@ Procedure (:func:`best_model`):
    measured shapes (or a new network where no shipped one fits the robot), pure or
    direction-aware, chosen the same way.
 5. **Comparison on the test rows**: every candidate's max deviation along the shaft per test
-   configuration (tip deviation where only tips are measured); the one with the lowest mean
-   wins (ties: the simpler, in the order above). The winner is written with the quantiles of
+   configuration (tip deviation where only tips are measured), on the rows every candidate
+   answers (a row where a model's solver fails is counted in its ``failed_rows``; only the
+   candidates with the fewest failed rows may win); the one with the lowest mean wins (ties: the simpler, in the order above). The winner is written with the quantiles of
    that deviation (``error_quantiles``) and, where shapes are measured, the ``error_profile``
    per arc-length fraction (docs/conventions.md). The choice among a handful of candidates on
    the same rows that give its error makes that error slightly optimistic; nothing was fitted
@@ -177,20 +178,19 @@ def _deviations(model: Any, q: np.ndarray, direction: np.ndarray, target: np.nda
     return np.linalg.norm(pred - target, axis=2)
 
 
-def _metrics(dev: np.ndarray, shapes: bool) -> dict[str, Any]:
+def _metrics(dev: np.ndarray, common: np.ndarray, shapes: bool) -> dict[str, Any]:
+    """Test metrics of one candidate on the rows every candidate answered (``common``)."""
     from ctrplan.shape.learned import error_quantiles
     from ctrplan.shape.training import error_profile
 
     mx = dev.max(axis=1)
-    ok = np.isfinite(mx)
-    out: dict[str, Any] = {"rows": int(ok.sum()), "failed_rows": int((~ok).sum()),
-                           "mean_mm": float(mx[ok].mean()) if ok.any() else math.inf,
-                           "tip_mean_mm": float(dev[ok, -1].mean()) if ok.any() else math.inf,
-                           "error_quantiles": error_quantiles(mx) if ok.any() else None}
-    if shapes and ok.any():
-        out["error_profile"] = error_profile(dev)
-    if (~ok).any():                               # a model that cannot answer a row loses
-        out["mean_mm"] = math.inf
+    out: dict[str, Any] = {"rows": int(common.sum()), "failed_rows": int((~np.isfinite(mx)).sum()),
+                           "mean_mm": math.inf, "tip_mean_mm": math.inf, "error_quantiles": None}
+    if common.any():
+        out.update(mean_mm=float(mx[common].mean()), tip_mean_mm=float(dev[common, -1].mean()),
+                   error_quantiles=error_quantiles(mx[common]))
+        if shapes:
+            out["error_profile"] = error_profile(dev[common])
     return out
 
 
@@ -301,13 +301,17 @@ def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: 
     # ---------------------------------------------------------------- compare on the test rows
     qt, dt, yt = data.q[test], direction[test], target[test]
     table: dict[str, dict[str, Any]] = {}
-    for name, model in models.items():
-        table[name] = {"description": desc[name],
-                       **_metrics(_deviations(model, qt, dt, yt), shapes)}
+    devs = {name: _deviations(model, qt, dt, yt) for name, model in models.items()}
+    common = np.all([np.isfinite(d.max(axis=1)) for d in devs.values()], axis=0)
+    split["compared_rows"] = int(common.sum())
+    for name in models:
+        table[name] = {"description": desc[name], **_metrics(devs[name], common, shapes)}
         if name in selections:
             table[name]["variant_selection"] = selections[name]
         log.info("best model: %-18s test mean max deviation %.3f mm", name, table[name]["mean_mm"])
-    winner = min(models, key=lambda k: (table[k]["mean_mm"], CANDIDATES.index(k)))
+    fewest = min(table[k]["failed_rows"] for k in models)   # failing more rows: not eligible
+    winner = min((k for k in models if table[k]["failed_rows"] == fewest),
+                 key=lambda k: (table[k]["mean_mm"], CANDIDATES.index(k)))
     for name, model in models.items():
         _attach_bound(model, table[name], shapes, split)
         table[name]["winner"] = name == winner
