@@ -195,3 +195,14 @@ def test_error_profile_round_trips_through_the_calibrated_yaml_and_bad_ones_are_
         (tmp_path / "bad.yaml").write_text(yaml.safe_dump(bad))
         with pytest.raises(InputError, match="error_profile"):
             load_model(str(tmp_path / "bad.yaml"), "seed1")
+
+
+def test_winner_rule_lowest_mean_fewest_failures_simplest_on_ties():
+    from ctrplan.calibration.best import choose_winner
+
+    def t(**rows):
+        return {k.replace("_", "+"): {"mean_mm": m, "failed_rows": f} for k, (m, f) in rows.items()}
+
+    assert choose_winner(t(nominal=(3.0, 0), calibrated=(2.0, 0), calibrated_learned=(1.0, 0))) == "calibrated+learned"
+    assert choose_winner(t(nominal=(3.0, 0), calibrated=(2.0, 0), calibrated_learned=(1.0, 4))) == "calibrated"
+    assert choose_winner(t(nominal=(2.0, 0), calibrated=(2.0, 0), learned=(2.5, 0))) == "nominal"

@@ -309,9 +309,7 @@ def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: 
         if name in selections:
             table[name]["variant_selection"] = selections[name]
         log.info("best model: %-18s test mean max deviation %.3f mm", name, table[name]["mean_mm"])
-    fewest = min(table[k]["failed_rows"] for k in models)   # failing more rows: not eligible
-    winner = min((k for k in models if table[k]["failed_rows"] == fewest),
-                 key=lambda k: (table[k]["mean_mm"], CANDIDATES.index(k)))
+    winner = choose_winner(table)
     for name, model in models.items():
         _attach_bound(model, table[name], shapes, split)
         table[name]["winner"] = name == winner
@@ -327,6 +325,14 @@ def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: 
         _write(res, models, Path(out))
     log.info("best model: %s (test mean max deviation %.3f mm)", winner, table[winner]["mean_mm"])
     return res
+
+
+def choose_winner(table: dict[str, dict[str, Any]]) -> str:
+    """The candidate with the lowest test mean among those with the fewest failed rows
+    (ties: the simpler, in the order of :data:`CANDIDATES`)."""
+    fewest = min(row["failed_rows"] for row in table.values())
+    return min((k for k, row in table.items() if row["failed_rows"] == fewest),
+               key=lambda k: (table[k]["mean_mm"], CANDIDATES.index(k)))
 
 
 def _train_val(dv, seed: int):
