@@ -5,9 +5,11 @@ docstring: seed1, clearance + precurvature error + end-moment friction, 0.3 mm n
 fine-tuning shapes from back-and-forth sweeps, 3 whole held-out sweeps of 150 rows) for every
 Sim+Real variant (pure, direction-aware, residual over the Sim model, residual + direction) and
 reports the mean max deviation along the shaft per seed and over seeds, next to physics and the
-Sim-only model. Usage (from the repository root)::
+Sim-only model. ``--auto`` runs :func:`tests.test_learned_foreign.auto_experiment` instead: what
+``ctrplan train`` does without variant flags (the variant chosen on the validation sweep) next to
+each variant given explicitly, on the same held-out test sweep. Usage (from the repository root)::
 
-    python benchmarks/bench_learned_foreign.py [--seeds 10] [--out benchmarks/results/learned_foreign.json]
+    python benchmarks/bench_learned_foreign.py [--seeds 10] [--auto] [--out benchmarks/results/learned_foreign.json]
 """
 
 from __future__ import annotations
@@ -46,6 +48,32 @@ def run(seeds: int = 10, variants=T.VARIANTS) -> dict:
             "torch": torch.__version__}
 
 
+def run_auto(seeds: int = 5) -> dict:
+    """The automatic variant choice vs each explicit variant, per seed and in the mean."""
+    from tests.test_learned_foreign import auto_experiment
+
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    runs = [auto_experiment(s) for s in range(seeds)]
+    auto = np.array([r["auto"] for r in runs])
+    per = {v: float(np.mean([r["variants"][v] for r in runs])) for v in T.VARIANTS}
+    best = min(per, key=per.get)
+    return {"seeds": seeds, "runs": runs, "physics": float(np.mean([r["physics"] for r in runs])),
+            "auto": float(auto.mean()), "variants": per, "best_variant": best,
+            "auto_over_best": float(auto.mean() / per[best]), "seconds": time.perf_counter() - t0}
+
+
+def markdown_auto(res: dict) -> str:
+    lines = [f"Foreign generator, seed1, {res['seeds']} seeds: `train` without variant flags vs each "
+             "variant given explicitly, mean max deviation on the held-out test sweep (mm)", "",
+             "| model | mean (mm) |", "|---|---|", f"| physics | {res['physics']:.3f} |",
+             f"| automatic choice (chose {', '.join(r['chosen'] for r in res['runs'])}) | {res['auto']:.3f} |"]
+    lines += [f"| {v} | {m:.3f} |" for v, m in res["variants"].items()]
+    lines.append(f"\nautomatic / best ({res['best_variant']}): {res['auto_over_best']:.3f}; "
+                 f"{res['seconds']:.0f} s in all.")
+    return "\n".join(lines)
+
+
 def markdown(res: dict) -> str:
     s = res["summary"]
     lines = [f"Foreign generator, seed1, {res['seeds']} seeds: mean max deviation along the shaft "
@@ -66,9 +94,14 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--auto", action="store_true", help="the automatic variant choice vs each variant")
     args = ap.parse_args(argv)
-    res = run(args.seeds)
-    md = markdown(res)
+    if args.auto:
+        res = run_auto(args.seeds)
+        md = markdown_auto(res)
+    else:
+        res = run(args.seeds)
+        md = markdown(res)
     print(md)
     if args.out:
         with open(args.out, "w") as fh:

@@ -106,3 +106,50 @@ def test_best_sim_plus_real_variant_beats_physics_by_40_percent_over_10_seeds():
     msg = f"physics {phys.mean():.3f}, " + ", ".join(f"{v} {a.mean():.3f}" for v, a in per.items())
     assert gain >= MIN_GAIN, msg
     assert np.all(per[best] < phys), msg
+
+
+#: The done-when of issue 19: ``train`` without variant flags within this factor of the best
+#: variant (mean over seeds of the held-out mean max deviation).
+AUTO_WITHIN = 1.10
+AUTO_SEEDS = range(5)
+
+
+def auto_experiment(seed: int, n_rows: int = 1500, epochs: int = 300) -> dict:
+    """What ``ctrplan train --init learned --real CSV`` does without variant flags (automatic
+    choice on the validation sweep) next to each variant given explicitly (``--variant V``,
+    residual over physics in both), all with the same splits (pretrain_finetune: 80/10/10 by
+    whole sweeps) and evaluated on the same held-out test sweeps, never seen by the choice."""
+    r = load_robot("seed1")
+    sim = default_model_for(r)
+    data = foreign_data(seed, n_rows)
+    fine = T.TrainConfig(epochs=epochs, lr=5e-4, batch_size=128, patience=20, seed=seed, progress=False)
+    real_only = T.TrainConfig(epochs=epochs, lr=2e-3, batch_size=128, patience=20, seed=seed, progress=False)
+    kw = dict(seed=seed, fine=fine, real_only=real_only, base=sim, residual_base=PhysicsModel(r))
+    _, _, te = T.split(data, seed=seed + 1)
+    out = {"seed": seed, "physics": T.evaluate(PhysicsModel(r), te)["max_dev_mean"], "variants": {}}
+    t0 = time.perf_counter()
+    model, rep = T.pretrain_finetune(r, None, data, variant="auto", **kw)
+    out["auto_seconds"] = time.perf_counter() - t0
+    out["auto"] = T.evaluate(model, te)["max_dev_mean"]
+    out["chosen"] = rep.variant
+    for v in T.VARIANTS:
+        m, _ = T.pretrain_finetune(r, None, data, variant=v, **kw)
+        out["variants"][v] = T.evaluate(m, te)["max_dev_mean"]
+    return out
+
+
+@pytest.mark.statistical
+def test_train_without_variant_flags_is_within_10_percent_of_the_best_variant():
+    """5 seeds at full size (1,500 rows in 10 sweeps; 8 training, 1 validation, 1 test sweep):
+    the automatically chosen variant's mean max deviation on the test sweeps, averaged over
+    the seeds, is at most 1.10 x that of the best variant given explicitly (the best by the
+    same average), and it beats physics in every seed."""
+    torch.set_num_threads(1)
+    runs = [auto_experiment(s) for s in AUTO_SEEDS]
+    auto = np.array([r["auto"] for r in runs])
+    per = {v: np.array([r["variants"][v] for r in runs]) for v in T.VARIANTS}
+    best = min(per, key=lambda v: per[v].mean())
+    msg = (f"auto {auto.mean():.3f} (chose {[r['chosen'] for r in runs]}), "
+           + ", ".join(f"{v} {a.mean():.3f}" for v, a in per.items()))
+    assert auto.mean() <= AUTO_WITHIN * per[best].mean(), msg
+    assert np.all(auto < np.array([r["physics"] for r in runs])), msg

@@ -43,21 +43,23 @@ def test_train_writes_a_loadable_model_with_metadata(tmp_path):
 def test_train_fine_tunes_on_measured_csv(tmp_path, measured_csv):
     out = tmp_path / "ft.pt"
     assert main(["-q", "train", "--robot", "seed1", "--sim", "200", "--real", str(measured_csv),
-                 *SMALL, "--out", str(out)]) == 0
+                 "--variant", "pure", *SMALL, "--out", str(out)]) == 0
     m = LearnedModel.load(out)
     assert m.meta["data"]["real"]["source"] == str(measured_csv)
     assert {"pretrain", "finetune"} <= set(m.meta["training"])
     assert "real_test" in m.meta["metrics"]
+    assert m.meta["selection"]["mode"] == "explicit" and m.meta["variant"] == "pure"
+    assert not out.with_suffix(".variants.json").exists()
     out2 = tmp_path / "real_only.pt"
     assert main(["-q", "train", "--robot", "seed1", "--sim", "0", "--real", str(measured_csv),
-                 *SMALL, "--out", str(out2)]) == 0
+                 "--variant", "pure", *SMALL, "--out", str(out2)]) == 0
     assert "real" in LearnedModel.load(out2).meta["training"]
 
 
 def test_train_fine_tunes_the_shipped_model(tmp_path, measured_csv):
     out = tmp_path / "init.pt"
     assert main(["-q", "train", "--robot", "seed1", "--init", "learned", "--real", str(measured_csv),
-                 "--fine-epochs", "2", "--out", str(out)]) == 0
+                 "--variant", "pure", "--fine-epochs", "2", "--out", str(out)]) == 0
     m = LearnedModel.load(out)
     assert (m.width, m.depth, m.terms) == (30, 3, 7)          # the shipped architecture
     assert "sim" not in m.meta["data"] and "finetune" in m.meta["training"]
@@ -146,3 +148,91 @@ def test_direction_without_measured_data_exits_2(tmp_path, capsys):
     assert main(["-q", "train", "--robot", "seed1", "--sim", "50", "--direction",
                  "--out", str(tmp_path / "m.pt")]) == 2
     assert "--real" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def sweeps_csv(tmp_path_factory):
+    """Foreign-generator shapes (clearance + end-moment friction, back-and-forth sweeps):
+    10 sweeps of 40 rows with backbone points, in order of motion."""
+    from tests.foreign import generate
+
+    r = load_robot("seed1")
+    d = generate(robot="seed1", design="sweeps", n=400, effects={"clearance": {}, "friction": {}},
+                 noise_mm=0.2, seed=5, points=20, sweeps=10)
+    path = tmp_path_factory.mktemp("sweeps") / "sweeps.csv"
+    write_measured(path, r, MeasuredData(q=np.asarray(d.q, float), tip=np.asarray(d.tip, float),
+                                         sweep=np.asarray(d.sweep).astype(str).astype(object),
+                                         points=np.asarray(d.points, float)))
+    return path
+
+
+def _rows_of(csv, sweeps):
+    from ctrplan.measured import read_measured
+
+    md = read_measured(csv, load_robot("seed1"))
+    sw = np.asarray(md.sweep).astype(str)
+    keep = np.isin(sw, list(sweeps))
+    # directions from the row order, computed here independently of ctrplan
+    q = md.q
+    n = q.shape[1] // 2
+    d = np.zeros(q.shape, dtype=float)
+    for k in range(1, len(q)):
+        if sw[k] != sw[k - 1]:
+            continue
+        step = q[k] - q[k - 1]
+        step[:n] = (step[:n] + np.pi) % (2 * np.pi) - np.pi
+        d[k] = np.where(np.abs(step) > 1e-9, np.sign(step), d[k - 1])
+    return q[keep], md.points[keep], d[keep]
+
+
+def test_train_without_variant_flags_chooses_by_validation_error(tmp_path, sweeps_csv):
+    out = tmp_path / "auto.pt"
+    assert main(["-q", "train", "--robot", "seed1", "--sim", "0", "--real", str(sweeps_csv),
+                 "--width", "10", "--depth", "2", "--terms", "5", "--fine-epochs", "24",
+                 "--out", str(out)]) == 0
+    m = LearnedModel.load(out)
+    sel = json.loads(out.with_suffix(".variants.json").read_text())
+    assert m.meta["selection"] == sel and sel["mode"] == "auto"
+    rows = {r["variant"]: r for r in sel["candidates"]}
+    assert set(rows) == set(T.VARIANTS)                          # the rows show reversals
+    val = {v: r["val_max_dev_mean_mm"] for v, r in rows.items()}
+    assert sel["chosen"] == min(val, key=val.get) == m.meta["variant"]
+    assert [v for v, r in rows.items() if r["chosen"]] == [sel["chosen"]]
+    assert m.needs_direction == sel["chosen"].endswith("direction")
+    assert sel["chosen"] in out.with_suffix(".variants.md").read_text()
+    # validation and test sweeps: disjoint, and the final validation error recomputed here
+    vs, ts = set(sel["validation"]["sweeps"]), set(sel["test"]["sweeps"])
+    assert vs and ts and not vs & ts
+    q, pts, d = _rows_of(sweeps_csv, vs)
+    pred = m.shape(q, 20, direction=d).points if m.needs_direction else m.backbone(q, 20)
+    dev = np.sqrt(((pred - pts) ** 2).sum(axis=2))
+    assert dev.max(axis=1).mean() == pytest.approx(sel["final_val_max_dev_mean_mm"], rel=1e-4)
+    assert sel["final_val_max_dev_mean_mm"] <= val[sel["chosen"]] + 1e-9
+    # error quantiles and the error profile on the test sweeps, recomputed with numpy
+    assert set(m.meta["error_profile_source"]["sweeps"]) == ts
+    q, pts, d = _rows_of(sweeps_csv, ts)
+    pred = m.shape(q, 20, direction=d).points if m.needs_direction else m.backbone(q, 20)
+    dev = np.sqrt(((pred - pts) ** 2).sum(axis=2))
+    prof = m.error_profile
+    np.testing.assert_allclose(prof["fractions"], np.arange(20) / 19)
+    for k, p in (("p50", 50), ("p95", 95), ("p99", 99), ("max", 100)):
+        np.testing.assert_allclose(prof[k], np.percentile(dev, p, axis=0), rtol=1e-4, atol=1e-5)
+        assert m.error_quantiles[k] == pytest.approx(np.percentile(dev.max(axis=1), p), rel=1e-4)
+    assert prof["p99"][0] < prof["p99"][-1]                      # the base barely moves
+
+
+def test_explicit_variant_flag_overrides_and_conflicts_exit_2(tmp_path, sweeps_csv, capsys):
+    out = tmp_path / "res.pt"
+    assert main(["-q", "train", "--robot", "seed1", "--real", str(sweeps_csv), "--variant", "residual",
+                 *SMALL, "--out", str(out)]) == 0
+    m = LearnedModel.load(out)
+    from ctrplan.shape.physics import PhysicsModel
+
+    assert isinstance(m.base, PhysicsModel) and not m.needs_direction
+    assert m.meta["selection"]["mode"] == "explicit" and m.meta["variant"] == "residual"
+    assert "sim" not in m.meta["data"]                            # residual over physics: no pre-training
+    for extra, needle in ((["--variant", "pure", "--direction"], "--direction"),
+                          (["--variant", "direction", "--residual", "physics"], "--residual")):
+        assert main(["-q", "train", "--robot", "seed1", "--real", str(sweeps_csv), *extra,
+                     "--out", str(tmp_path / "x.pt")]) == 2
+        assert needle in capsys.readouterr().err

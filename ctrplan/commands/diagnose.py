@@ -32,6 +32,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--min-gain", type=float, default=0.05,
                    help="and cut held-out mean tip error by at least this fraction (default 0.05)")
     p.add_argument("--seed", type=int, default=0, help="seed of the sweep split (default 0)")
+    p.add_argument("--best", action="store_true",
+                   help="also build the best model of the robot: hold out test sweeps (or blocks) "
+                        "first, run the diagnosis on the rest, fit a learned residual over the "
+                        "calibrated model (direction-aware when the rows show motion) and a learned "
+                        "model alone (shapes measured), compare nominal, calibrated, calibrated + "
+                        "learned and learned on the same untouched test rows and write the winner "
+                        "as best_model.yaml or best_model.pt (with its test error_quantiles and, "
+                        "where shapes are measured, error_profile; use with --model) and the "
+                        "comparison as best_model.json / best_model.md")
+    p.add_argument("--test-fraction", type=float, default=0.2,
+                   help="with --best: fraction of the sweeps held out for the comparison (default 0.2)")
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=run)
 
@@ -43,14 +54,29 @@ def run(args: argparse.Namespace) -> int:
 
     if not 0 < args.holdout < 1:
         raise InputError("--holdout", "", f"must be in (0, 1), got {args.holdout}")
+    if not 0 < args.test_fraction < 1:
+        raise InputError("--test-fraction", "", f"must be in (0, 1), got {args.test_fraction}")
     robot = load_robot(args.robot)
     data = read_measured(args.data, robot)
     cands = None
     if args.effects:
         cands = [c.strip() for c in args.effects.split(",") if c.strip()]
-    rep = diagnose(robot, data, base=args.base, candidates=cands, holdout=args.holdout,
-                   seed=args.seed, bic_threshold=args.bic_threshold, min_gain=args.min_gain,
-                   out=args.out)
+    best = None
+    if args.best:
+        from ctrplan.calibration.best import best_model
+
+        best = best_model(robot, data, out=args.out, base=args.base, test_fraction=args.test_fraction,
+                          seed=args.seed, diagnose_kwargs=dict(
+                              candidates=cands, holdout=args.holdout, bic_threshold=args.bic_threshold,
+                              min_gain=args.min_gain))
+        rep = best.report
+    else:
+        rep = diagnose(robot, data, base=args.base, candidates=cands, holdout=args.holdout,
+                       seed=args.seed, bic_threshold=args.bic_threshold, min_gain=args.min_gain,
+                       out=args.out)
+    extra = {} if best is None else {"best": {
+        "winner": best.winner, "file": best.files.get("best_model"),
+        "test_mean_mm": {k: round(v["mean_mm"], 4) for k, v in best.candidates.items()}}}
     print(json.dumps({"headline": rep.headline(), "status": rep.status.value,
                       "conclusion": rep.conclusion, "effects": rep.effects,
                       "error_before_mm": round(rep.error_before_mm, 4),
@@ -58,5 +84,5 @@ def run(args: argparse.Namespace) -> int:
                       "max_before_mm": round(rep.max_before_mm, 4),
                       "max_after_mm": round(rep.max_after_mm, 4),
                       "unexplained": rep.unexplained is not None, "warnings": rep.warnings,
-                      "out": str(args.out)}))
+                      "out": str(args.out), **extra}))
     return 0

@@ -19,14 +19,24 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Pre-train the learned shape network on simulated shapes (uniform valid "
                     "configurations, compliant physics model), then fine-tune it on measured "
                     "shapes (a measured CSV with backbone columns p1_x..pM_z). Each data set is "
-                    "split 80/10/10 into train/validation/test; training minimises the sum of "
+                    "split 80/10/10 into train/validation/test (measured rows by whole sweeps, or with "
+                    "fewer than 3 sweeps by contiguous blocks of the motion); training minimises the sum of "
                     "squared point distances with Adam and stops early on the validation loss. "
                     "Writes a model file (.pt) with its metadata, the held-out error quantiles "
                     "(p50/p95/p99/max of the max deviation along the shaft) and the training "
                     "domain (joint ranges seen; the model answers ok=False outside). "
-                    "--direction adds the direction of the last motion of each joint as inputs "
-                    "(from row order within each sweep of the CSV); --residual learns the "
-                    "difference to a base model. With --sweep: train Sim-only, and Real-only and "
+                    "With --real and no variant flags the variant is chosen by held-out error: "
+                    "the candidates (pure; direction-aware when the rows show motion with "
+                    "reversals; residual over physics; residual + direction) are each trained "
+                    "with a share of the epochs, the one with the lowest mean max deviation on "
+                    "the validation sweeps (not used for training) is trained on and kept; the "
+                    "table goes to MODEL.variants.json / .md beside the model and into its "
+                    "metadata ('selection'). --variant NAME, --direction or --residual choose "
+                    "the variant instead: --direction adds the direction of the last motion of "
+                    "each joint as inputs (from row order within each sweep of the CSV); "
+                    "--residual learns the difference to a base model. With shapes measured "
+                    "the model also stores error_profile (p50/p95/p99/max per arc-length "
+                    "fraction of the point deviation on the held-out test split). With --sweep: train Sim-only, and Real-only and "
                     "Sim+Real for each variant (pure, direction-aware, residual, both) for several "
                     "architectures, evaluated on held-out whole sweeps, and write tables "
                     "(results.md, results.json) and plots (PNG) to the --out folder.")
@@ -67,6 +77,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "'rigid', 'sim' (the pre-trained or --init model; no physics call at "
                         "evaluation), a calibrated model file from diagnose, or a learned model file; "
                         "with physics/rigid/FILE --sim defaults to 0")
+    p.add_argument("--variant", default=None, choices=("auto", "pure", "direction", "residual", "residual+direction"),
+                   help="the model variant (default with --real: auto, chosen by held-out error; "
+                        "without --real: pure); residual variants use --residual BASE (default "
+                        "physics)")
     p.add_argument("--refit", action="store_true",
                    help="after early stopping has chosen the epochs, train again on the measured "
                         "training + validation parts for that many epochs")
@@ -116,7 +130,13 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     robot = load_robot(args.robot)
     terms = args.terms or basis.DEFAULT_TERMS
+    if args.variant is not None and args.direction:
+        raise InputError("--direction", "", "give either --variant or --direction")
+    if args.variant in ("pure", "direction") and args.residual is not None:
+        raise InputError("--residual", "", f"--variant {args.variant} does not take a residual base")
     explicit_base = args.residual is not None and args.residual != "sim"
+    if args.variant is not None and args.variant.startswith("residual") and args.residual is None:
+        explicit_base = True                      # residual over physics: nothing to pre-train
     n_sim = (0 if args.init or explicit_base else T.DEFAULT_SIM) if args.sim is None else args.sim
     show = progress._enabled
     pre = T.TrainConfig(epochs=args.epochs, lr=args.lr, batch_size=args.batch_size,
@@ -176,16 +196,26 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--sim", "", "nothing to train on: give --sim N > 0 and/or --real CSV")
     if n_sim and n_sim < 10:
         raise InputError("--sim", "", f"need at least 10 simulated configurations, got {n_sim}")
-    variant = ("residual" if args.residual else "pure") + ("+direction" if args.residual and args.direction else "")
-    if args.direction and not args.residual:
-        variant = "direction"
-    if variant != "pure" and real is None:
-        raise InputError("--real", "", f"--{'residual' if args.residual else 'direction'} needs a measured CSV")
+    if args.variant is not None:
+        variant = args.variant
+    elif args.residual or args.direction:
+        variant = ("residual" if args.residual else "pure") + ("+direction" if args.residual and args.direction else "")
+        if args.direction and not args.residual:
+            variant = "direction"
+    else:
+        variant = "auto" if real is not None else "pure"
+    if variant not in ("pure", "auto") and real is None:
+        flag = "--variant" if args.variant else ("--residual" if args.residual else "--direction")
+        raise InputError("--real", "", f"{flag} needs a measured CSV")
     residual_base = None
     if args.residual and args.residual != "sim":
         from ctrplan.shape.models import load_model
 
         residual_base = load_model(args.residual, robot)
+    elif args.residual is None and variant.startswith("residual"):
+        from ctrplan.shape.physics import PhysicsModel
+
+        residual_base = PhysicsModel(robot)
     elif args.residual == "sim" and n_sim == 0 and base is None:
         raise InputError("--residual", "", "'sim' needs a pre-trained model (--sim N or --init)")
     sim = (T.simulated_data(robot, n_sim, seed=args.seed, points=args.points, workers=args.workers,
@@ -207,6 +237,16 @@ def run(args: argparse.Namespace) -> int:
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "ctrplan_version": __version__,
     })
+    sel = report.selection or {}
+    if sel.get("mode") == "auto":
+        from ctrplan.io import jsonable, write_json_atomic, write_text_atomic
+
+        side = out.with_suffix(".variants.json")
+        write_json_atomic(side, jsonable(sel))
+        write_text_atomic(out.with_suffix(".variants.md"), T.selection_markdown(sel))
+        log.info("variant %s chosen by validation error: %s (table: %s)", sel["chosen"],
+                 ", ".join(f"{r['variant']} {r['val_max_dev_mean_mm']:.3f} mm" for r in sel["candidates"]),
+                 side)
     model.save(out)
     for name, m in report.metrics.items():
         log.info("%s: max deviation %.3f +- %.3f mm, MSE %.4f mm^2, sum of deviations %.2f mm (n=%d)",

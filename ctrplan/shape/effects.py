@@ -556,7 +556,8 @@ class EffectModel:
     def __init__(self, robot: Robot | str, base: str = "rigid",
                  effects: Mapping[str, Mapping[str, float]] | None = None,
                  config: PhysicsConfig | None = None,
-                 error_quantiles: Mapping[str, float] | None = None, pure: bool = False):
+                 error_quantiles: Mapping[str, float] | None = None, pure: bool = False,
+                 error_profile: Mapping[str, Any] | None = None):
         self.robot = load_robot(robot)
         self.base = base
         self.effects = complete_effects(effects, self.robot, base)
@@ -566,6 +567,8 @@ class EffectModel:
         self.name = base + "".join(f"+{e}" for e in self.effects)
         #: held-out tip residual norm quantiles (mm) of a calibrated model, or None
         self.error_quantiles = dict(error_quantiles) if error_quantiles else None
+        #: held-out error per arc-length fraction (docs/conventions.md), or None
+        self.error_profile = dict(error_profile) if error_profile else None
         #: True: friction is a pure function of (q, direction) even without direction
         #: (no direction known = no lag); False: direction=None takes rows in order
         self.pure = bool(pure)
@@ -589,7 +592,7 @@ class EffectModel:
         frame) and friction a pure function of (q, direction) (no lag where none is given)."""
         eff = {k: v for k, v in self.effects.items() if k != "registration"}
         return EffectModel(self.robot, self.base, eff, self.config, self.error_quantiles,
-                           pure=True)
+                           pure=True, error_profile=self.error_profile)
 
     def shape(self, q: np.ndarray, points: int = 20, sweep: np.ndarray | None = None,
               direction: np.ndarray | None = None) -> Shape:
@@ -617,6 +620,8 @@ class EffectModel:
              "units": "mm, rad; see ctrplan.shape.effects"}
         if self.error_quantiles:
             d["error_quantiles"] = {k: float(v) for k, v in self.error_quantiles.items()}
+        if self.error_profile:
+            d["error_profile"] = {k: [float(x) for x in v] for k, v in self.error_profile.items()}
         return d
 
     def save(self, path: str | os.PathLike) -> None:
@@ -636,7 +641,7 @@ class EffectModel:
         if not isinstance(data, dict) or data.get("kind") != MODEL_KIND:
             raise InputError(source, "kind", f"not a {MODEL_KIND} file")
         unknown = set(data) - {"kind", "base", "robot", "effects", "units", "notes",
-                               "error_quantiles"}
+                               "error_quantiles", "error_profile"}
         if unknown:
             raise InputError(source, sorted(unknown)[0], "unknown key")
         robot = robot_from_dict(data.get("robot"), source=source)
@@ -655,7 +660,7 @@ class EffectModel:
                                      f"must be a finite number >= 0 (mm), got {v!r}")
         return cls(robot, str(data.get("base", "rigid")),
                    complete_effects(effects, robot, str(data.get("base", "rigid")), source),
-                   error_quantiles=eq)
+                   error_quantiles=eq, error_profile=_check_profile(data.get("error_profile"), source))
 
     @classmethod
     def load(cls, path: str | os.PathLike, robot: Robot | str | None = None) -> EffectModel:
@@ -670,6 +675,29 @@ class EffectModel:
                 raise InputError(str(path), "robot", f"calibrated for robot {model.robot.name!r} "
                                  f"({model.robot.n} tubes), not {r.name!r} ({r.n} tubes)")
         return model
+
+
+def _check_profile(prof: Any, source: str) -> dict[str, list[float]] | None:
+    """A model file's ``error_profile`` (fractions 0..1 ascending; p50/p95/p99/max lists of the
+    same length, finite and >= 0, mm), or None."""
+    if prof is None:
+        return None
+    keys = ("fractions", "p50", "p95", "p99", "max")
+    if not isinstance(prof, dict) or set(prof) != set(keys):
+        raise InputError(source, "error_profile", "must be a mapping with keys " + ", ".join(keys))
+    out = {}
+    for k in keys:
+        v = prof[k]
+        if not isinstance(v, list) or not v or any(
+                isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) or x < 0
+                for x in v):
+            raise InputError(source, f"error_profile.{k}", "must be a list of finite numbers >= 0")
+        out[k] = [float(x) for x in v]
+    f = out["fractions"]
+    if any(len(out[k]) != len(f) for k in keys) or f[-1] > 1.0 or any(b <= a for a, b in zip(f, f[1:])):
+        raise InputError(source, "error_profile.fractions",
+                         "must ascend within [0, 1], one value per entry of p50/p95/p99/max")
+    return out
 
 
 def is_effect_model_file(path: str | os.PathLike) -> bool:

@@ -147,6 +147,9 @@ class LearnedModel:
             raise ValueError("a residual base other than a LearnedModel needs base_spec")
         #: held-out max-deviation quantiles (mm) {"p50", "p95", "p99", "max"} or None
         self.error_quantiles: dict[str, float] | None = None
+        #: held-out deviation quantiles per arc-length fraction (the ``error_profile`` mapping
+        #: of :mod:`ctrplan.shape.error_bounds`) or None
+        self.error_profile: dict[str, list[float]] | None = None
         #: training domain (joint ranges seen) or None (robot limits only)
         self.domain: dict[str, Any] | None = None
         lo, hi = self.robot.beta_bounds()
@@ -662,6 +665,7 @@ class LearnedModel:
                                            "sign(D_alpha_i - D_alpha_i+1), i < n"},
             "residual": base_spec,
             "error_quantiles": self.error_quantiles,
+            "error_profile": self.error_profile,
             "domain": self.domain,
             "robot": self.robot.to_dict(),
             "architecture": {"width": self.width, "depth": self.depth, "activation": "PReLU",
@@ -735,6 +739,11 @@ class LearnedModel:
             if base_spec is not None and not isinstance(base_spec, dict):
                 raise ValueError("residual is not a mapping")
             eq = _check_quantiles(meta.get("error_quantiles"))
+            profile = meta.get("error_profile")
+            if profile is not None:
+                from ctrplan.shape.effects import _check_profile
+
+                profile = _check_profile(profile, src)
             domain = _check_domain(meta.get("domain"))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(src, "meta_json", f"missing or malformed metadata ({exc})") from None
@@ -778,9 +787,10 @@ class LearnedModel:
         if domain is not None and (len(domain["beta_min_mm"]) != robot.n or len(domain["alpha_arcs_rad"]) != robot.n):
             raise InputError(src, "domain", f"expects {robot.n} tubes")
         model.error_quantiles = eq
+        model.error_profile = profile
         model.domain = domain
         keep = ("training", "metrics", "data", "created", "command", "ctrplan_version",
-                "error_quantiles_source", "variant")
+                "error_quantiles_source", "variant", "error_profile_source", "selection")
         model.meta = {k: meta[k] for k in keep if k in meta}
         model.source = src
         return model

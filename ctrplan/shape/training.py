@@ -202,12 +202,18 @@ def split(data: ShapeData, fractions: Sequence[float] = (0.8, 0.1, 0.1),
     """Seeded train/validation/test split (each part gets at least one row).
 
     Data with at least 3 sweeps is split by whole sweeps (rows of a sweep stay together,
-    roughly the row fractions; held-out sweeps), otherwise by random rows."""
+    roughly the row fractions; held-out sweeps). Measured rows in order of motion with fewer
+    sweeps (directions known or sweep ids given) are cut into contiguous blocks (about
+    :data:`SPLIT_BLOCKS` in all, labelled ``"<sweep>#block<k>"``) split the same way, so that held-out
+    rows are not the neighbours of training rows; other data (simulated, independent rows) by
+    random rows."""
     N = len(data)
     if N < 3:
         raise ValueError(f"need at least 3 rows to split, got {N}")
     if data.sweep is not None and len(np.unique(data.sweep)) >= 3:
         return split_sweeps(data, fractions, seed)
+    if (data.sweep is not None or data.direction is not None) and N >= SPLIT_BLOCKS:
+        return split_sweeps(dataclasses.replace(data, sweep=block_labels(data.sweep, N)), fractions, seed)
     perm = np.random.default_rng(seed).permutation(N)
     n_val = max(1, int(round(fractions[1] * N)))
     n_test = max(1, int(round(fractions[2] * N)))
@@ -216,6 +222,34 @@ def split(data: ShapeData, fractions: Sequence[float] = (0.8, 0.1, 0.1),
         raise ValueError(f"too few rows ({N}) for a train/validation/test split")
     return (data.subset(perm[:n_train]), data.subset(perm[n_train:n_train + n_val]),
             data.subset(perm[n_train + n_val:]))
+
+
+#: contiguous blocks :func:`split` cuts measured rows with fewer than 3 sweeps into
+SPLIT_BLOCKS = 10
+BLOCK_TAG = "#block"
+
+
+def block_labels(sweep: np.ndarray | None, N: int, blocks: int = SPLIT_BLOCKS) -> np.ndarray:
+    """(N,) labels ``"<sweep>#block<k>"``: each sweep (all N rows when ``sweep`` is None) cut
+    into contiguous blocks, about ``blocks`` in all (at least 2 per sweep where it has 2 rows)."""
+    sw = np.full(N, "0", dtype=object) if sweep is None else np.asarray(sweep).astype(str)
+    names = list(dict.fromkeys(sw.tolist()))
+    per = max(2, int(math.ceil(blocks / len(names))))
+    lab = np.empty(N, dtype=object)
+    for name in names:
+        rows = np.flatnonzero(sw == name)
+        nb = max(1, min(per, len(rows)))
+        k = (np.arange(len(rows)) * nb) // len(rows)
+        lab[rows] = [f"{name}{BLOCK_TAG}{j}" for j in k]
+    return lab
+
+
+def split_kind(part: ShapeData) -> str:
+    """How a split part was held out: "whole sweeps", "contiguous blocks" or "rows"."""
+    if part.sweep is None:
+        return "rows"
+    sw = np.asarray(part.sweep).astype(str)
+    return "contiguous blocks" if len(sw) and all(BLOCK_TAG in x for x in sw[:1]) else "whole sweeps"
 
 
 def split_sweeps(data: ShapeData, fractions: Sequence[float] = (0.8, 0.1, 0.1),
@@ -305,6 +339,8 @@ class TrainReport:
     metrics: dict[str, dict[str, Any]]
     error_quantiles: dict[str, float] | None = None
     variant: str = "pure"
+    #: how the variant was chosen (``variant="auto"``: the candidates and their errors)
+    selection: dict[str, Any] | None = None
 
     def to_meta(self) -> dict[str, Any]:
         return {"data": self.data, "training": {k: v.to_dict() for k, v in self.stages.items()},
@@ -583,21 +619,58 @@ def fit_real(robot: Robot, r_tr: ShapeData, r_va: ShapeData, variant: str = "pur
     return model, train(model, r_tr, r_va, real_only)
 
 
-def finish(model: LearnedModel, seen: ShapeData, test: ShapeData, label: str) -> dict[str, float]:
-    """Store the training domain and the error quantiles of the max deviation along the shaft
-    on the held-out ``test`` data in the model. Domain: the joint ranges of ``seen``; for
-    simulated data (uniform over the robot's joint limits, ``label == "sim"``) the robot's
-    limits themselves."""
+def predict(model: Any, data: ShapeData) -> np.ndarray:
+    """A model's backbones (B, m, 3) at the data's configurations, at the data's m points
+    (direction-aware models get the data's directions)."""
+    m = data.points.shape[1]
+    if needs_direction(model) and data.direction is not None:
+        return model.shape(data.q, m, direction=data.direction).points
+    return model.backbone(data.q, m)
+
+
+def error_profile(deviation: np.ndarray) -> dict[str, list[float]]:
+    """The ``error_profile`` of the model files (docs/conventions.md) from point deviations
+    (B, m) mm at m points evenly spaced in arc length from base (fraction 0) to tip (1):
+    per fraction the p50/p95/p99/max over configurations (rows with a non-finite value are
+    left out)."""
+    from ctrplan.shape.learned import QUANTILES
+
+    d = np.asarray(deviation, dtype=float)
+    if d.ndim != 2 or d.shape[1] < 2:
+        raise ValueError("need deviations (B, m) at m >= 2 points")
+    d = d[np.all(np.isfinite(d), axis=1)]
+    if not len(d):
+        raise ValueError("no finite deviations to take quantiles of")
+    out: dict[str, list[float]] = {"fractions": np.linspace(0.0, 1.0, d.shape[1]).tolist()}
+    for k, p in QUANTILES.items():
+        out[k] = np.percentile(d, p, axis=0).tolist()
+    return out
+
+
+def finish(model: LearnedModel, seen: ShapeData, test: ShapeData, label: str,
+           profile: bool = True) -> dict[str, float]:
+    """Store the training domain, the error quantiles of the max deviation along the shaft on
+    the held-out ``test`` data and (``profile``: shapes measured) its ``error_profile`` per
+    arc-length fraction in the model. Domain: the joint ranges of ``seen``; for simulated data
+    (uniform over the robot's joint limits, ``label == "sim"``) the robot's limits themselves."""
     model.set_domain(seen.q, source=label)
     if label == "sim":
         lo, hi = model.robot.beta_bounds()
         model.domain.update(beta_min_mm=lo.tolist(), beta_max_mm=hi.tolist(), alpha_arcs_rad=[None] * model.robot.n,
                             source="sim: uniform over the robot's joint limits")
-    eq = model.set_error_quantiles(evaluate(model, test)["per_config_max"])
+    dev = shape_errors(predict(model, test), test.points)
+    eq = model.set_error_quantiles(dev.max(axis=1))
+    part = f"held-out test split ({split_kind(test)})"
     model.meta["error_quantiles_source"] = {
-        "data": test.source, "rows": len(test), "part": "held-out test split" + (
-            " (whole sweeps)" if test.sweep is not None else ""),
+        "data": test.source, "part": part, **_part(test),
         "metric": "max deviation along the shaft per configuration, mm"}
+    model.error_profile = None
+    model.meta.pop("error_profile_source", None)
+    if profile and test.points.shape[1] >= 2:
+        model.error_profile = error_profile(dev)
+        model.meta["error_profile_source"] = {
+            "data": test.source, "part": part, **_part(test),
+            "metric": "distance of the backbone point at each arc-length fraction, mm"}
     return eq
 
 
@@ -608,6 +681,158 @@ def _concat(a: ShapeData, b: ShapeData) -> ShapeData:
                      cat(a.direction, b.direction), cat(a.sweep, b.sweep))
 
 
+#: ``variant="auto"``: train the candidate variants and keep the best on the validation sweeps
+AUTO = "auto"
+SELECTION_METRIC = ("mean over the validation rows (whole sweeps when the data has sweep ids; "
+                    "not used to fit the weights) of the max deviation along the shaft, mm")
+
+
+def has_motion(data: ShapeData) -> bool:
+    """True when the data carry directions of motion with at least one reversal: some joint
+    whose last motion changes sign between consecutive rows of the same sweep (back and
+    forth motion, where friction / hysteresis can show)."""
+    d = data.direction
+    if d is None or len(d) < 2:
+        return False
+    d = np.asarray(d, dtype=float)
+    flip = (d[1:] * d[:-1]) < 0
+    if data.sweep is not None:
+        sw = np.asarray(data.sweep)
+        flip &= (sw[1:] == sw[:-1])[:, None]
+    return bool(flip.any())
+
+
+def candidate_variants(data: ShapeData) -> list[str]:
+    """The variants ``variant="auto"`` compares: all four when the data has motion with
+    reversals (:func:`has_motion`), else pure and residual."""
+    return list(VARIANTS) if has_motion(data) else ["pure", "residual"]
+
+
+def _base_name(variant: str, sim_model: Any, residual_base: Any) -> str:
+    if not variant.startswith("residual"):
+        return "-"
+    base = residual_base if residual_base is not None else sim_model
+    if base is None:
+        return "physics"
+    if isinstance(base, LearnedModel):
+        return "learned (sim model)" if base is sim_model else "learned"
+    return str(getattr(base, "name", type(base).__name__))
+
+
+def select_variant(robot: Robot, r_tr: ShapeData, r_va: ShapeData, r_te: ShapeData | None = None,
+                   candidates: Sequence[str] | None = None, sim_model: LearnedModel | None = None,
+                   residual_base: Any = None, width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH,
+                   terms: int = basis.DEFAULT_TERMS, seed: int = 0, frame: str = DEFAULT_FRAME,
+                   device: str = "cpu", fine: TrainConfig | None = None,
+                   real_only: TrainConfig | None = None,
+                   refit: bool = False) -> tuple[LearnedModel, TrainResult, dict[str, Any]]:
+    """Train the candidate variants on ``r_tr`` and keep the one with the lowest mean max
+    deviation on the validation part ``r_va`` (:data:`SELECTION_METRIC`).
+
+    Budget: each candidate is screened with its stage's epochs divided by the number of
+    candidates (early stopping on ``r_va``), then the winner goes on training for the rest
+    of its epochs (kept only where that lowers its validation error); with ``refit`` the
+    winner is trained again by :func:`fit_real` with ``refit=True``. Residual candidates use
+    ``residual_base`` (default: physics). ``r_te`` (optional) is only evaluated for the table,
+    never used for the choice. Returns (model, the winner's last TrainResult, selection
+    record: candidates with their validation (and test) errors, the choice and the rule)."""
+    from ctrplan.shape.physics import PhysicsModel
+
+    cands = list(candidates) if candidates is not None else candidate_variants(r_tr)
+    if not cands:
+        raise ValueError("no candidate variants")
+    for v in cands:
+        if v not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {v!r}")
+        if v.endswith("direction") and r_tr.direction is None:
+            raise ValueError("a direction-aware variant needs measured data with directions")
+    if residual_base is None and any(v.startswith("residual") for v in cands):
+        residual_base = PhysicsModel(robot)
+    fine = fine or TrainConfig(seed=seed, lr=5e-4, batch_size=128, label="fine-tune (real)")
+    real_only = real_only or TrainConfig(seed=seed, batch_size=128, label="train (real)")
+
+    def stage(v: str) -> TrainConfig:
+        return fine if (sim_model is not None and not v.startswith("residual")) else real_only
+
+    kw = dict(sim_model=sim_model, residual_base=residual_base, width=width, depth=depth,
+              terms=terms, seed=seed, frame=frame, device=device)
+    rows: list[dict[str, Any]] = []
+    models: dict[str, tuple[LearnedModel, TrainResult]] = {}
+    for v in cands:
+        budget = stage(v).epochs
+        screen = max(1, budget // len(cands))
+        model, res = fit_real(robot, r_tr, r_va, v,
+                              fine=fine.replace(epochs=screen, label=f"{fine.label} [{v}]"),
+                              real_only=real_only.replace(epochs=screen, label=f"{real_only.label} [{v}]"),
+                              **kw)
+        ev = evaluate(model, r_va)
+        models[v] = (model, res)
+        rows.append({"variant": v, "residual_base": _base_name(v, sim_model, residual_base),
+                     "screen_epochs": res.epochs_run, "val_max_dev_mean_mm": ev["max_dev_mean"],
+                     "val_rows": ev["n"]})
+        log.info("variant %-18s validation max deviation %.3f mm (%d epochs)", v, ev["max_dev_mean"],
+                 res.epochs_run)
+    best = min(rows, key=lambda r: r["val_max_dev_mean_mm"])
+    chosen = best["variant"]
+    model, res = models[chosen]
+    cfg = stage(chosen)
+    if refit:
+        model, res = fit_real(robot, r_tr, r_va, chosen, fine=fine, real_only=real_only, refit=True, **kw)
+    elif cfg.epochs > res.epochs_run:
+        more = copy.deepcopy(model)
+        res2 = train(more, r_tr, r_va, cfg.replace(epochs=cfg.epochs - res.epochs_run,
+                                                   label=f"{cfg.label} [{chosen}, continued]"))
+        if evaluate(more, r_va)["max_dev_mean"] < best["val_max_dev_mean_mm"]:
+            model, res = more, res2
+            models[chosen] = (model, res)
+    for r in rows:
+        r["chosen"] = r["variant"] == chosen
+        if r_te is not None:
+            m = model if r["chosen"] else models[r["variant"]][0]
+            r["test_max_dev_mean_mm"] = evaluate(m, r_te)["max_dev_mean"]
+    selection = {"mode": AUTO, "chosen": chosen, "by": SELECTION_METRIC,
+                 "final_val_max_dev_mean_mm": evaluate(model, r_va)["max_dev_mean"],
+                 "validation": _part(r_va), "test": None if r_te is None else _part(r_te),
+                 "budget": "each candidate screened with 1/len(candidates) of its stage's epochs, "
+                           "the winner trained on for the rest" + (" and refitted" if refit else ""),
+                 "candidates": rows,
+                 "test_note": "test errors (the held-out test part) are listed for information "
+                              "only; they did not take part in the choice"}
+    log.info("chose variant %s (validation max deviation %.3f mm; candidates: %s)", chosen,
+             best["val_max_dev_mean_mm"],
+             ", ".join(f"{r['variant']} {r['val_max_dev_mean_mm']:.3f}" for r in rows))
+    return model, res, selection
+
+
+def _part(data: ShapeData) -> dict[str, Any]:
+    """Rows and (when known) the sweep ids of a split part, for the metadata."""
+    out: dict[str, Any] = {"rows": len(data)}
+    if data.sweep is not None:
+        out["sweeps"] = sorted({str(x) for x in np.asarray(data.sweep).tolist()})
+    return out
+
+
+def selection_markdown(selection: dict[str, Any]) -> str:
+    """The candidate table of an automatic variant choice as markdown."""
+    rows = selection.get("candidates", [])
+    has_test = any("test_max_dev_mean_mm" in r for r in rows)
+    lines = [f"# Variant selection: `{selection.get('chosen')}`", "",
+             f"Chosen by: {selection.get('by', '')}.", ""]
+    head = "| variant | residual base | validation max deviation (mm) |"
+    sep = "|---|---|---|"
+    if has_test:
+        head += " test max deviation (mm, not used for the choice) |"
+        sep += "---|"
+    lines += [head + " chosen |", sep + "---|"]
+    for r in rows:
+        line = f"| {r['variant']} | {r['residual_base']} | {r['val_max_dev_mean_mm']:.3f} |"
+        if has_test:
+            t = r.get("test_max_dev_mean_mm")
+            line += f" {t:.3f} |" if t is not None else " - |"
+        lines.append(line + (" yes |" if r.get("chosen") else " |"))
+    return "\n".join(lines) + "\n"
+
+
 def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData | None,
                       width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH,
                       terms: int = basis.DEFAULT_TERMS, seed: int = 0,
@@ -615,8 +840,13 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
                       device: str = "cpu", base: LearnedModel | None = None,
                       frame: str = DEFAULT_FRAME, variant: str = "pure",
                       residual_base: Any = None, real_only: TrainConfig | None = None,
-                      refit: bool = False) -> tuple[LearnedModel, TrainReport]:
+                      refit: bool = False,
+                      candidates: Sequence[str] | None = None) -> tuple[LearnedModel, TrainReport]:
     """Pre-train on ``sim`` (if given), then train ``variant`` on ``real`` (if given).
+
+    ``variant="auto"``: train the ``candidates`` (default :func:`candidate_variants`; residual
+    ones over ``residual_base``, default physics) and keep the best on the validation part
+    (:func:`select_variant`); the table is stored in the metadata under ``selection``.
 
     Each data set is split 80/10/10 (seeded; measured data with sweeps by whole sweeps);
     validation drives early stopping, the test parts are evaluated and stored in the metadata,
@@ -627,13 +857,16 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
     ``real`` (default ``fine`` when nothing was pre-trained). ``refit``: see :func:`fit_real`.
     """
     robot = load_robot(robot)
-    if variant not in VARIANTS:
-        raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+    if variant not in VARIANTS and variant != AUTO:
+        raise ValueError(f"variant must be one of {VARIANTS} or {AUTO!r}, got {variant!r}")
+    if variant == AUTO and real is None:
+        variant = "pure"                          # nothing to choose with: simulation only
     if sim is None and real is None:
         raise ValueError("need simulated and/or measured data")
     data: dict[str, Any] = {}
     stages: dict[str, TrainResult] = {}
     metrics: dict[str, dict[str, Any]] = {}
+    selection: dict[str, Any] | None = None
     start: LearnedModel | None = None
     if base is not None:
         start = copy.deepcopy(base)
@@ -655,11 +888,25 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
         r_tr, r_va, r_te = split(real, seed=seed + 1)
         if variant.endswith("direction") and real.direction is None:
             raise ValueError("a direction-aware variant needs measured data with directions")
+        if variant == AUTO:
+            model, res, selection = select_variant(
+                robot, r_tr, r_va, r_te, candidates=candidates, sim_model=start,
+                residual_base=residual_base, width=width, depth=depth, terms=terms, seed=seed,
+                frame=frame, device=device, fine=fine,
+                real_only=real_only or (fine if start is None else None), refit=refit)
+            variant = selection["chosen"]
+        else:
+            model = None
+            selection = {"mode": "explicit", "chosen": variant,
+                         "by": "given by the caller (no comparison)"}
         stage = "finetune" if (start is not None and not variant.startswith("residual")) else "real"
-        model, stages[stage] = fit_real(
-            robot, r_tr, r_va, variant, sim_model=start, residual_base=residual_base, width=width,
-            depth=depth, terms=terms, seed=seed, frame=frame, device=device,
-            fine=fine, real_only=real_only or (fine if start is None else None), refit=refit)
+        if model is None:
+            model, stages[stage] = fit_real(
+                robot, r_tr, r_va, variant, sim_model=start, residual_base=residual_base, width=width,
+                depth=depth, terms=terms, seed=seed, frame=frame, device=device,
+                fine=fine, real_only=real_only or (fine if start is None else None), refit=refit)
+        else:
+            stages[stage] = res
         data["real"] = real.describe()
         metrics["real_test"] = summary_metrics(evaluate(model, r_te))
         eq_data = (_concat(r_tr, r_va), r_te, "real")
@@ -667,9 +914,12 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
         raise ValueError(f"variant {variant!r} needs measured data")
     assert model is not None
     eq = finish(model, eq_data[0], eq_data[1], eq_data[2])
-    report = TrainReport(data=data, stages=stages, metrics=metrics, error_quantiles=eq, variant=variant)
+    report = TrainReport(data=data, stages=stages, metrics=metrics, error_quantiles=eq, variant=variant,
+                         selection=selection)
     model.meta.update(report.to_meta())
     model.meta["variant"] = variant
+    if selection is not None:
+        model.meta["selection"] = selection
     return model, report
 
 
@@ -754,7 +1004,8 @@ def sweep(robot: Robot | str, sim: ShapeData, real: ShapeData,
         "data": {"sim": sim.describe(), "real": real.describe(),
                  "splits": {"sim": [len(s_tr), len(s_va), len(s_te)],
                             "real": [len(r_tr), len(r_va), len(r_te)]},
-                 "real_split_by": "sweep" if r_te.sweep is not None else "row"},
+                 "real_split_by": {"whole sweeps": "sweep", "contiguous blocks": "contiguous block",
+                                   "rows": "row"}[split_kind(r_te)]},
         "physics": evaluate(phys, r_te), "physics_sim_test": summary_metrics(evaluate(phys, s_te)),
         "runs": [],
     }

@@ -1,0 +1,421 @@
+"""The best model of the robot from its measurements, in one call (``ctrplan diagnose --best``).
+
+Procedure (:func:`best_model`):
+
+1. **Untouched test rows.** Before anything is fitted, whole sweeps are held out for testing
+   (``test_fraction`` of the sweeps, at least one, leaving at least three). Data with fewer than
+   4 sweeps is cut into contiguous blocks (about 10 in all), and evenly spaced blocks are held
+   out; the other blocks become separate sweeps of the development data, so nothing treats the
+   gap left by a test block as a motion. Directions of motion are taken from the row order of
+   the whole data set (the commanded history, not the measurements).
+2. **Calibrated physics**: :func:`ctrplan.calibration.diagnose.diagnose` on the development
+   rows only (it splits them again for its own choices); its calibrated model
+   (:meth:`DiagnoseReport.model`) is a candidate, next to the nominal model.
+3. **Learned residual over the calibrated model** (:mod:`ctrplan.shape.training`): the network
+   learns the difference between the measured shapes and the calibrated model's; the
+   direction-aware form competes when the rows show motion with reversals (chosen on a
+   validation part of the development sweeps, :func:`ctrplan.shape.training.select_variant`).
+   With tip-only data the residual has one basis term (a correction growing linearly along the
+   shaft: the data say nothing about its shape between base and tip).
+4. **Learned alone** (shapes measured only): the robot's shipped network fine-tuned on the
+   measured shapes (or a new network where no shipped one fits the robot), pure or
+   direction-aware, chosen the same way.
+5. **Comparison on the test rows**: every candidate's max deviation along the shaft per test
+   configuration (tip deviation where only tips are measured), on the rows every candidate
+   answers (a row where a model's solver fails is counted in its ``failed_rows``; only the
+   candidates with the fewest failed rows may win); the one with the lowest mean wins (ties: the simpler, in the order above). The winner is written with the quantiles of
+   that deviation (``error_quantiles``) and, where shapes are measured, the ``error_profile``
+   per arc-length fraction (docs/conventions.md). The choice among a handful of candidates on
+   the same rows that give its error makes that error slightly optimistic; nothing was fitted
+   or chosen on them before.
+
+Frames: a calibrated ``registration`` (tracker to robot) is not part of the robot. When the
+calibrated model has one, the measured points are mapped into the robot base frame with it,
+and every candidate is compared there (distances are unchanged for the calibrated model);
+the learned models work in the robot base frame, as planning needs.
+"""
+
+from __future__ import annotations
+
+import inspect
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ctrplan.measured import MeasuredData, read_measured
+from ctrplan.robot import Robot, load_robot
+
+log = logging.getLogger("ctrplan")
+
+__all__ = ["best_model", "BestResult", "holdout_split", "CANDIDATES"]
+
+#: candidate names, in order of simplicity (ties go to the first)
+CANDIDATES = ("nominal", "calibrated", "calibrated+learned", "learned")
+#: fewer development rows than this: no learned candidates (nothing to train and validate on)
+MIN_LEARNED_ROWS = 20
+#: the comparison metric
+METRIC = "max deviation along the shaft per test configuration (tip deviation with tip-only data), mm"
+
+
+@dataclass
+class BestResult:
+    """What :func:`best_model` did: the winner's name and model, every candidate's test
+    metrics (``candidates``: name -> dict), the split, the diagnose report of the development
+    rows, and the files written (name -> path)."""
+
+    winner: str
+    model: Any
+    candidates: dict[str, dict[str, Any]]
+    split: dict[str, Any]
+    report: Any
+    shapes: bool
+    elapsed_s: float = 0.0
+    files: dict[str, str] = field(default_factory=dict)
+
+    def table(self) -> dict[str, Any]:
+        """JSON-ready comparison (best_model.json)."""
+        return {"winner": self.winner, "metric": METRIC, "shapes_measured": self.shapes,
+                "candidates": self.candidates, "split": self.split, "files": self.files,
+                "elapsed_s": self.elapsed_s,
+                "note": "all candidates evaluated on the same test rows, which no fit and no "
+                        "choice saw before this comparison; the winner's error is slightly "
+                        "optimistic because it was chosen on them"}
+
+
+# ---------------------------------------------------------------------------------- split
+def _ordered(sw: np.ndarray) -> bool:
+    """Rows are in order of motion unless every row is its own sweep (independent samples)."""
+    return len(set(sw.tolist())) < max(2, len(sw) // 2)
+
+
+def holdout_split(data: MeasuredData, test_fraction: float = 0.2, seed: int = 0,
+               blocks: int = 10) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """(test mask, development sweep labels (B,) object, description) - see the module
+    docstring. Development labels are the sweep ids, or ``"<sweep>#<block>"`` when the data
+    had to be cut into blocks; test rows get their label too (unused)."""
+    sw = np.asarray(data.sweeps()).astype(str)
+    names = list(dict.fromkeys(sw.tolist()))
+    N = len(sw)
+    if len(names) >= 4 and _ordered(sw):
+        k = min(len(names) - 3, max(1, int(round(test_fraction * len(names)))))
+        rng = np.random.default_rng(seed)
+        held = sorted(rng.choice(np.array(names, dtype=object), size=k, replace=False).tolist())
+        test = np.isin(sw, held)
+        desc = {"method": "whole sweeps held out", "test_sweeps": held}
+        return test, sw.astype(object), desc
+    if not _ordered(sw):                         # independent samples: every row its own sweep
+        rng = np.random.default_rng(seed)
+        idx = rng.permutation(N)
+        nb = max(2, min(blocks, N))
+        lab = np.empty(N, dtype=object)
+        for b, part in enumerate(np.array_split(idx, nb)):
+            lab[part] = f"random#{b}"
+        k = max(1, int(round(test_fraction * nb)))
+        held = [f"random#{b}" for b in range(k)]
+        test = np.isin(lab.astype(str), held)
+        return test, lab, {"method": "random rows held out (rows are independent samples)",
+                           "test_rows": int(test.sum())}
+    from ctrplan.shape.training import block_labels
+
+    lab = block_labels(sw, N, blocks)
+    order = list(dict.fromkeys(lab.tolist()))
+    L = len(order)
+    k = min(max(1, int(round(test_fraction * L))), max(1, L - 3))
+    held = sorted({order[min(L - 1, int((i + 0.5) * L / k))] for i in range(k)})
+    test = np.isin(lab.astype(str), held)
+    rows = np.flatnonzero(test)
+    return test, lab, {"method": f"contiguous blocks held out ({len(held)} of {L}; fewer than 4 "
+                                 "sweeps); the other blocks are separate development sweeps",
+                       "test_blocks": held, "test_rows": _row_ranges(rows)}
+
+
+def _row_ranges(idx: np.ndarray) -> list[str]:
+    """1-based data-row ranges ("rows a-b")."""
+    out = []
+    if not len(idx):
+        return out
+    start = prev = int(idx[0])
+    for i in idx[1:]:
+        i = int(i)
+        if i != prev + 1:
+            out.append(f"rows {start + 1}-{prev + 1}")
+            start = i
+        prev = i
+    out.append(f"rows {start + 1}-{prev + 1}")
+    return out
+
+
+# ---------------------------------------------------------------------------------- frames
+def to_robot_frame(effects: dict, points: np.ndarray) -> np.ndarray:
+    """Sensor-frame points (..., 3) -> robot base frame, inverting a calibrated
+    ``registration`` (p_sensor = R p + t); unchanged without one."""
+    from ctrplan.shape.effects import _rotvec_matrix
+
+    rg = (effects or {}).get("registration")
+    if not rg:
+        return points
+    t = np.array([rg["tx"], rg["ty"], rg["tz"]], dtype=float)
+    r = np.array([rg["rx"], rg["ry"], rg["rz"]], dtype=float)
+    return (np.asarray(points, dtype=float) - t) @ _rotvec_matrix(r)
+
+
+# ---------------------------------------------------------------------------------- metrics
+def _deviations(model: Any, q: np.ndarray, direction: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(B, m) distances between the model's points (m evenly spaced, base to tip) and target."""
+    from ctrplan.shape.base import needs_direction
+
+    m = target.shape[1]
+    if needs_direction(model):
+        pred = model.shape(q, m, direction=direction).points
+    else:
+        pred = model.backbone(q, m)
+    return np.linalg.norm(pred - target, axis=2)
+
+
+def _metrics(dev: np.ndarray, common: np.ndarray, shapes: bool) -> dict[str, Any]:
+    """Test metrics of one candidate on the rows every candidate answered (``common``)."""
+    from ctrplan.shape.learned import error_quantiles
+    from ctrplan.shape.training import error_profile
+
+    mx = dev.max(axis=1)
+    out: dict[str, Any] = {"rows": int(common.sum()), "failed_rows": int((~np.isfinite(mx)).sum()),
+                           "mean_mm": math.inf, "tip_mean_mm": math.inf, "error_quantiles": None}
+    if common.any():
+        out.update(mean_mm=float(mx[common].mean()), tip_mean_mm=float(dev[common, -1].mean()),
+                   error_quantiles=error_quantiles(mx[common]))
+        if shapes:
+            out["error_profile"] = error_profile(dev[common])
+    return out
+
+
+# ---------------------------------------------------------------------------------- main
+def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: str | os.PathLike | None = None,
+               base: str = "rigid", test_fraction: float = 0.2, seed: int = 0,
+               diagnose_kwargs: dict[str, Any] | None = None, epochs: int = 300, patience: int = 20,
+               width: int = 30, depth: int = 3, learned: bool = True) -> BestResult:
+    """Calibrate, learn, compare on untouched test rows, write the winner (module docstring).
+
+    robot : Robot or name / YAML. data : MeasuredData or measured CSV path. out : folder for
+    diagnose's files (of the development rows) and ``best_model.{yaml,pt}``,
+    ``best_model.json`` / ``.md`` (the comparison) and ``best_candidates/<name>.{yaml,pt}``
+    (every candidate, each with its own test quantiles). diagnose_kwargs : passed to
+    :func:`diagnose` (candidates, holdout, bic_threshold, ...). epochs / patience / width /
+    depth : the learned networks' training. learned : False = physics candidates only.
+    """
+    import torch
+
+    from ctrplan.calibration.diagnose import diagnose
+    from ctrplan.shape import training as T
+    from ctrplan.shape.base import direction_from_rows
+    from ctrplan.shape.effects import EffectModel
+
+    t0 = time.perf_counter()
+    robot = load_robot(robot)
+    if not isinstance(data, MeasuredData):
+        data = read_measured(data, robot)
+    if not 0.0 < test_fraction < 1.0:
+        from ctrplan.errors import InputError
+
+        raise InputError("--test-fraction", "", f"must be in (0, 1), got {test_fraction}")
+    shapes = data.points is not None
+    sw = np.asarray(data.sweeps()).astype(str)
+    ordered = _ordered(sw)
+    direction = (direction_from_rows(data.q, sw) if ordered else np.zeros(data.q.shape, dtype=np.int8))
+    test, labels, split = holdout_split(data, test_fraction, seed)
+    dev = ~test
+    split.update({"rows": len(data), "test_rows_count": int(test.sum()), "dev_rows": int(dev.sum()),
+                  "test_row_indices": np.flatnonzero(test).tolist(),
+                  "row_index_note": "0-based data rows of the measured CSV (header excluded)"})
+    dev_data = MeasuredData(q=data.q[dev], tip=data.tip[dev],
+                            time=None if data.time is None else data.time[dev],
+                            sweep=np.asarray(labels[dev], dtype=object),
+                            points=None if data.points is None else data.points[dev])
+    log.info("best model: %d test rows held out (%s), diagnose on %d rows", int(test.sum()),
+             split["method"], int(dev.sum()))
+    dkw = dict(diagnose_kwargs or {})
+    if "learned_residual" in inspect.signature(diagnose).parameters:
+        dkw.setdefault("learned_residual", False)   # superseded by the candidates below
+    rep = diagnose(robot, dev_data, base=base, seed=seed, out=out, **dkw)
+    calibrated = rep.model()
+    effects = {k: dict(v) for k, v in calibrated.effects.items()}
+    frame_effects = {k: v for k, v in effects.items() if k != "registration"}
+
+    # targets in the robot base frame; tip-only data: base point (origin) and tip
+    if shapes:
+        target = to_robot_frame(effects, data.points)
+    else:
+        tip = to_robot_frame(effects, data.tip)
+        target = np.stack([np.zeros_like(tip), tip], axis=1)
+    models: dict[str, Any] = {
+        "nominal": EffectModel(robot, base),
+        "calibrated": EffectModel(robot, base, frame_effects),
+    }
+    desc = {"nominal": f"the nominal {base} model (no effects)",
+            "calibrated": "diagnose's calibrated model" + (
+                f" ({', '.join(frame_effects)})" if frame_effects else " (no effect kept: nominal)")}
+    selections: dict[str, Any] = {}
+    skipped = None
+    if learned and int(dev.sum()) < MIN_LEARNED_ROWS:
+        skipped = f"learned candidates skipped: {int(dev.sum())} development rows (< {MIN_LEARNED_ROWS})"
+        log.info("best model: %s", skipped)
+        learned = False
+    if learned:
+        torch_threads = torch.get_num_threads()
+        sdata = T.ShapeData(data.q, target, source=str(getattr(data, "source", "measured")),
+                            direction=direction.astype(float) if ordered else None, sweep=labels)
+        dv = sdata.subset(np.flatnonzero(dev))
+        tr, va = _train_val(dv, seed)
+        motion = ordered and T.has_motion(dv)
+        cfg = T.TrainConfig(epochs=epochs, patience=patience, batch_size=128, seed=seed, progress=False,
+                            label="train (real)")
+        fine = cfg.replace(lr=5e-4, label="fine-tune (real)")
+        res_base = models["calibrated"].planning_model()
+        terms = None if shapes else 1
+        cands = ["residual", "residual+direction"] if motion else ["residual"]
+        m, _, sel = T.select_variant(robot, tr, va, None, candidates=cands, residual_base=res_base,
+                                     width=width, depth=depth, seed=seed,
+                                     terms=terms or 7, fine=fine, real_only=cfg)
+        m.set_domain(dv.q, source="measured (development rows)")
+        models["calibrated+learned"] = m
+        selections["calibrated+learned"] = sel
+        desc["calibrated+learned"] = (f"learned residual ({sel['chosen']}) over the calibrated model"
+                                      + ("" if shapes else ", one basis term (tip-only data)"))
+        if shapes:
+            sim = _shipped(robot)
+            cands = ["pure", "direction"] if motion else ["pure"]
+            m, _, sel = T.select_variant(robot, tr, va, None, candidates=cands, sim_model=sim,
+                                         width=width, depth=depth, seed=seed, fine=fine, real_only=cfg)
+            m.set_domain(dv.q, source="measured (development rows)")
+            models["learned"] = m
+            selections["learned"] = sel
+            desc["learned"] = (f"learned alone ({sel['chosen']}; "
+                               + ("the shipped network fine-tuned" if sim is not None else "a new network")
+                               + ")")
+        torch.set_num_threads(torch_threads)
+    # ---------------------------------------------------------------- compare on the test rows
+    qt, dt, yt = data.q[test], direction[test], target[test]
+    table: dict[str, dict[str, Any]] = {}
+    devs = {name: _deviations(model, qt, dt, yt) for name, model in models.items()}
+    common = np.all([np.isfinite(d.max(axis=1)) for d in devs.values()], axis=0)
+    split["compared_rows"] = int(common.sum())
+    for name in models:
+        table[name] = {"description": desc[name], **_metrics(devs[name], common, shapes)}
+        if name in selections:
+            table[name]["variant_selection"] = selections[name]
+        log.info("best model: %-18s test mean max deviation %.3f mm", name, table[name]["mean_mm"])
+    winner = choose_winner(table)
+    for name, model in models.items():
+        _attach_bound(model, table[name], shapes, split)
+        table[name]["winner"] = name == winner
+    res = BestResult(winner=winner, model=models[winner], candidates=table, split=split,
+                     report=rep, shapes=shapes)
+    split["frame"] = ("robot base frame (measured points mapped with the calibrated registration)"
+                      if "registration" in effects else "robot base frame (no registration calibrated)")
+    if skipped:
+        split["note"] = skipped
+    split["directions"] = "from the row order of the whole data set" if ordered else "none (rows are independent samples)"
+    res.elapsed_s = time.perf_counter() - t0
+    if out is not None:
+        _write(res, models, Path(out))
+    log.info("best model: %s (test mean max deviation %.3f mm)", winner, table[winner]["mean_mm"])
+    return res
+
+
+def choose_winner(table: dict[str, dict[str, Any]]) -> str:
+    """The candidate with the lowest test mean among those with the fewest failed rows
+    (ties: the simpler, in the order of :data:`CANDIDATES`)."""
+    fewest = min(row["failed_rows"] for row in table.values())
+    return min((k for k, row in table.items() if row["failed_rows"] == fewest),
+               key=lambda k: (table[k]["mean_mm"], CANDIDATES.index(k)))
+
+
+def _train_val(dv, seed: int):
+    """Training / validation parts of the development rows by whole (development) sweeps:
+    about 15 % of the sweeps, at least one, for validation."""
+    ids = list(dict.fromkeys(np.asarray(dv.sweep).astype(str).tolist()))
+    if len(ids) < 2:
+        raise ValueError("need at least 2 development sweeps for training and validation")
+    rng = np.random.default_rng(seed + 17)
+    k = max(1, int(round(0.15 * len(ids))))
+    val = set(rng.choice(np.array(ids, dtype=object), size=k, replace=False).tolist())
+    is_val = np.isin(np.asarray(dv.sweep).astype(str), list(val))
+    return dv.subset(np.flatnonzero(~is_val)), dv.subset(np.flatnonzero(is_val))
+
+
+def _shipped(robot: Robot):
+    """The robot's shipped network when it was trained for the same tubes, else None."""
+    from ctrplan.shape.learned import LearnedModel, shipped_model_path
+
+    p = shipped_model_path(robot.name)
+    if p is None:
+        return None
+    try:
+        return LearnedModel.load(p, robot=robot)
+    except Exception:  # noqa: BLE001 - another robot of the same name: no pre-trained start
+        return None
+
+
+def _attach_bound(model: Any, row: dict[str, Any], shapes: bool, split: dict[str, Any]) -> None:
+    """Store a candidate's test quantiles (and profile where shapes are measured) in it."""
+    eq = row.get("error_quantiles")
+    model.error_quantiles = dict(eq) if eq else None
+    prof = row.get("error_profile") if shapes else None
+    src = {"part": "best-model test rows (" + split["method"] + ")",
+           "rows": row["rows"], "metric": METRIC}
+    model.error_profile = dict(prof) if prof else None
+    if hasattr(model, "meta"):                    # learned model: where the numbers come from
+        model.meta["error_quantiles_source"] = src
+        model.meta.pop("error_profile_source", None)
+        if prof:
+            model.meta["error_profile_source"] = {**src, "metric": "distance of the backbone point "
+                                                  "at each arc-length fraction, mm"}
+
+
+def _write(res: BestResult, models: dict[str, Any], out: Path) -> None:
+    from ctrplan.io import jsonable, write_json_atomic, write_text_atomic
+
+    out.mkdir(parents=True, exist_ok=True)
+    cdir = out / "best_candidates"
+    cdir.mkdir(exist_ok=True)
+    files = {}
+    for name, model in models.items():
+        suffix = ".pt" if hasattr(model, "meta") else ".yaml"
+        path = cdir / (name.replace("+", "_") + suffix)
+        if hasattr(model, "meta"):
+            model.meta["best_model"] = {"candidate": name, "winner": name == res.winner}
+        model.save(path)
+        files[name] = str(path.relative_to(out))
+    win = models[res.winner]
+    suffix = ".pt" if hasattr(win, "meta") else ".yaml"
+    best = out / ("best_model" + suffix)
+    other = out / ("best_model" + (".yaml" if suffix == ".pt" else ".pt"))
+    win.save(best)
+    if other.exists():
+        other.unlink()
+    files["best_model"] = best.name
+    res.files = files
+    write_json_atomic(out / "best_model.json", jsonable(res.table()))
+    write_text_atomic(out / "best_model.md", markdown(res))
+
+
+def markdown(res: BestResult) -> str:
+    """The comparison as markdown (best_model.md)."""
+    lines = [f"# Best model: {res.winner} (`{res.files.get('best_model', '')}`)", "",
+             f"Test rows: {res.split['test_rows_count']} of {res.split['rows']} "
+             f"({res.split['method']}), untouched by every fit and choice before this comparison. "
+             f"Metric: {METRIC}. Frame: {res.split.get('frame', '')}.", "",
+             "| candidate | test mean (mm) | p50 | p95 | p99 | max | winner |", "|---|---|---|---|---|---|---|"]
+    for name, row in res.candidates.items():
+        eq = row.get("error_quantiles") or {}
+        vals = " | ".join(f"{eq[k]:.3f}" if k in eq else "-" for k in ("p50", "p95", "p99", "max"))
+        lines.append(f"| {name}: {row['description']} | {row['mean_mm']:.3f} | {vals} | "
+                     f"{'yes' if row.get('winner') else ''} |")
+    lines += ["", f"Use it with `--model {res.files.get('best_model', 'best_model')}` in plan, "
+                  "shape and check.", ""]
+    return "\n".join(lines)
