@@ -205,14 +205,23 @@ def surface_samples(vertices: np.ndarray, faces: np.ndarray, spacing: float) -> 
 
 
 def surface_distance(ref_v: np.ndarray, ref_f: np.ndarray, mesh_v: np.ndarray, mesh_f: np.ndarray,
-                     spacing: float, ref_tree=None) -> float:
+                     spacing: float, ref_tree=None, stop_above: float = np.inf) -> float:
     """Largest distance (mm) between two surfaces, both ways (Hausdorff-like; see the module
-    docstring for exactly what is sampled): ``mesh`` sampled every ``spacing`` against ``ref``,
-    and ``ref``'s vertices and face centroids against ``mesh``."""
-    a = point_mesh_distance(surface_samples(mesh_v, mesh_f, spacing), ref_v, ref_f, ref_tree)
+    docstring for exactly what is sampled): ``ref``'s vertices and face centroids against
+    ``mesh``, and ``mesh`` sampled every ``spacing`` against ``ref``. Returns early (with a
+    value above ``stop_above``) as soon as a chunk of points exceeds ``stop_above``."""
     ref_pts = np.concatenate([ref_v, ref_v[ref_f].mean(axis=1)])
-    b = point_mesh_distance(ref_pts, mesh_v, mesh_f)
-    return float(max(a.max(initial=0.0), b.max(initial=0.0)))
+    worst = float(point_mesh_distance(ref_pts, mesh_v, mesh_f).max(initial=0.0))
+    if worst > stop_above:
+        return worst
+    chunk = max(1, 50_000 // max(1, int(np.ceil(1.0 / spacing))))
+    for i in range(0, len(mesh_f), chunk):
+        f = mesh_f[i:i + chunk]
+        pts = surface_samples(mesh_v, f, spacing)
+        worst = max(worst, float(point_mesh_distance(pts, ref_v, ref_f, ref_tree).max(initial=0.0)))
+        if worst > stop_above:
+            break
+    return worst
 
 
 def _decimate(vertices: np.ndarray, faces: np.ndarray, keep: float):
@@ -266,7 +275,7 @@ def label_surface(mask: np.ndarray, affine: np.ndarray, offset: np.ndarray, boun
         if not _manifold_closed(dec):
             continue
         d = surface_distance(ref_v, ref_f, np.asarray(dec.vertices), np.asarray(dec.faces),
-                             spacing / 4.0, tree)
+                             spacing / 4.0, tree, stop_above=bound_mm)
         log.debug("decimation keep %.2f: %d faces, %.3f mm (bound %.3f)", keep, len(dec.faces), d, bound_mm)
         if d <= bound_mm:
             best, kept, measured = dec, keep, d
