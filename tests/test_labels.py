@@ -393,3 +393,16 @@ def test_config_is_checked():
         LabelSceneConfig(max_shift_mm=-1)
     with pytest.raises(InputError):
         LabelSceneConfig(max_mb=0)
+
+
+def test_example_scene_from_labels(tmp_path):
+    import re
+
+    from tests.test_examples import run_example
+
+    out = run_example("scene_from_labels.py", "--out", str(tmp_path))
+    assert re.search(r"nasal_corridor \(wall\): \d+ voxels -> \d+ triangles", out), out
+    dist = float(re.search(r"to the original mesh: ([\d.]+) mm", out).group(1))
+    assert dist <= 1.5          # voxels of 0.8 x 0.8 x 1.2 mm: about one voxel diagonal
+    assert "SUCCESS" in out, out
+    assert (tmp_path / "skull_base_from_labels" / "scene.yaml").exists()
