@@ -9,11 +9,12 @@ bound. Decimation (quadric, fast-simplification) is tried at decreasing strength
 measured distance between the result and the marching-cubes surface, both ways, stays within
 the bound; if no decimation does, the smoothed surface is kept undecimated.
 
-How the distance is measured (:func:`surface_distance`): from every vertex and face centroid of
-one surface, and from points at most ``spacing/4`` apart on every triangle of the decimated
-surface, the exact distance to the nearest of the 12 triangles of the other surface whose
-centroids are nearest. The nearest of those triangles is at least as far as the true nearest
-triangle, so the measure can only overstate the distance (conservative).
+How the distance is measured (:func:`surface_distance`): each surface is sampled (its vertices
+plus points at most ``spacing/2`` apart on the marching-cubes surface, ``spacing/4`` on the
+decimated one, ``spacing`` the smallest voxel size), and from every sample of one surface the
+exact distance to the other is taken over the triangles that own the 12 samples of the other
+surface nearest to it. Leaving out triangles can only make a distance larger, so the measure
+never understates it; between samples it is interpolated, not bounded.
 
 Thin structures are kept: the volume is padded by one empty voxel so that a label touching the
 border still closes, and a single-voxel-thick label gives a closed surface of its own; because
@@ -171,57 +172,61 @@ def _nearest(points, cand, tri):
     return out
 
 
-def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                        tree=None) -> np.ndarray:
-    """(P,) upper bound (mm) on the distance from each point (P, 3) to the surface: the exact
-    distance to the nearest of the ``CANDIDATES`` triangles with the nearest centroids (equal
-    to the true distance unless the true nearest triangle is not among them)."""
-    from scipy.spatial import cKDTree
-
-    tri = np.ascontiguousarray(vertices[faces], dtype=float)
-    if tree is None:
-        tree = cKDTree(tri.mean(axis=1))
-    k = min(CANDIDATES, len(faces))
-    _, cand = tree.query(points, k=k, workers=-1)
-    cand = np.asarray(cand, dtype=np.int64).reshape(len(points), k)
-    return _nearest(np.ascontiguousarray(points, dtype=float), cand, tri)
-
-
-def surface_samples(vertices: np.ndarray, faces: np.ndarray, spacing: float) -> np.ndarray:
-    """Vertices plus points on every triangle so that no point of a triangle is farther than
-    about ``spacing`` from a sample (barycentric grid with n divisions per triangle)."""
+def surface_samples(vertices: np.ndarray, faces: np.ndarray, spacing: float,
+                    with_faces: bool = False):
+    """(S, 3) vertices plus points on every triangle, no point of a triangle farther than about
+    ``spacing`` from a sample (a barycentric grid of n divisions per triangle); with
+    ``with_faces`` also (S,) the index of a triangle each sample lies on."""
     tri = vertices[faces]
     edge = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
     n_div = np.clip(np.ceil(edge / spacing).astype(int), 1, 64)
-    out = [vertices]
+    owner = np.zeros(len(vertices), dtype=np.int64)
+    owner[faces.ravel()] = np.repeat(np.arange(len(faces)), 3)
+    out, fid = [vertices], [owner]
     for n in np.unique(n_div):
-        sel = tri[n_div == n]
+        which = np.flatnonzero(n_div == n)
         ii, jj = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
         keep = ii + jj <= n
         u, w = ii[keep] / n, jj[keep] / n
         bary = np.stack([1 - u - w, u, w], axis=1)                 # (S, 3)
-        out.append(np.einsum("sk,fkd->fsd", bary, sel).reshape(-1, 3))
-    return np.concatenate(out)
+        out.append(np.einsum("sk,fkd->fsd", bary, tri[which]).reshape(-1, 3))
+        fid.append(np.repeat(which, len(bary)))
+    pts = np.concatenate(out)
+    return (pts, np.concatenate(fid)) if with_faces else pts
 
 
-def surface_distance(ref_v: np.ndarray, ref_f: np.ndarray, mesh_v: np.ndarray, mesh_f: np.ndarray,
-                     spacing: float, ref_tree=None, stop_above: float = np.inf) -> float:
+class SurfaceIndex:
+    """Nearest-triangle look-ups on one surface: a k-d tree over points sampled every
+    ``spacing`` on it, each remembering its triangle."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, spacing: float):
+        from scipy.spatial import cKDTree
+
+        self.samples, self.owner = surface_samples(vertices, faces, spacing, with_faces=True)
+        self.tri = np.ascontiguousarray(vertices[faces], dtype=float)
+        self.tree = cKDTree(self.samples)
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """(P,) upper bound (mm) on the distance from each point (P, 3) to the surface: the
+        exact distance to the nearest of the triangles that own the ``CANDIDATES`` samples
+        nearest the point (the true distance unless the nearest triangle owns none of them)."""
+        k = min(CANDIDATES, len(self.samples))
+        _, idx = self.tree.query(points, k=k, workers=-1)
+        cand = self.owner[np.asarray(idx, dtype=np.int64).reshape(len(points), k)]
+        return _nearest(np.ascontiguousarray(points, dtype=float), cand, self.tri)
+
+
+def surface_distance(ref: SurfaceIndex, mesh_v: np.ndarray, mesh_f: np.ndarray,
+                     spacing: float, stop_above: float = np.inf) -> float:
     """Largest distance (mm) between two surfaces, both ways (Hausdorff-like; see the module
-    docstring for exactly what is sampled): ``ref``'s vertices and face centroids against
-    ``mesh``, and ``mesh`` sampled every ``spacing`` against ``ref``. Returns early (with a
-    value above ``stop_above``) as soon as a chunk of points exceeds ``stop_above``."""
-    ref_pts = np.concatenate([ref_v, ref_v[ref_f].mean(axis=1)])
-    worst = float(point_mesh_distance(ref_pts, mesh_v, mesh_f).max(initial=0.0))
+    docstring for exactly what is sampled): points every ``spacing`` on ``mesh`` against
+    ``ref``, and ``ref``'s samples against ``mesh``. Returns early (with a value above
+    ``stop_above``) as soon as one direction exceeds it."""
+    mesh = SurfaceIndex(mesh_v, mesh_f, spacing)
+    worst = float(mesh.distance(ref.samples).max(initial=0.0))
     if worst > stop_above:
         return worst
-    chunk = max(1, 50_000 // max(1, int(np.ceil(1.0 / spacing))))
-    for i in range(0, len(mesh_f), chunk):
-        f = mesh_f[i:i + chunk]
-        pts = surface_samples(mesh_v, f, spacing)
-        worst = max(worst, float(point_mesh_distance(pts, ref_v, ref_f, ref_tree).max(initial=0.0)))
-        if worst > stop_above:
-            break
-    return worst
+    return max(worst, float(ref.distance(mesh.samples).max(initial=0.0)))
 
 
 def _decimate(vertices: np.ndarray, faces: np.ndarray, keep: float):
@@ -249,7 +254,7 @@ def _manifold_closed(mesh) -> bool:
 
 def label_surface(mask: np.ndarray, affine: np.ndarray, offset: np.ndarray, bound_mm: float,
                   smoothing_iterations: int = 20, smooth_share: float = 0.7,
-                  keep_fractions: tuple[float, ...] = (0.1, 0.2, 0.4)):
+                  keep_fractions: tuple[float, ...] = (0.05, 0.1, 0.2, 0.4)):
     """The collision surface of one mask: (trimesh.Trimesh, :class:`SurfaceStats`).
 
     bound_mm : how far (mm) the result may lie from the marching-cubes surface, both ways.
@@ -258,8 +263,6 @@ def label_surface(mask: np.ndarray, affine: np.ndarray, offset: np.ndarray, boun
         whose measured distance stays within the bound and that stays closed and manifold wins.
     """
     import trimesh
-    from scipy.spatial import cKDTree
-
     mc = marching_cubes(mask, affine, offset)
     ref_v, ref_f = np.asarray(mc.vertices), np.asarray(mc.faces)
     smooth = clamp_moves(ref_v, taubin(ref_v, ref_f, smoothing_iterations), smooth_share * bound_mm)
@@ -267,15 +270,15 @@ def label_surface(mask: np.ndarray, affine: np.ndarray, offset: np.ndarray, boun
     spacing = float(np.min(np.linalg.norm(affine[:3, :3], axis=0)))
     best = trimesh.Trimesh(smooth, ref_f, process=False)
     kept, measured = 1.0, shift       # same triangles, each vertex moved <= shift: exact bound
-    tree = cKDTree(ref_v[ref_f].mean(axis=1))
+    ref = SurfaceIndex(ref_v, ref_f, spacing / 2.0)
     for keep in keep_fractions:
         if len(ref_f) * keep < 200:
             continue
         dec = _decimate(smooth, ref_f, keep)
         if not _manifold_closed(dec):
             continue
-        d = surface_distance(ref_v, ref_f, np.asarray(dec.vertices), np.asarray(dec.faces),
-                             spacing / 4.0, tree, stop_above=bound_mm)
+        d = surface_distance(ref, np.asarray(dec.vertices), np.asarray(dec.faces),
+                             spacing / 4.0, stop_above=bound_mm)
         log.debug("decimation keep %.2f: %d faces, %.3f mm (bound %.3f)", keep, len(dec.faces), d, bound_mm)
         if d <= bound_mm:
             best, kept, measured = dec, keep, d
