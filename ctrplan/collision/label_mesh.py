@@ -9,11 +9,11 @@ bound. Decimation (quadric, fast-simplification) is tried at decreasing strength
 measured distance between the result and the marching-cubes surface, both ways, stays within
 the bound; if no decimation does, the smoothed surface is kept undecimated.
 
-How the distance is measured (:func:`surface_distance`): each surface is sampled (its vertices
-plus points at most ``spacing/2`` apart on the marching-cubes surface, ``spacing/4`` on the
-decimated one, ``spacing`` the smallest voxel size), and from every sample of one surface the
-exact distance to the other is taken over the triangles that own the 12 samples of the other
-surface nearest to it. Leaving out triangles can only make a distance larger, so the measure
+How the distance is measured (:func:`surface_distance`): each surface is sampled (the
+marching-cubes surface, whose triangles are smaller than a voxel, at its vertices and face
+centroids; the decimated one at its vertices and points at most a third of the smallest voxel
+size apart on every triangle), and from every sample of one surface the exact distance to the
+other is taken over the triangles that own the 8 samples of the other surface nearest to it. Leaving out triangles can only make a distance larger, so the measure
 never understates it; between samples it is interpolated, not bounded.
 
 Thin structures are kept: the volume is padded by one empty voxel so that a label touching the
@@ -33,7 +33,7 @@ import numpy as np
 log = logging.getLogger("ctrplan")
 
 #: Candidate triangles per query point in :func:`surface_distance`.
-CANDIDATES = 12
+CANDIDATES = 8
 
 
 @dataclass(frozen=True)
@@ -199,10 +199,16 @@ class SurfaceIndex:
     """Nearest-triangle look-ups on one surface: a k-d tree over points sampled every
     ``spacing`` on it, each remembering its triangle."""
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, spacing: float):
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, spacing: float | None):
         from scipy.spatial import cKDTree
 
-        self.samples, self.owner = surface_samples(vertices, faces, spacing, with_faces=True)
+        if spacing is None:     # small triangles: their vertices and centroids
+            owner = np.zeros(len(vertices), dtype=np.int64)
+            owner[faces.ravel()] = np.repeat(np.arange(len(faces)), 3)
+            self.samples = np.concatenate([vertices, vertices[faces].mean(axis=1)])
+            self.owner = np.concatenate([owner, np.arange(len(faces))])
+        else:
+            self.samples, self.owner = surface_samples(vertices, faces, spacing, with_faces=True)
         self.tri = np.ascontiguousarray(vertices[faces], dtype=float)
         self.tree = cKDTree(self.samples)
 
@@ -223,10 +229,13 @@ def surface_distance(ref: SurfaceIndex, mesh_v: np.ndarray, mesh_f: np.ndarray,
     ``ref``, and ``ref``'s samples against ``mesh``. Returns early (with a value above
     ``stop_above``) as soon as one direction exceeds it."""
     mesh = SurfaceIndex(mesh_v, mesh_f, spacing)
-    worst = float(mesh.distance(ref.samples).max(initial=0.0))
-    if worst > stop_above:
-        return worst
-    return max(worst, float(ref.distance(mesh.samples).max(initial=0.0)))
+    worst = 0.0
+    for index, points in ((mesh, ref.samples), (ref, mesh.samples)):
+        for i in range(0, len(points), 100_000):
+            worst = max(worst, float(index.distance(points[i:i + 100_000]).max(initial=0.0)))
+            if worst > stop_above:
+                return worst
+    return worst
 
 
 def _decimate(vertices: np.ndarray, faces: np.ndarray, keep: float):
@@ -270,7 +279,7 @@ def label_surface(mask: np.ndarray, affine: np.ndarray, offset: np.ndarray, boun
     spacing = float(np.min(np.linalg.norm(affine[:3, :3], axis=0)))
     best = trimesh.Trimesh(smooth, ref_f, process=False)
     kept, measured = 1.0, shift       # same triangles, each vertex moved <= shift: exact bound
-    ref = SurfaceIndex(ref_v, ref_f, spacing / 2.0)
+    ref = SurfaceIndex(ref_v, ref_f, None)
     for keep in keep_fractions:
         if len(ref_f) * keep < 200:
             continue
@@ -278,7 +287,7 @@ def label_surface(mask: np.ndarray, affine: np.ndarray, offset: np.ndarray, boun
         if not _manifold_closed(dec):
             continue
         d = surface_distance(ref, np.asarray(dec.vertices), np.asarray(dec.faces),
-                             spacing / 4.0, stop_above=bound_mm)
+                             spacing / 3.0, stop_above=bound_mm)
         log.debug("decimation keep %.2f: %d faces, %.3f mm (bound %.3f)", keep, len(dec.faces), d, bound_mm)
         if d <= bound_mm:
             best, kept, measured = dec, keep, d
