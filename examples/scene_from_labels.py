@@ -20,7 +20,6 @@ import numpy as np
 import trimesh
 
 import ctrplan
-from ctrplan.collision.labels import scene_from_labels
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 parser.add_argument("--quick", action="store_true", help="short planning time (used by the tests)")
@@ -31,7 +30,7 @@ repo = Path(__file__).resolve().parents[1]
 image = repo / "anatomy" / "example_labels" / "skull_base_labels.nii.gz"
 
 # 1. Label map -> scene folder. Wall labels are the lumen; each obstacle label gets its own mesh.
-result = scene_from_labels(
+result = ctrplan.scene_from_labels(
     image, work / "skull_base_from_labels",
     wall="nasal_corridor",
     obstacle=["internal_carotid_right", "internal_carotid_left", "optic_nerve_right", "optic_nerve_left"],

@@ -70,7 +70,7 @@ def main() -> None:
     lines += [f"{v} {name} {' '.join(map(str, COLOURS[v]))} 255" for name, (v, _) in LABELS.items()]
     (HERE / "skull_base_labels.ctbl").write_text("\n".join(lines) + "\n", encoding="utf-8")
     counts = {name: int((data == v).sum()) for name, (v, _) in LABELS.items()}
-    print(f"{' x '.join(map(str, dims))} voxels of {SPACING.tolist()} mm; {counts}")
+    print(f"{' x '.join(map(str, dims))} voxels of {SPACING.tolist()} mm; {counts}")  # noqa: T201
 
 
 if __name__ == "__main__":
