@@ -406,3 +406,26 @@ def test_example_scene_from_labels(tmp_path):
     assert dist <= 1.5          # voxels of 0.8 x 0.8 x 1.2 mm: about one voxel diagonal
     assert "SUCCESS" in out, out
     assert (tmp_path / "skull_base_from_labels" / "scene.yaml").exists()
+
+
+def test_nifti2_big_endian_and_bare_targets(tmp_path):
+    """A NIfTI-2 file and a big-endian NIfTI-1 file read the same labels; a single target may
+    be given bare (a point, or a label value)."""
+    data = np.zeros((12, 12, 12), np.int16)
+    data[2:10, 2:10, 2:10] = 1
+    data[4:7, 4:7, 4:7] = 4
+    a = np.diag([0.9, 1.1, 1.3, 1.0])
+    nib.save(nib.Nifti2Image(data, a), str(tmp_path / "two.nii"))
+    big = nib.Nifti1Image(data.astype(">i2"), a)
+    nib.save(big, str(tmp_path / "big.nii.gz"))
+    for name in ("two.nii", "big.nii.gz"):
+        img = read_label_image(tmp_path / name)
+        np.testing.assert_array_equal(img.data, data)
+        np.testing.assert_allclose(img.affine, a)
+    centre = np.array([5.5 * 0.9, 3.0 * 1.1, 5.5 * 1.3])
+    res = scene_from_labels(tmp_path / "two.nii", tmp_path / "s", wall=1, landmark=4, entry=centre,
+                            toward=centre + [0, 1, 0], targets=4)
+    np.testing.assert_allclose(res.targets[0][1], np.array([5, 5, 5]) * [0.9, 1.1, 1.3])
+    res = scene_from_labels(tmp_path / "two.nii", tmp_path / "s", wall=1, entry=centre,
+                            toward=centre + [0, 1, 0], targets=(4.0, 5.0, 6.0))
+    assert res.targets == (("t01", (4.0, 5.0, 6.0)),)

@@ -371,6 +371,10 @@ def scene_from_labels(image: str | os.PathLike, out: str | os.PathLike, *, wall,
                      "surface", mname, role, values, voxels, stats.faces, stats.max_shift_mm)
             bar.update(1)
         tgt = []
+        if isinstance(targets, (str, int, np.integer)) or (
+                targets is not None and _is_point(targets) and np.ndim(targets) == 1
+                and not any(isinstance(t, str) for t in targets)):
+            targets = [targets]         # one target given bare: a name, a value or a point
         for k, t in enumerate(targets or ()):
             if _is_point(t):
                 tgt.append((f"t{k + 1:02d}", _point(t, "--targets")))
