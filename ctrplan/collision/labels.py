@@ -3,9 +3,9 @@
     scene_from_labels("seg.nii.gz", "my_scene/", wall=["airway"], obstacle=[5, 6],
                       entry=(x, y, z), toward=(x, y, z), targets=["tumour"])
 
-Coordinates are those of the image's scanner frame as NIfTI defines it (RAS+: +x toward the
-subject's right... precisely, x increases to the Right, y to the Anterior, z to the Superior),
-in mm: the sform when its code is set, else the qform, else the voxel sizes alone (a warning).
+Coordinates are those of the image's scanner frame as NIfTI defines it, RAS+ (x increases to
+the subject's Right, y to Anterior, z to Superior), in mm: the sform when its code is set, else
+the qform, else the voxel sizes alone (a warning).
 A DICOM/ITK point in LPS is (-x, -y, z) here.
 
 Roles: ``wall`` labels are the lumen the robot stays inside; they are meshed together as one
@@ -263,6 +263,18 @@ def _point(raw, field: str) -> np.ndarray:
     return v
 
 
+def _bare_target(targets) -> bool:
+    """Whether ``targets`` is one target rather than a list of them: a name, a value, or three
+    numbers."""
+    if isinstance(targets, (str, int, np.integer)):
+        return True
+    if isinstance(targets, np.ndarray):
+        return targets.ndim == 1 and targets.size == 3
+    return (isinstance(targets, (list, tuple)) and len(targets) == 3
+            and all(isinstance(t, (int, float, np.number)) for t in targets)
+            and not all(isinstance(t, (int, np.integer)) for t in targets))
+
+
 def _is_point(raw) -> bool:
     """A target given as a point: three numbers (a string ``X,Y,Z`` or a sequence)."""
     if isinstance(raw, str):
@@ -311,7 +323,9 @@ def scene_from_labels(image: str | os.PathLike, out: str | os.PathLike, *, wall,
 
     wall, obstacle, landmark : label values or names (a list, or one comma-separated string).
     entry, toward : (3,) mm, scanner frame: the robot base position and a point it points at.
-    targets : each a point (3,) mm or label references (the label voxel nearest its centroid).
+    targets : a list, each a point (3,) mm or label references (the label voxel nearest its
+        centroid); one target may be given bare (a name, a value, or a point with a non-integer
+        coordinate or as an array: a list of three integers is three labels).
     command : the command that made the scene, written into scene.yaml (``generator``).
     Raises :class:`InputError` for bad input; nothing is written then.
     """
@@ -344,20 +358,39 @@ def scene_from_labels(image: str | os.PathLike, out: str | os.PathLike, *, wall,
     # mesh jobs: all wall labels together, every other label alone
     jobs = [("wall", groups["wall"])] + [(role, [lab]) for role in ("obstacle", "landmark")
                                          for lab in groups.get(role, [])]
+    # every label and target is checked before the (slow) meshing starts
+    boxes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def box(v: int, lname: str, fieldname: str):
+        if v not in boxes:
+            bb = _bbox(img.data == v)
+            if bb is None:
+                raise InputError(src, fieldname, f"label {v} ({lname}) has no voxels")
+            boxes[v] = bb
+        return boxes[v]
+
+    for role, labs in jobs:
+        for lname, v in labs:
+            box(v, lname, f"--{role}")
+    if _bare_target(targets):
+        targets = [targets]             # one target given bare: a name, a value or a point
+    tgt = []
+    for k, t in enumerate(targets or ()):
+        if _is_point(t):
+            tgt.append((f"t{k + 1:02d}", _point(t, "--targets")))
+            continue
+        for lname, v in resolve_labels(t, table, table_src, "--targets"):
+            tgt.append((_safe_name(lname), _label_target(img, v, box(v, lname, "--targets"))))
     with progress.bar(total=len(jobs) + 1, desc="from-labels", unit="mesh") as bar:
         meshes, built, used = [], [], set()
         for role, labs in jobs:
             values = [v for _, v in labs]
-            mask = np.zeros(img.data.shape, dtype=bool)
-            for (lname, v) in labs:
-                one = img.data == v         # (a loop of == beats np.isin's sort here)
-                if not one.any():
-                    raise InputError(src, f"--{role}", f"label {v} ({lname}) has no voxels")
-                mask |= one
-                del one
-            lo, hi = _bbox(mask)
-            crop = np.ascontiguousarray(mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]])
-            del mask
+            lo = np.min([boxes[v][0] for v in values], axis=0)
+            hi = np.max([boxes[v][1] for v in values], axis=0)
+            sub = img.data[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+            crop = np.zeros(sub.shape, dtype=bool)
+            for v in values:            # (a loop of == beats np.isin's sort here)
+                crop |= sub == v
             mname = _safe_name("_".join(n for n, _ in labs) if role != "wall" or len(labs) == 1
                                else "lumen_" + "_".join(n for n, _ in labs))
             while mname in used:
@@ -370,20 +403,6 @@ def scene_from_labels(image: str | os.PathLike, out: str | os.PathLike, *, wall,
             log.info("%s (%s, labels %s): %d voxels -> %d triangles, within %.3f mm of the voxel "
                      "surface", mname, role, values, voxels, stats.faces, stats.max_shift_mm)
             bar.update(1)
-        tgt = []
-        if isinstance(targets, (str, int, np.integer)) or (
-                targets is not None and _is_point(targets) and np.ndim(targets) == 1
-                and not any(isinstance(t, str) for t in targets)):
-            targets = [targets]         # one target given bare: a name, a value or a point
-        for k, t in enumerate(targets or ()):
-            if _is_point(t):
-                tgt.append((f"t{k + 1:02d}", _point(t, "--targets")))
-                continue
-            for lname, v in resolve_labels(t, table, table_src, "--targets"):
-                bb = _bbox(img.data == v)
-                if bb is None:
-                    raise InputError(src, "--targets", f"label {v} ({lname}) has no voxels")
-                tgt.append((_safe_name(lname), _label_target(img, v, bb)))
         stem = Path(src).name
         digest = hashlib.sha256(Path(src).read_bytes()).hexdigest()[:16]
         vs = img.voxel_size
