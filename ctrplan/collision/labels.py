@@ -396,6 +396,7 @@ def scene_from_labels(image: str | os.PathLike, out: str | os.PathLike, *, wall,
             while mname in used:
                 mname += "_"
             used.add(mname)
+            bar.set_postfix_str(mname)
             mesh, stats = label_surface(crop, img.affine, lo, bound, config.smoothing_iterations)
             voxels = int(crop.sum())
             meshes.append(LabelMesh(mname, role, tuple(values), voxels, f"{mname}.ply", stats))

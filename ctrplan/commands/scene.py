@@ -102,11 +102,16 @@ def run_show(args: argparse.Namespace) -> int:
 
 def run_from_labels(args: argparse.Namespace) -> int:
     from ctrplan.collision.labels import DEFAULT_MAX_MB, LabelSceneConfig, scene_from_labels
+    from ctrplan.errors import InputError
 
-    cfg = LabelSceneConfig(max_shift_mm=args.max_shift,
-                           max_mb=DEFAULT_MAX_MB if args.max_mb is None else args.max_mb,
-                           label_table=args.label_table,
-                           **({"licence": args.licence} if args.licence else {}))
+    try:
+        cfg = LabelSceneConfig(max_shift_mm=args.max_shift,
+                               max_mb=DEFAULT_MAX_MB if args.max_mb is None else args.max_mb,
+                               label_table=args.label_table,
+                               **({"licence": args.licence} if args.licence else {}))
+    except InputError as exc:
+        flag = {"max_shift_mm": "--max-shift", "max_mb": "--max-mb"}.get(exc.source, exc.source)
+        raise InputError(flag, "", exc.message) from None
     command = _command_line(args)
     result = scene_from_labels(args.image, args.out, wall=args.wall, obstacle=args.obstacle,
                                landmark=args.landmark, entry=" ".join(args.entry),
