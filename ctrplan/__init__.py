@@ -31,6 +31,8 @@ _EXPORTS = {
     "load_model": "ctrplan.shape.models",
     "load_scene": "ctrplan.collision.scene",
     "Scene": "ctrplan.collision.scene",
+    "scene_from_labels": "ctrplan.collision.labels",
+    "LabelSceneConfig": "ctrplan.collision.labels",
     "CollisionWorld": "ctrplan.collision.world",
     "plan_to_target": "ctrplan.planning.plan",
     "PlanResult": "ctrplan.planning.plan",

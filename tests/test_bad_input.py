@@ -88,6 +88,60 @@ def _many_aliases() -> str:
     return "source:\n  base: &x lol\n  list: [" + ", ".join(["*x"] * 150) + "]\n"
 
 
+def _nifti(path: Path, data: np.ndarray, affine: np.ndarray | None = None) -> Path:
+    import nibabel as nib
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    nib.save(nib.Nifti1Image(data, np.eye(4) if affine is None else affine), str(path))
+    return path
+
+
+def _box_labels(dtype=np.uint8) -> np.ndarray:
+    data = np.zeros((20, 20, 20), dtype)
+    data[3:17, 3:17, 3:17] = 1
+    return data
+
+
+def _nifti_header(shape: tuple[int, int, int], dtype=np.uint8) -> bytes:
+    import nibabel as nib
+
+    h = nib.Nifti1Header()
+    h.set_data_shape(shape)
+    h.set_data_dtype(dtype)
+    h.set_data_offset(352)
+    return h.binaryblock + b"\x00" * 4
+
+
+def _from_labels(i: Path, o: Path, image: Path, *extra: str, entry: str = "10,10,6") -> list[str]:
+    return ["scene", "from-labels", str(image), "--wall", "1", f"--entry={entry}",
+            "--toward=10,10,12", *extra, "--out", str(o / "scene")]
+
+
+def _singular_affine(path: Path) -> Path:
+    """A label map whose sform maps every voxel onto the plane z = 0."""
+    import nibabel as nib
+
+    data = _box_labels()
+    h = nib.Nifti1Header()
+    h.set_data_shape(data.shape)
+    h.set_data_dtype(np.uint8)
+    h.set_data_offset(352)
+    h["sform_code"], h["qform_code"] = 1, 0
+    h["srow_x"], h["srow_y"], h["srow_z"] = [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 0]
+    return _w(path, h.binaryblock + b"\x00" * 4 + data.tobytes(order="F"))
+
+
+def _gzip_bomb(path: Path) -> Path:
+    import gzip
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with gzip.open(path, "wb", compresslevel=1) as fh:
+        fh.write(_nifti_header((20, 20, 20)))
+        for _ in range(8):
+            fh.write(b"\x00" * (1 << 22))
+    return path
+
+
 MAKERS = {
     "csv-not-a-number": lambda i, o: _shape(i, o, f"{HEADER}\n0.1,abc,0.3,-150,-100,-50\n"),
     "csv-not-finite": lambda i, o: _shape(i, o, f"{HEADER}\nnan,0.2,0.3,-150,-100,-50\n"),
@@ -125,6 +179,20 @@ MAKERS = {
         i, o, SCENE_OK % ("wall.stl", ""), trimesh.creation.cylinder(radius=0.01, height=0.1, sections=16)),
     "scene-base-outside": lambda i, o: _scene(
         i, o, (SCENE_OK % ("wall.stl", "")).replace("[0, 0, -40]", "[50, 0, -40]")),
+    "labels-not-nifti": lambda i, o: _from_labels(i, o, _w(i / "seg.nii.gz", "not an image\n")),
+    "labels-float": lambda i, o: _from_labels(
+        i, o, _nifti(i / "ct.nii.gz", np.random.default_rng(0).normal(size=(20, 20, 20)).astype(np.float32))),
+    "labels-missing-name": lambda i, o: [
+        "scene", "from-labels", str(_nifti(i / "seg.nii.gz", _box_labels())), "--wall", "liver",
+        "--entry=10,10,6", "--toward=10,10,12", "--label-table", str(_w(i / "t.json", '{"lumen": 1}')),
+        "--out", str(o / "scene")],
+    "labels-empty": lambda i, o: _from_labels(i, o, _nifti(i / "seg.nii.gz", _box_labels()), "--obstacle", "7"),
+    "labels-singular-affine": lambda i, o: _from_labels(i, o, _singular_affine(i / "seg.nii")),
+    "labels-over-budget": lambda i, o: _from_labels(
+        i, o, _w(i / "big.nii", _nifti_header((1000, 1000, 1000), np.int16))),
+    "labels-gzip-bomb": lambda i, o: _from_labels(i, o, _gzip_bomb(i / "bomb.nii.gz")),
+    "labels-entry-outside": lambda i, o: _from_labels(
+        i, o, _nifti(i / "seg.nii.gz", _box_labels()), entry="1,1,1"),
     "out-under-file": lambda i, o: ["simulate", "--robot", "seed1", "--n", "5",
                                     "--out", str(_w(o / "f.csv", "x\n") / "x.csv")],
     "out-unwritable": lambda i, o: ["simulate", "--robot", "seed1", "--n", "5",
@@ -210,6 +278,8 @@ COMMANDS = {
     "check": lambda i, out: ["check", "--scene", "airway", "--robot", "seed1", "--configs", str(i / "c.csv"),
                              "--out", f"{out}.csv"],
     "scene": lambda i, out: ["scene", "show", "airway", "--out", f"{out}.png"],
+    "scene-from-labels": lambda i, out: ["scene", "from-labels", str(i / "seg.nii.gz"), "--wall", "1",
+                                         "--entry=0,0,0", "--toward=0,0,1", "--out", out],
     "plan": lambda i, out: ["plan", "--scene", "airway", AIRWAY_TARGET, "--out", f"{out}.json"],
     "plan-batch": lambda i, out: ["plan-batch", "--targets", "examples", "--out", out],
     "view": lambda i, out: ["view", str(i / "plan.json"), "--out", f"{out}.html"],

@@ -35,6 +35,7 @@ def test_every_subcommand_appears_in_the_block():
 
 def test_readme_commands_run(tmp_path):
     (tmp_path / "examples").symlink_to(README.parent / "examples")   # README paths are repo-relative
+    (tmp_path / "anatomy").symlink_to(README.parent / "anatomy")
     for cmd in readme_commands():
         argv = shlex.split(cmd)
         assert argv[0] == "ctrplan"
@@ -43,5 +44,5 @@ def test_readme_commands_run(tmp_path):
         assert proc.returncode == 0, f"{cmd}\n{proc.stderr[-2000:]}"
     for name in ("sim.csv", "shapes.npz", "shapes.csv", "verdicts.csv", "airway.png", "plan.json",
                  "plan.html", "results/summary.csv", "measured.csv", "report/report.json",
-                 "calibrated.npz", "model.pt", "learned.npz", "bench/bench.json"):
+                 "calibrated.npz", "model.pt", "learned.npz", "bench/bench.json", "labels_scene/scene.yaml"):
         assert (tmp_path / name).exists(), name
