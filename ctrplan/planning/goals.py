@@ -108,6 +108,9 @@ class GoalSource:
     tolerance_mm: float
     config: Any  # PlanConfig
     rng: np.random.Generator
+    #: optional score of goal configurations (G, 2n) -> (G,): goals are handed out highest
+    #: first (e.g. their clearance); None keeps the order of increasing tip error
+    rank: Any = None
     rounds: int = 0
     reaching: int = 0
     evaluations: int = 0
@@ -172,6 +175,9 @@ class GoalSource:
         cand = np.array(keep)
         ok = self.validator.states_valid(cand)
         self.validator.remember(cand, ok)
-        new = cand[ok][: c.max_goals]
+        new = cand[ok]
+        if self.rank is not None and len(new) > 1:
+            new = new[np.argsort(-np.asarray(self.rank(new), dtype=float), kind="stable")]
+        new = new[: c.max_goals]
         self.goals.extend(new)
         return new
