@@ -176,3 +176,19 @@ def test_cli_bad_objective_exits_2_with_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "--objective" in err and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1 and not out.exists()
+
+
+@pytest.mark.statistical
+def test_hard_set_clearance_objective_triples_the_median_clearance(tmp_path):
+    """RRTConnect, physics, the hard set's first 2 problems per scene, both objectives in the
+    same run: the clearance objective solves >= 95 % and the median over plans of each plan's
+    minimum clearance (the independent re-check's exact FCL distance) is >= 3x the first
+    solutions'; every successful path is free in the re-check. About 1-2 min on 2 cores."""
+    from bench_hard import run
+
+    res = run(["physics"], ["rrtconnect"], 1, 10.0, 2, tmp_path, objectives=("clearance", "first"))
+    rows = {r["objective"]: r for r in res["table"]}
+    assert rows["clearance"]["success_rate"] >= 0.95, rows
+    assert rows["clearance"]["recheck_clearance_median_mm"] >= \
+        3.0 * rows["first"]["recheck_clearance_median_mm"], rows
+    assert all(r["recheck_free"] for r in res["records"] if r["success"])
