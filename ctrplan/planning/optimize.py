@@ -22,8 +22,8 @@ accepted iterate collision-free. Here:
 - The goal state moves only in the null space of the tip Jacobian and is pulled back onto the
   target by Gauss-Newton steps: its tip error may not exceed ``max(initial error,
   goal_tol_mm)``, otherwise the goal keeps its previous value.
-- A step (the largest state move is ``step`` mm) is accepted only if the cost decreases and the
-  whole new path passes the validator's collision check (exact verdicts: FCL where the
+- A step (the largest state move is ``step`` mm) is accepted only if the cost decreases, the
+  smallest estimated clearance over the path does not, and the whole new path passes the validator's collision check (exact verdicts: FCL where the
   conservative prefilter does not prove them) at ``check_resolution_mm``; otherwise the step is
   halved. The number of trials is the budget (``iterations``, a count), so a seed gives the
   same path on any load.
@@ -68,10 +68,10 @@ class OptimizeConfig:
         if that is larger).
     """
 
-    iterations: int = 20
-    spacing_mm: float = 8.0
-    max_states: int = 48
-    step_mm: float = 2.0
+    iterations: int = 14
+    spacing_mm: float = 10.0
+    max_states: int = 32
+    step_mm: float = 3.0
     max_step_mm: float = 4.0
     min_step_mm: float = 0.05
     cap_mm: float = 6.0
@@ -208,22 +208,28 @@ class _Problem:
         return [np.where(d == 0, 1, d).astype(np.int8)]
 
     def state_costs(self, q: np.ndarray, direction=None) -> tuple[np.ndarray, np.ndarray]:
-        """(barrier cost (B,), tips (B, 3)) of states q (B, 2n)."""
+        """(barrier cost (B,), tips (B, 3)) of states q (B, 2n); ``self.last_min`` keeps each
+        state's smallest estimated capsule clearance (B,) (inf without the field)."""
         shape = self._shape(q, direction)
         ok = np.asarray(shape.ok, dtype=bool)
         if self.objective != "clearance" or self.field is None:
             cost = np.zeros(len(q))
+            self.last_min = np.full(len(q), np.inf)
         else:
-            cost = _barrier(self.field.capsule_clearance(shape), self.cfg)
+            c = self.field.capsule_clearance(shape)
+            cost = _barrier(c, self.cfg)
+            self.last_min = c.min(axis=1)
         return np.where(ok, cost, np.inf), shape.tip
 
     def smooth_cost(self, z: np.ndarray) -> float:
         return float(self.cfg.smooth * np.sum(np.diff(z, axis=0) ** 2))
 
     def total(self, path: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-        """(path cost, per-state barrier costs (K,), tips (K, 3))."""
+        """(path cost, per-state barrier costs (K,), tips (K, 3)); ``self.path_min``: the
+        smallest estimated clearance over the moving states."""
         dirs = self._directions(path)[0]
         costs, tips = self.state_costs(path[1:], None if dirs is None else dirs[1:])
+        self.path_min = float(np.min(self.last_min)) if len(self.last_min) else math.inf
         costs = np.concatenate([[0.0], costs])
         return float(costs.sum()) + self.smooth_cost(path * self.w), costs, \
             np.concatenate([np.full((1, 3), np.nan), tips])
@@ -323,6 +329,7 @@ def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.n
                     check_resolution_mm or validator.config.resolution_mm)
     path = resample(path, n, w_mm, cfg.spacing_mm, cfg.max_states)
     cost, costs, tips = prob.total(path)
+    least = prob.path_min
     err0 = float(np.linalg.norm(tips[-1] - prob.target)) if len(path) > 1 else 0.0
     tol = max(err0, cfg.goal_tol_mm if goal_tol_mm is None else goal_tol_mm)
     history = [path]
@@ -356,8 +363,11 @@ def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.n
             cand[-1] = path[-1]
             cerr = err
         ccost, ccosts, ctips = prob.total(cand)
-        if ccost < cost and prob.path_valid(cand):
+        # the cost must fall without the closest approach getting closer (the sum over all
+        # capsules could otherwise trade the minimum for the rest)
+        if ccost < cost and prob.path_min >= least - 1e-3 and prob.path_valid(cand):
             path, cost, costs, tips, err = cand, ccost, ccosts, ctips, cerr
+            least = max(least, prob.path_min)
             history.append(path)
             accepted += 1
             step = min(step * 1.5, cfg.max_step_mm)

@@ -117,6 +117,8 @@ class PlanConfig:
         from the anatomy as the robot allows; Kuntz et al.'s integral of 1/clearance),
         ``"length"`` (short and smooth) or ``"first"`` (the first solution, simplified).
     optimizer : the local optimiser's settings (a count of step trials, not a time).
+    goals_by_clearance : with the clearance objective, hand IK goals to the planner in order of
+        their (estimated) clearance instead of their tip error.
     """
 
     validator: ValidatorConfig = field(default_factory=ValidatorConfig)
@@ -142,6 +144,7 @@ class PlanConfig:
     try_direct: bool = True
     objective: str = "clearance"
     optimizer: _opt.OptimizeConfig = field(default_factory=_opt.OptimizeConfig)
+    goals_by_clearance: bool = True
 
     def __post_init__(self) -> None:
         check_objective(self.objective)
@@ -661,7 +664,7 @@ def _stage_ik(run: _Run) -> tuple[GoalSource, np.ndarray]:
     run.deadline += time.perf_counter() - t0
     t0 = time.perf_counter()
     rank = None
-    if run.cfg.objective == "clearance":
+    if run.cfg.objective == "clearance" and run.cfg.goals_by_clearance:
         field_ = _opt.FieldClearance(run.world)
 
         def rank(q: np.ndarray) -> np.ndarray:   # goals with more room first
