@@ -20,7 +20,8 @@ def test_min_clearance_is_the_exact_minimum():
     scene = load_scene("airway")
     world = CollisionWorld(scene)
     model = load_model("physics", robot)
-    result = plan_to_target(robot, scene, scene.targets[1].position, model=model, time_limit=5.0, seed=3)
+    result = plan_to_target(robot, scene, scene.targets[1].position, model=model, time_limit=5.0, seed=3,
+                            objective="first")
     assert result.status == PlanStatus.SUCCESS
     validator = BatchValidator(robot, model, world)
     check = validator.check_path(result.path, 1.0, fcl_all=False)
