@@ -229,6 +229,7 @@ class _Problem:
         smallest estimated clearance over the moving states."""
         dirs = self._directions(path)[0]
         costs, tips = self.state_costs(path[1:], None if dirs is None else dirs[1:])
+        self.state_min = self.last_min            # (K - 1,) of path[1:]
         self.path_min = float(np.min(self.last_min)) if len(self.last_min) else math.inf
         costs = np.concatenate([[0.0], costs])
         return float(costs.sum()) + self.smooth_cost(path * self.w), costs, \
@@ -329,7 +330,7 @@ def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.n
                     check_resolution_mm or validator.config.resolution_mm)
     path = resample(path, n, w_mm, cfg.spacing_mm, cfg.max_states)
     cost, costs, tips = prob.total(path)
-    least = prob.path_min
+    least, mins = prob.path_min, prob.state_min
     err0 = float(np.linalg.norm(tips[-1] - prob.target)) if len(path) > 1 else 0.0
     tol = max(err0, cfg.goal_tol_mm if goal_tol_mm is None else goal_tol_mm)
     history = [path]
@@ -343,9 +344,13 @@ def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.n
     while trials < cfg.iterations and step >= cfg.min_step_mm:
         if G is None:
             G, J = prob.gradient(path, costs, tips[-1])
-            # the goal moves only along the tip's null space
+            # the goal moves only along the tip's null space, and not at all while it is the
+            # closest approach (its tip is pinned to the target: moving it mostly turns the
+            # tip capsule, which the closest-approach rule below would refuse)
             JJ = J @ J.T
-            if np.linalg.cond(JJ) < 1e12:
+            if np.isfinite(least) and int(np.argmin(mins)) == len(mins) - 1:
+                G[-1] = 0.0
+            elif np.linalg.cond(JJ) < 1e12:
                 G[-1] -= J.T @ np.linalg.solve(JJ, J @ G[-1])
             else:
                 G[-1] = 0.0
@@ -356,18 +361,20 @@ def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.n
         trials += 1
         cand = path + step * D / prob.w[None]
         cand = prob.project(path, cand)
-        dirs = prob._directions(cand)[0]
-        cand[-1], cerr = prob.goal_onto_target(cand[-1], J, tol,
-                                               None if dirs is None else dirs[-1:])
-        if cerr > tol:
-            cand[-1] = path[-1]
-            cerr = err
+        cerr = err
+        if np.any(cand[-1] != path[-1]):           # the goal moved: back onto the target
+            dirs = prob._directions(cand)[0]
+            cand[-1], cerr = prob.goal_onto_target(cand[-1], J, tol,
+                                                   None if dirs is None else dirs[-1:])
+            if cerr > tol:
+                cand[-1] = path[-1]
+                cerr = err
         ccost, ccosts, ctips = prob.total(cand)
         # the cost must fall without the closest approach getting closer (the sum over all
         # capsules could otherwise trade the minimum for the rest)
         if ccost < cost and prob.path_min >= least - 1e-3 and prob.path_valid(cand):
             path, cost, costs, tips, err = cand, ccost, ccosts, ctips, cerr
-            least = max(least, prob.path_min)
+            least, mins = max(least, prob.path_min), prob.state_min
             history.append(path)
             accepted += 1
             step = min(step * 1.5, cfg.max_step_mm)
