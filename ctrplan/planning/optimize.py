@@ -35,6 +35,7 @@ validator's (``first_invalid``, ``shapes``).
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -92,6 +93,8 @@ class OptimizeResult:
     cost_before, cost_after : the optimiser's cost of the resampled input and of ``path``.
     accepted, trials, evaluations : steps accepted, step trials, configurations evaluated.
     tip_error_mm : the goal state's tip error (mm, robot base frame) of ``path``.
+    time_cap_hit : the wall-clock cap stopped it before its budget of trials was spent (the
+        result then depends on the machine's load).
     """
 
     path: np.ndarray
@@ -102,6 +105,7 @@ class OptimizeResult:
     trials: int
     evaluations: int
     tip_error_mm: float
+    time_cap_hit: bool = False
 
 
 class FieldClearance:
@@ -315,11 +319,13 @@ class _Problem:
 def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.ndarray,
                   objective: str = "clearance", config: OptimizeConfig | None = None,
                   check_resolution_mm: float | None = None,
-                  goal_tol_mm: float | None = None) -> OptimizeResult:
+                  goal_tol_mm: float | None = None, deadline: float = math.inf) -> OptimizeResult:
     """Optimise a collision-free waypoint path (K, 2n) for ``objective`` (see the module
     docstring). ``target_base`` (3,) mm, robot base frame: the goal's tip target.
     ``check_resolution_mm`` : edge resolution of the collision check of every iterate (default:
-    the validator's). Returns the best accepted iterate (the resampled input if none)."""
+    the validator's). ``deadline`` : a ``time.perf_counter()`` value; only a cap (the budget is
+    ``config.iterations`` trials). Returns the best accepted iterate (the resampled input if
+    none)."""
     cfg = config or OptimizeConfig()
     if objective not in ("clearance", "length"):
         raise ValueError(f"objective must be 'clearance' or 'length', got {objective!r}")
@@ -341,7 +347,11 @@ def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.n
     step = cfg.step_mm
     accepted = trials = 0
     G = J = None
+    capped = False
     while trials < cfg.iterations and step >= cfg.min_step_mm:
+        if time.perf_counter() >= deadline:
+            capped = True
+            break
         if G is None:
             G, J = prob.gradient(path, costs, tips[-1])
             # the goal moves only along the tip's null space, and not at all while it is the
@@ -381,7 +391,8 @@ def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.n
             G = None
         else:
             step *= 0.5
-    return OptimizeResult(path, history, cost0, cost, accepted, trials, prob.evaluations, err)
+    return OptimizeResult(path, history, cost0, cost, accepted, trials, prob.evaluations, err,
+                          capped)
 
 
 def clearance_integral(profile_mm: np.ndarray, path: np.ndarray, n: int,

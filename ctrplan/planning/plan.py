@@ -766,8 +766,10 @@ def _stage_optimization(run: _Run, path: np.ndarray) -> list[np.ndarray]:
     t0 = time.perf_counter()
     # the optimised goal's tip error stays within max(its IK error, 0.4 x the IK's threshold)
     res = _opt.optimize_path(run.validator, path, run.target_base, cfg.objective, cfg.optimizer,
-                             goal_tol_mm=0.4 * min(cfg.ik.stop_mm, 0.1 * run.tolerance_mm))
+                             goal_tol_mm=0.4 * min(cfg.ik.stop_mm, 0.1 * run.tolerance_mm),
+                             deadline=run.deadline)
     run.clock("optimization", t0)
+    run.time_cap_hit |= res.time_cap_hit
     run.counts.update(optimizer_accepted=res.accepted, optimizer_trials=res.trials,
                       optimizer_evaluations=res.evaluations,
                       states_validated=run.validator.counters.states)
