@@ -21,7 +21,8 @@ accepted iterate collision-free. Here:
   shape call.
 - The goal state moves only in the null space of the tip Jacobian and is pulled back onto the
   target by Gauss-Newton steps: its tip error may not exceed ``max(initial error,
-  goal_tol_mm)``, otherwise the goal keeps its previous value.
+  goal_tol_mm)``, otherwise the goal keeps its previous value; a step whose goal move brings
+  the closest approach closer is retried with the goal kept.
 - A step (the largest state move is ``step`` mm) is accepted only if the cost decreases, the
   smallest estimated clearance over the path does not, and the whole new path passes the validator's collision check (exact verdicts: FCL where the
   conservative prefilter does not prove them) at ``check_resolution_mm``; otherwise the step is
@@ -233,7 +234,6 @@ class _Problem:
         smallest estimated clearance over the moving states."""
         dirs = self._directions(path)[0]
         costs, tips = self.state_costs(path[1:], None if dirs is None else dirs[1:])
-        self.state_min = self.last_min            # (K - 1,) of path[1:]
         self.path_min = float(np.min(self.last_min)) if len(self.last_min) else math.inf
         costs = np.concatenate([[0.0], costs])
         return float(costs.sum()) + self.smooth_cost(path * self.w), costs, \
@@ -336,7 +336,7 @@ def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.n
                     check_resolution_mm or validator.config.resolution_mm)
     path = resample(path, n, w_mm, cfg.spacing_mm, cfg.max_states)
     cost, costs, tips = prob.total(path)
-    least, mins = prob.path_min, prob.state_min
+    least = prob.path_min
     err0 = float(np.linalg.norm(tips[-1] - prob.target)) if len(path) > 1 else 0.0
     tol = max(err0, cfg.goal_tol_mm if goal_tol_mm is None else goal_tol_mm)
     history = [path]
@@ -348,19 +348,16 @@ def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.n
     accepted = trials = 0
     G = J = None
     capped = False
+    pin = False          # retry a step with the goal kept where it is
     while trials < cfg.iterations and step >= cfg.min_step_mm:
         if time.perf_counter() >= deadline:
             capped = True
             break
         if G is None:
             G, J = prob.gradient(path, costs, tips[-1])
-            # the goal moves only along the tip's null space, and not at all while it is the
-            # closest approach (its tip is pinned to the target: moving it mostly turns the
-            # tip capsule, which the closest-approach rule below would refuse)
+            # the goal moves only along the tip's null space
             JJ = J @ J.T
-            if np.isfinite(least) and int(np.argmin(mins)) == len(mins) - 1:
-                G[-1] = 0.0
-            elif np.linalg.cond(JJ) < 1e12:
+            if np.linalg.cond(JJ) < 1e12:
                 G[-1] -= J.T @ np.linalg.solve(JJ, J @ G[-1])
             else:
                 G[-1] = 0.0
@@ -372,7 +369,10 @@ def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.n
         cand = path + step * D / prob.w[None]
         cand = prob.project(path, cand)
         cerr = err
-        if np.any(cand[-1] != path[-1]):           # the goal moved: back onto the target
+        if pin:
+            cand[-1] = path[-1]
+        moved = bool(np.any(cand[-1] != path[-1]))
+        if moved:                                   # the goal moved: back onto the target
             dirs = prob._directions(cand)[0]
             cand[-1], cerr = prob.goal_onto_target(cand[-1], J, tol,
                                                    None if dirs is None else dirs[-1:])
@@ -382,13 +382,16 @@ def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.n
         ccost, ccosts, ctips = prob.total(cand)
         # the cost must fall without the closest approach getting closer (the sum over all
         # capsules could otherwise trade the minimum for the rest)
-        if ccost < cost and prob.path_min >= least - 1e-3 and prob.path_valid(cand):
+        closer = prob.path_min < least - 1e-3
+        if ccost < cost and not closer and prob.path_valid(cand):
             path, cost, costs, tips, err = cand, ccost, ccosts, ctips, cerr
-            least, mins = max(least, prob.path_min), prob.state_min
+            least = max(least, prob.path_min)
             history.append(path)
             accepted += 1
             step = min(step * 1.5, cfg.max_step_mm)
-            G = None
+            G, pin = None, False
+        elif closer and moved:
+            pin = True       # the goal's move (its tip capsule turning) came closer: keep it
         else:
             step *= 0.5
     return OptimizeResult(path, history, cost0, cost, accepted, trials, prob.evaluations, err,
