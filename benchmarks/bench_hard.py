@@ -1,13 +1,15 @@
 """Hard planning benchmark: every planner on the fixed hard problem set, OMPL benchmark logs.
 
     .venv/bin/python benchmarks/bench_hard.py [--quick] [--models learned physics]
-        [--planners rrtconnect rrt ...] [--runs 1] [--time 10] [--out benchmarks/results/hard]
+        [--planners rrtconnect rrt ...] [--objectives clearance first] [--runs 1] [--time 10]
+        [--out benchmarks/results/hard]
 
 Each problem of ``benchmarks/hard/<scene>.json`` (start, target; the straight edge cannot reach
 it) is planned with ``plan_to_target`` (IK goals, search, simplification, verification on the
 planning model and the physics re-check, margin auto, capsules padded by the sagitta bound)
-with each planner and planning model, ``--time`` seconds as the cap per plan, always through the
-planner (``try_direct=False``). Every successful
+with each planner, planning model and objective (``clearance``, the default, optimises the path
+away from the anatomy; ``first`` is the first solution, simplified), ``--time`` seconds as the
+cap per plan, always through the planner (``try_direct=False``). Every successful
 path is then re-checked independently (:func:`hard_problems.verify_path`: 8x the edge
 resolution, physics backbone, exact FCL without the prefilter).
 
@@ -71,7 +73,7 @@ def path_length(path: np.ndarray, n: int, alpha_weight_mm: float) -> float:
 
 
 def run_one(problem, model: str, planner: str, seed: int, time_limit: float,
-            margin: float | None = None) -> dict:
+            margin: float | None = None, objective: str = "clearance") -> dict:
     from ctrplan.planning.plan import resolve_model, scene_by_name
     from ctrplan.robot import load_robot
 
@@ -82,23 +84,24 @@ def run_one(problem, model: str, planner: str, seed: int, time_limit: float,
     if patched:
         m.error_quantiles = {"p99": LEARNED_P99_MM}
     try:
-        return _run_one(problem, model, planner, seed, time_limit, margin, robot, scene)
+        return _run_one(problem, model, planner, seed, time_limit, margin, robot, scene, objective)
     finally:
         if patched:
             m.error_quantiles = None
 
 
-def _run_one(problem, model, planner, seed, time_limit, margin, robot, scene) -> dict:
+def _run_one(problem, model, planner, seed, time_limit, margin, robot, scene, objective) -> dict:
     from ctrplan.planning import PlanConfig, plan_to_target
 
     # the planners are what is measured: no straight start-goal shortcut (for the learned model
     # the straight edge to its own IK goals can be free where the physics one is not)
-    cfg = PlanConfig(try_direct=False, margin_mm=margin)
+    cfg = PlanConfig(try_direct=False, margin_mm=margin, objective=objective)
     r = plan_to_target(robot, scene, problem.target, model=model, planner=planner,
                        time_limit=time_limit, seed=seed, start=problem.start, config=cfg)
     ok = bool(r.success and r.planning_time_s <= time_limit)
     rec = {"problem": problem.name, "scene": problem.scene,
            "model": model if margin is None else f"{model} margin {margin:g}", "planner": planner,
+           "objective": objective,
            "seed": seed, "status": r.status.value, "success": ok, "time": r.planning_time_s,
            "states_validated": r.counts.get("states_validated", 0),
            "time_cap_hit": r.time_cap_hit, "direct": bool(r.counts.get("direct", 0))}
@@ -168,20 +171,29 @@ def write_log(path: Path, name: str, records: list[dict], planners: list[str], t
 
 def summarize(records: list[dict]) -> list[dict]:
     rows = []
+    objectives = sorted({r.get("objective", "first") for r in records}, key=lambda o: (o != "clearance", o))
     for model in sorted({r["model"] for r in records}, key=lambda m: (m != "physics", m)):
-        for planner in [p for p in PLANNERS if any(r["planner"] == p for r in records)]:
-            rs = [r for r in records if r["model"] == model and r["planner"] == planner]
+        for planner, objective in [(p, o) for p in PLANNERS for o in objectives
+                                   if any(r["planner"] == p and r.get("objective", "first") == o
+                                          for r in records)]:
+            rs = [r for r in records if r["model"] == model and r["planner"] == planner
+                  and r.get("objective", "first") == objective]
+            if not rs:
+                continue
             ok = [r for r in rs if r["success"]]
             def med(k, ok=ok):
                 return statistics.median(r[k] for r in ok) if ok else float("nan")
 
             rows.append({
-                "model": model, "planner": planner, "plans": len(rs), "success": len(ok),
+                "model": model, "planner": planner, "objective": objective, "plans": len(rs),
+                "success": len(ok),
                 "success_rate": len(ok) / len(rs) if rs else float("nan"),
                 "time_median_s": statistics.median(r["time"] for r in rs) if rs else float("nan"),
                 "time_p90_s": float(np.percentile([r["time"] for r in rs], 90)) if rs else float("nan"),
                 "length_median": med("length"),
                 "clearance_median_mm": med("clearance"),
+                # each plan's minimum clearance by the independent re-check (exact FCL), median
+                "recheck_clearance_median_mm": med("recheck_clearance"),
                 "clearance_physics_min_mm": min((r["clearance_physics"] for r in ok), default=float("nan")),
                 "recheck_clearance_min_mm": min((r["recheck_clearance"] for r in ok), default=float("nan")),
                 "recheck_failures": sum(1 for r in ok if not r["recheck_free"]),
@@ -191,20 +203,23 @@ def summarize(records: list[dict]) -> list[dict]:
 
 def markdown(table: list[dict]) -> str:
     """The README table: success, time, path length, clearance per planning model and planner."""
-    lines = ["| model | planner | success (10 s cap) | time median / p90 (s) | path length median "
-             "(metric mm) | clearance median, planning model (mm, a lower bound where not settled) | "
-             "smallest clearance in the re-check (FCL, physics, mm) | re-check failures |", "|---|---|---|---|---|---|---|---|"]
+    lines = ["| model | planner | objective | success (10 s cap) | time median / p90 (s) | path "
+             "length median (metric mm) | clearance median, planning model (mm, a lower bound where "
+             "not settled) | clearance median in the re-check (FCL, physics, mm) | smallest "
+             "clearance in the re-check (mm) | re-check failures |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in table:
-        lines.append(f"| {r['model']} | {r['planner']} | {r['success']}/{r['plans']} "
+        lines.append(f"| {r['model']} | {r['planner']} | {r.get('objective', 'first')} | "
+                     f"{r['success']}/{r['plans']} "
                      f"({100 * r['success_rate']:.0f} %) | {r['time_median_s']:.2f} / "
                      f"{r['time_p90_s']:.2f} | {r['length_median']:.0f} | "
-                     f"{r['clearance_median_mm']:.2f} | {r['recheck_clearance_min_mm']:.3f} | "
-                     f"{r['recheck_failures']} |")
+                     f"{r['clearance_median_mm']:.2f} | {r['recheck_clearance_median_mm']:.2f} | "
+                     f"{r['recheck_clearance_min_mm']:.3f} | {r['recheck_failures']} |")
     return "\n".join(lines)
 
 
 def run(models, planners, runs: int, time_limit: float, per_scene: int | None, out: Path,
-        scene_list=None, margin: float | None = None) -> dict:
+        scene_list=None, margin: float | None = None, objectives=("clearance",)) -> dict:
     import numba
 
     numba.set_num_threads(1)
@@ -218,23 +233,27 @@ def run(models, planners, runs: int, time_limit: float, per_scene: int | None, o
         # warm-up (model, scene, world, workspace table, JIT): not counted
         for s in sorted({p.scene for p in problems}):
             warm = [p for p in problems if p.scene == s][0]
-            run_one(warm, model, "rrtconnect", 999, time_limit, margin)
+            run_one(warm, model, "rrtconnect", 999, time_limit, margin, objectives[0])
         for prob in problems:
-            t0 = time.perf_counter()
-            recs = [run_one(prob, model, planner, seed, time_limit, margin)
-                    for planner in planners for seed in range(runs)]
-            records += recs
-            write_log(out / model / f"{prob.name}.log", f"ctrplan_hard_{prob.name}_{model}", recs,
-                      list(planners), time_limit, runs, time.perf_counter() - t0,
-                      f"scene {prob.scene}, problem {prob.name}, target {prob.target.tolist()}, "
-                      f"start {prob.start.tolist()}, model {model}, plan_to_target defaults "
-                      "(margin auto, sagitta padding, physics re-check), try_direct=False")
-            print(f"{prob.name} {model}: " + ", ".join(
-                f"{r['planner']}:{'ok' if r['success'] else r['status']} {r['time']:.2f}s" for r in recs),
-                flush=True)
+            for objective in objectives:
+                t0 = time.perf_counter()
+                recs = [run_one(prob, model, planner, seed, time_limit, margin, objective)
+                        for planner in planners for seed in range(runs)]
+                records += recs
+                tag = model if objective == "clearance" else f"{model}_{objective}"
+                write_log(out / tag / f"{prob.name}.log", f"ctrplan_hard_{prob.name}_{tag}", recs,
+                          list(planners), time_limit, runs, time.perf_counter() - t0,
+                          f"scene {prob.scene}, problem {prob.name}, target {prob.target.tolist()}, "
+                          f"start {prob.start.tolist()}, model {model}, objective {objective}, "
+                          "plan_to_target defaults (margin auto, sagitta padding, physics "
+                          "re-check), try_direct=False")
+                print(f"{prob.name} {model} {objective}: " + ", ".join(
+                    f"{r['planner']}:{'ok' if r['success'] else r['status']} {r['time']:.2f}s "
+                    f"clearance {r.get('recheck_clearance', float('nan')):.3f}" for r in recs),
+                    flush=True)
     table = summarize(records)
     res = {"robot": ROBOT, "time_limit_s": time_limit, "runs": runs, "planners": list(planners),
-           "models": list(models), "problems": [p.name for p in problems], "table": table,
+           "models": list(models), "objectives": list(objectives), "problems": [p.name for p in problems], "table": table,
            "records": records}
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.json").write_text(json.dumps(res, indent=1) + "\n", encoding="utf-8")
@@ -251,15 +270,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, default=1, help="seeds per problem and planner")
     ap.add_argument("--time", type=float, default=10.0, help="time cap per plan, s")
     ap.add_argument("--margin", type=float, default=None, help="margin (mm) instead of auto")
+    ap.add_argument("--objectives", nargs="+", default=["clearance"],
+                    help="plan objectives to run (clearance, length, first; default clearance)")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "hard"))
     args = ap.parse_args(argv)
     res = run(args.models, args.planners, args.runs, args.time, 1 if args.quick else args.per_scene,
-              Path(args.out), args.scenes, args.margin)
+              Path(args.out), args.scenes, args.margin, tuple(args.objectives))
     for r in res["table"]:
-        print(f"{r['model']:>8} {r['planner']:>10}: {r['success']}/{r['plans']} "
+        print(f"{r['model']:>8} {r['planner']:>10} {r['objective']:>9}: {r['success']}/{r['plans']} "
               f"({100 * r['success_rate']:.0f}%), time median {r['time_median_s']:.2f} s "
               f"p90 {r['time_p90_s']:.2f} s, length {r['length_median']:.0f}, clearance "
-              f"{r['clearance_median_mm']:.2f} mm, recheck failures {r['recheck_failures']}")
+              f"{r['clearance_median_mm']:.2f} mm (re-check {r['recheck_clearance_median_mm']:.2f} mm), "
+              f"recheck failures {r['recheck_failures']}")
     print(markdown(res["table"]))
     return 0
 

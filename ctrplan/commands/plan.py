@@ -54,6 +54,40 @@ def add_planning_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tolerance", type=float, default=1.0,
                    help="accepted tip-to-target distance, mm (default 1)")
     add_margin_arg(p, "while planning")
+    p.add_argument("--objective", default="clearance", metavar="clearance|length|first",
+                   help="what the found path is optimised for: 'clearance' (default: keep as far "
+                        "from the anatomy as the robot allows), 'length' (short and smooth) or "
+                        "'first' (the first solution found, simplified)")
+
+
+def parse_objective(text) -> str:
+    """``--objective``: clearance, length or first (InputError otherwise)."""
+    from ctrplan.planning.plan import check_objective
+
+    return check_objective(text)
+
+
+def summary_line(plan: dict, model: str, robot: str) -> str:
+    """The human summary printed after a plan: status, tip error, closest approach, and what
+    the clearance is relative to (a calibrated model, or the nominal one and how to calibrate)."""
+    status = plan.get("status", "?")
+    if not plan.get("success"):
+        return f"{status}: {plan.get('message', '')}"
+    tip = plan.get("tip_error_mm")
+    clear = plan.get("min_clearance_mm")
+    text = (f"{status}: tip {'n/a' if tip is None else f'{tip:.3f}'} mm from the target, closest "
+            f"approach {'n/a' if clear is None else f'{clear:.2f}'} mm to the anatomy "
+            f"(objective {plan.get('objective', '?')})")
+    margin = float(plan.get("margin_mm") or 0.0)
+    if plan.get("calibrated"):
+        return text + (f"; relative to the calibrated model {model!r}, with its error bound as a "
+                       f"{margin:.2f} mm margin" if plan.get("margin_auto") else
+                       f"; relative to the calibrated model {model!r}, margin {margin:g} mm")
+    stated = f", plus the stated margin of {margin:g} mm" if margin > 0 else ""
+    return (text + f"; relative to the nominal model{stated} (uncalibrated: the real robot "
+            f"differs from it by an unknown amount). To calibrate: `ctrplan diagnose --robot "
+            f"{robot} --data measured.csv --out report/`, then plan with `--model "
+            f"report/calibrated.yaml --margin auto`")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -63,7 +97,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "(or --start) to put the tip at a target point (mm, scene frame), and write "
                     "plan.json (success, status, path with continuous rotations, tip_path, "
                     "tip_error_mm, planning_time_s, min_clearance_mm and min_clearance_exact "
-                    "under the planning model and the reference model, margin_mm, planner = "
+                    "under the planning model and the reference model, clearance_profile (per "
+                    "path state), objective and objective_value, calibrated (whether the model "
+                    "carries an error bound measured on the robot), margin_mm, planner = "
                     "what solved it ('direct' for the straight edge), seed, robot, model, scene, "
                     "time_cap_hit, timings, counts). The search budget is a count of validated "
                     "states, so a seed gives the same path on any machine load; --time is a cap. "
@@ -149,13 +185,14 @@ def run(args: argparse.Namespace) -> int:
 
     out = output_path(args.out, (".json",))
     check_planner(args.planner)
+    objective = parse_objective(args.objective)
     if args.seed < 0:
         raise InputError("--seed", "", f"must be >= 0, got {args.seed}")
     robot = load_robot(args.robot)
     scene = scene_by_name(args.scene)
     target, name = parse_target(args.target, scene)
     start = parse_start(args.start, robot)
-    config = PlanConfig(margin_mm=parse_margin(args.margin))
+    config = PlanConfig(margin_mm=parse_margin(args.margin), objective=objective)
     result = plan_to_target(robot, scene, target, model=args.model, planner=args.planner,
                             time_limit=args.time, seed=args.seed, tolerance_mm=args.tolerance,
                             config=config, start=start)
@@ -168,6 +205,7 @@ def run(args: argparse.Namespace) -> int:
              result.message, result.planning_time_s,
              "n/a" if plan["tip_error_mm"] is None else f"{plan['tip_error_mm']:.3f}",
              len(plan["path"]), out)
+    print(summary_line(plan, str(args.model), str(args.robot)))
     if result.status in (PlanStatus.UNREACHABLE, PlanStatus.TARGET_IN_COLLISION):
         raise InputError("--target", "", f"{result.status.value}: {result.message} (wrote {out})")
     return 0 if result.success else 1

@@ -60,14 +60,15 @@ def run(args: argparse.Namespace) -> int:
     if args.model not in MODEL_NAMES and not Path(args.model).exists():
         raise InputError("--model", "", f"{args.model!r} is not a model name "
                                         f"({', '.join(MODEL_NAMES)}) or an existing file")
-    from ctrplan.commands.plan import parse_margin
+    from ctrplan.commands.plan import parse_margin, parse_objective
 
     margin = parse_margin(args.margin)
+    objective = parse_objective(args.objective)
     targets = read_targets(args.targets, args.scene)
     jobs = make_jobs(targets, seeds=range(args.seeds), robot=args.robot,
                      model=args.model, planner=planner, time_limit=float(args.time),
                      tolerance_mm=float(args.tolerance),
-                     margin="auto" if margin is None else repr(margin))
+                     margin="auto" if margin is None else repr(margin), objective=objective)
     summary = run_batch(jobs, out, workers=args.workers, ray_address=args.ray)
     for row in summary.rows:
         print(f"{row['scene']:>16}: {row['success']}/{row['jobs']} succeeded "

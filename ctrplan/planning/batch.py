@@ -49,6 +49,7 @@ class Job:
     time_limit: float = 5.0
     tolerance_mm: float = 1.0
     margin: str = "auto"          # "auto" or a number of mm (as text)
+    objective: str = "clearance"  # clearance, length or first
 
     @property
     def id(self) -> str:
@@ -189,7 +190,7 @@ def run_job(job: Job | dict) -> JobResult:
         scene = scene_by_name(job.scene)
         result = plan_to_target(job.robot, scene, job.target, model=job.model, planner=job.planner,
                                 time_limit=job.time_limit, seed=job.seed, tolerance_mm=job.tolerance_mm,
-                                config=PlanConfig(margin_mm=margin))
+                                config=PlanConfig(margin_mm=margin, objective=job.objective))
     except InputError as exc:
         return JobResult(job, PlanStatus.INPUT_ERROR, str(exc))
     return JobResult(job, result.status, result.message, result.to_json())
@@ -323,7 +324,8 @@ def _run_ray(todo: Sequence[Job], address: str, workers: int, record) -> None:
 # ---------------------------------------------------------------------- tables
 JOB_COLUMNS = ("job_id", "scene", "target_name", "x", "y", "z", "seed", "robot", "model", "planner",
                "status", "success", "planning_time_s", "tip_error_mm", "min_clearance_mm", "min_clearance_exact",
-               "min_clearance_reference_mm", "margin_mm", "message")
+               "min_clearance_reference_mm", "margin_mm", "objective", "objective_value", "calibrated",
+               "message")
 
 
 def summarize(results: Sequence[dict]) -> list[dict]:

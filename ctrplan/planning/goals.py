@@ -108,6 +108,10 @@ class GoalSource:
     tolerance_mm: float
     config: Any  # PlanConfig
     rng: np.random.Generator
+    #: optional score of goal configurations (G, 2n) -> (G,): each round's goals (the same
+    #: ones) are handed out highest first (e.g. their clearance); None keeps the order of
+    #: increasing tip error
+    rank: Any = None
     rounds: int = 0
     reaching: int = 0
     evaluations: int = 0
@@ -173,5 +177,7 @@ class GoalSource:
         ok = self.validator.states_valid(cand)
         self.validator.remember(cand, ok)
         new = cand[ok][: c.max_goals]
+        if self.rank is not None and len(new) > 1:   # the same goals, best ranked first
+            new = new[np.argsort(-np.asarray(self.rank(new), dtype=float), kind="stable")]
         self.goals.extend(new)
         return new

@@ -11,7 +11,11 @@ separately):
 3. **Planning** — the straight edge to the nearest goals, else OMPL with the batched motion
    validator (:mod:`ctrplan.planning.space`); more goals are added after a slice without a
    solution.
-4. **Simplification** — vertex reduction and shortcutting with the same validator.
+4. **Simplification** — vertex reduction and shortcutting with the same validator; then
+   **optimisation** for the objective (:mod:`ctrplan.planning.optimize`; ``clearance`` by
+   default: the path and its goal configuration are moved away from the anatomy, every accepted
+   iterate collision-free; ``first`` keeps the first solution). IK goals are handed to the
+   planner in order of clearance for the ``clearance`` objective.
 5. **Verification** — every state at ``resolution / verify_factor`` checked with exact verdicts
    on the planning model (a failing segment is re-planned with a finer validator), then again
    with the reference model (physics, or the calibrated model itself) at margin 0.
@@ -42,6 +46,7 @@ import numpy as np
 
 from ctrplan.errors import InputError
 from ctrplan.planning import ik as _ik
+from ctrplan.planning import optimize as _opt
 from ctrplan.planning.goals import (
     GoalSource,
     retracted_start,
@@ -52,6 +57,7 @@ from ctrplan.planning.validator import (
     BatchValidator,
     PathCheck,
     ValidatorConfig,
+    edge_direction,
     interpolate_path,
     motion_mm,
     unwrap_path,
@@ -107,6 +113,12 @@ class PlanConfig:
     optimize : let anytime planners (RRT*, BIT*) use the whole budget.
     try_direct : before OMPL, try the straight edge from the start to the nearest goals
         (``planner`` is then ``"direct"``); False always runs the planner.
+    objective : what the found path is optimised for: ``"clearance"`` (default: keep as far
+        from the anatomy as the robot allows; Kuntz et al.'s integral of 1/clearance),
+        ``"length"`` (short and smooth) or ``"first"`` (the first solution, simplified).
+    optimizer : the local optimiser's settings (a count of step trials, not a time).
+    goals_by_clearance : with the clearance objective, hand IK goals to the planner in order of
+        their (estimated) clearance instead of their tip error.
     """
 
     validator: ValidatorConfig = field(default_factory=ValidatorConfig)
@@ -130,8 +142,12 @@ class PlanConfig:
     simplify: bool = True
     optimize: bool = False
     try_direct: bool = True
+    objective: str = "clearance"
+    optimizer: _opt.OptimizeConfig = field(default_factory=_opt.OptimizeConfig)
+    goals_by_clearance: bool = True
 
     def __post_init__(self) -> None:
+        check_objective(self.objective)
         if self.margin_mm is not None and not (math.isfinite(self.margin_mm) and self.margin_mm >= 0):
             raise InputError("--margin", "", f"must be a number >= 0 (mm) or auto, got {self.margin_mm!r}")
         if not (isinstance(self.max_states, int) and self.max_states > 0):
@@ -164,6 +180,17 @@ class PlanResult:
         plan), checks, ik, planning, simplification, verification, and total.
     planning_time_s : total minus setup (what a plan costs once the process is warm).
     counts : work done (states validated, edges, goals, IK evaluations, verification states...).
+    objective : what the path was optimised for (``clearance``, ``length``, ``first``);
+        objective_value : its value on the returned path: for ``clearance`` the integral of
+        1/clearance over the metric arc length (dimensionless, smaller is better; clearances
+        from ``clearance_profile``), for ``length`` the metric length (mm), nan for ``first``.
+    clearance_profile : (K,) mm, one per ``path`` state: the planning model's tube (capsules
+        of radius + sagitta bound, margin not included) to the anatomy, estimated from the
+        distance fields (the interpolated distance to the nearest surface sample; within about
+        the field's sample spacing of FCL's distance; ``min_clearance_mm`` is FCL's).
+    calibrated : whether the planning model carries an error bound measured on the robot
+        (``error_quantiles`` / ``error_profile``); if not, clearances are relative to the
+        nominal model only.
     """
 
     success: bool
@@ -195,6 +222,10 @@ class PlanResult:
     curvature_bound_per_mm: float = 0.0
     time_cap_hit: bool = False
     requested_planner: str = ""
+    objective: str = "clearance"
+    objective_value: float = math.nan
+    clearance_profile: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    calibrated: bool = False
 
     def to_json(self) -> dict[str, Any]:
         """The plan.json fields of docs/conventions.md (plus diagnostics), JSON-ready (no NaN: null instead)."""
@@ -217,6 +248,10 @@ class PlanResult:
             "curvature_bound_per_mm": float(self.curvature_bound_per_mm),
             "planner": self.planner,
             "requested_planner": self.requested_planner,
+            "objective": self.objective,
+            "objective_value": _num(self.objective_value),
+            "clearance_profile": [_num(v) for v in np.asarray(self.clearance_profile, dtype=float)],
+            "calibrated": bool(self.calibrated),
             "seed": int(self.seed),
             "robot": self.robot,
             "model": self.model,
@@ -228,6 +263,15 @@ class PlanResult:
             "timings": {k: float(v) for k, v in self.timings.items()},
             "counts": {k: int(v) for k, v in self.counts.items()},
         }
+
+
+def check_objective(objective) -> str:
+    """An objective name (``clearance``, ``length``, ``first``) or :class:`InputError`."""
+    key = str(objective).strip().lower()
+    if key not in _opt.OBJECTIVES:
+        raise InputError("--objective", "", f"must be one of {', '.join(_opt.OBJECTIVES)}, "
+                         f"got {objective!r}")
+    return key
 
 
 def _num(v: float) -> float | None:
@@ -438,6 +482,7 @@ def plan_to_target(
     config: PlanConfig | None = None,
     world=None,
     start=None,
+    objective: str | None = None,
 ) -> PlanResult:
     """Plan a collision-free motion from the start configuration to put the tip at ``target``.
 
@@ -465,6 +510,8 @@ def plan_to_target(
         margin and curvature bound; ``config.margin_mm`` is only reported).
     start : (2n,) start configuration, or None / "retracted" for the retracted one
         (:func:`retracted_start`).
+    objective : ``"clearance"`` (the default of :class:`PlanConfig`), ``"length"`` or
+        ``"first"``; None uses ``config.objective``.
 
     Raises
     ------
@@ -472,6 +519,8 @@ def plan_to_target(
         Unknown robot, scene, model or planner; non-finite target; bad time limit, tolerance,
         margin or start.
     """
+    if objective is not None:
+        config = replace(config or PlanConfig(), objective=check_objective(objective))
     run = _prepare(robot, scene, target, model, planner, time_limit, seed, tolerance_mm,
                    config, world)
     try:
@@ -479,7 +528,8 @@ def plan_to_target(
         source, goals = _stage_ik(run)                                 # 2. IK goals
         path, solver = _stage_planning(run, start, source, goals)      # 3. planning
         path = _stage_simplification(run, path)                        # 4. simplification
-        check, ref_check, path = _stage_verification(run, path)        # 5. verification
+        optimized = _stage_optimization(run, path)                     #    + objective
+        check, ref_check, path = _verify_optimized(run, path, optimized)  # 5. verification
     except _Stop as stop:
         return stop.result
     return _output(run, path, solver, check, ref_check)
@@ -531,7 +581,8 @@ def _prepare(robot, scene, target, model, planner, time_limit, seed, tolerance_m
                 robot=robot.name, model=_model_label(model_spec, given),
                 scene=_scene_label(scene_spec, scene), tolerance_mm=float(tolerance_mm),
                 time_limit_s=float(time_limit), margin_mm=float(margin), margin_auto=auto,
-                curvature_bound_per_mm=float(curvature), reference_model=ref_label)
+                curvature_bound_per_mm=float(curvature), reference_model=ref_label,
+                objective=cfg.objective, calibrated=is_calibrated(given) or is_calibrated(pmodel))
     run = _Run(robot=robot, scene=scene, target=target, target_base=scene.to_base(target[None])[0],
                model=pmodel, reference=reference, world=world,
                validator=BatchValidator(robot, pmodel, world, cfg.validator), cfg=cfg,
@@ -539,8 +590,15 @@ def _prepare(robot, scene, target, model, planner, time_limit, seed, tolerance_m
                time_limit=float(time_limit), t_call=t_call, margin_mm=margin, margin_auto=auto,
                curvature=curvature, meta=meta)
     run.timings = {"setup": time.perf_counter() - t_call, "checks": 0.0, "ik": 0.0,
-                   "planning": 0.0, "simplification": 0.0, "verification": 0.0, "total": 0.0}
+                   "planning": 0.0, "simplification": 0.0, "optimization": 0.0,
+                   "verification": 0.0, "total": 0.0}
     return run
+
+
+def is_calibrated(model) -> bool:
+    """Whether a model carries an error bound measured on the robot (``error_quantiles`` or
+    ``error_profile`` in its metadata); the nominal physics model does not."""
+    return bool(getattr(model, "error_quantiles", None) or getattr(model, "error_profile", None))
 
 
 def _same_tubes(a: Robot, b: Robot) -> bool:
@@ -605,8 +663,14 @@ def _stage_ik(run: _Run) -> tuple[GoalSource, np.ndarray]:
     run.timings["setup"] += time.perf_counter() - t0
     run.deadline += time.perf_counter() - t0
     t0 = time.perf_counter()
+    rank = None
+    if run.cfg.objective == "clearance" and run.cfg.goals_by_clearance:
+        field_ = _opt.FieldClearance(run.world)
+
+        def rank(q: np.ndarray) -> np.ndarray:   # goals with more room first
+            return _state_clearance(run.validator, field_, q)
     source = GoalSource(run.model, run.robot, run.validator, table, run.target_base,
-                        run.tolerance_mm, run.cfg, np.random.default_rng([run.seed, 1]))
+                        run.tolerance_mm, run.cfg, np.random.default_rng([run.seed, 1]), rank=rank)
     goals = source.next()
     while len(goals) == 0 and source.rounds < run.cfg.ik_rounds:
         goals = source.next()
@@ -678,16 +742,67 @@ def _stage_simplification(run: _Run, path: np.ndarray) -> np.ndarray:
     return path
 
 
-def _stage_verification(run: _Run, path: np.ndarray) -> tuple[PathCheck, PathCheck | None, np.ndarray]:
+def _state_clearance(validator: BatchValidator, field_, q: np.ndarray,
+                     direction: np.ndarray | None = None) -> np.ndarray:
+    """(B,) estimated clearance (mm, the world's padded capsules) of states q (B, 2n): the
+    distance-field estimate of :class:`~ctrplan.planning.optimize.FieldClearance`, the worst
+    case over a direction-aware model's unknown directions."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    out = np.full(len(q), np.inf)
+    for d in validator.variants(q, direction):
+        shape = validator.shapes(q, direction=d)
+        out = np.minimum(out, field_.capsule_clearance(shape).min(axis=1))
+    return out
+
+
+def _stage_optimization(run: _Run, path: np.ndarray) -> list[np.ndarray]:
+    """Stage 4b: the local optimiser for the objective. Returns the optimised path and an
+    earlier iterate (best first) for stage 5 to try before the simplified path; empty for
+    ``first`` or when no step was accepted. Every iterate passed the validator's edge check
+    (the planner's own: exact verdicts, same padding and margin, at the edge resolution)."""
+    cfg = run.cfg
+    if cfg.objective == "first" or len(path) < 2:
+        return []
+    t0 = time.perf_counter()
+    # the optimised goal's tip error stays within max(its IK error, 0.4 x the IK's threshold)
+    res = _opt.optimize_path(run.validator, path, run.target_base, cfg.objective, cfg.optimizer,
+                             goal_tol_mm=0.4 * min(cfg.ik.stop_mm, 0.1 * run.tolerance_mm),
+                             deadline=run.deadline)
+    run.clock("optimization", t0)
+    run.time_cap_hit |= res.time_cap_hit
+    run.counts.update(optimizer_accepted=res.accepted, optimizer_trials=res.trials,
+                      optimizer_evaluations=res.evaluations,
+                      states_validated=run.validator.counters.states)
+    if not res.accepted:
+        return []
+    return [res.path] + ([res.history[len(res.history) // 2]] if len(res.history) > 2 else [])
+
+
+def _verify_optimized(run: _Run, path: np.ndarray,
+                      optimized: list[np.ndarray]) -> tuple[PathCheck, PathCheck | None, np.ndarray]:
+    """Stage 5 on the optimised path; if it fails there (or in the reference model's check),
+    on the earlier iterate, then on the simplified path (with repairs, as without an
+    objective)."""
+    for k, candidate in enumerate(optimized):
+        try:
+            return _stage_verification(run, candidate, repair=False)
+        except _Stop:
+            run.counts["optimizer_fallbacks"] = k + 1
+            log.debug("plan: optimised path %d failed verification; trying the next", k)
+    return _stage_verification(run, path)
+
+
+def _stage_verification(run: _Run, path: np.ndarray,
+                        repair: bool = True) -> tuple[PathCheck, PathCheck | None, np.ndarray]:
     """Stage 5: exact check on the planning model at the fine resolution (failing segments
-    re-planned), then the reference model's check at margin 0."""
+    re-planned unless ``repair`` is False), then the reference model's check at margin 0."""
     cfg, validator = run.cfg, run.validator
     t0 = time.perf_counter()
     vres = cfg.validator.resolution_mm / max(1, cfg.verify_factor)
     vpoints = cfg.verify_points or cfg.validator.points
     check = validator.check_path(path, vres, points=vpoints, fcl_all=cfg.verify_fcl_all)
     attempts = 0
-    while not check.ok and attempts < cfg.repair_attempts:
+    while not check.ok and repair and attempts < cfg.repair_attempts:
         attempts += 1
         repaired = _repair(run.robot, run.model, run.world, path, check.bad_segments, cfg,
                            run.seed + attempts, vres / (2 * attempts),
@@ -733,9 +848,11 @@ def _output(run: _Run, path: np.ndarray, solver: str, check: PathCheck,
     cfg, n = run.cfg, run.robot.n
     t0 = time.perf_counter()
     out_q = path
+    seg = np.minimum(np.arange(len(path)), max(0, len(path) - 2))
     if cfg.output_step_mm > 0:
-        out_q, _ = interpolate_path(path, n, cfg.validator.alpha_weight_mm, cfg.output_step_mm)
+        out_q, seg = interpolate_path(path, n, cfg.validator.alpha_weight_mm, cfg.output_step_mm)
     out_q = unwrap_path(out_q, n)
+    profile, value = _profile(run, path, out_q, seg)
     shape = run.model.shape(out_q, points=cfg.output_points)
     backbones = run.scene.to_scene(shape.points)
     tip_err = float(np.linalg.norm(shape.tip[-1] - run.target_base))
@@ -762,7 +879,29 @@ def _output(run: _Run, path: np.ndarray, solver: str, check: PathCheck,
     run.meta["planner"] = solver
     return run.finish(PlanStatus.SUCCESS, "ok", path=out_q, backbones=backbones,
                       tip_path=backbones[:, -1, :], tip_error_mm=tip_err,
-                      tip_error_physics_mm=tip_err_phys, **extra)
+                      tip_error_physics_mm=tip_err_phys, clearance_profile=profile,
+                      objective_value=value, **extra)
+
+
+def _profile(run: _Run, path: np.ndarray, out_q: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, float]:
+    """(clearance profile (K,) mm over the output states, margin not included; the objective's
+    value on the path)."""
+    n, w = run.robot.n, run.cfg.validator.alpha_weight_mm
+    direction = None
+    if run.validator.directional and len(path) > 1:
+        dirs = np.array([edge_direction(a, b, n) for a, b in zip(path[:-1], path[1:])])
+        direction = dirs[seg]
+        joins = np.flatnonzero(np.r_[False, seg[1:] != seg[:-1]])
+        direction[joins] = 0        # a waypoint joins two edges: both directions checked
+    profile = _state_clearance(run.validator, _opt.FieldClearance(run.world), out_q, direction)
+    profile = profile + run.margin_mm
+    if run.cfg.objective == "clearance":
+        value = _opt.clearance_integral(profile, out_q, n, w)
+    elif run.cfg.objective == "length":
+        value = float(motion_mm(out_q[:-1], out_q[1:], n, w).sum()) if len(out_q) > 1 else 0.0
+    else:
+        value = math.nan
+    return profile, value
 
 
 def path_min_clearance(validator: BatchValidator, world, check, points: int | None,
