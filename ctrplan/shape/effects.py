@@ -556,7 +556,8 @@ class EffectModel:
     def __init__(self, robot: Robot | str, base: str = "rigid",
                  effects: Mapping[str, Mapping[str, float]] | None = None,
                  config: PhysicsConfig | None = None,
-                 error_quantiles: Mapping[str, float] | None = None, pure: bool = False):
+                 error_quantiles: Mapping[str, float] | None = None, pure: bool = False,
+                 error_profile: Mapping[str, Any] | None = None):
         self.robot = load_robot(robot)
         self.base = base
         self.effects = complete_effects(effects, self.robot, base)
@@ -566,6 +567,9 @@ class EffectModel:
         self.name = base + "".join(f"+{e}" for e in self.effects)
         #: held-out tip residual norm quantiles (mm) of a calibrated model, or None
         self.error_quantiles = dict(error_quantiles) if error_quantiles else None
+        #: held-out deviation quantiles along the shaft (``error_profile`` mapping of
+        #: :mod:`ctrplan.shape.error_bounds`), or None
+        self.error_profile = dict(error_profile) if error_profile else None
         #: True: friction is a pure function of (q, direction) even without direction
         #: (no direction known = no lag); False: direction=None takes rows in order
         self.pure = bool(pure)
@@ -589,7 +593,7 @@ class EffectModel:
         frame) and friction a pure function of (q, direction) (no lag where none is given)."""
         eff = {k: v for k, v in self.effects.items() if k != "registration"}
         return EffectModel(self.robot, self.base, eff, self.config, self.error_quantiles,
-                           pure=True)
+                           pure=True, error_profile=self.error_profile)
 
     def shape(self, q: np.ndarray, points: int = 20, sweep: np.ndarray | None = None,
               direction: np.ndarray | None = None) -> Shape:
@@ -617,6 +621,10 @@ class EffectModel:
              "units": "mm, rad; see ctrplan.shape.effects"}
         if self.error_quantiles:
             d["error_quantiles"] = {k: float(v) for k, v in self.error_quantiles.items()}
+        if self.error_profile:
+            from ctrplan.shape.error_bounds import profile_from_dict
+
+            d["error_profile"] = profile_from_dict(self.error_profile).to_dict()
         return d
 
     def save(self, path: str | os.PathLike) -> None:
@@ -636,7 +644,7 @@ class EffectModel:
         if not isinstance(data, dict) or data.get("kind") != MODEL_KIND:
             raise InputError(source, "kind", f"not a {MODEL_KIND} file")
         unknown = set(data) - {"kind", "base", "robot", "effects", "units", "notes",
-                               "error_quantiles"}
+                               "error_quantiles", "error_profile"}
         if unknown:
             raise InputError(source, sorted(unknown)[0], "unknown key")
         robot = robot_from_dict(data.get("robot"), source=source)
@@ -653,9 +661,18 @@ class EffectModel:
                         math.isfinite(v) or v < 0:
                     raise InputError(source, f"error_quantiles.{k}",
                                      f"must be a finite number >= 0 (mm), got {v!r}")
+        prof = data.get("error_profile")
+        if prof is not None:
+            from ctrplan.shape.error_bounds import profile_from_dict
+
+            try:
+                prof = profile_from_dict(prof).to_dict()
+            except ValueError as exc:
+                field_, _, msg = str(exc).partition(": ")
+                raise InputError(source, field_, msg) from None
         return cls(robot, str(data.get("base", "rigid")),
                    complete_effects(effects, robot, str(data.get("base", "rigid")), source),
-                   error_quantiles=eq)
+                   error_quantiles=eq, error_profile=prof)
 
     @classmethod
     def load(cls, path: str | os.PathLike, robot: Robot | str | None = None) -> EffectModel:

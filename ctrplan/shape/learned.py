@@ -147,6 +147,9 @@ class LearnedModel:
             raise ValueError("a residual base other than a LearnedModel needs base_spec")
         #: held-out max-deviation quantiles (mm) {"p50", "p95", "p99", "max"} or None
         self.error_quantiles: dict[str, float] | None = None
+        #: held-out deviation quantiles per arc-length fraction (the ``error_profile`` mapping
+        #: of :mod:`ctrplan.shape.error_bounds`) or None
+        self.error_profile: dict[str, list[float]] | None = None
         #: training domain (joint ranges seen) or None (robot limits only)
         self.domain: dict[str, Any] | None = None
         lo, hi = self.robot.beta_bounds()
@@ -611,6 +614,14 @@ class LearnedModel:
         (None: the whole circle, when no gap between seen angles exceeds FULL_CIRCLE_GAP)."""
         self.domain = training_domain(self.robot, q, source)
 
+    def set_error_profile(self, predicted: np.ndarray, measured: np.ndarray) -> dict[str, list[float]]:
+        """Store the quantiles of the held-out deviation at each backbone point (predicted and
+        measured (B, m, 3), evenly spaced in arc length) as :attr:`error_profile`."""
+        from ctrplan.shape.error_bounds import profile_from_backbones
+
+        self.error_profile = profile_from_backbones(predicted, measured).to_dict()
+        return self.error_profile
+
     def set_error_quantiles(self, per_config_max: np.ndarray) -> dict[str, float]:
         """Store quantiles of held-out max deviations (mm) as :attr:`error_quantiles`."""
         self.error_quantiles = error_quantiles(per_config_max)
@@ -685,6 +696,7 @@ class LearnedModel:
                                            "sign(D_alpha_i - D_alpha_i+1), i < n"},
             "residual": base_spec,
             "error_quantiles": self.error_quantiles,
+            "error_profile": self.error_profile,
             "domain": self.domain,
             "robot": self.robot.to_dict(),
             "architecture": {"width": self.width, "depth": self.depth, "activation": "PReLU",
@@ -758,6 +770,11 @@ class LearnedModel:
             if base_spec is not None and not isinstance(base_spec, dict):
                 raise ValueError("residual is not a mapping")
             eq = _check_quantiles(meta.get("error_quantiles"))
+            profile = meta.get("error_profile")
+            if profile is not None:
+                from ctrplan.shape.error_bounds import profile_from_dict
+
+                profile = profile_from_dict(profile).to_dict()
             domain = _check_domain(meta.get("domain"))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(src, "meta_json", f"missing or malformed metadata ({exc})") from None
@@ -801,6 +818,7 @@ class LearnedModel:
         if domain is not None and (len(domain["beta_min_mm"]) != robot.n or len(domain["alpha_arcs_rad"]) != robot.n):
             raise InputError(src, "domain", f"expects {robot.n} tubes")
         model.error_quantiles = eq
+        model.error_profile = profile
         model.domain = domain
         keep = ("training", "metrics", "data", "created", "command", "ctrplan_version",
                 "error_quantiles_source", "variant")

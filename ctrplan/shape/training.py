@@ -594,6 +594,16 @@ def finish(model: LearnedModel, seen: ShapeData, test: ShapeData, label: str) ->
         model.domain.update(beta_min_mm=lo.tolist(), beta_max_mm=hi.tolist(), alpha_arcs_rad=[None] * model.robot.n,
                             source="sim: uniform over the robot's joint limits")
     eq = model.set_error_quantiles(evaluate(model, test)["per_config_max"])
+    if len(test):   # the bound along the shaft: quantiles at each backbone point
+        m = test.points.shape[1]
+        if needs_direction(model) and test.direction is not None:
+            pred = model.shape(test.q, m, direction=test.direction).points
+        else:
+            pred = model.backbone(test.q, m)
+        try:
+            model.set_error_profile(pred, test.points)
+        except ValueError:
+            model.error_profile = None
     model.meta["error_quantiles_source"] = {
         "data": test.source, "rows": len(test), "part": "held-out test split" + (
             " (whole sweeps)" if test.sweep is not None else ""),
