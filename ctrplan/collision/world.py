@@ -132,6 +132,17 @@ class CollisionWorld:
             caps = Capsules(caps.a, caps.b, caps.radius + self.motion_mm)
         return caps.transformed(self.pose)
 
+    def with_motion(self, motion_mm: float) -> CollisionWorld:
+        """The same world (meshes, fields and FCL objects shared) with every capsule grown by
+        ``motion_mm`` more (the motion between two checked states)."""
+        import copy
+
+        if not (np.isfinite(motion_mm) and motion_mm >= 0):
+            raise InputError("motion_mm", "", f"must be a finite number >= 0, got {motion_mm}")
+        other = copy.copy(self)
+        other.motion_mm = self.motion_mm + float(motion_mm)
+        return other
+
     @property
     def fields(self):
         """Distance fields of the meshes (built or read from the cache on first use)."""
