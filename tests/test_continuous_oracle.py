@@ -16,14 +16,22 @@ import numpy as np
 import pytest
 import trimesh
 
+from ctrplan.collision.field import FieldConfig
 from ctrplan.collision.scene import Scene, SceneMesh
 from ctrplan.collision.world import CollisionWorld
-from ctrplan.planning.validator import BatchValidator, ValidatorConfig, interpolate_path
+from ctrplan.planning.validator import (
+    BatchValidator,
+    ValidatorConfig,
+    interpolate_path,
+    project_joints,
+)
 from ctrplan.shape.effects import EffectModel
 from ctrplan.shape.models import load_model
 
 DENSE = 500
 POINTS = 24
+#: a coarse distance field (its clearances are looser lower bounds: more subdivision, still safe)
+COARSE = FieldConfig(h_mm=8.0, band_mm=2.0, max_nodes=20_000, refine_mm=2.0)
 
 
 def _radius(robot, q, s):
@@ -87,11 +95,11 @@ def test_padded_check_never_calls_a_penetrating_configuration_free(seed1, name):
                 sub = type(coarse)(coarse.points[i:i + 1], coarse.s[i:i + 1],
                                    coarse.radius[i:i + 1], coarse.ok[i:i + 1],
                                    None if coarse.pad is None else coarse.pad[i:i + 1])
-                hit = bool(CollisionWorld(scene, prefilter=False, cache=False).check(sub).collides[0])
+                hit = bool(CollisionWorld(scene, prefilter=False, cache=False).collides(sub)[0])
                 if truth:
                     assert hit, (name, i, u, eps)
                     chords = CollisionWorld(scene, prefilter=False, cache=False, padding="none")
-                    missed_by_chords += int(not chords.check(sub).collides[0])
+                    missed_by_chords += int(not chords.collides(sub)[0])
                 else:
                     free_reported += int(not hit)
     # not vacuous: the padding is not so large that nothing near the wall is free, and the
@@ -115,8 +123,6 @@ def test_verified_path_motion_never_penetrates(seed1, name):
         q0 = seed1.sample(1, seed=100 + trial)[0]
         step = np.concatenate([rng.normal(0, 0.08, n), rng.normal(0, 2.0, n)])
         q1 = q0 + step
-        from ctrplan.planning.validator import project_joints
-
         q1 = project_joints(seed1, q1[None])[0]
         path = np.stack([q0, q1])
         states, _ = interpolate_path(path, n, val_cfg.alpha_weight_mm, res)
@@ -134,9 +140,86 @@ def test_verified_path_motion_never_penetrates(seed1, name):
             scene = _plane(u, float(extent + eps))
             truth = any(_oracle_penetrates(scene, p, r) for p, r in zip(dense.points, rad))
             assert truth == (eps < 0)
-            world = CollisionWorld(scene, prefilter=False, cache=False)
+            world = CollisionWorld(scene, prefilter=False, cache=False, field_config=COARSE)
             check = BatchValidator(seed1, model, world, val_cfg).check_path(path, res, points=POINTS)
             if truth:
                 assert not check.ok, (name, trial)
             checked += 1
     assert checked >= 2
+
+
+def _sphere(centre: np.ndarray, radius: float) -> Scene:
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=radius)
+    mesh.apply_translation(centre)
+    return Scene(name="post", path="<memory>", meshes=(SceneMesh("post", "obstacle", mesh),),
+                 base_pose=np.eye(4), targets=())
+
+
+@pytest.mark.parametrize("name", ["physics", "learned"])
+def test_motion_between_checked_states_is_covered(seed1, name):
+    """A small obstacle beside the tip's path, touched only between two checked states (4 mm
+    of metric apart): the motion bound makes check_path fail; the states alone
+    (motion_bound=False) miss it at least once (the bug this fixes)."""
+    model = _models(seed1)[name]
+    rng = np.random.default_rng(8)
+    n, res, rho = seed1.n, 4.0, 0.1
+    missed_by_states = caught = 0
+    for trial in range(4):
+        q0 = seed1.sample(1, seed=200 + trial)[0]
+        # rotations only: the tip sweeps sideways, past the obstacle
+        q1 = project_joints(seed1, (q0 + np.concatenate([rng.normal(0, 0.3, n),
+                                                         np.zeros(n)]))[None])[0]
+        path = np.stack([q0, q1])
+        states, _ = interpolate_path(path, n, 30.0, res)
+        if len(states) < 3:
+            continue
+        t = np.linspace(0.0, 1.0, 11)[:, None]
+        k = len(states) // 2
+        fine = states[k - 1][None] + t * (states[k] - states[k - 1])[None]
+        dense = model.shape(fine, points=DENSE)
+        if not (dense.ok.all() and model.shape(states, points=POINTS).ok.all()):
+            continue
+        rad = _radius(seed1, fine, dense.s)
+        tip = dense.points[:, -1]
+        v = tip[6] - tip[4]
+        tan = dense.points[5, -1] - dense.points[5, -2]
+        tan /= np.linalg.norm(tan)
+        w = v - tan * (v @ tan)               # the sideways part of the tip's motion ...
+        w = np.cross(tan, w)                   # ... and the obstacle beside it
+        if np.linalg.norm(w) < 1e-6 or np.linalg.norm(tip[10] - tip[0]) < 0.5:
+            continue
+        w /= np.linalg.norm(w)
+        for eps in (-0.01,):
+            scene = _sphere(tip[5] + w * (rad[5, -1] + rho + eps), rho)
+            truth = any(_oracle_penetrates(scene, p, r) for p, r in zip(dense.points, rad))
+            assert truth
+            world = CollisionWorld(scene, cache=False, field_config=COARSE)
+            ok = BatchValidator(seed1, model, world).check_path(path, res, points=POINTS).ok
+            assert not ok, (name, trial)
+            caught += 1
+            loose = BatchValidator(seed1, model, world, ValidatorConfig(motion_bound=False))
+            missed_by_states += int(loose.check_path(path, res, points=POINTS).ok)
+    assert caught >= 2
+    assert missed_by_states > 0
+
+
+def test_learned_backbone_needs_and_keeps_its_polynomial_bound(seed1):
+    """Dense (50 per segment) learned backbones against their 24-point chords, distances
+    computed here: some exceed the precurvature sagitta (no curvature bound holds for the
+    network), none exceeds the model's own polynomial bound (Shape.pad)."""
+    model = load_model("learned", seed1)
+    q = seed1.sample(1500, seed=1)
+    sh = model.shape(q, points=POINTS)
+    dense = model.backbone(q, points=(POINTS - 1) * 50 + 1)
+    worst = np.zeros((len(q), POINTS - 1))
+    for k in range(POINTS - 1):
+        a, b = sh.points[:, k], sh.points[:, k + 1]
+        seg = dense[:, k * 50:(k + 1) * 50 + 1]
+        v = b - a
+        tt = np.clip(np.einsum("bjc,bc->bj", seg - a[:, None], v)
+                     / np.einsum("bc,bc->b", v, v)[:, None], 0.0, 1.0)
+        worst[:, k] = np.linalg.norm(seg - (a[:, None] + tt[..., None] * v[:, None]), axis=-1).max(1)
+    kappa = max(t.curvature for t in seed1.tubes)
+    sagitta = kappa * np.diff(sh.s, axis=1) ** 2 / 8
+    assert np.any(worst > sagitta + 1e-3)
+    assert np.all(worst <= sh.pad)
