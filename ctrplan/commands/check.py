@@ -15,8 +15,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("check", help="collision-check configurations in a scene",
                        description="Compute each configuration's backbone, sweep it into capsules "
                                    "and check it against the scene's wall and obstacle meshes. "
-                                   "Capsules are padded by the sagitta bound of the model's "
-                                   "largest curvature (they cover the continuous backbone) and "
+                                   "Capsules are padded by the model's bound of the distance "
+                                   "between its continuous backbone and the chords (sagitta, "
+                                   "kinks where tubes end, the learned polynomial's bound) and "
                                    "by --margin; a calibrated model is checked without its "
                                    "sensor registration, friction as a pure function of each row. "
                                    "Writes a CSV with collides (0/1), clearance_mm (signed, "
