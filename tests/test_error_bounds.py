@@ -108,3 +108,20 @@ def test_tip_extension_covers_a_foreign_robot_along_the_shaft(seed1):
         bound = prof.at(f, k)
         # held-out sampling noise of the quantile: 5 % of the tip bound
         assert np.all(true_q <= bound + 0.05 * tipq[k]), (k, np.max(true_q - bound))
+
+
+def test_calibrated_model_without_a_bound_gets_the_physics_recheck(seed1, tmp_path):
+    """A calibrated model planned at margin 0 (no error bound in its file) is re-checked with
+    physics; with a bound it plans at its margin and is re-checked with itself at margin 0."""
+    from ctrplan.planning.plan import plan_to_target
+
+    far = [0.0, 0.0, 5000.0]       # unreachable: the plan stops after setup, meta is filled in
+    bare = EffectModel(seed1, "compliant", {"clearance": {"c0": 0.05}})
+    r = plan_to_target(seed1, "airway", far, model=bare)
+    assert r.reference_model == "physics" and r.margin_mm == 0.0
+    eq = {"p50": 0.2, "p95": 0.4, "p99": 0.6, "max": 0.9}
+    prof = extend_tip_bound(eq).to_dict()
+    cal = EffectModel(seed1, "compliant", {"clearance": {"c0": 0.05}}, error_quantiles=eq,
+                      error_profile=prof)
+    r = plan_to_target(seed1, "airway", far, model=cal)
+    assert r.reference_model != "physics" and r.margin_mm == pytest.approx(0.6) and r.margin_auto
