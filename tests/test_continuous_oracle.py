@@ -66,17 +66,22 @@ def _oracle_penetrates(scene: Scene, pts: np.ndarray, rad: np.ndarray) -> bool:
     return bool(np.any(dist < rad))
 
 
-def _models(seed1):
-    return {
-        "physics": load_model("physics", seed1),
-        "kinks": EffectModel(seed1, "compliant", {"clearance": {"c0": 0.1, "c1": 0.1}}),
-        "learned": load_model("learned", seed1),
-    }
+_MODELS: dict = {}
+
+
+def _model(seed1, name):
+    """The model under test (loaded once per session)."""
+    if name not in _MODELS:
+        _MODELS[name] = (
+            load_model("physics", seed1) if name == "physics" else
+            EffectModel(seed1, "compliant", {"clearance": {"c0": 0.1, "c1": 0.1}})
+            if name == "kinks" else load_model("learned", seed1))
+    return _MODELS[name]
 
 
 @pytest.mark.parametrize("name", ["physics", "kinks", "learned"])
 def test_padded_check_never_calls_a_penetrating_configuration_free(seed1, name):
-    model = _models(seed1)[name]
+    model = _model(seed1, name)
     rng = np.random.default_rng(11)
     q = seed1.sample(12, seed=4)
     dense = model.shape(q, points=DENSE)
@@ -113,7 +118,7 @@ def test_verified_path_motion_never_penetrates(seed1, name):
     """A path verified by check_path (states 0.5 mm apart) stays out of the wall at 10
     interpolated states per checked edge and 500 points per shape; a wall the dense motion
     touches makes the verification fail."""
-    model = _models(seed1)[name]
+    model = _model(seed1, name)
     rng = np.random.default_rng(5)
     n = seed1.n
     val_cfg = ValidatorConfig()
@@ -160,7 +165,7 @@ def test_motion_between_checked_states_is_covered(seed1, name):
     """A small obstacle beside the tip's path, touched only between two checked states (4 mm
     of metric apart): the motion bound makes check_path fail; the states alone
     (motion_bound=False) miss it at least once (the bug this fixes)."""
-    model = _models(seed1)[name]
+    model = _model(seed1, name)
     rng = np.random.default_rng(8)
     n, res, rho = seed1.n, 4.0, 0.1
     missed_by_states = caught = 0

@@ -827,37 +827,40 @@ class LearnedModel:
         return model
 
 
-def _bernstein_second_derivative(fit_points: int, points: int, terms: int) -> np.ndarray:
-    """(points - 1, terms - 1, fit_points) map from a polynomial backbone sampled at
-    ``fit_points`` even parameters t in [0, 1] to the Bernstein control points, on each of the
-    ``points - 1`` even parameter segments, of its second derivative ``d^2 p / dt^2``."""
+def _bernstein_second_derivative(fit_points: int, points: int, terms: int):
+    """Sample indices and the (points - 1, terms - 1, len(indices)) map from a polynomial
+    backbone's samples at those indices of ``fit_points`` even parameters t in [0, 1] to the
+    Bernstein control points, on each of the ``points - 1`` even parameter segments, of its
+    second derivative ``d^2 p / dt^2``."""
     from math import comb
 
     K = int(terms)
     d = K - 2
-    phi = basis.design_matrix(fit_points, K)                   # (mf, K)
-    pinv = np.linalg.pinv(phi)                                 # (K, mf): points -> L c
+    # a few more samples than coefficients suffice (the backbone is exactly in the basis)
+    idx = np.unique(np.round(np.linspace(0, fit_points - 1, min(fit_points, 2 * K + 2))).astype(int))
+    phi = basis.design_matrix(fit_points, K)[idx]              # (mi, K)
+    pinv = np.linalg.pinv(phi)                                 # (K, mi): points -> L c
     C = basis.coefficients(K)                                  # P_k = sum_j C[k, j] t^(j+1)
     # monomial coefficients of sum_k (L c_k) P_k''(t): a_i, i = 0..d
     D2 = np.zeros((d + 1, K))
     for i in range(d + 1):
         D2[i] = C[:, i + 1] * (i + 2) * (i + 1)
-    mono = D2 @ pinv                                           # (d + 1, mf)
+    mono = D2 @ pinv                                           # (d + 1, mi)
     h = 1.0 / (points - 1)
     # Bernstein conversion of u -> v(t0 + h u): b_l = sum_i a_i C(i, l) t0^(i-l) h^l, then
     # beta_r = sum_{l <= r} C(r, l) / C(d, l) b_l
     conv = np.array([[comb(r, j) / comb(d, j) if j <= r else 0.0 for j in range(d + 1)]
                      for r in range(d + 1)])
-    out = np.empty((points - 1, d + 1, fit_points))
+    out = np.empty((points - 1, d + 1, len(idx)))
     for k in range(points - 1):
         t0 = k * h
         shift = np.array([[comb(i, j) * t0 ** (i - j) * h ** j if j <= i else 0.0
                            for i in range(d + 1)] for j in range(d + 1)])   # (l, i)
         out[k] = conv @ shift @ mono
-    return out
+    return idx, out
 
 
-_PAD_MAPS: dict[tuple[int, int, int], np.ndarray] = {}
+_PAD_MAPS: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
 #: allowance (mm) for the float32 round-off of evaluated backbone points in the padding
 POINT_ROUNDOFF_MM = 1e-4
 
@@ -868,22 +871,23 @@ def polynomial_pad(fit: np.ndarray, points: int, terms: int) -> np.ndarray:
 
     The backbone ``p(t) = len * sum_k c_k P_k(t)``, t in [0, 1], is recovered from ``fit``
     (B, mf, 3), its samples at mf > terms even parameters (exactly: the basis has ``terms``
-    functions, all zero at t = 0). On each segment of parameter length ``h = 1/(points - 1)`` the chord error is
-    at most ``h^2 / 8 max |p''|`` (the linear-interpolation bound, for every direction), and
-    ``|p''|`` is at most the largest norm of the Bernstein control points of ``p''`` on the
-    segment (convex hull property): an exact polynomial bound, no sampling. This also bounds
-    the curvature's effect without any curvature bound: the network may bend the backbone
-    beyond the tubes' precurvature."""
+    functions, all zero at t = 0). On each segment of parameter length ``h = 1/(points - 1)``
+    the chord error is at most ``h^2 / 8 max |p''|`` (the linear-interpolation bound, for every
+    direction), and ``|p''|`` is at most the largest norm of the Bernstein control points of
+    ``p''`` on the segment (convex hull property): an exact polynomial bound, no sampling. This
+    also bounds the curvature's effect without any curvature bound: the network may bend the
+    backbone beyond the tubes' precurvature."""
     fit = np.asarray(fit, dtype=float)
     B, mf, _ = fit.shape
     if terms < 2 or points < 2:
         return np.zeros((B, max(points - 1, 0)))
     key = (mf, int(points), int(terms))
-    A = _PAD_MAPS.get(key)
-    if A is None:
-        A = _PAD_MAPS[key] = _bernstein_second_derivative(mf, points, terms)
-    k, r, _ = A.shape
-    ctrl = np.matmul(A.reshape(k * r, mf), fit)                # (B, K (d + 1), 3)
+    hit = _PAD_MAPS.get(key)
+    if hit is None:
+        hit = _PAD_MAPS[key] = _bernstein_second_derivative(mf, points, terms)
+    idx, A = hit
+    k, r, mi = A.shape
+    ctrl = np.matmul(A.reshape(k * r, mi), fit[:, idx])        # (B, K (d + 1), 3)
     peak = np.sqrt(np.einsum("bjc,bjc->bj", ctrl, ctrl)).reshape(B, k, r).max(axis=-1)
     h = 1.0 / (points - 1)
     # + float32 round-off of the evaluated points (the CPU path's ~1e-5 mm at 200 mm)
