@@ -46,6 +46,13 @@ def _radius(robot, q, s):
     return r
 
 
+def _step(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
+    """b - a with rotations along the shorter arc (the motion between two states)."""
+    d = np.asarray(b, dtype=float) - np.asarray(a, dtype=float)
+    d[:n] = (d[:n] + np.pi) % (2 * np.pi) - np.pi
+    return d
+
+
 def _plane(u: np.ndarray, offset: float) -> Scene:
     """A 600 mm square wall with normal u at u.x = offset (mesh: two triangles)."""
     a = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -81,15 +88,26 @@ def _model(seed1, name):
 
 @pytest.mark.parametrize("name", ["physics", "kinks", "learned"])
 def test_padded_check_never_calls_a_penetrating_configuration_free(seed1, name):
+    _states_oracle(seed1, name, configs=12, directions=4, seed=4)
+
+
+@pytest.mark.statistical
+@pytest.mark.parametrize("name", ["physics", "kinks", "learned"])
+def test_padded_check_oracle_many_configurations(seed1, name):
+    """The same oracle on 150 configurations x 8 wall directions per model."""
+    _states_oracle(seed1, name, configs=150, directions=8, seed=40)
+
+
+def _states_oracle(seed1, name, configs, directions, seed):
     model = _model(seed1, name)
-    rng = np.random.default_rng(11)
-    q = seed1.sample(12, seed=4)
+    rng = np.random.default_rng([seed, 11])
+    q = seed1.sample(configs, seed=seed)
     dense = model.shape(q, points=DENSE)
     coarse = model.shape(q, points=POINTS)
     rad = _radius(seed1, q, dense.s)
     missed_by_chords = free_reported = 0
     for i in np.flatnonzero(dense.ok & coarse.ok):
-        for _ in range(4):
+        for _ in range(directions):
             u = rng.normal(size=3)
             u /= np.linalg.norm(u)
             extent = float(np.max(dense.points[i] @ u + rad[i]))
@@ -118,21 +136,32 @@ def test_verified_path_motion_never_penetrates(seed1, name):
     """A path verified by check_path (states 0.5 mm apart) stays out of the wall at 10
     interpolated states per checked edge and 500 points per shape; a wall the dense motion
     touches makes the verification fail."""
+    _path_oracle(seed1, name, trials=3, seed=5)
+
+
+@pytest.mark.statistical
+@pytest.mark.parametrize("name", ["physics", "kinks", "learned"])
+def test_verified_path_oracle_many_edges(seed1, name):
+    """The same oracle on 12 random edges per model."""
+    _path_oracle(seed1, name, trials=12, seed=50)
+
+
+def _path_oracle(seed1, name, trials, seed):
     model = _model(seed1, name)
-    rng = np.random.default_rng(5)
+    rng = np.random.default_rng(seed)
     n = seed1.n
     val_cfg = ValidatorConfig()
     res = 0.5
     checked = 0
-    for trial in range(3):
-        q0 = seed1.sample(1, seed=100 + trial)[0]
+    for trial in range(trials):
+        q0 = seed1.sample(1, seed=100 * seed + trial)[0]
         step = np.concatenate([rng.normal(0, 0.08, n), rng.normal(0, 2.0, n)])
         q1 = q0 + step
         q1 = project_joints(seed1, q1[None])[0]
         path = np.stack([q0, q1])
         states, _ = interpolate_path(path, n, val_cfg.alpha_weight_mm, res)
         t = np.linspace(0.0, 1.0, 11)[:, None]
-        fine = np.concatenate([a[None] + t[:-1] * (b - a)[None] for a, b in
+        fine = np.concatenate([a[None] + t[:-1] * _step(a, b, n)[None] for a, b in
                                zip(states[:-1], states[1:])] + [states[-1:]])
         dense = model.shape(fine, points=DENSE)
         if not dense.ok.all():
@@ -150,7 +179,7 @@ def test_verified_path_motion_never_penetrates(seed1, name):
             if truth:
                 assert not check.ok, (name, trial)
             checked += 1
-    assert checked >= 2
+    assert checked >= 2 * trials // 3
 
 
 def _sphere(centre: np.ndarray, radius: float) -> Scene:
@@ -180,7 +209,7 @@ def test_motion_between_checked_states_is_covered(seed1, name):
             continue
         t = np.linspace(0.0, 1.0, 11)[:, None]
         k = len(states) // 2
-        fine = states[k - 1][None] + t * (states[k] - states[k - 1])[None]
+        fine = states[k - 1][None] + t * _step(states[k - 1], states[k], n)[None]
         dense = model.shape(fine, points=DENSE)
         if not (dense.ok.all() and model.shape(states, points=POINTS).ok.all()):
             continue
