@@ -14,7 +14,7 @@ from ctrplan.shape.physics import PhysicsModel
 def test_radius_is_outermost_tube_on_segment_plus_margin(seed1):
     q = seed1.sample(20, seed=3)
     shape = PhysicsModel(seed1).shape(q, points=21)
-    caps = capsules_from_shape(shape, margin_mm=0.3)
+    caps = capsules_from_shape(shape, margin_mm=0.3, padding="none")
     assert caps.a.shape == (20, 20, 3) and caps.radius.shape == (20, 20)
     np.testing.assert_allclose(caps.a, shape.points[:, :-1])
     np.testing.assert_allclose(caps.b, shape.points[:, 1:])
@@ -22,6 +22,13 @@ def test_radius_is_outermost_tube_on_segment_plus_margin(seed1):
     np.testing.assert_allclose(caps.radius, expect)
     # the first capsule carries the outermost tube (OD 2.5 mm)
     assert np.all(caps.radius[:, 0] == pytest.approx(1.25 + 0.3))
+    # by default the capsules also carry the model's sagitta bound: kappa_max h^2 / 8 with
+    # seed1's largest precurvature and each segment's arc length
+    padded = capsules_from_shape(shape, margin_mm=0.3)
+    h = np.diff(shape.s, axis=1)
+    np.testing.assert_allclose(padded.radius, expect + 0.0093354 * h**2 / 8, rtol=1e-4)
+    with pytest.raises(ValueError):
+        capsules_from_shape(shape, padding="chords")
 
 
 def test_radius_covers_a_tube_ending_inside_a_segment():

@@ -54,8 +54,11 @@ def test_targets_are_reached_collision_free_by_seed1(name, seed1):
     shape = PhysicsModel(seed1).shape(q, points=21)
     tips = scene.to_scene(shape.tip)
     np.testing.assert_allclose(tips, scene.target_positions(), atol=1e-3)
-    world = CollisionWorld(scene, margin_mm=0.5)
+    world = CollisionWorld(scene, margin_mm=0.5, padding="none")
     assert not world.check_exact(shape).collides.any()
+    # the continuous tube (capsules padded by the model's bound, which is < 0.5 mm) is free too
+    assert np.all(shape.pad < 0.5)
+    assert not CollisionWorld(scene).check_exact(shape).collides.any()
     assert inside_walls(scene, tips).all()
     # spread out: no two targets closer than 2 mm
     d = np.linalg.norm(tips[:, None] - tips[None], axis=2) + np.eye(len(tips)) * 1e9

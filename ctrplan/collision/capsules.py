@@ -121,14 +121,19 @@ def curvature_bound(model_or_robot) -> float:
     return float(kappa.max()) if kappa.size else 0.0
 
 
-def capsules_from_points(points: np.ndarray, radius: np.ndarray, margin_mm: float = 0.0,
-                         curvature_per_mm: float = 0.0, s: np.ndarray | None = None) -> Capsules:
+def capsules_from_points(points: np.ndarray, radius: np.ndarray, margin_mm=0.0,
+                         curvature_per_mm: float = 0.0, s: np.ndarray | None = None,
+                         pad: np.ndarray | None = None) -> Capsules:
     """Capsules from backbones.
 
     points : (B, m, 3) mm; radius : (B, m) mm outer radius at each point (the outermost tube
-    present); margin_mm : added to every radius; curvature_per_mm : a bound of the backbone's
-    curvature: every capsule grows by its sagitta bound ``kappa h^2 / 8`` with ``h`` the arc
-    length of its segment, from ``s`` (B, m) mm when given, else bounded from the chord.
+    present); margin_mm : added to every radius: a number, a (B, m - 1) / (m - 1,) array of
+    per-capsule margins, or an :class:`~ctrplan.shape.error_bounds.ErrorProfile` (its p99 at
+    each capsule's arc-length fractions, from ``s``); curvature_per_mm : a bound of the
+    backbone's curvature: every capsule grows by its sagitta bound ``kappa h^2 / 8`` with ``h``
+    the arc length of its segment, from ``s`` (B, m) mm when given, else bounded from the chord;
+    pad : (B, m - 1) mm, the model's own bound of the curve-to-chord distance of each segment
+    (``Shape.pad``): capsules grow by the larger of it and the sagitta bound (both are bounds).
     Returns ``m - 1`` capsules per configuration.
     """
     points = np.asarray(points, dtype=float)
@@ -137,11 +142,12 @@ def capsules_from_points(points: np.ndarray, radius: np.ndarray, margin_mm: floa
         raise ValueError(f"points must have shape (B, m>=2, 3), got {points.shape}")
     if radius.shape != points.shape[:2]:
         raise ValueError(f"radius must have shape {points.shape[:2]}, got {radius.shape}")
-    if not margin_mm >= 0:
-        raise ValueError(f"margin_mm must be >= 0, got {margin_mm}")
+    K = points.shape[1] - 1
+    margin = _capsule_margin(margin_mm, points, s)
     if not (np.isfinite(curvature_per_mm) and curvature_per_mm >= 0):
         raise ValueError(f"curvature_per_mm must be a finite number >= 0, got {curvature_per_mm}")
-    r = np.maximum(radius[:, :-1], radius[:, 1:]) + float(margin_mm)
+    r = np.maximum(radius[:, :-1], radius[:, 1:]) + margin
+    cont = np.zeros_like(r)
     if curvature_per_mm > 0:
         if s is not None:
             s = np.asarray(s, dtype=float)
@@ -150,14 +156,92 @@ def capsules_from_points(points: np.ndarray, radius: np.ndarray, margin_mm: floa
             arc = np.maximum(arc, np.linalg.norm(np.diff(points, axis=1), axis=-1))
         else:
             arc = arc_from_chord(np.linalg.norm(np.diff(points, axis=1), axis=-1), curvature_per_mm)
-        r = r + sagitta_bound(arc, curvature_per_mm)
-    return Capsules(a=points[:, :-1, :], b=points[:, 1:, :], radius=r)
+        cont = sagitta_bound(arc, curvature_per_mm)
+    if pad is not None:
+        pad = np.asarray(pad, dtype=float)
+        if pad.shape != (points.shape[0], K):
+            raise ValueError(f"pad must have shape {(points.shape[0], K)}, got {pad.shape}")
+        # a NaN pad (a model that could not bound a shape) must never shrink the capsule
+        cont = np.maximum(cont, np.where(np.isfinite(pad), pad, np.inf))
+    return Capsules(a=points[:, :-1, :], b=points[:, 1:, :], radius=r + cont)
 
 
-def capsules_from_shape(shape: Shape, margin_mm: float = 0.0, curvature_per_mm: float = 0.0) -> Capsules:
-    """Capsules of a :class:`~ctrplan.shape.base.Shape` (robot base frame, mm), padded by the
-    sagitta bound of ``curvature_per_mm`` over each segment's arc length ``diff(shape.s)``."""
-    return capsules_from_points(shape.points, shape.radius, margin_mm, curvature_per_mm, shape.s)
+def _capsule_margin(margin, points: np.ndarray, s: np.ndarray | None):
+    """Per-capsule margins (B, K) or a number from a number, an array or an ErrorProfile."""
+    from ctrplan.shape.error_bounds import ErrorProfile
+
+    B, K = points.shape[0], points.shape[1] - 1
+    if isinstance(margin, ErrorProfile):
+        if s is None:
+            s = np.concatenate([np.zeros((B, 1)), np.cumsum(
+                np.linalg.norm(np.diff(points, axis=1), axis=-1), axis=1)], axis=1)
+        return margin.capsule_margins(np.broadcast_to(np.asarray(s, dtype=float), (B, K + 1)))
+    m = np.asarray(margin, dtype=float)
+    if m.ndim == 0:
+        if not m >= 0:
+            raise ValueError(f"margin_mm must be >= 0, got {margin}")
+        return float(m)
+    m = np.broadcast_to(m, (B, K)) if m.shape in ((K,), (B, K)) else None
+    if m is None:
+        raise ValueError(f"per-capsule margins must have shape ({K},) or ({B}, {K})")
+    if not np.all(m >= 0):
+        raise ValueError("margins must be >= 0")
+    return m
+
+
+#: what :class:`~ctrplan.collision.world.CollisionWorld` pads capsules with
+PADDINGS = ("auto", "none")
+
+
+def capsules_from_shape(shape: Shape, margin_mm=0.0, curvature_per_mm: float = 0.0,
+                        padding: str = "auto") -> Capsules:
+    """Capsules of a :class:`~ctrplan.shape.base.Shape` (robot base frame, mm).
+
+    padding "auto": each capsule grows by the larger of the model's own curve-to-chord bound
+    (``shape.pad``: sagitta, tangent jumps, polynomial bound) and the sagitta bound of
+    ``curvature_per_mm`` over the segment's arc length ``diff(shape.s)``; "none": the chords
+    only (plus the margin), for geometry that really is the polyline (a probe)."""
+    if padding not in PADDINGS:
+        raise ValueError(f"padding must be one of {PADDINGS}, got {padding!r}")
+    if padding == "none":
+        return capsules_from_points(shape.points, shape.radius, margin_mm, 0.0, shape.s)
+    return capsules_from_points(shape.points, shape.radius, margin_mm, curvature_per_mm, shape.s,
+                                getattr(shape, "pad", None))
+
+
+def kink_pad(s: np.ndarray, where: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """(B, m - 1) bound (mm) of the distance between a backbone and its chords caused by
+    tangent jumps: a jump of ``angle`` (rad) at arc length ``where`` inside the segment
+    ``[s_a, s_b]`` (length ``h``) adds ``2 sin(angle / 2) (where - s_a) (s_b - where) / h``.
+
+    Derivation: the chord error ``e(s)`` vanishes at both ends of the segment and ``e''`` is the
+    curvature plus an impulse ``dt`` (the tangent jump, ``|dt| = 2 sin(angle/2)``) at the kink;
+    with the Green's function of ``d^2/ds^2`` on ``[0, h]`` (zero at both ends),
+    ``|G(s, w)| <= w (h - w) / h``, so the impulse moves ``u . e`` by at most
+    ``|dt| w (h - w) / h`` for every unit ``u`` (``h sin(angle / 2) / 2`` for a kink in the
+    middle: exactly the corner of two straight halves). It adds to the sagitta bound.
+
+    s : (B, m) arc lengths of the samples; where, angle : (B, J) kinks (angle 0 = none).
+    """
+    s = np.asarray(s, dtype=float)
+    where = np.asarray(where, dtype=float)
+    angle = np.abs(np.asarray(angle, dtype=float))
+    sa, sb = s[:, :-1, None], s[:, 1:, None]                  # (B, K, 1)
+    w = where[:, None, :]                                     # (B, 1, J)
+    h = sb - sa
+    inside = (w > sa) & (w < sb) & (h > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g = np.where(inside, (w - sa) * (sb - w) / np.where(h > 0, h, 1.0), 0.0)
+    return (2.0 * np.sin(np.minimum(angle, np.pi) / 2.0)[:, None, :] * g).sum(axis=-1)
+
+
+def sagitta_pad(s: np.ndarray, curvature_per_mm: np.ndarray | float) -> np.ndarray:
+    """(B, m - 1) sagitta bound ``kappa h^2 / 8`` of each segment of backbones sampled at arc
+    lengths ``s`` (B, m); ``curvature_per_mm`` a number or (B,) per configuration."""
+    s = np.asarray(s, dtype=float)
+    k = np.asarray(curvature_per_mm, dtype=float)
+    k = k[:, None] if k.ndim == 1 else k
+    return k * np.square(np.diff(s, axis=1)) / 8.0
 
 
 def rotation_z_to(d: np.ndarray) -> np.ndarray:

@@ -52,32 +52,57 @@ class CollisionWorld:
     ----------
     scene : Scene or str
         The scene (or a shipped name / folder).
-    margin_mm : float
-        Safety margin added to every capsule radius.
+    margin_mm : float or ErrorProfile
+        Safety margin added to every capsule radius: a number (mm), or a model's
+        :class:`~ctrplan.shape.error_bounds.ErrorProfile` (each capsule grows by the profile's
+        p99 over its arc-length fractions). ``margin_mm`` reads back the largest margin.
     curvature_per_mm : float
         Bound of the backbone curvature (1/mm, :func:`~ctrplan.collision.capsules.curvature_bound`
-        of the shape model): each capsule is padded by its segment's sagitta bound so that the
-        capsule chain covers the continuous backbone between samples. 0 checks the chords only
-        (points that really are the whole geometry, e.g. a probe).
+        of the shape model), for shapes that carry no padding of their own: each capsule is
+        padded by the larger of its segment's sagitta bound and the shape's ``pad``.
+    padding : "auto" (default) or "none"
+        "auto" pads every capsule so that the capsule chain covers the continuous backbone
+        between samples: by the model's own bound (``Shape.pad``: sagitta of its curvature
+        bound, tangent jumps where tubes end, the learned model's polynomial bound) or the
+        sagitta bound of ``curvature_per_mm``. "none" checks the chords only (points that
+        really are the whole geometry, e.g. a probe); it must be asked for by name.
+    motion_mm : float
+        Extra padding (mm) for the motion between two checked states: the largest distance a
+        backbone point can be from the nearest checked state's (see
+        :func:`ctrplan.planning.validator.motion_padding`). 0 = states only.
     prefilter : bool
         Use the conservative distance-field prefilter (same verdicts, faster).
     field_config : FieldConfig
         Distance-field parameters. cache : bool or folder for the field cache.
     """
 
-    def __init__(self, scene: Scene | str, margin_mm: float = 0.0, prefilter: bool = True,
+    def __init__(self, scene: Scene | str, margin_mm=0.0, prefilter: bool = True,
                  field_config: FieldConfig | None = None, cache=True,
-                 curvature_per_mm: float = 0.0):
+                 curvature_per_mm: float = 0.0, padding: str = "auto", motion_mm: float = 0.0):
+        from ctrplan.collision.capsules import PADDINGS
+        from ctrplan.shape.error_bounds import ErrorProfile
+
         self.scene = load_scene(scene)
         meshes = self.scene.collision_meshes
         if not meshes:
             raise InputError(self.scene.path, "meshes", "empty world: no wall or obstacle mesh")
-        if not (np.isfinite(margin_mm) and margin_mm >= 0):
-            raise InputError("margin_mm", "", f"must be a finite number >= 0, got {margin_mm}")
-        self.margin_mm = float(margin_mm)
+        if isinstance(margin_mm, ErrorProfile):
+            self.margin_profile: ErrorProfile | None = margin_mm
+            self.margin_mm = margin_mm.peak_mm
+        else:
+            if not (np.isfinite(margin_mm) and margin_mm >= 0):
+                raise InputError("margin_mm", "", f"must be a finite number >= 0, got {margin_mm}")
+            self.margin_profile = None
+            self.margin_mm = float(margin_mm)
         if not (np.isfinite(curvature_per_mm) and curvature_per_mm >= 0):
             raise InputError("curvature_per_mm", "", f"must be a finite number >= 0, got {curvature_per_mm}")
         self.curvature_per_mm = float(curvature_per_mm)
+        if padding not in PADDINGS:
+            raise InputError("padding", "", f"must be one of {', '.join(PADDINGS)}, got {padding!r}")
+        self.padding = padding
+        if not (np.isfinite(motion_mm) and motion_mm >= 0):
+            raise InputError("motion_mm", "", f"must be a finite number >= 0, got {motion_mm}")
+        self.motion_mm = float(motion_mm)
         self.names = np.array([m.name for m in meshes] + [""], dtype=object)
         self.prefilter = bool(prefilter)
         self.field_config = field_config or FieldConfig()
@@ -99,9 +124,24 @@ class CollisionWorld:
 
     # ------------------------------------------------------------------ geometry
     def capsules(self, shape: Shape) -> Capsules:
-        """Capsules of a shape (robot base frame) in the scene frame, margin and sagitta bound
-        included."""
-        return capsules_from_shape(shape, self.margin_mm, self.curvature_per_mm).transformed(self.pose)
+        """Capsules of a shape (robot base frame) in the scene frame, margin, continuity padding
+        and motion padding included."""
+        margin = self.margin_profile if self.margin_profile is not None else self.margin_mm
+        caps = capsules_from_shape(shape, margin, self.curvature_per_mm, self.padding)
+        if self.motion_mm > 0:
+            caps = Capsules(caps.a, caps.b, caps.radius + self.motion_mm)
+        return caps.transformed(self.pose)
+
+    def with_motion(self, motion_mm: float) -> CollisionWorld:
+        """The same world (meshes, fields and FCL objects shared) with every capsule grown by
+        ``motion_mm`` more (the motion between two checked states)."""
+        import copy
+
+        if not (np.isfinite(motion_mm) and motion_mm >= 0):
+            raise InputError("motion_mm", "", f"must be a finite number >= 0, got {motion_mm}")
+        other = copy.copy(self)
+        other.motion_mm = self.motion_mm + float(motion_mm)
+        return other
 
     @property
     def fields(self):

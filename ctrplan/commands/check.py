@@ -15,8 +15,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("check", help="collision-check configurations in a scene",
                        description="Compute each configuration's backbone, sweep it into capsules "
                                    "and check it against the scene's wall and obstacle meshes. "
-                                   "Capsules are padded by the sagitta bound of the model's "
-                                   "largest curvature (they cover the continuous backbone) and "
+                                   "Capsules are padded by the model's bound of the distance "
+                                   "between its continuous backbone and the chords (sagitta, "
+                                   "kinks where tubes end, the learned polynomial's bound) and "
                                    "by --margin; a calibrated model is checked without its "
                                    "sensor registration, friction as a pure function of each row. "
                                    "Writes a CSV with collides (0/1), clearance_mm (signed, "
@@ -29,7 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--points", type=int, default=21, help="backbone points (capsules + 1, default 21)")
     p.add_argument("--margin", default="auto", metavar="MM|auto",
                    help="safety margin added to the tube radii, mm; 'auto' (default) = the "
-                        "model's error bound (p99 of its held-out deviation; 0 for physics)")
+                        "model's error bound: the p99 of its held-out deviation at each "
+                        "capsule's arc length (error_profile), else the uniform p99 of its "
+                        "error_quantiles; 0 for a model without a bound (uncalibrated)")
     p.add_argument("--exact", action="store_true", help="every verdict from FCL (no prefilter)")
     p.add_argument("--out", required=True, help="output verdicts .csv")
     p.set_defaults(func=run)
@@ -46,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     from ctrplan.planning.validator import BatchValidator
     from ctrplan.progress import bar
     from ctrplan.robot import load_robot, read_configs
-    from ctrplan.shape.base import model_error_bound
+    from ctrplan.shape.error_bounds import auto_margin, is_calibrated, margin_peak
     from ctrplan.shape.models import load_model
 
     out = output_path(args.out, (".csv",))
@@ -56,9 +59,10 @@ def run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     q = read_configs(args.configs, robot)
     model = planning_model_of(load_model(args.model, robot))
-    if margin is None:
+    auto = margin is None
+    if auto:
         try:
-            margin = model_error_bound(model)
+            margin = auto_margin(model)
         except ValueError as exc:
             raise InputError("--margin", "", f"auto: {exc}") from None
     world = CollisionWorld(args.scene, margin_mm=margin, curvature_per_mm=curvature_bound(model))
@@ -79,7 +83,11 @@ def run(args: argparse.Namespace) -> int:
             pbar.update(len(c))
     rows = ([int(c), round(float(d), 4), str(n)] for c, d, n in zip(collides, clearance, contact))
     write_csv_atomic(out, ["collides", "clearance_mm", "contact"], rows)
-    log.info("checked %d configurations in %s (margin %.3g mm, curvature bound %.4g 1/mm): "
-             "%d collide; wrote %s", len(q), world.scene.name, margin, world.curvature_per_mm,
-             int(collides.sum()), out)
+    log.info("checked %d configurations in %s (margin %s, curvature bound %.4g 1/mm): "
+             "%d collide; wrote %s", len(q), world.scene.name,
+             (f"up to {margin_peak(margin):.3g} mm along the shaft" if world.margin_profile is not None
+              else f"{margin_peak(margin):.3g} mm"), world.curvature_per_mm, int(collides.sum()), out)
+    if auto and not is_calibrated(model):
+        log.info("the model carries no error bound (uncalibrated): verdicts are relative to the "
+                 "nominal model; calibrate with `ctrplan diagnose` for a margin")
     return 0

@@ -309,11 +309,13 @@ def scene_by_name(spec: str | os.PathLike):
     return scene
 
 
-def world_for(scene, margin_mm: float = 0.0, curvature_per_mm: float = 0.0):
-    """The CollisionWorld of a scene (cached per scene object, margin and curvature bound)."""
+def world_for(scene, margin_mm=0.0, curvature_per_mm: float = 0.0):
+    """The CollisionWorld of a scene (cached per scene object, margin and curvature bound).
+    margin_mm : a number or an ErrorProfile (:func:`ctrplan.shape.error_bounds.auto_margin`)."""
     from ctrplan.collision.world import CollisionWorld
+    from ctrplan.shape.error_bounds import margin_key
 
-    key = (id(scene), float(margin_mm), float(curvature_per_mm))
+    key = (id(scene), margin_key(margin_mm), float(curvature_per_mm))
     hit = _WORLDS.get(key)
     if hit is not None and hit[0]() is scene:
         return hit[1]
@@ -335,6 +337,7 @@ class _RowwiseModel:
         self.name = inner.name
         self.effects = getattr(inner, "effects", None)
         self.error_quantiles = getattr(inner, "error_quantiles", None)
+        self.error_profile = getattr(inner, "error_profile", None)
 
     def shape(self, q, points: int = 20):
         q = np.atleast_2d(np.asarray(q, dtype=float))
@@ -366,6 +369,8 @@ def planning_model_of(model):
             pm = model.with_effects({k: v for k, v in effects.items() if k != "registration"})
             if getattr(model, "error_quantiles", None) is not None:
                 pm.error_quantiles = model.error_quantiles
+            if getattr(model, "error_profile", None) is not None:
+                pm.error_profile = model.error_profile
             if "friction" in effects:
                 pm = _RowwiseModel(pm)
     try:
@@ -436,7 +441,7 @@ class _Run:
     tolerance_mm: float
     time_limit: float
     t_call: float
-    margin_mm: float
+    margin_mm: Any              # float or ErrorProfile
     margin_auto: bool
     curvature: float
     meta: dict
@@ -541,7 +546,7 @@ def _prepare(robot, scene, target, model, planner, time_limit, seed, tolerance_m
     t_call = time.perf_counter()
     from ctrplan.collision.capsules import curvature_bound
     from ctrplan.planning import space as _space
-    from ctrplan.shape.base import model_error_bound
+    from ctrplan.shape.error_bounds import auto_margin, is_calibrated, margin_peak
 
     cfg = config or PlanConfig()
     _check_args(time_limit, tolerance_mm, seed)
@@ -559,7 +564,7 @@ def _prepare(robot, scene, target, model, planner, time_limit, seed, tolerance_m
     pmodel = planning_model_of(given)
     try:
         auto = cfg.margin_mm is None
-        margin = model_error_bound(pmodel) if auto else float(cfg.margin_mm)
+        margin = auto_margin(pmodel) if auto else float(cfg.margin_mm)   # number or profile
     except ValueError as exc:
         raise InputError("--margin", "", f"auto: {exc}") from None
     curvature = curvature_bound(pmodel) if cfg.sagitta else 0.0
@@ -567,20 +572,23 @@ def _prepare(robot, scene, target, model, planner, time_limit, seed, tolerance_m
         world = world_for(scene, margin, curvature)
     # The reference re-check: physics at margin 0; a calibrated model is its own reference
     # (re-checked at margin 0 when planning used a margin); the planning model itself needs
-    # no second check (its margin-padded check implies the margin-0 one).
+    # no second check (its margin-padded check implies the margin-0 one). A calibrated model
+    # planned without a margin (no error bound in its file, or --margin 0) gets the physics
+    # re-check as its second check.
     reference, ref_label = None, ""
     if cfg.reference is not None:
-        if isinstance(getattr(given, "effects", None), dict) and cfg.reference == "physics":
+        if (isinstance(getattr(given, "effects", None), dict) and cfg.reference == "physics"
+                and margin_peak(margin) > 0):
             ref_label = _model_label(model_spec, given)
-            reference = pmodel if margin > 0 else None
+            reference = pmodel
         else:
             ref_label = str(cfg.reference)
-            if getattr(pmodel, "name", "") != cfg.reference or margin > 0:
+            if getattr(pmodel, "name", "") != cfg.reference or margin_peak(margin) > 0:
                 reference = planning_model_of(resolve_model(cfg.reference, robot))
     meta = dict(target=target, planner=requested, requested_planner=requested, seed=int(seed),
                 robot=robot.name, model=_model_label(model_spec, given),
                 scene=_scene_label(scene_spec, scene), tolerance_mm=float(tolerance_mm),
-                time_limit_s=float(time_limit), margin_mm=float(margin), margin_auto=auto,
+                time_limit_s=float(time_limit), margin_mm=margin_peak(margin), margin_auto=auto,
                 curvature_bound_per_mm=float(curvature), reference_model=ref_label,
                 objective=cfg.objective, calibrated=is_calibrated(given) or is_calibrated(pmodel))
     run = _Run(robot=robot, scene=scene, target=target, target_base=scene.to_base(target[None])[0],
@@ -593,12 +601,6 @@ def _prepare(robot, scene, target, model, planner, time_limit, seed, tolerance_m
                    "planning": 0.0, "simplification": 0.0, "optimization": 0.0,
                    "verification": 0.0, "total": 0.0}
     return run
-
-
-def is_calibrated(model) -> bool:
-    """Whether a model carries an error bound measured on the robot (``error_quantiles`` or
-    ``error_profile`` in its metadata); the nominal physics model does not."""
-    return bool(getattr(model, "error_quantiles", None) or getattr(model, "error_profile", None))
 
 
 def _same_tubes(a: Robot, b: Robot) -> bool:
@@ -865,7 +867,10 @@ def _output(run: _Run, path: np.ndarray, solver: str, check: PathCheck,
     clear, exact, calls = path_min_clearance(run.validator, run.world, check, vpoints,
                                              max_pairs=cfg.clearance_pairs)
     run.counts["clearance_exact_states"] = calls
-    extra = dict(min_clearance_mm=clear + run.margin_mm if math.isfinite(clear) else clear,
+    from ctrplan.shape.error_bounds import margin_least
+
+    # the padded capsules' clearance plus the smallest margin along the shaft: a lower bound
+    extra = dict(min_clearance_mm=clear + margin_least(run.margin_mm) if math.isfinite(clear) else clear,
                  min_clearance_exact=exact)
     if ref_check is not None:
         ref_val = _reference_validator(run)

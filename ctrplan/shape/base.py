@@ -20,12 +20,18 @@ class Shape:
     radius : (B, m) float, mm — outer radius of the outermost tube present at each point.
     ok : (B,) bool — False where the model could not produce a trustworthy shape (the shooting
         did not converge); callers must treat such shapes as invalid.
+    pad : (B, m - 1) float, mm, or None — the model's bound of the distance between its
+        continuous backbone and the chord between consecutive points (sagitta of its curvature
+        bound, tangent jumps, polynomial bound; see :mod:`ctrplan.collision.capsules`). Collision
+        capsules grow by it. None: the model states no bound (the points are taken as a polyline
+        unless the collision world is given a curvature bound).
     """
 
     points: np.ndarray
     s: np.ndarray
     radius: np.ndarray
     ok: np.ndarray
+    pad: np.ndarray | None = None
 
     @property
     def tip(self) -> np.ndarray:

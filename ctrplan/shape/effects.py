@@ -567,7 +567,8 @@ class EffectModel:
         self.name = base + "".join(f"+{e}" for e in self.effects)
         #: held-out tip residual norm quantiles (mm) of a calibrated model, or None
         self.error_quantiles = dict(error_quantiles) if error_quantiles else None
-        #: held-out error per arc-length fraction (docs/conventions.md), or None
+        #: held-out deviation quantiles along the shaft (``error_profile`` mapping of
+        #: :mod:`ctrplan.shape.error_bounds`), or None
         self.error_profile = dict(error_profile) if error_profile else None
         #: True: friction is a pure function of (q, direction) even without direction
         #: (no direction known = no lag); False: direction=None takes rows in order
@@ -621,7 +622,9 @@ class EffectModel:
         if self.error_quantiles:
             d["error_quantiles"] = {k: float(v) for k, v in self.error_quantiles.items()}
         if self.error_profile:
-            d["error_profile"] = {k: [float(x) for x in v] for k, v in self.error_profile.items()}
+            from ctrplan.shape.error_bounds import profile_from_dict
+
+            d["error_profile"] = profile_from_dict(self.error_profile).to_dict()
         return d
 
     def save(self, path: str | os.PathLike) -> None:
@@ -658,9 +661,18 @@ class EffectModel:
                         math.isfinite(v) or v < 0:
                     raise InputError(source, f"error_quantiles.{k}",
                                      f"must be a finite number >= 0 (mm), got {v!r}")
+        prof = data.get("error_profile")
+        if prof is not None:
+            from ctrplan.shape.error_bounds import profile_from_dict
+
+            try:
+                prof = profile_from_dict(prof).to_dict()
+            except ValueError as exc:
+                field_, _, msg = str(exc).partition(": ")
+                raise InputError(source, field_, msg) from None
         return cls(robot, str(data.get("base", "rigid")),
                    complete_effects(effects, robot, str(data.get("base", "rigid")), source),
-                   error_quantiles=eq, error_profile=_check_profile(data.get("error_profile"), source))
+                   error_quantiles=eq, error_profile=prof)
 
     @classmethod
     def load(cls, path: str | os.PathLike, robot: Robot | str | None = None) -> EffectModel:
@@ -675,29 +687,6 @@ class EffectModel:
                 raise InputError(str(path), "robot", f"calibrated for robot {model.robot.name!r} "
                                  f"({model.robot.n} tubes), not {r.name!r} ({r.n} tubes)")
         return model
-
-
-def _check_profile(prof: Any, source: str) -> dict[str, list[float]] | None:
-    """A model file's ``error_profile`` (fractions 0..1 ascending; p50/p95/p99/max lists of the
-    same length, finite and >= 0, mm), or None."""
-    if prof is None:
-        return None
-    keys = ("fractions", "p50", "p95", "p99", "max")
-    if not isinstance(prof, dict) or set(prof) != set(keys):
-        raise InputError(source, "error_profile", "must be a mapping with keys " + ", ".join(keys))
-    out = {}
-    for k in keys:
-        v = prof[k]
-        if not isinstance(v, list) or not v or any(
-                isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) or x < 0
-                for x in v):
-            raise InputError(source, f"error_profile.{k}", "must be a list of finite numbers >= 0")
-        out[k] = [float(x) for x in v]
-    f = out["fractions"]
-    if any(len(out[k]) != len(f) for k in keys) or f[-1] > 1.0 or any(b <= a for a, b in zip(f, f[1:])):
-        raise InputError(source, "error_profile.fractions",
-                         "must ascend within [0, 1], one value per entry of p50/p95/p99/max")
-    return out
 
 
 def is_effect_model_file(path: str | os.PathLike) -> bool:

@@ -514,9 +514,39 @@ class LearnedModel:
         return torch.as_tensor(np.ascontiguousarray(q, dtype=np.float32), device=self._device)
 
     # ------------------------------------------------------------------ ShapeModel protocol
-    def _evaluate(self, q: np.ndarray, points: int, d: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
-        """Backbones (B, points, 3) and the base model's ok (or None) for checked q."""
+    def _evaluate(self, q: np.ndarray, points: int, d: np.ndarray | None,
+                  want_pad: bool = False):
+        """Backbones (B, points, 3) and the base model's ok (or None) for checked q; with
+        ``want_pad`` also the continuity pad (B, points - 1) (see :func:`polynomial_pad`)."""
         nets, rest = self._chain()
+        out = self._net_points(q, points, d, nets)
+        pad = None
+        if want_pad:
+            fit = out if points > self.terms else self._net_points(q, self.terms + 1, d, nets)
+            pad = polynomial_pad(fit, points, self.terms)
+        ok = None
+        if rest is not None:
+            if _needs_direction(rest) and d is not None:
+                sh = rest.shape(q, points=points, direction=d)
+            else:
+                sh = rest.shape(q, points=points)
+            out += sh.points
+            ok = np.asarray(sh.ok, dtype=bool)
+            if pad is not None:
+                base_pad = getattr(sh, "pad", None)
+                if base_pad is None:   # a base that states no bound: its curvature bound
+                    from ctrplan.collision.capsules import curvature_bound, sagitta_pad
+
+                    base_pad = sagitta_pad(sh.s, curvature_bound(rest))
+                # the chord error of a sum is the sum of the chord errors (same s grid)
+                pad = pad + base_pad
+        if want_pad:
+            return out, ok, pad
+        return out, ok
+
+    def _net_points(self, q: np.ndarray, points: int, d: np.ndarray | None,
+                    nets: list[LearnedModel]) -> np.ndarray:
+        """The summed networks' polynomial backbones (B, points, 3) (no base model)."""
         if self._device.type == "cpu":
             if len(q) <= SMALL_BATCH:
                 out = self._numpy_points(q, points, d, nets)
@@ -530,15 +560,7 @@ class LearnedModel:
                 for net in nets[1:]:
                     acc += net._fast_points(qt, points, dt)
             out = acc.cpu().numpy().astype(np.float64)
-        ok = None
-        if rest is not None:
-            if _needs_direction(rest) and d is not None:
-                sh = rest.shape(q, points=points, direction=d)
-            else:
-                sh = rest.shape(q, points=points)
-            out += sh.points
-            ok = np.asarray(sh.ok, dtype=bool)
-        return out, ok
+        return out
 
     def backbone(self, q: np.ndarray, points: int = 20, direction: np.ndarray | None = None) -> np.ndarray:
         """(B, points, 3) backbone points, mm, robot base frame (one forward pass).
@@ -556,12 +578,13 @@ class LearnedModel:
         if points < 2:
             raise ValueError("points must be >= 2 (base and tip)")
         q = check_q(self.robot, q)
-        pts, base_ok = self._evaluate(q, points, self.check_direction(q, direction))
+        pts, base_ok, pad = self._evaluate(q, points, self.check_direction(q, direction),
+                                           want_pad=True)
         ok = self.in_domain(q)
         if base_ok is not None:
             ok &= base_ok
         s = np.linspace(0.0, 1.0, points)[None, :] * self.robot.tip_length(q)[:, None]
-        return Shape(points=pts, s=s, radius=radius_along(self.robot, q, s), ok=ok)
+        return Shape(points=pts, s=s, radius=radius_along(self.robot, q, s), ok=ok, pad=pad)
 
     def in_domain(self, q: np.ndarray) -> np.ndarray:
         """(B,) bool: inside the robot's joint limits and the joint ranges of the training
@@ -590,6 +613,14 @@ class LearnedModel:
         tube the translation range seen and the smallest arc holding every rotation seen
         (None: the whole circle, when no gap between seen angles exceeds FULL_CIRCLE_GAP)."""
         self.domain = training_domain(self.robot, q, source)
+
+    def set_error_profile(self, predicted: np.ndarray, measured: np.ndarray) -> dict[str, list[float]]:
+        """Store the quantiles of the held-out deviation at each backbone point (predicted and
+        measured (B, m, 3), evenly spaced in arc length) as :attr:`error_profile`."""
+        from ctrplan.shape.error_bounds import profile_from_backbones
+
+        self.error_profile = profile_from_backbones(predicted, measured).to_dict()
+        return self.error_profile
 
     def set_error_quantiles(self, per_config_max: np.ndarray) -> dict[str, float]:
         """Store quantiles of held-out max deviations (mm) as :attr:`error_quantiles`."""
@@ -741,9 +772,9 @@ class LearnedModel:
             eq = _check_quantiles(meta.get("error_quantiles"))
             profile = meta.get("error_profile")
             if profile is not None:
-                from ctrplan.shape.effects import _check_profile
+                from ctrplan.shape.error_bounds import profile_from_dict
 
-                profile = _check_profile(profile, src)
+                profile = profile_from_dict(profile).to_dict()
             domain = _check_domain(meta.get("domain"))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(src, "meta_json", f"missing or malformed metadata ({exc})") from None
@@ -794,6 +825,73 @@ class LearnedModel:
         model.meta = {k: meta[k] for k in keep if k in meta}
         model.source = src
         return model
+
+
+def _bernstein_second_derivative(fit_points: int, points: int, terms: int):
+    """Sample indices and the (points - 1, terms - 1, len(indices)) map from a polynomial
+    backbone's samples at those indices of ``fit_points`` even parameters t in [0, 1] to the
+    Bernstein control points, on each of the ``points - 1`` even parameter segments, of its
+    second derivative ``d^2 p / dt^2``."""
+    from math import comb
+
+    K = int(terms)
+    d = K - 2
+    # a few more samples than coefficients suffice (the backbone is exactly in the basis)
+    idx = np.unique(np.round(np.linspace(0, fit_points - 1, min(fit_points, 2 * K + 2))).astype(int))
+    phi = basis.design_matrix(fit_points, K)[idx]              # (mi, K)
+    pinv = np.linalg.pinv(phi)                                 # (K, mi): points -> L c
+    C = basis.coefficients(K)                                  # P_k = sum_j C[k, j] t^(j+1)
+    # monomial coefficients of sum_k (L c_k) P_k''(t): a_i, i = 0..d
+    D2 = np.zeros((d + 1, K))
+    for i in range(d + 1):
+        D2[i] = C[:, i + 1] * (i + 2) * (i + 1)
+    mono = D2 @ pinv                                           # (d + 1, mi)
+    h = 1.0 / (points - 1)
+    # Bernstein conversion of u -> v(t0 + h u): b_l = sum_i a_i C(i, l) t0^(i-l) h^l, then
+    # beta_r = sum_{l <= r} C(r, l) / C(d, l) b_l
+    conv = np.array([[comb(r, j) / comb(d, j) if j <= r else 0.0 for j in range(d + 1)]
+                     for r in range(d + 1)])
+    out = np.empty((points - 1, d + 1, len(idx)))
+    for k in range(points - 1):
+        t0 = k * h
+        shift = np.array([[comb(i, j) * t0 ** (i - j) * h ** j if j <= i else 0.0
+                           for i in range(d + 1)] for j in range(d + 1)])   # (l, i)
+        out[k] = conv @ shift @ mono
+    return idx, out
+
+
+_PAD_MAPS: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
+#: allowance (mm) for the float32 round-off of evaluated backbone points in the padding
+POINT_ROUNDOFF_MM = 1e-4
+
+
+def polynomial_pad(fit: np.ndarray, points: int, terms: int) -> np.ndarray:
+    """(B, points - 1) exact bound (mm) of the distance between a polynomial backbone and its
+    chords between ``points`` even samples (the learned model's continuity padding).
+
+    The backbone ``p(t) = len * sum_k c_k P_k(t)``, t in [0, 1], is recovered from ``fit``
+    (B, mf, 3), its samples at mf > terms even parameters (exactly: the basis has ``terms``
+    functions, all zero at t = 0). On each segment of parameter length ``h = 1/(points - 1)``
+    the chord error is at most ``h^2 / 8 max |p''|`` (the linear-interpolation bound, for every
+    direction), and ``|p''|`` is at most the largest norm of the Bernstein control points of
+    ``p''`` on the segment (convex hull property): an exact polynomial bound, no sampling. This
+    also bounds the curvature's effect without any curvature bound: the network may bend the
+    backbone beyond the tubes' precurvature."""
+    fit = np.asarray(fit, dtype=float)
+    B, mf, _ = fit.shape
+    if terms < 2 or points < 2:
+        return np.zeros((B, max(points - 1, 0)))
+    key = (mf, int(points), int(terms))
+    hit = _PAD_MAPS.get(key)
+    if hit is None:
+        hit = _PAD_MAPS[key] = _bernstein_second_derivative(mf, points, terms)
+    idx, A = hit
+    k, r, mi = A.shape
+    ctrl = np.matmul(A.reshape(k * r, mi), fit[:, idx])        # (B, K (d + 1), 3)
+    peak = np.sqrt(np.einsum("bjc,bjc->bj", ctrl, ctrl)).reshape(B, k, r).max(axis=-1)
+    h = 1.0 / (points - 1)
+    # + float32 round-off of the evaluated points (the CPU path's ~1e-5 mm at 200 mm)
+    return peak * h * h / 8.0 + POINT_ROUNDOFF_MM
 
 
 def n_direction_features(n: int) -> int:

@@ -354,7 +354,8 @@ class PhysicsModel:
         ok &= chords_within_arc(pts, s)
         self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid, moment0=moment0,
                                    detj=detj, branch=branch, uz0_alt=uz0_alt)
-        return Shape(points=pts, s=s, radius=radius_along(r, q, s), ok=ok)
+        return Shape(points=pts, s=s, radius=radius_along(r, q, s), ok=ok,
+                     pad=continuity_pad(r, q, s, kappa, kink))
 
     def _solve_loaded(self, alpha, beta, kappa, EI, ratio, kink, W, F, M, pts0, s0, uz00, ok0,
                       points):
@@ -395,3 +396,21 @@ def chords_within_arc(points: np.ndarray, s: np.ndarray, rtol: float = 1e-4) -> 
         arc = np.diff(s, axis=1)
         good = chord <= arc * (1.0 + rtol) + 1e-6
     return np.all(good, axis=1)
+
+
+def continuity_pad(robot: Robot, q: np.ndarray, s: np.ndarray, kappa: np.ndarray,
+                   kink: np.ndarray) -> np.ndarray:
+    """(B, m - 1) bound (mm) of the distance between the continuous backbone and the chord of
+    each segment: the sagitta of the row's curvature bound (its largest precurvature: the
+    bending curvature is an EI-weighted mean of the tubes' rotated precurvatures) plus the
+    offset of the tangent jumps the clearance kinks cause where tubes end
+    (:func:`ctrplan.collision.capsules.kink_pad`). External loads are not covered by the
+    curvature bound (a loaded model may state ``max_curvature``)."""
+    from ctrplan.collision.capsules import kink_pad, sagitta_pad
+
+    n = robot.n
+    pad = sagitta_pad(s, np.max(np.abs(kappa), axis=1))
+    angle = np.linalg.norm(kink, axis=-1)                 # (B, n)
+    if np.any(angle > 0):
+        pad = pad + kink_pad(s, q[:, n:] + robot.lengths, angle)
+    return pad

@@ -630,21 +630,10 @@ def predict(model: Any, data: ShapeData) -> np.ndarray:
 
 def error_profile(deviation: np.ndarray) -> dict[str, list[float]]:
     """The ``error_profile`` of the model files (docs/conventions.md) from point deviations
-    (B, m) mm at m points evenly spaced in arc length from base (fraction 0) to tip (1):
-    per fraction the p50/p95/p99/max over configurations (rows with a non-finite value are
-    left out)."""
-    from ctrplan.shape.learned import QUANTILES
+    (B, m) mm at m points evenly spaced in arc length from base (fraction 0) to tip (1)."""
+    from ctrplan.shape.error_bounds import profile_from_deviations
 
-    d = np.asarray(deviation, dtype=float)
-    if d.ndim != 2 or d.shape[1] < 2:
-        raise ValueError("need deviations (B, m) at m >= 2 points")
-    d = d[np.all(np.isfinite(d), axis=1)]
-    if not len(d):
-        raise ValueError("no finite deviations to take quantiles of")
-    out: dict[str, list[float]] = {"fractions": np.linspace(0.0, 1.0, d.shape[1]).tolist()}
-    for k, p in QUANTILES.items():
-        out[k] = np.percentile(d, p, axis=0).tolist()
-    return out
+    return profile_from_deviations(deviation).to_dict()
 
 
 def finish(model: LearnedModel, seen: ShapeData, test: ShapeData, label: str,
