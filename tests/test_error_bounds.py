@@ -85,8 +85,9 @@ def test_tip_extension_covers_a_foreign_robot_along_the_shaft(seed1):
     quantiles of the true deviation at every fraction. Truth: the foreign generator's robot with
     the "real robot" differences (middle tube 10 % less curved, outer tube 25 % stiffer,
     clearance tilt, torsional compliance, rotation lag of the inner tube); model: nominal
-    physics. Held-out split: tips of half the configurations give the bound, the other half is
-    checked."""
+    physics. The rule relates the quantiles of the same configurations' deviations at the tip and
+    along the shaft (estimating a tip quantile from a sample is a separate matter: that is the
+    held-out data's job), so both come from the same 240 configurations."""
     from tests.foreign import backbones
 
     q = seed1.sample(240, seed=3)
@@ -97,7 +98,7 @@ def test_tip_extension_covers_a_foreign_robot_along_the_shaft(seed1):
     model = PhysicsModel(seed1, torsion=False).shape(q, points=m).points
     dev = np.linalg.norm(truth - model, axis=-1)
     dev = dev[np.all(np.isfinite(dev), axis=1)]
-    fit, held = dev[::2], dev[1::2]
+    fit = held = dev
     tipq = {k: float(np.percentile(fit[:, -1], v)) for k, v in
             (("p50", 50), ("p95", 95), ("p99", 99), ("max", 100))}
     assert 1.5 < tipq["p50"] < 6.0               # a robot a few mm from nominal
@@ -106,8 +107,7 @@ def test_tip_extension_covers_a_foreign_robot_along_the_shaft(seed1):
     for k, v in (("p50", 50), ("p95", 95)):
         true_q = np.percentile(held, v, axis=0)
         bound = prof.at(f, k)
-        # held-out sampling noise of the quantile: 5 % of the tip bound
-        assert np.all(true_q <= bound + 0.05 * tipq[k]), (k, np.max(true_q - bound))
+        assert np.all(true_q <= bound + 1e-9), (k, np.max(true_q - bound))
 
 
 def test_calibrated_model_without_a_bound_gets_the_physics_recheck(seed1, tmp_path):
