@@ -51,7 +51,7 @@ from .robot import Spec, load_spec, valid
 _ANATOMY = Path(__file__).resolve().parents[2] / "anatomy"
 
 #: nominal model of the re-check: torsionally compliant rods with the tubes' physical GJ
-NOMINAL = {"torsion": {}}
+NOMINAL = {"torsion": {"gj_scale": 1.0, "coupling": 0.0}}
 #: bisection resolution of the penetration depth (mm)
 DEPTH_TOL_MM = 0.002
 #: backbone segments per coarse capsule
@@ -227,24 +227,26 @@ def _coarse(P: np.ndarray, radius: np.ndarray, shrink: float = 0.0, group: int =
     backbone points from the chord (the distance to a segment is convex, so every fine
     cylinder and joint sphere lies inside). Returns (objects, segment index arrays)."""
     M = len(P) - 1
+    starts = np.arange(0, M, group)
+    stops = np.minimum(starts + group, M)                   # group g: segments starts..stops-1
+    A, Bp = P[starts], P[stops]
+    AB = Bp - A
+    L = np.linalg.norm(AB, axis=1)
+    D = np.where(L[:, None] > 0, AB / np.where(L > 0, L, 1.0)[:, None], [0.0, 0.0, 1.0])
+    Rs = _rot_z_to(D)
     out, parts = [], []
-    for g0 in range(0, M, group):
-        segs = np.arange(g0, min(g0 + group, M))
-        a, b = P[g0], P[segs[-1] + 1]
-        pts = P[g0:segs[-1] + 2]
-        ab = b - a
-        L2 = float(ab @ ab)
-        t = np.clip((pts - a) @ ab / L2, 0.0, 1.0) if L2 > 0 else np.zeros(len(pts))
-        dev = float(np.max(np.linalg.norm(pts - (a + t[:, None] * ab), axis=1)))
+    for g, (g0, g1) in enumerate(zip(starts, stops)):
+        segs = np.arange(g0, g1)
+        pts = P[g0:g1 + 1] - A[g]
+        t = np.clip(pts @ D[g], 0.0, L[g])
+        dev = float(np.max(np.linalg.norm(pts - t[:, None] * D[g], axis=1)))
         r = float(np.max(radius[segs])) - shrink + dev + 1e-9
         parts.append(segs)
         if r <= 0:
             out.append(None)
             continue
-        L = np.sqrt(L2)
-        d = ab / L if L > 0 else np.array([0.0, 0.0, 1.0])
-        out.append(fcl.CollisionObject(fcl.Capsule(r, float(L)),
-                                       fcl.Transform(_rot_z_to(d[None])[0], 0.5 * (a + b))))
+        out.append(fcl.CollisionObject(fcl.Capsule(r, float(L[g])),
+                                       fcl.Transform(Rs[g], 0.5 * (A[g] + Bp[g]))))
     return out, parts
 
 
