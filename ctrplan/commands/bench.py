@@ -251,8 +251,9 @@ def real_robot_block(rr: dict) -> str:
              f"{len(rr['scenes'])} shipped scenes, {rr['time_limit_s']:g} s cap, replayed on the "
              "truth with the independent re-check (`tests/foreign/recheck.py`).", "",
              "| flow | planned | states replayed | in contact | deeper than "
-             f"{th['depth_mm']:g} mm | deepest (mm) | truth tip error median (mm) |",
-             "|---|---|---|---|---|---|---|"]
+             f"{th['depth_mm']:g} mm | centreline crosses the wall | deepest (mm; at least the "
+             "tube radius where the centreline crosses) | truth tip error median (mm) |",
+             "|---|---|---|---|---|---|---|---|"]
     names = {"calibrated": "measure, `diagnose --base compliant`, plan with the calibrated "
                            "model and `--margin auto`",
              "default": "default `ctrplan plan` (nominal physics model, no calibration)"}
@@ -261,8 +262,10 @@ def real_robot_block(rr: dict) -> str:
             continue
         s = rr[f]["summary"]
         tip = s["tip_error_truth_median_mm"]
+        cross = sum(p.get("centreline_crossings", 0) for p in rr[f]["plans"] if p["success"])
         lines.append(f"| {names[f]} | {s['success']}/{s['plans']} | {s['states']} | "
-                     f"{s['contact_states']} | {s['penetrating_states']} | {s['max_depth_mm']:.2f} | "
+                     f"{s['contact_states']} | {s['penetrating_states']} | {cross} | "
+                     f"{s['max_depth_mm']:.2f} | "
                      f"{'n/a' if tip is None else format(tip, '.2f')} |")
     if "calibrated" in rr:
         c = rr["calibrated"]["calibration"]
