@@ -11,7 +11,7 @@ with each planner, planning model and objective (``clearance``, the default, opt
 away from the anatomy; ``first`` is the first solution, simplified), ``--time`` seconds as the
 cap per plan, always through the planner (``try_direct=False``). Every successful
 path is then re-checked independently (:func:`hard_problems.verify_path`: 8x the edge
-resolution, physics backbone, exact FCL without the prefilter).
+resolution, the foreign generator's mechanics, exact FCL cylinders; no ctrplan code).
 
 Output: one log per (model, problem) in OMPL's benchmark log format (the format
 ``ompl.tools.Benchmark`` writes and ``ompl_benchmark_statistics.py`` / Planner Arena read;
@@ -46,6 +46,10 @@ from hard_problems import ROBOT, load_problems, scenes, verify_path  # noqa: E40
 #: seed1.pt by the `learn` branch (commit a65b3a9, same weights); used as its error bound only
 #: while the loaded model carries no ``error_quantiles`` of its own.
 LEARNED_P99_MM = 1.693
+
+#: how the successful paths are re-checked (written to summary.json, quoted by the README)
+RECHECK = ("independent: tests/foreign/recheck.py, foreign compliant mechanics, exact FCL cylinders, "
+           "8x the edge resolution")
 
 #: PRM is not run: OMPL's PRM deadlocks with Python validity checkers (see
 #: ctrplan.planning.space.UNSAFE_PLANNERS); the first run of this benchmark hung in it.
@@ -205,7 +209,7 @@ def markdown(table: list[dict]) -> str:
     """The README table: success, time, path length, clearance per planning model and planner."""
     lines = ["| model | planner | objective | success (10 s cap) | time median / p90 (s) | path "
              "length median (metric mm) | clearance median, planning model (mm, a lower bound where "
-             "not settled) | clearance median in the re-check (FCL, physics, mm) | smallest "
+             "not settled) | clearance median in the re-check (independent, mm) | smallest "
              "clearance in the re-check (mm) | re-check failures |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in table:
@@ -253,7 +257,8 @@ def run(models, planners, runs: int, time_limit: float, per_scene: int | None, o
                     flush=True)
     table = summarize(records)
     res = {"robot": ROBOT, "time_limit_s": time_limit, "runs": runs, "planners": list(planners),
-           "models": list(models), "objectives": list(objectives), "problems": [p.name for p in problems], "table": table,
+           "recheck": RECHECK, "models": list(models), "objectives": list(objectives),
+           "problems": [p.name for p in problems], "table": table,
            "records": records}
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.json").write_text(json.dumps(res, indent=1) + "\n", encoding="utf-8")

@@ -8,8 +8,8 @@ the seed1 robot and the physics model: random configurations (fixed seed) that a
 with capsules padded by the sagitta bound are taken as goals; a goal qualifies when the straight
 edge from the start to it collides, ``plan_to_target`` on its tip does not take the direct edge
 (none of the 4 nearest IK goals is straight-line reachable), and a plan is found; that plan's
-waypoints are stored as the known solution, re-checked here at 8x the edge resolution with the
-physics model and exact FCL. Problems are stored in ``benchmarks/hard/<scene>.json``.
+waypoints are stored as the known solution, re-checked here independently (:func:`verify_path`:
+the foreign generator's mechanics, exact FCL cylinders, 8x the edge resolution; no ctrplan code). Problems are stored in ``benchmarks/hard/<scene>.json``.
 """
 
 from __future__ import annotations
@@ -25,6 +25,10 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import numpy as np  # noqa: E402
+
+_ROOT = str(Path(__file__).resolve().parents[1])
+if _ROOT not in sys.path:          # tests.foreign (the independent re-check) from a checkout
+    sys.path.insert(0, _ROOT)
 
 HERE = Path(__file__).resolve().parent / "hard"
 ROBOT = "seed1"
@@ -53,67 +57,24 @@ def scenes() -> list[str]:
     return sorted(p.stem for p in HERE.glob("*.json"))
 
 
-def verify_path(robot, scene, path: np.ndarray, factor: int = 8,
-                exact: bool = False) -> tuple[bool, float]:
-    """Independent re-check: the path densified ``factor`` x the planner's edge resolution
-    (own interpolation, rotations along the shorter arc), physics backbone, FCL verdicts on
-    capsules of radius + sagitta bound (``check``: the distance-field prefilter only skips FCL
-    where its conservative bound proves the verdict; ``exact=True`` sends every state to FCL).
-    Returns (collision-free, smallest FCL distance)."""
-    import math
+def verify_path(robot, scene, path: np.ndarray, factor: int = 8, clearance: bool = True,
+                effects: dict | None = None) -> tuple[bool, float]:
+    """Independent re-check (:mod:`tests.foreign.recheck`, no ctrplan code): the path
+    densified linearly (rotations as stored, unwrapped; at least 10 states per edge and
+    ``factor`` x the planner's 2 mm edge resolution), the backbone from the foreign generator's
+    own compliant mechanics (600+ points; ``effects``: a foreign truth robot), exact FCL
+    cylinders of each tube's outer radius against the scene's meshes read from its files.
+    Returns (collision-free, smallest FCL distance; NaN with ``clearance=False``, where only
+    the verdict is wanted and the check stops at the first contact)."""
+    from tests.foreign.recheck import recheck_path
 
-    from ctrplan.collision.capsules import curvature_bound
-    from ctrplan.planning import PlanConfig
-    from ctrplan.shape.physics import PhysicsModel
-
-    cfg = PlanConfig().validator
-    model = PhysicsModel(robot)
-    world = _world(scene, curvature_bound(robot), prefilter=not exact)
-    n = robot.n
-    res = cfg.resolution_mm / factor
-    states = [np.asarray(path[0], dtype=float)]
-    for a, b in zip(path[:-1], path[1:]):
-        d = np.asarray(b, dtype=float) - a
-        d[:n] = (d[:n] + math.pi) % (2 * math.pi) - math.pi
-        dist = cfg.alpha_weight_mm * np.abs(d[:n]).sum() + np.linalg.norm(d[n:])
-        k = max(1, math.ceil(dist / res))
-        states.extend(a + t * d for t in np.linspace(0.0, 1.0, k + 1)[1:])
-    q = np.array(states)
-    if not robot.is_valid(q).all():
-        return False, -1.0
-    shape = model.shape(q, points=cfg.points)
-    rep = world.check_exact(shape) if exact else world.check(shape)
-    if rep.collides.any():
-        return False, -1.0
-    # the smallest FCL distance: states in order of their conservative lower bound (rep's
-    # clearance) until the best distance found is no larger than the next bound
-    bounds = np.asarray(rep.clearance_mm, dtype=float)
-    order = np.argsort(bounds, kind="stable")
-    best = math.inf
-    for k in range(0, len(order), 8):
-        idx = order[k:k + 8]
-        sub = type(shape)(shape.points[idx], shape.s[idx], shape.radius[idx], shape.ok[idx])
-        best = min(best, float(np.min(_ranked(world).clearance_exact(sub, below=best))))
-        if k + 8 >= len(order) or best <= bounds[order[k + 8]]:
-            break
-    return True, best
-
-
-_WORLDS: dict[tuple, object] = {}
-
-
-def _world(scene, curvature: float, prefilter: bool = True):
-    from ctrplan.collision.world import CollisionWorld
-
-    key = (id(scene), curvature, prefilter)
-    if key not in _WORLDS:
-        _WORLDS[key] = CollisionWorld(scene, prefilter=prefilter, curvature_per_mm=curvature)
-    return _WORLDS[key]
-
-
-def _ranked(world):
-    """The same scene with the prefilter on: FCL distances by branch and bound over pairs."""
-    return _world(world.scene, world.curvature_per_mm, True)
+    spec = robot.to_dict() if hasattr(robot, "to_dict") else robot
+    where = getattr(scene, "path", scene)
+    rep = recheck_path(spec, where, np.asarray(path, dtype=float), effects=effects,
+                       step_mm=2.0 / factor, distances=clearance, depths=clearance,
+                       stop_at_first=not clearance)
+    return rep.free, (rep.min_clearance_mm if clearance and rep.free else
+                      (float("nan") if not clearance else -1.0))
 
 
 def search(scene_name: str, count: int = 5, samples: int = 60000, seed: int = 0,
@@ -170,7 +131,8 @@ def search(scene_name: str, count: int = 5, samples: int = 60000, seed: int = 0,
         "source": f"found by benchmarks/hard_problems.py search(samples={samples}, seeds "
                   f"0..{seed} until {count} problems): "
                   "the straight edge from the start collides and plan_to_target does not take it; "
-                  "solution = a verified physics-model plan (re-checked 8x densified, FCL)",
+                  "solution = a physics-model plan that passes the independent re-check "
+                  "(tests/foreign/recheck.py)",
         "licence": "CC0",
         "candidates_tried": tried,
         "problems": problems,

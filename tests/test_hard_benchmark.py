@@ -1,9 +1,11 @@
 """The fixed hard benchmark and the independent re-check of plans.
 
-Oracles: the re-check (``benchmarks/hard_problems.verify_path``) interpolates paths itself at 8x
-the planner's edge resolution and asks FCL about the physics model's backbone with capsules of
-radius + sagitta bound (the known solutions with every state sent to FCL); the benchmark logs are read
-back with OMPL's own log reader (``ompl.tools.readBenchmarkLog``).
+Oracles: the re-check (``benchmarks/hard_problems.verify_path`` -> ``tests/foreign/recheck.py``)
+shares no code with ctrplan (foreign mechanics, exact FCL cylinders, its own interpolation); it
+is itself checked here against closed forms (a straight tube in a cylindrical wall: clearance and
+penetration depth) and against ctrplan's physics backbone (two independent implementations of
+the same equations); the benchmark logs are read back with OMPL's own log reader
+(``ompl.tools.readBenchmarkLog``).
 """
 
 from __future__ import annotations
@@ -35,10 +37,10 @@ def test_every_scene_has_hard_problems():
 def test_hard_problem_straight_edge_collides_and_known_solution_is_free(scene, seed1):
     prob = load_problems(scene)[0]
     sc = scene_by_name(scene)
-    straight, _ = verify_path(seed1, sc, np.stack([prob.start, prob.goal]))
+    straight, _ = verify_path(seed1, sc, np.stack([prob.start, prob.goal]), clearance=False)
     assert not straight
-    free, clearance = verify_path(seed1, sc, prob.solution, exact=True)
-    assert free and clearance >= 0.0
+    free, _ = verify_path(seed1, sc, prob.solution, factor=1, clearance=False)
+    assert free
     assert np.allclose(prob.solution[0], prob.start)
     tip = PhysicsModel(seed1).shape(prob.solution[-1:], points=2).tip[0]
     assert np.linalg.norm(sc.to_scene(tip[None])[0] - prob.target) <= 1.0 + 1e-6
@@ -67,6 +69,78 @@ def test_benchmark_log_is_read_by_ompls_reader(tmp_path):
     assert rows[1][3] is None and rows[1][4] == 5           # TIMEOUT's enum index
     cols = {c[1] for c in con.execute("pragma table_info(runs)")}
     assert {"_".join(n.split()) for n, _ in RUN_PROPERTIES} <= cols
+
+
+# ----------------------------------------------------------------------------- the re-check itself
+def _straight_robot():
+    tubes = [{"od": od, "id": od - 0.3, "straight_length": sl, "curved_length": 40.0, "curvature": 0.0,
+              "youngs_modulus": 60000.0, "poisson_ratio": 0.33}
+             for od, sl in ((1.3, 240.0), (1.9, 160.0), (2.5, 90.0))]
+    return {"name": "straight", "tubes": tubes}
+
+
+def _wall_scene(tmp_path, radius: float, dx: float):
+    """A cylindrical wall (512 sides, open ends) of ``radius`` around the line x = dx, y = 0."""
+    import trimesh
+    import yaml
+
+    m = trimesh.creation.cylinder(radius=radius, height=400.0, sections=512)
+    keep = np.abs(m.face_normals[:, 2]) < 0.5                   # the side only
+    side = trimesh.Trimesh(m.vertices, m.faces[keep], process=False)
+    side.apply_translation([dx, 0.0, 150.0])
+    side.export(tmp_path / "wall.ply")
+    (tmp_path / "scene.yaml").write_text(yaml.safe_dump({
+        "name": "tube", "units": "mm", "meshes": [{"name": "wall", "file": "wall.ply", "role": "wall"}],
+        "base_pose": {"position": [0.0, 0.0, 0.0], "quaternion": [1.0, 0.0, 0.0, 0.0]}}))
+    return tmp_path
+
+
+@pytest.mark.parametrize("dx, clearance", [(3.0, 0.75), (4.5, -0.75), (4.0, -0.25)])
+def test_recheck_clearance_and_depth_match_closed_form(tmp_path, dx, clearance):
+    """Straight tubes (outer radius 1.25 mm at the base) along the z axis inside a wall of radius
+    5 mm whose axis is dx away: clearance 5 - dx - 1.25 (negative: penetration depth), within the
+    polygon's sag (1e-4 mm) and the depth bisection's resolution."""
+    from tests.foreign.recheck import DEPTH_TOL_MM, recheck_path
+
+    scene = _wall_scene(tmp_path, 5.0, dx)
+    q = np.array([[0.0, 0.0, 0.0, -200.0, -120.0, -50.0], [0.05, -0.05, 0.02, -199.0, -119.5, -49.5]])
+    rep = recheck_path(_straight_robot(), str(scene), q)
+    assert len(rep.edge) >= 11 and rep.states[0, 0] == 0.0
+    assert rep.min_clearance_mm == pytest.approx(clearance, abs=DEPTH_TOL_MM + 2e-4)
+    if clearance > 0:
+        assert rep.free and rep.penetrating(0.0) == 0
+    else:
+        assert not rep.free and set(rep.contact) == {"wall"} and not rep.crosses.any()
+        # every state is equally deep (straight tubes, the outer one always inside the wall)
+        assert rep.penetrating(-clearance + 0.01) == 0
+        assert rep.penetrating(-clearance - 0.01) == len(rep.edge)
+
+
+def test_recheck_interpolates_unwrapped_rotations_densely():
+    """plan.json rotations are unwrapped: from 3.0 to -3.0 rad the motion passes through 0."""
+    from tests.foreign.recheck import densify, directions
+
+    path = np.array([[3.0, 0.0, 0.0, -100.0, -60.0, -30.0], [-3.0, 0.0, 0.0, -100.0, -60.0, -30.0],
+                     [-3.0, 0.0, 0.0, -99.9, -60.0, -30.0]])
+    st, edge = densify(path, 3)
+    assert np.sum(edge == 0) >= 10 and np.sum(edge == 1) >= 10
+    assert np.min(np.abs(st[edge == 0, 0])) < 0.05              # passes alpha = 0, not pi
+    assert np.max(np.abs(np.diff(st[:, 0]))) <= 0.25 / 30.0 + 1e-12
+    d = directions(st, edge, path)
+    assert (d[edge == 0, 0] == -1).all() and (d[edge == 1, 3] == 1).all()
+
+
+def test_recheck_backbone_agrees_with_ctrplan_physics(seed1):
+    """Two independent implementations of the compliant rod (foreign numpy shooting vs ctrplan's
+    kernel): the re-check's backbone and ctrplan's agree to 1e-3 mm."""
+    from tests.foreign.recheck import backbone
+    from tests.foreign.robot import load_spec
+
+    q = seed1.sample(20, seed=3)
+    P, radius, ok = backbone(load_spec("seed1"), q, points=500)
+    assert ok.all() and P.shape[1] == 502 and set(np.unique(radius)) <= {0.65, 0.95, 1.25}
+    ref = PhysicsModel(seed1).shape(q, points=500).points
+    assert np.max(np.linalg.norm(P[:, -1] - ref[:, -1], axis=1)) < 1e-3
 
 
 @pytest.mark.statistical
@@ -103,7 +177,7 @@ def test_shipped_targets_plans_pass_the_recheck(model, seed1):
             r = plan_to_target(seed1, sc, t.position, model=model, seed=seed, time_limit=10.0,
                                config=PlanConfig(margin_mm=0.0))
             if r.success:
-                free, _ = verify_path(seed1, sc, r.path)
+                free, _ = verify_path(seed1, sc, r.path, clearance=False)
                 assert free, (s, t.name, model)
                 done += 1
     assert done >= 4

@@ -27,8 +27,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
     p.add_argument("--out", default="benchmarks/results", help="output folder")
     p.add_argument("--readme", metavar="FILE",
-                   help=f"also put the tables into FILE between the lines {START} and {END} "
-                        "(how README.md's performance section is made)")
+                   help=f"also put the tables into FILE between the lines {START} and {END}, and "
+                        "rewrite FILE's other generated blocks (<!-- NAME:start --> ... "
+                        "<!-- NAME:end -->: perf-summary, hard, hard-summary, real-robot) from the "
+                        "JSON in --out (how README.md's planning and performance numbers are made)")
+    p.add_argument("--no-run", action="store_true",
+                   help="run no suite: only rewrite --readme's blocks from the JSON already in --out")
     p.set_defaults(func=run)
 
 
@@ -100,15 +104,200 @@ def _cell(v) -> str:
     return "" if v is None else str(v)
 
 
-def splice(text: str, md: str, source: str) -> str:
-    """``text`` with the lines between the START and END markers replaced by ``md``."""
+def splice(text: str, md: str, source: str, block: str = "bench") -> str:
+    """``text`` with the lines between the ``<!-- block:start -->`` and ``<!-- block:end -->``
+    markers replaced by ``md``."""
+    start, end = f"<!-- {block}:start -->", f"<!-- {block}:end -->"
     lines = text.splitlines(keepends=True)
     try:
-        i = next(k for k, ln in enumerate(lines) if ln.strip() == START)
-        j = next(k for k, ln in enumerate(lines) if ln.strip() == END and k > i)
+        i = next(k for k, ln in enumerate(lines) if ln.strip() == start)
+        j = next(k for k, ln in enumerate(lines) if ln.strip() == end and k > i)
     except StopIteration:
-        raise InputError(source, START, f"needs a line {START} followed by a line {END}") from None
+        raise InputError(source, start, f"needs a line {start} followed by a line {end}") from None
     return "".join(lines[:i + 1]) + md.rstrip("\n") + "\n" + "".join(lines[j:])
+
+
+# ----------------------------------------------------------------------------- README blocks
+# Every measured number of the README's planning and performance sections is written here from
+# the committed JSON in benchmarks/results/ (tests/test_readme.py regenerates and compares).
+
+def _load(path: Path):
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+
+
+def _rng(vals, fmt: str) -> str:
+    vals = [v for v in vals if v is not None]
+    if not vals:
+        return "n/a"
+    lo, hi = min(vals), max(vals)
+    a, b = format(lo, fmt), format(hi, fmt)
+    return a if a == b else f"{a}–{b}"
+
+
+def _k(x: float) -> str:
+    return f"{x / 1000:.0f}k"
+
+
+def summary_block(bench: dict, gpu: dict | None) -> str:
+    """The performance summary table (what | measured | target) from bench.json (one run) and
+    the GPU JSON."""
+    su = bench["suites"]
+    rows = ["| what | measured | target |", "|---|---|---|"]
+    sh = su.get("shape")
+    if sh:
+        ps = sh["per_shape_s"]
+        rows.append(f"| compliant mechanics, batch 10,000 ({sh['robot']}, {sh['points']} points) | "
+                    f"{ps['compliant']['10000'] * 1e6:.1f} µs per shape (rigid "
+                    f"{ps['rigid']['10000'] * 1e6:.1f} µs); published anchor "
+                    f"{sh['published_anchor_s_per_shape'] * 1e3:.2f} ms | "
+                    f"≤ {sh['target_compliant_10k_s'] * 1e6:.0f} µs |")
+    le = su.get("learned")
+    if le:
+        by = {r["batch"]: r for r in le["table"]}
+        big = by[le["largest_batch"]]
+        rows.append(f"| learned model, batch {le['largest_batch']:,} | "
+                    f"{big['learned_us_per_shape']:.2f} µs per shape; batch-1 latency "
+                    f"{le['batch1_latency_us']['learned']:.0f} µs | ≤ 1 µs |")
+        sp = [by[b]["speedup"] for b in sorted(by) if b >= 10000]
+        met = "met" if le.get("target_ge_100x_at_100k") else (
+            f"**not met**: the network's matrix products alone "
+            f"({le['floor']['network_products_us_per_shape']:.2f} µs per shape at batch "
+            f"{le['floor']['batch']:,}) cap the ratio at {le['ratio_bound_from_floor']:.0f}x")
+        rows.append(f"| learned vs batched compliant physics, same run | {_rng(sp, '.0f')}x at "
+                    f"batch 10^4–10^5 | ≥ 100x — {met} |")
+    if gpu:
+        g = {r["batch"]: r for r in gpu["table"]}
+        rows.append(f"| learned model on a GPU ({gpu['device']}), forward pass on the device | "
+                    f"{g[100000]['forward_on_device_us_per_shape']:.3f} µs per shape at 10^5; "
+                    f"`backbone()` with numpy in/out {g[100000]['backbone_us_per_shape']:.2f} µs at "
+                    f"10^5; batch 1: {g[1]['backbone_call_ms']:.2f} ms | – |")
+    co = su.get("collision")
+    if co:
+        for kind, what, tgt in (("reach", "shape + collision, learned model, random reachable "
+                                 "configurations", "≥ 50k/s, ≥ 20x"),
+                                ("near_targets", "the same near the targets (tight lumens)", "–")):
+            rs = [r for r in co["table"] if r["configs"] == kind and r["model"] == "learned"]
+            if rs:
+                rows.append(f"| {what} | {_rng([r['prefilter_fcl_per_s'] / 1000 for r in rs], '.0f')}k "
+                            f"configurations/s per scene; {_rng([r['speedup'] for r in rs], '.0f')}x "
+                            f"FCL alone; {_rng([100 * r['to_fcl_fraction'] for r in rs], '.1f')} % of "
+                            f"states need FCL | {tgt} |")
+    pl = su.get("planning")
+    if pl:
+        by = {(r["scene"], r["model"]): r for r in pl["table"]}
+        parts = []
+        for m in ("physics", "learned"):
+            r = by.get(("all", m))
+            if r is None:
+                continue
+            ok = round(r["success_rate"] * r["plans"])
+            txt = (f"{m}{' (the default)' if m == 'physics' else ''}: {ok}/{r['plans']} success, "
+                   f"median {r['median_s']:.2f} s, p90 {r['p90_s']:.2f} s per plan")
+            if r.get("rechecked"):
+                txt += (f"; {r['rechecked'] - r['recheck_failures']}/{r['rechecked']} successful "
+                        "paths free in the independent re-check")
+            parts.append(txt)
+        if ("all", "physics") in by:
+            parts.append(f"{100 * by[('all', 'physics')]['direct_fraction']:.0f} % of the physics "
+                         "plans are a single direct joint-space edge")
+        n_t = len({p["target"] for p in pl["plans"]})
+        rows.append(f"| planning, {len(pl['scenes'])} scenes x {n_t} targets x {len(pl['seeds'])} seeds "
+                    f"(`bench_planning.py`) | {'; '.join(parts)} | ≥ 95 %, median < 1 s |")
+    dg = su.get("diagnose")
+    if dg:
+        r = next((r for r in dg["table"] if r["hidden"] != "none"), None)
+        if r:
+            rows.append(f"| diagnose, {r['rows']:,} samples, hidden {r['hidden']}, {dg['robot']} | "
+                        f"{r['wall_s']:.1f} s; found {r['found']}; held-out error "
+                        f"{r['error_before_mm']:.2f} → {r['error_after_mm']:.2f} mm | < 2 min |")
+    m = bench["machine"]
+    rows += ["", f"Measured {m['date']} on {m['cpu']}, {m['cores']} cores (`benchmarks/results/bench.json`"
+             + (", `benchmarks/results/learned_gpu_h100.json`" if gpu else "") + ")."]
+    return "\n".join(rows)
+
+
+def hard_summary_block(hard: dict) -> str:
+    """The measured sentence of the hard benchmark from benchmarks/results/hard/summary.json."""
+    recs = hard["records"]
+    ok = [r for r in recs if r["success"]]
+    phys = {r["planner"]: r for r in hard["table"] if r["model"] == "physics"}
+    how = hard.get("recheck", "the planner's own physics model and FCL, written before the "
+                              "independent re-check existed: rerun `bench_hard.py` to refresh")
+    rc = [r["recheck_clearance"] for r in ok if r.get("recheck_clearance") is not None]
+    fails = sum(1 for r in ok if r.get("recheck_free") is False)
+    out = [f"Measured on all {len(hard['problems'])} problems ({hard['runs']} seed each, "
+           f"{hard['time_limit_s']:g} s cap): "]
+    if phys:
+        good = [p for p, r in phys.items() if r["success_rate"] >= 0.95]
+        first = phys.get("rrtconnect") or next(iter(phys.values()))
+        out.append(f"with the physics planning model {first['planner']} solves "
+                   f"{first['success']}/{first['plans']} (at least 95 %: {', '.join(good) or 'none'}); ")
+    out.append(f"{len(ok) - fails} of the {len(ok)} successful plans (of {len(recs)} runs) are "
+               f"collision-free in the re-check ({how}), smallest clearance "
+               f"{min(rc):.3f} mm." if rc else "no successful plans.")
+    return "".join(out)
+
+
+def real_robot_block(rr: dict) -> str:
+    """The end-to-end real-robot scenario from benchmarks/results/real_robot.json."""
+    dev = rr["truth"]["deviation_from_nominal"]
+    th = rr["thresholds"]
+    lines = [f"Truth robot `{rr['truth']['source']}`: {dev['mean_mm']:.2f} mm mean (max "
+             f"{dev['max_mm']:.2f} mm) of the max deviation along the shaft from the nominal "
+             f"compliant {rr['robot']}. First {rr['targets_per_scene']} targets of each of the "
+             f"{len(rr['scenes'])} shipped scenes, {rr['time_limit_s']:g} s cap, replayed on the "
+             "truth with the independent re-check (`tests/foreign/recheck.py`).", "",
+             "| flow | planned | states replayed | in contact | deeper than "
+             f"{th['depth_mm']:g} mm | centreline crosses the wall | deepest (mm; at least the "
+             "tube radius where the centreline crosses) | truth tip error median (mm) |",
+             "|---|---|---|---|---|---|---|---|"]
+    names = {"calibrated": "measure, `diagnose --base compliant`, plan with the calibrated "
+                           "model and `--margin auto`",
+             "default": "default `ctrplan plan` (nominal physics model, no calibration)"}
+    for f in ("calibrated", "default"):
+        if f not in rr:
+            continue
+        s = rr[f]["summary"]
+        tip = s["tip_error_truth_median_mm"]
+        cross = sum(p.get("centreline_crossings", 0) for p in rr[f]["plans"] if p["success"])
+        lines.append(f"| {names[f]} | {s['success']}/{s['plans']} | {s['states']} | "
+                     f"{s['contact_states']} | {s['penetrating_states']} | {cross} | "
+                     f"{s['max_depth_mm']:.2f} | "
+                     f"{'n/a' if tip is None else format(tip, '.2f')} |")
+    if "calibrated" in rr:
+        c = rr["calibrated"]["calibration"]
+        lines += ["", f"Calibration: {c['rows']} rows, found {', '.join(c['effects'] or []) or 'nothing'}, "
+                  f"held-out error {c['error_before_mm']:.2f} → {c['error_after_mm']:.2f} mm."]
+    return "\n".join(lines)
+
+
+def readme_blocks(results: Path) -> dict[str, str]:
+    """Marker name -> generated markdown, for every block whose JSON is in ``results``."""
+    results = Path(results)
+    out: dict[str, str] = {}
+    bench = _load(results / "bench.json")
+    if bench:
+        out["bench"] = to_markdown(bench)
+        out["perf-summary"] = summary_block(bench, _load(results / "learned_gpu_h100.json"))
+    hard = _load(results / "hard" / "summary.json")
+    if hard:
+        out["hard"] = load_suite("hard").markdown(hard["table"])
+        out["hard-summary"] = hard_summary_block(hard)
+    rr = _load(results / "real_robot.json")
+    if rr:
+        out["real-robot"] = real_robot_block(rr)
+    return out
+
+
+def refresh_readme(text: str, results: Path, source: str) -> str:
+    """``text`` with every generated block present in it rewritten from ``results``."""
+    for name, md in readme_blocks(results).items():
+        if f"<!-- {name}:start -->" in text:
+            text = splice(text, md, source, name)
+    return text
 
 
 def run(args: argparse.Namespace) -> int:
@@ -124,6 +313,11 @@ def run(args: argparse.Namespace) -> int:
         except (OSError, UnicodeDecodeError) as e:
             raise InputError(args.readme, "", f"cannot read: {e}") from None
         splice(readme, "", args.readme)
+    if getattr(args, "no_run", False):
+        if readme is None:
+            raise InputError("--no-run", "", "needs --readme FILE")
+        write_text_atomic(Path(args.readme), refresh_readme(readme, Path(args.out), args.readme))
+        return 0
     results = {"machine": machine(), "quick": bool(args.quick), "suites": {}}
     for name in args.suites:
         log.info("bench: running %s%s", name, " (quick)" if args.quick else "")
@@ -136,6 +330,7 @@ def run(args: argparse.Namespace) -> int:
     md = to_markdown(results)
     write_text_atomic(out / "bench.md", md)
     if readme is not None:
-        write_text_atomic(Path(args.readme), splice(readme, md, args.readme))
+        write_text_atomic(Path(args.readme), refresh_readme(splice(readme, md, args.readme), out,
+                                                            args.readme))
     print(md)
     return 0
