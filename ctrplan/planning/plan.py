@@ -119,6 +119,11 @@ class PlanConfig:
     optimizer : the local optimiser's settings (a count of step trials, not a time).
     goals_by_clearance : with the clearance objective, hand IK goals to the planner in order of
         their (estimated) clearance instead of their tip error.
+    approach : with a margin at the tip (a calibrated model's error bound), a target nearer the
+        anatomy than the tip's radius + margin is approached instead of refused: the goal moves
+        into the lumen, along the distance field's gradient, until the tip keeps its margin, by
+        at most that margin (the model's own error there). ``goal_shift_mm`` in plan.json says
+        by how much; ``tip_error_mm`` stays the distance to the target asked for.
     """
 
     validator: ValidatorConfig = field(default_factory=ValidatorConfig)
@@ -145,6 +150,7 @@ class PlanConfig:
     objective: str = "clearance"
     optimizer: _opt.OptimizeConfig = field(default_factory=_opt.OptimizeConfig)
     goals_by_clearance: bool = True
+    approach: bool = True
 
     def __post_init__(self) -> None:
         check_objective(self.objective)
@@ -191,6 +197,9 @@ class PlanResult:
     calibrated : whether the planning model carries an error bound measured on the robot
         (``error_quantiles`` / ``error_profile``); if not, clearances are relative to the
         nominal model only.
+    goal_shift_mm, goal : where the tip was planned to when a target nearer the anatomy than
+        the tip's radius + margin was approached (:attr:`PlanConfig.approach`): the goal
+        (scene frame, mm) and its distance from ``target`` (0.0 and None otherwise).
     """
 
     success: bool
@@ -226,6 +235,8 @@ class PlanResult:
     objective_value: float = math.nan
     clearance_profile: np.ndarray = field(default_factory=lambda: np.zeros(0))
     calibrated: bool = False
+    goal_shift_mm: float = 0.0
+    goal: list | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The plan.json fields of docs/conventions.md (plus diagnostics), JSON-ready (no NaN: null instead)."""
@@ -252,6 +263,8 @@ class PlanResult:
             "objective_value": _num(self.objective_value),
             "clearance_profile": [_num(v) for v in np.asarray(self.clearance_profile, dtype=float)],
             "calibrated": bool(self.calibrated),
+            "goal_shift_mm": float(self.goal_shift_mm),
+            "goal": None if self.goal is None else [float(v) for v in self.goal],
             "seed": int(self.seed),
             "robot": self.robot,
             "model": self.model,
@@ -449,6 +462,13 @@ class _Run:
     counts: dict = field(default_factory=dict)
     deadline: float = math.inf
     time_cap_hit: bool = False
+    goal_base: np.ndarray | None = None   # where the tip is planned to (None: target_base)
+
+    @property
+    def goal(self) -> np.ndarray:
+        """The tip's goal in the base frame: the target, or where it was moved to keep the
+        margin (:attr:`PlanConfig.approach`)."""
+        return self.target_base if self.goal_base is None else self.goal_base
 
     def clock(self, stage: str, t0: float) -> None:
         self.timings[stage] = self.timings.get(stage, 0.0) + time.perf_counter() - t0
@@ -633,11 +653,69 @@ def _stage_checks(run: _Run, start) -> np.ndarray:
         which = "retracted, any tube rotation" if retracted else "given with --start"
         raise _Stop(run.finish(PlanStatus.START_IN_COLLISION,
                                f"the start configuration ({which}) collides with the scene"))
-    blocked = target_blocked(run.scene, run.world, run.target, float(robot.tubes[0].od) / 2.0)
+    tip_radius = float(robot.tubes[0].od) / 2.0
+    blocked = target_blocked(run.scene, run.world, run.target, tip_radius)
+    if blocked and run.cfg.approach:
+        moved = _approach_goal(run, tip_radius)
+        if moved is not None:
+            blocked = ""
     run.clock("checks", t0)
     if blocked:
         raise _Stop(run.finish(PlanStatus.TARGET_IN_COLLISION, blocked))
     return start
+
+
+def _tip_margin(run: _Run) -> float:
+    """The margin (mm) the tip's capsule carries: the profile's value at the tip, or the
+    uniform margin."""
+    from ctrplan.shape.error_bounds import ErrorProfile
+
+    m = run.margin_mm
+    if isinstance(m, ErrorProfile):
+        return float(m.at(1.0))
+    return float(m or 0.0)
+
+
+def _approach_goal(run: _Run, tip_radius: float, steps: int = 48) -> np.ndarray | None:
+    """Move the goal from a target nearer the anatomy than ``tip_radius`` + the tip's margin
+    into the lumen along the distance field's gradient (central differences), until the
+    tip's probe is free in the padded world, by at most the tip's margin. Returns the goal in
+    the scene frame (and sets ``run.goal_base``), or None (no margin, no field, or not free
+    within the allowed shift). Deterministic: a fixed number of steps."""
+    from ctrplan.planning.optimize import FieldClearance
+
+    allowed = _tip_margin(run)
+    if allowed <= 0 or not getattr(run.world, "fields", None):
+        return None
+    field_ = FieldClearance(run.world)
+    target = np.asarray(run.target, dtype=float)
+    p = target.copy()
+    h = 0.05
+    eye = np.eye(3)
+    step = allowed / 8.0
+    for _ in range(steps):
+        if not target_blocked(run.scene, run.world, p, tip_radius):
+            break
+        probes = np.concatenate([p + h * eye, p - h * eye])
+        d = field_.point_distance(probes)
+        if not np.all(np.isfinite(d)):
+            return None
+        g = (d[:3] - d[3:]) / (2 * h)
+        norm = float(np.linalg.norm(g))
+        if norm < 1e-9:
+            return None
+        q = p + step * g / norm
+        if np.linalg.norm(q - target) > allowed:
+            return None
+        p = q
+    else:
+        return None
+    if np.array_equal(p, target) or target_outside_lumen(run.scene, p):
+        return None
+    run.goal_base = run.scene.to_base(p[None])[0]
+    run.meta["goal_shift_mm"] = float(np.linalg.norm(p - target))
+    run.meta["goal"] = [float(v) for v in p]
+    return p
 
 
 def check_start(start, robot: Robot, validator: BatchValidator | None = None) -> np.ndarray:
@@ -671,11 +749,27 @@ def _stage_ik(run: _Run) -> tuple[GoalSource, np.ndarray]:
 
         def rank(q: np.ndarray) -> np.ndarray:   # goals with more room first
             return _state_clearance(run.validator, field_, q)
-    source = GoalSource(run.model, run.robot, run.validator, table, run.target_base,
+    source = GoalSource(run.model, run.robot, run.validator, table, run.goal,
                         run.tolerance_mm, run.cfg, np.random.default_rng([run.seed, 1]), rank=rank)
     goals = source.next()
     while len(goals) == 0 and source.rounds < run.cfg.ik_rounds:
         goals = source.next()
+    if len(goals) == 0 and source.reaching > 0 and run.cfg.approach:
+        # every configuration reaching the goal collides with the margin: approach from further
+        # inside the lumen (the tip probe thicker by a part of the margin), within the margin
+        tip_radius = float(run.robot.tubes[0].od) / 2.0
+        allowed = _tip_margin(run)
+        for extra in (0.25 * allowed, 0.5 * allowed, allowed):
+            if extra <= 0 or _approach_goal(run, tip_radius + extra) is None:
+                continue
+            source = GoalSource(run.model, run.robot, run.validator, table, run.goal,
+                                run.tolerance_mm, run.cfg, np.random.default_rng([run.seed, 1]),
+                                rank=rank)
+            goals = source.next()
+            while len(goals) == 0 and source.rounds < run.cfg.ik_rounds:
+                goals = source.next()
+            if len(goals):
+                break
     run.clock("ik", t0)
     run.counts.update(ik_rounds=source.rounds, ik_reaching=source.reaching,
                       ik_evaluations=source.evaluations, goals=len(goals))
@@ -767,7 +861,7 @@ def _stage_optimization(run: _Run, path: np.ndarray) -> list[np.ndarray]:
         return []
     t0 = time.perf_counter()
     # the optimised goal's tip error stays within max(its IK error, 0.4 x the IK's threshold)
-    res = _opt.optimize_path(run.validator, path, run.target_base, cfg.objective, cfg.optimizer,
+    res = _opt.optimize_path(run.validator, path, run.goal, cfg.objective, cfg.optimizer,
                              goal_tol_mm=0.4 * min(cfg.ik.stop_mm, 0.1 * run.tolerance_mm),
                              deadline=run.deadline)
     run.clock("optimization", t0)
