@@ -221,45 +221,37 @@ def split_sweeps(data: MeasuredData, holdout: float = 0.25, seed: int = 0) -> tu
     return fit | val, test
 
 
+#: fewer sweeps than this: every sweep is cut into blocks (each role sees every sweep)
+MIN_SWEEPS_WHOLE = 8
+
+
 def split_three(data: MeasuredData, holdout: float = 0.25,
                 seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Boolean fit / validation / test masks by whole sweeps.
+    """Boolean fit / validation / test masks.
 
-    Three sweeps or more: ``round(holdout * sweeps)`` (at least 1) test sweeps, as many
-    validation sweeps (at least 1, leaving at least one sweep to fit), the rest fit. Two sweeps:
-    one is the test sweep; the other is cut into 8 contiguous blocks, every 4th (blocks 2 and 6)
-    the validation rows. One sweep: 8 contiguous blocks; blocks 4 and 8 are the test rows,
-    blocks 2 and 6 the validation rows (neighbours of the fit rows: optimistic, and warned about).
+    At least ``MIN_SWEEPS_WHOLE`` sweeps: whole sweeps, ``round(holdout * sweeps)`` test sweeps
+    and as many validation sweeps (drawn with ``seed``), the rest fit. Fewer sweeps (a few
+    experiments of one kind each would otherwise leave the fit rows without, e.g., any
+    rotation): every sweep is cut into 8 contiguous blocks; blocks 4 and 8 are test rows,
+    blocks 2 and 6 validation rows (neighbours of fit rows: optimistic, and warned about).
     The test rows choose nothing: they only report the error of the model chosen on the others.
     """
     sw = data.sweeps()
     B = len(data)
     names = list(dict.fromkeys(sw.tolist()))
-
-    def blocks(mask_rows: np.ndarray) -> np.ndarray:
-        idx = np.nonzero(mask_rows)[0]
-        b = np.zeros(B, dtype=int) - 1
-        b[idx] = np.minimum((np.arange(len(idx)) * 8) // max(len(idx), 1), 7)
-        return b
-
-    if len(names) < 2:
-        b = blocks(np.ones(B, dtype=bool))
+    if len(names) < MIN_SWEEPS_WHOLE:
+        b = np.zeros(B, dtype=int)
+        for nm in names:
+            idx = np.nonzero(sw == nm)[0]
+            b[idx] = np.minimum((np.arange(len(idx)) * 8) // max(len(idx), 1), 7)
         test = b % 4 == 3
         val = b % 4 == 1
         return ~test & ~val, val, test
     rng = np.random.default_rng(seed)
     order = [names[i] for i in rng.permutation(len(names))]
-    if len(names) == 2:
-        test = sw == order[0]
-        b = blocks(~test)
-        val = (b % 4 == 1) & ~test
-        return ~test & ~val, val, test
-    k = max(1, int(round(holdout * len(names))))
-    k = min(k, (len(names) - 1) // 2) if len(names) >= 3 else 1
-    k = max(k, 1)
-    kv = min(k, len(names) - k - 1)
+    k = max(1, min(int(round(holdout * len(names))), (len(names) - 1) // 2))
     held = set(order[:k])
-    valn = set(order[k:k + kv])
+    valn = set(order[k:2 * k])
     test = np.array([s in held for s in sw.tolist()])
     val = np.array([s in valn for s in sw.tolist()])
     return ~test & ~val, val, test
@@ -329,30 +321,28 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     ordered = _ordered(data)
     fit_rows, val, test = split_three(data, holdout, seed)
     train = fit_rows | val
-    if len(names) < 2:
-        split = {"method": "contiguous blocks of the single sweep (of 8 blocks: 2 and 6 "
-                 "validation, 4 and 8 test)", "test_rows": _row_ranges(test),
+    if len(names) < MIN_SWEEPS_WHOLE:
+        what = "the single sweep" if len(names) < 2 else f"each of the {len(names)} sweeps"
+        split = {"method": f"contiguous blocks of {what} (of 8 blocks: 2 and 6 validation, "
+                 "4 and 8 test)", "test_rows": _row_ranges(test),
                  "validation_rows": _row_ranges(val), "fit_rows": _row_ranges(fit_rows)}
-        train_sw = [f"{names[0]} ({', '.join(_row_ranges(train))})"]
-        test_sw = [f"{names[0]} ({', '.join(_row_ranges(test))})"]
-        val_sw = [f"{names[0]} ({', '.join(_row_ranges(val))})"]
-        warnings.append("one sweep only: the held-out rows are contiguous blocks of the same "
-                        "motion, next to training rows, so the held-out error is optimistic; "
-                        "record at least 4 separate sweeps")
-        experiment.append("record at least 4 separate sweeps (whole sweeps are then held out)")
+        train_sw = [f"{nm} ({', '.join(_row_ranges(train & (sw == nm)))})" for nm in names]
+        test_sw = [f"{nm} ({', '.join(_row_ranges(test & (sw == nm)))})" for nm in names]
+        val_sw = [f"{nm} ({', '.join(_row_ranges(val & (sw == nm)))})" for nm in names]
+        warnings.append(("one sweep only" if len(names) < 2 else f"only {len(names)} sweeps")
+                        + ": the held-out rows are contiguous blocks of the same motion, next "
+                        "to training rows, so the held-out error is optimistic; record at least "
+                        f"{MIN_SWEEPS_WHOLE} separate sweeps")
+        experiment.append(f"record at least {MIN_SWEEPS_WHOLE} separate sweeps (whole sweeps "
+                          "are then held out)")
     else:
         split = {"method": "whole sweeps: fit / validation (chooses effects and forms) / test "
                  "(touched by nothing else; reports the errors)"}
-        if len(names) == 2:
-            split["method"] = ("whole sweeps: one test sweep; the other cut into 8 contiguous "
-                               "blocks, blocks 2 and 6 validation")
-            split["validation_rows"] = _row_ranges(val)
         train_sw = sorted(set(sw[train].tolist()))
         test_sw = sorted(set(sw[test].tolist()))
         val_sw = sorted(set(sw[val].tolist()))
     split.update({"test_row_ranges": _row_ranges(test), "validation_sweeps": val_sw,
-                  "fit_sweeps": sorted(set(sw[fit_rows].tolist())) if len(names) > 2 else
-                  train_sw})
+                  "fit_sweeps": sorted(set(sw[fit_rows].tolist()))})
     # selection problem: parameters fitted on the fit rows, effects chosen on validation rows
     prob = Problem(EffectModel(robot, base), data, fit_rows, val)
     current: dict[str, dict[str, float]] = {}
