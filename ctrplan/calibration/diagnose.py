@@ -429,7 +429,7 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     # ---------------------------------------------------------------- nuisances (robot first)
     if nuisances and not insufficient:
         outside = _nuisances(robot, prob, data, final_pred, fit_rows, val, train, test,
-                             min_gain, sw, ordered)
+                             min_gain, sw, ordered, base_pred)
         nuisance = [o["kind"] for o in outside if o["claimed"]]
         for o in outside:
             if not o["claimed"]:
@@ -452,6 +452,7 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
                         "no effect of the vocabulary explains these data, so none is named "
                         "(the fits stay in the calibrated model)")
         effects = []
+    data_insufficient = insufficient
     bounds = _at_bounds(current, robot, base) if current else []
     if bounds:
         warnings.append("parameters at a bound that is not their off value (the effect may be "
@@ -471,7 +472,7 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     max_before = float(base_err[test].max())
     max_after = float(final_err[test].max())
     unexplained = None
-    if not insufficient and (val_after > 1.5 * e_noise + 0.05 or remainder > max_remainder) \
+    if not data_insufficient and (val_after > 1.5 * e_noise + 0.05 or remainder > max_remainder) \
             and excess0 > 0:
         unexplained = _unexplained(ev_after, test_after, e_noise,
                                    max(test_after - e_noise, 0.0), remainder)
@@ -705,39 +706,61 @@ def _ridge(F: np.ndarray, R: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return np.nan_to_num(F) @ coef
 
 
+def _distinguish(F: np.ndarray, G: np.ndarray, r: np.ndarray, fit_rows: np.ndarray,
+                 val: np.ndarray) -> tuple[float, float, float]:
+    """Validation mean |r| as is, after a ridge fit on nuisance features F, after one on
+    configuration features G (both fitted on ``fit_rows``)."""
+    def mean(x):
+        return float(np.linalg.norm(x[val], axis=1).mean())
+
+    return mean(r), mean(r - _ridge(F, r, fit_rows)), mean(r - _ridge(G, r, fit_rows))
+
+
 def _nuisances(robot, prob, data, final_pred, fit_rows, val, train, test, min_gain, sw,
-               ordered) -> list[dict]:
-    """Test every nuisance on the calibrated robot model's tip residual (see NUISANCES)."""
+               ordered, base_pred) -> list[dict]:
+    """Test every nuisance (see NUISANCES) on two residuals: the calibrated robot model's, and
+    the base model's after the best rigid transform (before any robot effect could absorb a
+    field). Claimed when either shows it, distinguishably from the configuration."""
     r = data.tip - final_pred[:, -1]
     r = np.where(np.isfinite(r), r, 0.0)
+    pb = base_pred[:, -1]
+    okb = np.all(np.isfinite(pb), axis=1) & train
+    R, t = ev.kabsch(pb[okb], data.tip[okb])
+    r0 = data.tip - (pb @ R.T + t)
+    r0 = np.where(np.isfinite(r0), r0, 0.0)
     G = _config_features(robot, data, sw, ordered, fit_rows)
+    feats = {k: F for k in NUISANCES
+             if (F := _nuisance_features(k, data, fit_rows)) is not None}
 
     def mean(x, rows):
         return float(np.linalg.norm(x[rows], axis=1).mean())
 
-    feats = {k: F for k in NUISANCES
-             if (F := _nuisance_features(k, data, fit_rows)) is not None}
     out = []
     # the nuisance that explains most is tested first, the next on what it leaves
     order = sorted(feats, key=lambda k: mean(r - _ridge(feats[k], r, fit_rows), val))
     for kind in order:
         F = feats[kind]
-        e_model = mean(r, val)
-        e_conf = mean(r - _ridge(G, r, fit_rows), val)
-        e_nuis = mean(r - _ridge(F, r, fit_rows), val)
+        e_model, e_nuis, e_conf = _distinguish(F, G, r, fit_rows, val)
+        b_model, b_nuis, b_conf = _distinguish(F, G, r0, fit_rows, val)
         gain = _gain(e_model, e_nuis)
-        claimed = bool(gain >= min_gain and e_nuis <= DISTINGUISH * e_conf)
+        on_model = bool(gain >= min_gain and e_nuis <= DISTINGUISH * e_conf)
+        on_base = bool(_gain(b_model, b_nuis) >= min_gain and b_nuis <= DISTINGUISH * b_conf)
+        claimed = on_model or on_base
         corr = _ridge(F, r, train)                 # fitted on fit + validation rows
         left = r - corr
-        why = (f"validation mean {e_model:.3f} mm -> {e_nuis:.3f} mm with it; "
-               f"{e_conf:.3f} mm with configuration features instead")
+        why = (f"calibrated model's residual: validation mean {e_model:.3f} mm -> {e_nuis:.3f} "
+               f"mm with it, {e_conf:.3f} mm with configuration features instead; base model "
+               f"after a rigid transform: {b_model:.3f} -> {b_nuis:.3f} mm, {b_conf:.3f} mm")
         out.append({"kind": kind, "claimed": claimed, "why": why, "validation_gain": gain,
                     "validation_mean_with_mm": e_nuis, "validation_mean_config_mm": e_conf,
+                    "base_validation_mean_with_mm": b_nuis,
+                    "base_validation_mean_config_mm": b_conf,
                     "test_mean_with_mm": mean(left, test),
                     "test_max_with_mm": float(np.linalg.norm(left[test], axis=1).max()),
                     "features": F})
         if claimed:
             r = left
+            r0 = r0 - _ridge(F, r0, train)
     return out
 
 
@@ -876,6 +899,9 @@ def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_ga
 #: the joint model is tried when the one-at-a-time effects leave more than this many times the
 #: noise floor's mean tip error on the validation rows
 JOINT_TRIGGER = 3.0
+#: effects that switch to a slower kernel (loaded / torsionally compliant): in the joint model
+#: only when the one-at-a-time selection accepted them
+SLOW = ("load", "torsion")
 
 
 def _joint(prob, robot, base, cands, steps, bic_threshold, min_gain, keep_gain, fit_iter,
@@ -891,7 +917,9 @@ def _joint(prob, robot, base, cands, steps, bic_threshold, min_gain, keep_gain, 
         if st.accepted:
             first.setdefault(st.effect, Candidate(st.effect, st.delta_bic, st.error_after_mm,
                                                   st.named, st.form))
-    chosen = sorted((c for c in first.values() if c.delta_bic < 0.0 and c.effect in cands),
+    accepted = {st.effect for st in steps if st.accepted}
+    chosen = sorted((c for c in first.values() if c.delta_bic < 0.0 and c.effect in cands
+                     and (c.effect not in SLOW or c.effect in accepted)),
                     key=lambda c: c.delta_bic)[:max_effects]
     if len(chosen) < 2:
         return None
