@@ -380,8 +380,8 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     free: dict[str, list[str]] = {}
     if insufficient:
         reasons, todo = insufficient
-        warnings += reasons
-        experiment += todo
+        warnings[:0] = reasons
+        experiment[:0] = todo          # what the data lack first, the split's advice after
     else:
         current, cur, free = _select(prob, robot, base, cands, current, cur, steps,
                                      bic_threshold, min_gain, keep_gain, ambiguity_bic,
