@@ -112,25 +112,39 @@ def test_rigid_two_tube_closed_form():
 
 # ----------------------------------------------------------------------------- scipy oracle
 def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True, mu=0.0, rel=None,
-                    clear=None):
+                    clear=None, contact=0.0, ramp=None, ei_curved=None, coupling=None):
     """Independent shooting: scipy DOP853 (rtol 1e-11) per section + scipy.optimize.root.
-    Optional point events where outer tube o ends: friction torque T = mu rel |M_o| (+T on the
-    outer tube's end condition, -T on the inner tube: a jump of its u_z) and a clearance tilt
-    by clear(phi) about R Rz(psi_in) e_y (scipy Rotation)."""
+    Optional point events where outer tube o ends: friction torque
+    T = mu rel (|M_o| + contact M_c e_o / L_o), M_c = EI_o EI_i |kappa_o - kappa_i| / (EI_o + EI_i)
+    (+T on the outer tube's end condition,
+    -T on the inner tube: a jump of its u_z) and a clearance event: clear(phi) -> tilt, or
+    (tilt, lean, jump_b, jump_a): the frame turns by the rotation vector
+    tilt R Rz(psi_in) e_y + lean R Rz(psi_in) e_x (scipy Rotation) and the backbone jumps by
+    R Rz(psi_in) (jump_b, jump_a, 0). ramp: precurvature kappa (1 + ramp (s_c - 1/2)) at the
+    middle of each of 8 sub-sections of the curved section; ei_curved: EI factor on the curved
+    section; coupling: extra transmission length (mm) of each tube's torsion."""
     n = spec.n
     L = spec.straight + spec.curved
     e = np.maximum(beta + L, 0.0)
     cs = np.minimum(np.maximum(beta + spec.straight, 0.0), e)
-    bps = np.unique(np.r_[0.0, cs, e])
+    subs = []
+    if ramp is not None:
+        for i in range(n):
+            subs += [min(max(beta[i] + spec.straight[i] + spec.curved[i] * k / 8, 0.0), e[i])
+                     for k in range(1, 8)]
+    bps = np.unique(np.r_[0.0, cs, e, subs])
+    ramp = np.zeros(n) if ramp is None else np.asarray(ramp, float)
+    eic = np.ones(n) if ei_curved is None else np.asarray(ei_curved, float)
+    cpl = np.zeros(n) if coupling is None else np.asarray(coupling, float)
     EI, GJ, kap = spec.EI, spec.GJ, spec.kappa
     w = np.zeros((n, 3)) if gravity is None else spec.weight_per_mm[:, None] * np.asarray(gravity) / 9.81
     Fv = np.zeros(3) if F is None else np.asarray(F, float)
     loaded = gravity is not None or F is not None
 
-    def rhs(s, y, k_i, pres):
+    def rhs(s, y, k_i, pres, EIs):
         R, m = y[3:12].reshape(3, 3), y[12:15]
         psi, uz = y[15:15 + n], y[15 + n:15 + 2 * n]
-        EIp = EI * pres
+        EIp = EIs * pres
         S = np.array([np.sum(-EIp * k_i * np.sin(psi)), np.sum(EIp * k_i * np.cos(psi))])
         mb = R.T @ m
         uxy = (mb[:2] + S) / EIp.sum()
@@ -151,30 +165,40 @@ def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True, mu=0.
                 m0 = np.r_[x[n:n + 2], np.sum(GJ * uz0)]
             else:
                 m0 = np.asarray(x[:3])
-        y = np.r_[np.zeros(3), np.eye(3).ravel(), m0, alpha - beta * uz0, uz0]
+        y = np.r_[np.zeros(3), np.eye(3).ravel(), m0, alpha - (beta - cpl) * uz0, uz0]
         for a, b in zip(bps[:-1], bps[1:]):
             mid = 0.5 * (a + b)
             pres = (mid < e).astype(float)
-            k_i = np.where((mid >= cs) & (mid < e), kap, 0.0)
-            sol = solve_ivp(rhs, (a, b), y, method="DOP853", rtol=1e-11, atol=1e-11, args=(k_i, pres))
+            curved = (mid >= cs) & (mid < e)
+            sc = (mid - beta - spec.straight) / spec.curved
+            prof = 1.0 + ramp * ((np.floor(np.clip(sc, 0, 1 - 1e-12) * 8) + 0.5) / 8 - 0.5)
+            k_i = np.where(curved, kap * prof, 0.0)
+            EIs = EI * np.where(curved, eic, 1.0)
+            sol = solve_ivp(rhs, (a, b), y, method="DOP853", rtol=1e-11, atol=1e-11,
+                            args=(k_i, pres, EIs))
             y = sol.y[:, -1].copy()
             for o in range(1, n):
                 if e[o] != b:
                     continue
                 R, m = y[3:12].reshape(3, 3), y[12:15]
                 psi = y[15:15 + n]
-                EIp = EI * pres
+                EIp = EIs * pres
                 S = np.array([np.sum(-EIp * k_i * np.sin(psi)), np.sum(EIp * k_i * np.cos(psi))])
                 uxy = ((R.T @ m)[:2] + S) / EIp.sum()
                 if mu:
                     uo = Rotation.from_euler("z", -psi[o]).as_matrix()[:2, :2] @ uxy
-                    T = mu * rel[o - 1] * EI[o] * np.hypot(uo[0], uo[1] - k_i[o])
+                    Mc = EI[o] * EI[o - 1] / (EI[o] + EI[o - 1]) * abs(kap[o] - kap[o - 1])
+                    T = mu * rel[o - 1] * (EIs[o] * np.hypot(uo[0], uo[1] - k_i[o])
+                                           + contact * Mc * e[o] / L[o])
                     if T_out is not None:
                         T_out[o] = T
                     y[15 + n + o - 1] += T / GJ[o - 1]
                 if clear is not None:
-                    axis = np.array([-math.sin(psi[o - 1]), math.cos(psi[o - 1]), 0.0])
-                    Q = Rotation.from_rotvec(axis * clear(psi[o - 1] - psi[o])).as_matrix()
+                    ev = clear(psi[o - 1] - psi[o])
+                    tilt, lean, jb, ja = ev if isinstance(ev, tuple) else (ev, 0.0, 0.0, 0.0)
+                    Rz = Rotation.from_euler("z", psi[o - 1]).as_matrix()
+                    Q = Rotation.from_rotvec(Rz @ np.array([lean, tilt, 0.0])).as_matrix()
+                    y[0:3] = y[0:3] + R @ Rz @ np.array([jb, ja, 0.0])
                     y[3:12] = (R @ Q).ravel()
         return y
 
@@ -296,12 +320,14 @@ ALL = VOCAB_EFFECTS + OUTSIDE_EFFECTS
 
 def test_effects_off_reproduce_the_base_exactly():
     off = {
-        "clearance": {"amplitude": 0.0}, "friction": {"mu": 0.0},
-        "precurvature": {"scale": [1.0, 1.0, 1.0]}, "stiffness": {"scale": [1.0, 1.0, 1.0]},
+        "clearance": {"amplitude": 0.0, "lean": 0.0, "jump": 0.0}, "friction": {"mu": 0.0},
+        "precurvature": {"scale": [1.0, 1.0, 1.0], "ramp": [0.0] * 3},
+        "stiffness": {"scale": [1.0, 1.0, 1.0], "curved": [1.0] * 3, "torsion": [1.0] * 3},
         "load": {"gravity": None, "tip_force": None},
-        "joint_offset": {"alpha": [0.0] * 3, "beta": [0.0] * 3},
-        "registration": {"rotvec": [0.0] * 3, "translation": [0.0] * 3},
-        "distortion": {"amplitude": 0.0}, "drift": {"amplitude": 0.0},
+        "joint_offset": {"alpha": [0.0] * 3, "beta": [0.0] * 3, "periodic": [0.0] * 3,
+                         "beta_scale": [0.0] * 3},
+        "registration": {"rotvec": [0.0] * 3, "translation": [0.0] * 3, "scale": 0.0},
+        "distortion": {"amplitude": 0.0}, "drift": {"amplitude": 0.0, "step": 0.0},
     }
     for robot_effects in ({}, {"torsion": {}}):
         base = generate("seed1", "sweeps", n=120, effects=robot_effects, noise_mm=0.1, seed=5, points=5)
@@ -322,8 +348,11 @@ def test_every_effect_at_default_moves_the_tip(robot):
     for name in ALL:
         d = generate(robot, "sweeps", n=300, effects={name: {}}, noise_mm=0.0, seed=2)
         mean = np.linalg.norm(d.tip_clean - base.tip_clean, axis=1).mean()
-        # torsion is physical (GJ from E, nu): 0.46 mm on seed1, ~11-13 mm on the nylon pair
+        # torsion is physical (GJ from E, nu): ~1 mm on seed1, ~11-13 mm on the nylon pair;
+        # end-moment friction with its contact-length term is large on the nylon pair
         lo, hi = (0.3, 20.0) if name == "torsion" else (0.5, 8.0)
+        if name == "friction" and robot == "two_tube_nylon":
+            hi = 20.0
         assert lo < mean < hi, (name, mean)
 
 
@@ -334,7 +363,8 @@ def test_clearance_peaks_at_its_phase():
     assert valid(sp, q).all()
     for phase in (205.0, 90.0):
         base, _, _ = truth(sp, q, {})
-        cl, _, _ = truth(sp, q, {"clearance": {"amplitude": 0.05, "phase_deg": phase, "harmonics": [0.5, 0.5]}})
+        cl, _, _ = truth(sp, q, {"clearance": {"amplitude": 0.05, "phase_deg": phase,
+                                               "harmonics": [0.5, 0.5], "lean": 0.0, "jump": 0.0}})
         dev = np.linalg.norm(cl - base, axis=1)
         peak = np.rad2deg(phi[np.argmax(dev)])
         assert abs((peak - phase + 180) % 360 - 180) <= 5.0
@@ -495,16 +525,24 @@ def _kabsch_residual(a, b):
 
 def test_outside_effects_are_not_rigid_transforms():
     base = generate("seed1", "sweeps", n=400, effects={}, noise_mm=0.0, seed=3)
+    rigid = generate("seed1", "sweeps", n=400, effects={"registration": {"scale": 0.0}},
+                     noise_mm=0.0, seed=3)
+    assert _kabsch_residual(base.tip_clean, rigid.tip_clean) < 1e-9    # scale 0: rigid
     reg = generate("seed1", "sweeps", n=400, effects={"registration": {}}, noise_mm=0.0, seed=3)
-    assert _kabsch_residual(base.tip_clean, reg.tip_clean) < 1e-9       # registration is rigid
+    assert _kabsch_residual(base.tip_clean, reg.tip_clean) > 0.2       # the scale error
     for name in OUTSIDE_EFFECTS:
         d = generate("seed1", "sweeps", n=400, effects={name: {}}, noise_mm=0.0, seed=3)
-        assert _kabsch_residual(base.tip_clean, d.tip_clean) > 0.5, name
-    # drift grows with time: last rows displaced by the amplitude, first rows not at all
+        assert _kabsch_residual(base.tip_clean, d.tip_clean) > 0.3, name
+    # drift: exponential settling plus a step, closed form in the fraction of recording time
     d = generate("seed1", "sweeps", n=400, effects={"drift": {}}, noise_mm=0.0, seed=3)
-    dev = np.linalg.norm(d.tip_clean - base.tip_clean, axis=1)
-    assert dev[0] < 1e-9 and abs(dev[-1] - 4.0) < 1e-9
-    assert np.corrcoef(d.time, dev)[0, 1] > 0.99
+    p = d.effects["drift"]
+    t = (d.time - d.time.min()) / np.ptp(d.time)
+    u = np.array(p["direction"]) / np.linalg.norm(p["direction"])
+    v = np.array(p["step_direction"]) / np.linalg.norm(p["step_direction"])
+    tau = p["settle"]
+    expect = (p["amplitude"] * ((1 - np.exp(-t / tau)) / (1 - np.exp(-1 / tau)))[:, None] * u
+              + p["step"] * (t >= p["step_at"])[:, None] * v)
+    np.testing.assert_allclose(d.tip_clean - base.tip_clean, expect, atol=1e-9)
 
 
 def test_presliding_builds_up_after_a_reversal():
@@ -517,9 +555,11 @@ def test_presliding_builds_up_after_a_reversal():
     eff = {"friction": {"form": "presliding", "lag": 0.06, "angle": 0.25}}
     qe = _alpha_lag(eff, q, 1, directions(q, sweep), sweep)
     lag = q[:, 0] - qe[:, 0]
-    # closed form of z' = (c - z)/angle per unit rotation from z=0: c (1 - exp(-a/angle))
-    np.testing.assert_allclose(lag[:41], 0.06 * (1 - np.exp(-a[:41] / 0.25)), atol=1e-12)
-    assert lag[-1] < -0.05 and np.all(np.diff(lag[41:]) < 0)
+    # Dahl exponent 2, w = 1 - z/c: w' = -w^2/angle per unit rotation from w = 1:
+    # w = 1 / (1 + a/angle), lag = c (1 - w) (NOT ctrplan's exponential c (1 - exp(-a/angle)))
+    np.testing.assert_allclose(lag[:41], 0.06 * (1 - 1 / (1 + a[:41] / 0.25)), atol=1e-12)
+    assert np.max(np.abs(lag[:41] - 0.06 * (1 - np.exp(-a[:41] / 0.25)))) > 5e-3
+    assert lag[-1] < -0.04 and np.all(np.diff(lag[41:]) < 0)
 
 
 def test_robot_from_yaml_path_equals_shipped_name(tmp_path):
@@ -542,15 +582,49 @@ def test_compliant_friction_and_clearance_events_vs_scipy():
     from tests.foreign.robot import beta_from_unit
     q = np.c_[np.array([[0.4, -0.9, 1.3]]), beta_from_unit(sp, np.array([[0.7, 0.5, 0.6]]))]
     rel = np.array([1.0, -1.0])
-    clear = clearance_fn({"amplitude": 0.06, "phase_deg": 205.0, "harmonics": [0.5, 0.5]})
-    bb = M.cosserat(sp, q[:, :n], q[:, n:], torsion=True, gravity=[0.0, 9.81, 0.0],
-                    clearance=clear, friction_mu=0.1, rel_dir=rel[None, :])
-    ref = _scipy_cosserat(sp, q[0, :n], q[0, n:], np.array([0.0, 9.81, 0.0]), None, True,
-                          mu=0.1, rel=rel, clear=lambda phi: float(clear(np.array([phi]), 0)[0]))
+    for params, contact in (({"amplitude": 0.06, "phase_deg": 205.0, "harmonics": [0.5, 0.5]}, 0.0),
+                            ({"amplitude": 0.06, "phase_deg": 205.0, "harmonics": [0.5, 0.3, 0.2],
+                              "lean": 0.03, "jump": 0.4}, 10.0)):
+        clear = clearance_fn(params)
+
+        def one(phi, clear=clear):
+            ev = clear(np.array([phi]), 0)
+            return tuple(float(v[0]) for v in ev) if isinstance(ev, tuple) else float(ev[0])
+        bb = M.cosserat(sp, q[:, :n], q[:, n:], torsion=True, gravity=[0.0, 9.81, 0.0],
+                        clearance=clear, friction_mu=0.1, rel_dir=rel[None, :],
+                        friction_contact=contact)
+        ref = _scipy_cosserat(sp, q[0, :n], q[0, n:], np.array([0.0, 9.81, 0.0]), None, True,
+                              mu=0.1, rel=rel, clear=one, contact=contact)
+        assert bb.ok.all()
+        assert np.linalg.norm(bb.tip()[0] - ref) < 1e-3, params
+        plain = M.cosserat(sp, q[:, :n], q[:, n:], torsion=True, gravity=[0.0, 9.81, 0.0]).tip()[0]
+        assert np.linalg.norm(plain - ref) > 1.0           # the events matter at this tolerance
+        # the rigid closed form with the same clearance event
+        rb = M.rigid(sp, q[:, :n], q[:, n:], clearance=clear).tip()[0]
+        ref_r = _scipy_cosserat(sp, q[0, :n], q[0, n:], torsion=False, clear=one)
+        assert np.linalg.norm(rb - ref_r) < 1e-6, params
+
+
+def test_compliant_mechanics_forms_vs_scipy():
+    """Curvature ramp, curved-section stiffness and drive couplings in the compliant, loaded
+    shooting against the scipy oracle (its own sub-sections and boundary conditions)."""
+    sp = load_spec("seed1")
+    n = sp.n
+    from tests.foreign.robot import beta_from_unit
+    q = np.c_[np.array([[1.1, -0.4, 2.0]]), beta_from_unit(sp, np.array([[0.6, 0.4, 0.7]]))]
+    ramp, eic, cpl = np.array([0.6, -0.6, 0.6]), np.array([1.25, 0.8, 1.0]), np.array([60.0, 40, 30])
+    bb = M.cosserat(sp, q[:, :n], q[:, n:], torsion=True, gravity=[9.81, 0.0, 0.0],
+                    ramp=ramp, ei_curved=eic, coupling=cpl)
+    ref = _scipy_cosserat(sp, q[0, :n], q[0, n:], np.array([9.81, 0.0, 0.0]), None, True,
+                          ramp=ramp, ei_curved=eic, coupling=cpl)
     assert bb.ok.all()
     assert np.linalg.norm(bb.tip()[0] - ref) < 1e-3
-    plain = M.cosserat(sp, q[:, :n], q[:, n:], torsion=True, gravity=[0.0, 9.81, 0.0]).tip()[0]
-    assert np.linalg.norm(plain - ref) > 1.0           # the events matter at this tolerance
+    plain = M.cosserat(sp, q[:, :n], q[:, n:], torsion=True, gravity=[9.81, 0.0, 0.0]).tip()[0]
+    assert np.linalg.norm(plain - ref) > 1.0
+    # the rigid closed form with the same forms equals the oracle without torsion
+    rb = M.rigid(sp, q[:, :n], q[:, n:], ramp=ramp, ei_curved=eic).tip()[0]
+    ref_r = _scipy_cosserat(sp, q[0, :n], q[0, n:], torsion=False, ramp=ramp, ei_curved=eic)
+    assert np.linalg.norm(rb - ref_r) < 1e-6
 
 
 def test_bistable_pair_returns_a_stable_twisted_equilibrium():
@@ -601,6 +675,163 @@ def test_conventions_agree_with_ctrplan_physics():
         d = generate(robot, "uniform", n=100, effects={}, seed=4)
         for torsion in tors:
             theirs = np.asarray(PhysicsModel(robot, torsion=torsion).shape(d.q, points=20).points)
-            mine = backbones(robot, d.q, {"torsion": {}} if torsion else {}, points=20)
+            plain = {"torsion": {"gj_scale": 1.0, "coupling": 0.0}}
+            mine = backbones(robot, d.q, plain if torsion else {}, points=20)
             dev = np.linalg.norm(theirs - mine, axis=2).max()
             assert dev < (1e-3 if torsion else 1e-9), (robot, torsion, dev)
+
+
+# ----------------------------------------------------------------------------- the new forms
+def test_joint_and_sensor_forms_by_hand():
+    sp = load_spec("seed1")
+    n = sp.n
+    q = generate("seed1", "uniform", n=40, effects={}, seed=6).q
+    jo = {"alpha": [0.05, -0.06, 0.04], "beta": [-1.5, -1.0, -0.5], "periodic": [0.03, 0.02, 0.01],
+          "periodic_phase": [0.7, 2.1, -1.3], "beta_scale": [0.01, -0.008, 0.006]}
+    qt = q.copy()
+    for i in range(n):     # eccentric encoder and lead-screw scale, written out per tube
+        qt[:, i] = q[:, i] + jo["alpha"][i] + jo["periodic"][i] * np.sin(q[:, i] + jo["periodic_phase"][i])
+        qt[:, n + i] = q[:, n + i] * (1 + jo["beta_scale"][i]) + jo["beta"][i]
+    np.testing.assert_allclose(truth(sp, q, {"joint_offset": jo})[0], truth(sp, qt, {})[0], atol=1e-9)
+    # registration with a per-axis scale: (1 + s) * (R p + t)
+    rg = {"rotvec": [0.02, -0.01, 0.03], "translation": [1.0, 2.0, -3.0], "scale": [0.01, -0.005, 0.02]}
+    base = backbones("seed1", q, {}, points=5)
+    got = backbones("seed1", q, {"registration": rg}, points=5)
+    R = Rotation.from_rotvec(rg["rotvec"]).as_matrix()
+    np.testing.assert_allclose(got, (base @ R.T + rg["translation"]) * (1 + np.array(rg["scale"])),
+                               atol=1e-9)
+    # distortion: Gaussian bumps, by hand
+    d = generate("seed1", "sweeps", n=300, effects={"distortion": {}}, noise_mm=0.0, seed=3)
+    b = generate("seed1", "sweeps", n=300, effects={}, noise_mm=0.0, seed=3)
+    p = d.effects["distortion"]
+    exp = np.zeros_like(b.tip_clean)
+    for c, v in zip(p["centres"], p["vectors"]):
+        w = np.exp(-np.sum((b.tip_clean - np.array(c)) ** 2, axis=1) / (2 * p["width"] ** 2))
+        exp += p["amplitude"] * w[:, None] * np.array(v) / np.linalg.norm(v)
+    np.testing.assert_allclose(d.tip_clean - b.tip_clean, exp, atol=1e-9)
+
+
+def _cubic_features(p):
+    c = p - p.mean(0)
+    c = c / np.abs(c).max()
+    x, y, z = c.T
+    one = np.ones_like(x)
+    return np.stack([one, x, y, z, x * x, y * y, z * z, x * y, x * z, y * z, x ** 3, y ** 3, z ** 3,
+                     x * x * y, x * x * z, y * y * x, y * y * z, z * z * x, z * z * y, x * y * z], 1)
+
+
+def test_outside_effects_are_not_low_order_in_position_or_time():
+    """The tracker field is not a cubic polynomial of the measured position, the drift not a
+    quadratic of the normalised time (the families a fitter would use for them)."""
+    b = generate("seed1", "sweeps", n=400, effects={}, noise_mm=0.0, seed=8, sweeps=8)
+    d = generate("seed1", "sweeps", n=400, effects={"distortion": {}}, noise_mm=0.0, seed=8, sweeps=8)
+    disp = d.tip_clean - b.tip_clean
+    A = _cubic_features(d.tip_clean)
+    res = disp - A @ np.linalg.lstsq(A, disp, rcond=None)[0]
+    left = np.linalg.norm(res, axis=1).mean() / np.linalg.norm(disp, axis=1).mean()
+    assert left > 0.25, left             # a cubic leaves 40-50 % (seed 8), 20-25 % (seed 1)
+    d = generate("seed1", "sweeps", n=400, effects={"drift": {}}, noise_mm=0.0, seed=8, sweeps=8)
+    disp = d.tip_clean - b.tip_clean
+    t = (d.time - d.time.min()) / np.ptp(d.time)
+    A = np.stack([np.ones_like(t), t, t * t], 1)
+    res = disp - A @ np.linalg.lstsq(A, disp, rcond=None)[0]
+    assert np.linalg.norm(res, axis=1).mean() > 0.3
+
+
+def test_tether_is_a_fixed_point_and_lags_grow_with_retraction():
+    sp = load_spec("seed1")
+    n = sp.n
+    q = generate("seed1", "uniform", n=20, effects={}, seed=2).q
+    from tests.foreign.effects import resolve
+    ld = resolve({"load": {}}, n, sp)["load"]
+    assert ld["tether"] > 0 and ld["lumen_density"] > 0
+    tip, _, ok = truth(sp, q, {"load": ld})
+    assert ok.all()
+    # the tip force the tether exerts at the returned tip, applied as a fixed force: same tip
+    F = np.array(ld["tip_force"])[None, :] + ld["tether"] * (np.array(ld["anchor"]) - tip)
+    extra = np.zeros(n)
+    extra[0] = ld["lumen_density"] * 1e-9 * math.pi / 4 * sp.id[0] ** 2 * 9.81
+    again = M.cosserat(sp, q[:, :n], q[:, n:], torsion=False, gravity=ld["gravity"], tip_force=F,
+                       extra_weight=extra).tip()
+    assert np.max(np.linalg.norm(again - tip, axis=1)) < 1e-3
+    no_tether = truth(sp, q, {"load": {**ld, "tether": 0.0}})[0]
+    assert np.linalg.norm(no_tether - tip, axis=1).mean() > 0.2
+    # coulomb lag: lag (1 + growth (r - 1/2)), r = -beta / L
+    from tests.foreign.core import _alpha_lag
+    eff = resolve({"friction": {"form": "coulomb_lag"}}, n, sp)
+    dirs = np.tile([1, -1, 1, 0, 0, 0], (len(q), 1)).astype(np.int8)
+    qe = _alpha_lag(eff, q, n, dirs, None, sp)
+    fr = eff["friction"]
+    r = -q[:, n:] / sp.L
+    np.testing.assert_allclose(q[:, :n] - qe[:, :n],
+                               fr["lag"] * (1 + fr["growth"] * (r - 0.5)) * dirs[:, :n], atol=1e-12)
+
+
+#: noise-free residual (mm, mean tip error) that the best fit of ctrplan's family of the same name
+#: leaves on the generator's default form, at least (the noise floor of the statistical tests
+#: is 0.16 mm mean); and at most this fraction of the effect (the family can still halve it).
+NOT_EXACT_MM = 0.12
+CUTTABLE = 0.5
+
+
+def _best_family_fit(name, form=""):
+    """Fit every variant of ctrplan's family ``name`` (rigid base) to noise-free generator rows;
+    returns (effect mean mm, best residual mean mm, variant)."""
+    from ctrplan.calibration.fit import Problem
+    from ctrplan.measured import MeasuredData
+    from ctrplan.robot import load_robot
+    from ctrplan.shape.effects import EffectModel, effect_variants, off_values
+
+    base = generate("seed1", "sweeps", n=120, effects={}, noise_mm=0.0, seed=1, sweeps=4)
+    d = generate("seed1", "sweeps", n=120, effects={name: {"form": form} if form else {}},
+                 noise_mm=0.0, seed=1, sweeps=4)
+    r = load_robot("seed1")
+    md = MeasuredData(q=d.q, tip=d.tip_clean, time=d.time, sweep=np.asarray(d.sweep, dtype=object))
+    every = np.ones(len(d), bool)
+    prob = Problem(EffectModel(r, "rigid"), md, every, every)
+    best = (math.inf, "")
+    for label, fixed, free in effect_variants(name, r, "rigid"):
+        vals = off_values(name, r, "rigid")
+        vals.update(fixed)
+        fit = prob.fit({name: vals}, {name: free}, max_iter=40)
+        best = min(best, (fit.test_mean, label))
+    return np.linalg.norm(d.tip_clean - base.tip_clean, axis=1).mean(), best[0], best[1]
+
+
+@pytest.mark.parametrize("case", list(VOCAB_EFFECTS) + ["friction:coulomb_lag", "friction:presliding"])
+def test_forms_are_not_representable_by_ctrplan(case):
+    """The claim of issue 19: no default form is exactly representable by ctrplan's effect family
+    of the same name (any variant, parameters within bounds), yet that family still removes
+    most of it (this test imports ctrplan: it tests a claim about ctrplan's families)."""
+    name, _, form = case.partition(":")
+    effect, left, variant = _best_family_fit(name, form)
+    print(f"\n{case}: effect {effect:.2f} mm, best ctrplan fit ({variant}) leaves {left:.3f} mm")
+    assert left > NOT_EXACT_MM, (case, effect, left, variant)
+    assert left < CUTTABLE * effect, (case, effect, left, variant)
+
+
+def test_real_robot_scenario():
+    from tests.foreign.scenarios import real_robot
+    rr = real_robot(seed=0, registration=True, outliers=0.02)
+    q = generate("seed1", "uniform", n=60, effects={}, seed=5).q
+    dev = np.linalg.norm(rr.backbones(q, points=20) - rr.nominal(q, points=20), axis=2).max(1)
+    assert 1.5 < dev.mean() < 3.0, dev.mean()          # ~2 mm of max deviation along the shaft
+    # hysteresis of the inner tube: opposite directions of its last motion differ
+    dd = np.zeros_like(q, dtype=np.int8)
+    dd[:, 0] = 1
+    hyst = np.linalg.norm(rr.backbones(q, direction=dd)[:, -1] - rr.backbones(q, direction=-dd)[:, -1],
+                          axis=1)
+    assert hyst.mean() > 0.5
+    # a path: rows in order build the history; a single row equals its independent replay
+    path = np.linspace(q[0], q[1], 15)
+    pp = rr.backbones(path, path=True)
+    np.testing.assert_allclose(pp[0], rr.backbones(path[:1])[0], atol=1e-9)
+    assert np.isfinite(pp).all() and not np.allclose(pp[-1], rr.backbones(path[-1:])[0], atol=1e-3)
+    # measured rows: sweeps, registration (sensor frame), outliers recorded
+    d = rr.measure(n=200, sweeps=4, points=5)
+    assert len(d) == 200 and len(np.unique(d.sweep)) == 4 and d.points.shape == (200, 5, 3)
+    assert len(d.info["outliers"]) == 4
+    err = np.linalg.norm(d.tip - d.tip_clean, axis=1)
+    assert np.all(err[d.info["outliers"]] > 2.5) and np.median(err) < 0.3
+    sensor_pts = rr.backbones(d.q[:3], points=5, frame="sensor")
+    assert np.linalg.norm(sensor_pts - rr.backbones(d.q[:3], points=5), axis=2).mean() > 1.0

@@ -496,8 +496,10 @@ def test_continuation_when_newton_cannot_start():
 @pytest.mark.parametrize("torsion", [True, False])
 def test_agrees_with_the_foreign_generator(robot, torsion):
     """tests/foreign (its own YAML parsing and loaded rod integration, no ctrplan import) with
-    its default load (horizontal gravity + tip force) and a gravity-only load."""
+    its plain load (horizontal gravity + tip force), a gravity-only and a force-only load."""
     foreign = pytest.importorskip("tests.foreign")
+    # the generator's plain forms (its defaults add drive couplings, a filled lumen, a tether)
+    plain_torsion = {"torsion": {"gj_scale": 1.0, "coupling": 0.0}}
     r = load_robot(robot)
     q = r.sample(12, seed=5)
     unloaded = PhysicsModel(r, torsion=torsion).shape(q, 15).points
@@ -505,17 +507,18 @@ def test_agrees_with_the_foreign_generator(robot, torsion):
         # two_tube_nylon is bistable in places (a stable and an unstable equilibrium; the
         # generator follows a stable branch, the unloaded shooting may return the other): compare
         # where both find the same unloaded equilibrium (the loaded solve continues from it)
-        same = np.max(np.linalg.norm(foreign.backbones(robot, q, {"torsion": {}}, points=15)
+        same = np.max(np.linalg.norm(foreign.backbones(robot, q, plain_torsion, points=15)
                                      - unloaded, axis=2), axis=1) < 1e-3
         assert same.sum() >= 8
         q, unloaded = q[same], unloaded[same]
     tip_force = (0.0, -1e-5 * r.tubes[0].bending_stiffness, 0.0)     # the generator's default
-    for eff, loads in (({"load": {}}, Loads(gravity=(9.81, 0, 0), tip_force=tip_force)),
+    for eff, loads in (({"load": {"gravity": [9.81, 0, 0], "tip_force": "auto"}},
+                        Loads(gravity=(9.81, 0, 0), tip_force=tip_force)),
                        ({"load": {"gravity": [0, -9.81, 3.0]}}, Loads(gravity=(0, -9.81, 3.0))),
                        ({"load": {"tip_force": [0.05, 0.0, -0.1]}},
                         Loads(tip_force=(0.05, 0.0, -0.1)))):
         if torsion:
-            eff = {**eff, "torsion": {}}
+            eff = {**eff, **plain_torsion}
         theirs = foreign.backbones(robot, q, eff, points=15)
         ours = PhysicsModel(r, torsion=torsion, loads=loads).shape(q, 15)
         assert ours.ok.all() and np.isfinite(theirs).all()

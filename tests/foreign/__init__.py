@@ -3,30 +3,36 @@
 Imports nothing from ctrplan: its own robot YAML parsing (yaml.safe_load), its own mechanics
 (rigid closed-form arcs; torsionally compliant Cosserat rods with gravity and tip loads, batched
 shooting in numpy), its own effect forms (tests/foreign/effects.py), noise, experiment designs and
-CSV writer. API: /work/coord/GENERATOR_API.md.
+CSV writer. API: /work/coord/GENERATOR_API.md and README.md here.
 
     from tests.foreign import generate, generate_study, backbones, ForeignData
+    from tests.foreign.scenarios import real_robot     # a realistic truth robot (its docstring)
+
+Its effect forms are deliberately OUTSIDE ctrplan's fitted families (tests/foreign/effects.py
+docstring and README.md say, per effect, why ctrplan's family of the same name cannot represent
+it; tests/test_foreign_generator.py checks the best fit of that family leaves a residual).
 
 Mean / max tip displacement (mm) each effect causes at its DEFAULT parameters against the same
-rows without it (design "sweeps", n=1000, seed=1, no noise; measured 2026-11-23):
+rows without it (design "sweeps", n=1000, seed=1, no noise; measured 2026-11-25):
 
     effect                    seed1 mean/max    two_tube_nylon mean/max
-    torsion (physical GJ)        0.90 / 3.32       12.73 / 37.32
-    clearance                    3.84 / 9.45        1.25 / 5.90
-    friction end_moment          1.37 / 7.30        3.47 / 20.26
-    friction coulomb_lag         1.32 / 3.38        2.65 / 6.04
-    friction presliding          1.22 / 3.76        2.35 / 7.12
-    precurvature                 1.77 / 4.77        5.09 / 11.53
-    stiffness                    3.07 / 4.88        2.41 / 4.15
-    load (gravity + tip force)   3.42 / 10.43       3.48 / 9.69
-    joint_offset                 1.88 / 3.13        3.23 / 7.05
-    registration                 3.60 / 5.30        3.52 / 4.47
-    distortion                   2.31 / 3.41        2.49 / 3.43
-    drift                        2.00 / 4.00        2.00 / 4.00
+    torsion (GJ, couplings)      1.40 / 4.83       14.89 / 44.31
+    clearance                    4.10 / 8.52        1.53 / 6.53
+    friction end_moment          2.52 / 9.82        1.45 / 8.14
+    friction coulomb_lag         1.31 / 3.75        1.89 / 5.56
+    friction presliding          1.16 / 3.99        1.53 / 18.10
+    precurvature                 2.72 / 7.26        7.48 / 15.94
+    stiffness                    2.49 / 4.43        1.18 / 3.22
+    load (gravity, tip force,    3.63 / 11.16       3.69 / 10.24
+          filled lumen, tether)
+    joint_offset                 3.04 / 4.15        3.97 / 9.67
+    registration (+ scale)       5.37 / 7.79        5.33 / 6.87
+    distortion                   1.58 / 3.21        0.83 / 3.34
+    drift                        3.25 / 3.93        3.24 / 3.93
 
-Torsion uses the tubes' physical GJ = E J / (2 (1 + nu)); it is small on seed1 and large on the
-nylon pair (pass {"torsion": {"gj_scale": g}} to change it). Friction is only visible where rows
-carry a direction of motion (not in "uniform").
+Torsion uses the tubes' physical GJ = E J / (2 (1 + nu)) times ``gj_scale`` per tube; it is
+small on seed1 and large on the nylon pair. Friction is only visible where rows carry a
+direction of motion (not in "uniform").
 """
 
 from .core import (

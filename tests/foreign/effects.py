@@ -1,45 +1,117 @@
-"""Effect forms of the foreign generator (own forms; deliberately not ctrplan's).
+"""Effect forms of the foreign generator (own forms, chosen OUTSIDE ctrplan's fitted families).
 
-Every effect takes a parameter dict; ``{}`` gives the default magnitude. Parameters:
+Every effect takes a parameter dict; ``{}`` gives the default magnitude; keys not given take
+their defaults (except ``load``, see there). Each form below is written down with the reason why
+ctrplan's fitted family of the same name (``ctrplan/shape/effects.py``, fitted by
+``ctrplan/calibration``) cannot represent it exactly; ``tests/test_foreign_generator.py`` checks
+that the best fit of that family leaves a residual clearly above the noise.
 
-torsion       {"gj_scale": 1.0}  truth = torsionally compliant Cosserat rods (GJ scaled); absent =
-              torsionally rigid truth.
-clearance     {"amplitude": rad, "phase_deg": 205, "harmonics": [h0, h1, h2, ...]}
-              At the distal end of each outer tube the inner tube's tangent tilts by
-              delta(phi) = amplitude * sum_k h_k cos(k (phi - phase)), phi = relative rotation
-              (inner - outer, local angles where the outer tube ends), toward the inner tube's
-              bending direction. Default harmonics [0.5, 0.5]: delta = A (1 + cos(phi - phase))/2,
-              largest at phase (205 deg, the study's), zero opposite it.
+torsion       {"gj_scale": 1.0 (scalar or per tube), "coupling": [mm per tube]}
+              Truth = torsionally compliant Cosserat rods (GJ scaled), and each tube's drive
+              coupling (collet, motor shaft) adds torsional compliance equal to ``coupling`` mm
+              of extra tube behind the plane: psi_i(0) = alpha_i + (-beta_i + coupling_i) u_iz(0).
+              Absent = torsionally rigid truth. Default coupling (60, 40, 30) mm (outermost last).
+              Why not ctrplan's: its torsion scales every tube's EI/GJ by one factor (tube 1 by a
+              fixed extra factor); a length-independent coupling compliance is not a scale of the
+              tube's compliance, so the twist's dependence on beta differs.
+clearance     {"amplitude": rad, "phase_deg": 205, "harmonics": [h0, h1, h2, ...],
+               "lean": rad, "jump": mm or "gap"}
+              Where outer tube j ends, the tubes inside it (relative rotation phi = inner - outer)
+              (a) tilt in the inner tube's bending plane by
+                  delta(phi) = amplitude * sum_k h_k cos(k (phi - phase))  (default harmonics
+                  [0.5, 0.32, 0.18]: a first AND a second harmonic, peak at phase);
+              (b) lean sideways, about the inner tube's bending direction, by
+                  lean * sin(phi - phase) (the component of the moment mismatch out of the
+                  inner tube's bending plane; default 0.007 rad);
+              (c) jump laterally within the gap: the backbone is displaced by
+                  jump * cos(phi - phase) along the inner tube's bending direction (it lies
+                  against the wall on the side of the moment; "gap" = the radial gap
+                  (id_outer - od_inner) / 2 of the pair, 0.15 mm on seed1).
+              Off: amplitude 0, lean 0, jump 0.
+              Why not ctrplan's: its harmonic forms tilt only about the inner tube's curvature
+              axis (in-plane), its gap form tilts by a multiple of the curvature jump; neither
+              leans out of the plane as sin(phi - phase) nor displaces the backbone (no
+              translation jump in any form).
 friction      {"form": "end_moment" | "coulomb_lag" | "presliding", ...}
-              end_moment (the study's): a torque T = mu * s * |M| at the distal end of each outer
-              tube (|M| its bending moment there, s = sign of the relative rotation direction of
-              the pair, inner minus outer), +T on the outer tube and -T on the inner one. With
-              torsion it enters the Cosserat boundary conditions (the study's beta'(L) =
-              mu'|M|(1/k2z - 1/k1z)); without torsion as the rotation correction dtheta of each
-              tube, T l / GJ (l: the tube's length from its base to that point), sign following
-              the direction of relative rotation.  {"mu": ...}
-              coulomb_lag: each tube's transmitted rotation lags its command by a constant
-              angle in the direction of its last motion: alpha_eff = alpha - lag * d.
-              {"lag": rad (scalar or per tube), "beta_lag": mm (scalar or per tube, default 0)}
-              presliding: the lag builds up over a rotation after each reversal (Dahl-like):
-              z <- c d + (z - c d) exp(-|dalpha| / angle); alpha_eff = alpha - z. Without row
-              history (``backbones(direction=...)``) the fully developed lag c d is used.
-              {"lag": rad, "angle": rad}
-precurvature  {"scale": [per tube]}  kappa_i -> scale_i kappa_i
-stiffness     {"scale": [per tube]}  E_i -> scale_i E_i (bending and torsion)
+              end_moment (the study's end moment, with friction growing with contact length):
+              a torque T = s mu (|M| + contact M_c l_c / L_o) at the distal end of each
+              outer tube o (|M| its bending moment there, M_c = EI_o EI_i / (EI_o + EI_i)
+              |kappa_o - kappa_i| the moment scale of the contact with the tube i inside it,
+              l_c its exposed length = the contact
+              length with the tube inside it, L_o its length, s the sign of the relative rotation
+              direction of the pair, inner minus outer), +T on the outer tube and -T on the inner
+              one; with torsion in the Cosserat boundary conditions, without as the rotation
+              correction dtheta = T l / GJ of each tube (l: its length from its base to that
+              point).  {"mu": 0.03, "contact": 12.0}  (contact 0: the study's form)
+              Why not ctrplan's: its end_moment torque is mu |M| (no term growing with the
+              exposed length), its lag forms constant angles.
+              coulomb_lag: each tube's transmitted rotation lags its command in the direction of
+              its last motion by an angle that grows with the length of tube retracted behind
+              the plane (inside the guide and the outer tubes: more friction, more wind-up):
+              alpha_eff = alpha - d lag (1 + growth (r - 1/2)), r = -beta / L in [0, 1].
+              {"lag": rad (scalar or per tube), "growth": 1.2, "beta_lag": mm (default 0)}
+              Why not ctrplan's: its lag / relative / dead_band lags are constant per tube.
+              presliding: the lag builds up over a rotation after each reversal with a Dahl
+              exponent 2 (hyperbolic, not exponential): w = 1 - z d / c, w <- w / (1 + w
+              |dalpha| / angle), z = c d (1 - w), c = lag (1 + growth (r - 1/2)) as above;
+              alpha_eff = alpha - z. Without row history (``backbones(direction=...)``) the fully
+              developed lag c d. {"lag": rad, "angle": rad, "growth": 1.2}
+              Why not ctrplan's: its presliding recursion is the exponential one
+              (w <- w exp(-|dalpha| / angle)) with a constant lag.
+precurvature  {"scale": [per tube], "ramp": [per tube]}
+              kappa_i(s) = scale_i kappa_i (1 + ramp_i (s_c - 1/2)), s_c in [0, 1] along the
+              curved section from its proximal start (held constant over equal
+              sub-sections, 8: a shape-setting fixture that bends more at one end).
+              Default scale (0.92, 1.10, 0.93), ramp (0.6, -0.6, 0.6) (outermost last).
+              Why not ctrplan's: it scales each tube's precurvature by one constant.
+stiffness     {"scale": [per tube], "curved": [per tube], "torsion": [per tube]}
+              E_i -> scale_i E_i in bending, times ``curved_i`` over the curved (shape-set,
+              heat-treated) section; GJ_i -> torsion_i GJ_i (only with torsion).
+              Default scale (1.0, 1.3, 0.85), curved (1.0, 0.7, 1.3), torsion (1.0, 0.8, 1.1).
+              Why not ctrplan's: its ratios are one bending stiffness per tube, the same on the
+              straight and the curved section (and GJ follows EI).
 load          {"gravity": [gx, gy, gz] m/s^2 in the base frame (default [9.81, 0, 0]:
               horizontal robot), "density": [kg/m^3 per tube] (default: the robot file's
               ``density`` or nitinol 6450), "tip_force": [Fx, Fy, Fz] N (default "auto":
-              (0, -1e-5 EI_1, 0) N, EI_1 of the innermost tube in N mm^2)}. The defaults apply
-              to {} only: with any key given, the keys not given are absent (gravity None, no
-              tip force), e.g. {"gravity": [0, -9.81, 0]} is gravity alone.
-joint_offset  {"alpha": [rad per tube], "beta": [mm per tube]}  true q = commanded q + offset
-registration  {"rotvec": [rad x3], "translation": [mm x3]}  sensor = Rot(rotvec) base + t
-distortion    {"amplitude": mm, "wavelength": mm}  smooth nonlinear tracker-field warp
-              p + A [sin(2 pi (y + z/2)/lam + .4), sin(2 pi (z + x/2)/lam + 1.3),
-                     sin(2 pi (x + y/2)/lam + 2.1)]  (not a rigid transform)
-drift         {"amplitude": mm, "direction": [3]}  slow sensor drift: offset growing linearly in
-              time from 0 at the first row to ``amplitude`` at the last row
+              (0, -1e-5 EI_1, 0) N, EI_1 of the innermost tube in N mm^2), "lumen_density":
+              kg/m^3 of what fills the innermost tube's lumen (a wire, a fibre, fluid; default
+              5000), "tether": N/mm (default 1.5e-4) and "anchor": [3] mm (default "auto":
+              (0.15, 0, 1.0) L_1): a cable (the tracker sensor's lead, a tissue attachment)
+              pulls the tip toward the anchor with F = tether (anchor - tip) (fixed point in the
+              tip), "base_compliance": rad per N mm (default 0): the mount turns the whole
+              robot about the base origin by that times the loads' bending moment there}.
+              The defaults apply to {} only: with any key given, the keys not given are absent
+              (gravity None, no tip force, empty lumen, no tether, rigid mount), e.g.
+              {"gravity": [0, -9.81, 0]} is gravity alone.
+              Why not ctrplan's: its loads are a constant gravity (times each tube's density
+              from the robot file, one scale for all tubes) and a constant tip force; the
+              tether's force depends on where the tip is (the filled lumen alone would be
+              nearly absorbed by a larger g).
+joint_offset  {"alpha": [rad per tube], "beta": [mm per tube], "periodic": [rad per tube],
+               "periodic_phase": [rad per tube], "beta_scale": [per tube]}
+              true alpha = alpha + offset + periodic sin(alpha + periodic_phase) (an eccentric
+              encoder: a once-per-turn error), true beta = (1 + beta_scale) beta + offset (a lead
+              screw pitch error). Default periodic (0.03, 0.025, 0.02) rad, beta_scale
+              (0.01, -0.008, 0.006).
+              Why not ctrplan's: it fits constant offsets only.
+registration  {"rotvec": [rad x3], "translation": [mm x3], "scale": [x3] or scalar}
+              sensor = (1 + scale) * (Rot(rotvec) base + t) per sensor axis (a tracker whose
+              scale is off by a fraction of a percent). Default scale (0.008, -0.006, 0.01).
+              Why not ctrplan's: its registration is rigid (no scale).
+distortion    {"amplitude": mm, "width": mm or "auto", "centres": [[3] x k] mm or "auto",
+               "vectors": [[3] x k] or "auto"}  a rough tracker-field warp (metal parts near
+              the field generator): p + amplitude sum_k v_k exp(-|p - c_k|^2 / (2 width^2)), v_k
+              unit vectors; "auto": 36 centres on a grid over the workspace (spacing 0.1 L_1,
+              :func:`distortion_grid`), width 0.05 L_1 (L_1 the innermost tube's length, 16 mm
+              on seed1). Why not ctrplan's nuisance: its field is a cubic polynomial of the
+              measured position; a field varying over ~16 mm inside a ~100 mm workspace is not
+              (a cubic fit leaves 20-50 % of it on seed1 sweeps).
+drift         {"amplitude": mm, "direction": [3], "settle": 0.15, "step": mm, "step_at": 0.6,
+               "step_direction": [3]}  sensor drift: an exponential settling
+              amplitude (1 - exp(-t / tau)) / (1 - exp(-1 / tau)) along ``direction``
+              (t the fraction of the recording time, tau = settle) plus a step of ``step`` mm at
+              t >= step_at (the tracker was bumped). Why not ctrplan's nuisance: it fits
+              a + b x + c x^2 of the fraction of the recording time (no fast settling, no step).
 """
 
 from __future__ import annotations
@@ -67,45 +139,72 @@ def _alt(n, first, a, b):
     return [first] + [a if i % 2 == 1 else b for i in range(1, n)]
 
 
+def _outer_last(n, inner, mid, outer):
+    """Per-tube values with the innermost ``inner``, the outermost ``outer`` and ``mid`` between
+    (two tubes: inner, outer)."""
+    if n == 1:
+        return [inner]
+    return [inner] + [mid] * (n - 2) + [outer]
+
+
 def defaults(name: str, n: int, spec=None) -> dict:
     """Default parameters (each moves the tip by a few mm on the shipped robots)."""
     if name == "torsion":
-        return {"gj_scale": 1.0}
+        return {"gj_scale": _outer_last(n, 1.0, 0.6, 1.4), "coupling": _outer_last(n, 60.0, 40.0, 30.0)}
     if name == "clearance":
-        return {"amplitude": 0.065, "phase_deg": 205.0, "harmonics": [0.5, 0.5]}
+        return {"amplitude": 0.07, "phase_deg": 205.0, "harmonics": [0.5, 0.32, 0.18],
+                "lean": 0.007, "jump": "gap"}
     if name == "friction":
-        return {"form": "end_moment", "mu": 0.08}
+        return friction_defaults("end_moment")
     if name == "precurvature":
-        return {"scale": _alt(n, 0.92, 1.10, 0.93)}
+        return {"scale": _alt(n, 0.92, 1.10, 0.93), "ramp": _alt(n, 0.6, -0.6, 0.6)}
     if name == "stiffness":
-        return {"scale": _alt(n, 1.0, 1.3, 0.85)}
+        return {"scale": _alt(n, 1.0, 1.3, 0.85), "curved": _alt(n, 1.25, 0.8, 1.0),
+                "torsion": _alt(n, 1.0, 0.8, 1.1)}
     if name == "load":
-        return {"gravity": [9.81, 0.0, 0.0], "density": None, "tip_force": "auto"}
+        return {"gravity": [9.81, 0.0, 0.0], "density": None, "tip_force": "auto",
+                "lumen_density": 5000.0, "tether": 1.5e-4, "anchor": "auto", "base_compliance": 0.0}
     if name == "joint_offset":
-        return {"alpha": _alt(n, 0.05, -0.06, 0.04), "beta": _alt(n, -1.5, -1.0, -0.5)}
+        return {"alpha": _alt(n, 0.05, -0.06, 0.04), "beta": _alt(n, -1.5, -1.0, -0.5),
+                "periodic": _alt(n, 0.03, 0.025, 0.02), "periodic_phase": _alt(n, 0.7, 2.1, -1.3),
+                "beta_scale": _alt(n, 0.01, -0.008, 0.006)}
     if name == "registration":
-        return {"rotvec": [0.012, -0.009, 0.015], "translation": [1.2, -0.9, 1.5]}
+        return {"rotvec": [0.012, -0.009, 0.015], "translation": [1.2, -0.9, 1.5],
+                "scale": [0.012, -0.008, 0.015]}
     if name == "distortion":
-        return {"amplitude": 2.0, "wavelength": 220.0}
+        return {"amplitude": 2.5, "width": "auto", "centres": "auto", "vectors": "auto"}
     if name == "drift":
-        return {"amplitude": 4.0, "direction": [0.6, -0.48, 0.64]}
+        return {"amplitude": 4.0, "direction": [0.6, -0.48, 0.64], "settle": 0.15, "step": 1.5,
+                "step_at": 0.6, "step_direction": [-0.5, 0.7, 0.5]}
     raise ValueError(f"unknown effect {name!r}; known: {VOCAB_EFFECTS + OUTSIDE_EFFECTS}")
 
 
 def friction_defaults(form: str) -> dict:
     if form == "end_moment":
-        return {"form": form, "mu": 0.08}
+        return {"form": form, "mu": 0.03, "contact": 12.0}
     if form == "coulomb_lag":
-        return {"form": form, "lag": 0.05, "beta_lag": 0.0}
+        return {"form": form, "lag": 0.06, "beta_lag": 0.0, "growth": 1.8}
     if form == "presliding":
-        return {"form": form, "lag": 0.06, "angle": 0.25}
+        return {"form": form, "lag": 0.08, "angle": 0.25, "growth": 1.8}
     raise ValueError(f"unknown friction form {form!r}; known: {FRICTION_FORMS}")
+
+
+def distortion_grid(L1: float) -> tuple[list, list]:
+    """The "auto" distortion: centres on a grid over the workspace, x, y in {-0.1, 0, 0.1} L_1,
+    z in {0.5, 0.6, 0.7, 0.8} L_1 (sensor frame), and fixed pseudo-random displacement directions
+    (numpy default_rng(12345), normalised)."""
+    g = (-0.1, 0.0, 0.1)
+    C = np.array([(x, y, z) for x in g for y in g for z in (0.5, 0.6, 0.7, 0.8)]) * L1
+    V = np.random.default_rng(12345).normal(size=C.shape)
+    return C.tolist(), V.tolist()
 
 
 def resolve(effects, n: int, spec=None) -> dict:
     """Fill in defaults; returns a new dict name -> full parameters. ``tip_force: "auto"``
     (the load default) becomes (0, -1e-5 EI_1, 0) N with EI_1 the innermost tube's bending
-    stiffness in N mm^2 (0.055 N on seed1, 0.27 N on two_tube_nylon)."""
+    stiffness in N mm^2 (0.055 N on seed1, 0.27 N on two_tube_nylon); the clearance
+    ``jump: "gap"`` becomes the radial gap of the first pair, the distortion's "auto" centres and
+    width are placed from the innermost tube's length. Idempotent."""
     out = {}
     for name, params in (effects or {}).items():
         params = dict(params or {})
@@ -118,27 +217,52 @@ def resolve(effects, n: int, spec=None) -> dict:
             raise ValueError(f"effect {name!r}: unknown parameter(s) {sorted(unknown)}")
         if name == "load" and params:
             # explicit loads: what is not given is absent (a gravity-only or force-only load)
-            base = {"gravity": None, "density": None, "tip_force": None}
+            base = {"gravity": None, "density": None, "tip_force": None, "lumen_density": None,
+                    "base_compliance": None, "tether": None, "anchor": "auto"}
         base.update(params)
         if name == "load" and isinstance(base.get("tip_force"), str):
             if base["tip_force"] != "auto" or spec is None:
                 raise ValueError("load: tip_force must be a 3-vector (N), None or 'auto'")
             base["tip_force"] = [0.0, -1e-5 * float(spec.EI[0]), 0.0]
+        if name == "clearance" and isinstance(base.get("jump"), str):
+            if base["jump"] != "gap":
+                raise ValueError("clearance: jump must be a number (mm) or 'gap'")
+            base["jump"] = (0.5 * float(spec.id[1] - spec.od[0])
+                            if spec is not None and n > 1 else 0.0)
+        if name == "load" and isinstance(base.get("anchor"), str):
+            if base["anchor"] != "auto":
+                raise ValueError("load: anchor must be a 3-vector (mm) or 'auto'")
+            L1 = float(spec.L[0]) if spec is not None else 300.0
+            base["anchor"] = [0.15 * L1, 0.0, 1.0 * L1]
+        if name == "distortion":
+            L1 = float(spec.L[0]) if spec is not None else 300.0
+            if isinstance(base.get("width"), str):
+                base["width"] = 0.05 * L1
+            C, V = distortion_grid(L1)
+            if isinstance(base.get("centres"), str):
+                base["centres"] = C
+            if isinstance(base.get("vectors"), str):
+                base["vectors"] = V
         out[name] = copy.deepcopy(base)
     return out
 
 
 def clearance_fn(params):
+    """callable(phi, pair) -> (tilt_in, tilt_out, jump_b, jump_a) (see the module docstring)."""
     amp = float(params["amplitude"])
     ph = np.deg2rad(float(params["phase_deg"]))
     h = np.asarray(params["harmonics"], float)
+    lean = float(params.get("lean", 0.0))
+    jump = float(params.get("jump", 0.0) or 0.0)
 
-    def delta(phi, pair):
+    def event(phi, pair):
         d = np.zeros_like(phi)
         for k, hk in enumerate(h):
             d = d + hk * np.cos(k * (phi - ph))
-        return amp * d
-    return delta
+        if lean == 0.0 and jump == 0.0:
+            return amp * d
+        return (amp * d, lean * np.sin(phi - ph), jump * np.cos(phi - ph), np.zeros_like(phi))
+    return event
 
 
 def rotation_matrix(rotvec) -> np.ndarray:
@@ -151,24 +275,50 @@ def rotation_matrix(rotvec) -> np.ndarray:
     return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
 
 
+def _unit(v):
+    v = np.asarray(v, float)
+    nv = np.linalg.norm(v)
+    return v / nv if nv > 0 else v
+
+
+def drift_offset(params, tfrac: np.ndarray) -> np.ndarray:
+    """(N, 3) drift offset at time fractions ``tfrac`` (see the module docstring)."""
+    t = np.asarray(tfrac, float)
+    tau = float(params.get("settle", 0.0))
+    if tau > 0:
+        shape = (1.0 - np.exp(-t / tau)) / (1.0 - np.exp(-1.0 / tau))
+    else:
+        shape = t
+    off = float(params["amplitude"]) * shape[:, None] * _unit(params["direction"])[None, :]
+    step = float(params.get("step", 0.0))
+    if step:
+        off = off + step * (t >= float(params["step_at"]))[:, None] * \
+            _unit(params["step_direction"])[None, :]
+    return off
+
+
 def sensor(p: np.ndarray, eff: dict, tfrac: np.ndarray | None) -> np.ndarray:
     """Apply tracker effects (registration, distortion, drift) to points (..., 3); tfrac (N,)
     the fraction of the recording time elapsed per row (drift), or None (no drift)."""
     out = p
     if "registration" in eff:
-        R = rotation_matrix(eff["registration"]["rotvec"])
-        out = out @ R.T + np.asarray(eff["registration"]["translation"], float)
+        rg = eff["registration"]
+        R = rotation_matrix(rg["rotvec"])
+        out = out @ R.T + np.asarray(rg["translation"], float)
+        sc = np.broadcast_to(np.asarray(rg.get("scale", 0.0), float), (3,))
+        if np.any(sc != 0.0):
+            out = out * (1.0 + sc)
     if "distortion" in eff:
-        A = float(eff["distortion"]["amplitude"])
-        lam = float(eff["distortion"]["wavelength"])
-        x, y, z = out[..., 0], out[..., 1], out[..., 2]
-        w = 2 * np.pi / lam
-        d = np.stack([np.sin(w * (y + 0.5 * z) + 0.4), np.sin(w * (z + 0.5 * x) + 1.3),
-                      np.sin(w * (x + 0.5 * y) + 2.1)], axis=-1)
-        out = out + A * d
+        ds = eff["distortion"]
+        A = float(ds["amplitude"])
+        if A != 0.0:
+            C = np.asarray(ds["centres"], float).reshape(-1, 3)
+            V = np.stack([_unit(v) for v in np.asarray(ds["vectors"], float).reshape(-1, 3)])
+            w = float(ds["width"])
+            d2 = np.sum((out[..., None, :] - C) ** 2, axis=-1)          # (..., k)
+            wgt = np.exp(-0.5 * d2 / w ** 2)
+            out = out + A * (wgt @ V[: C.shape[0]])
     if "drift" in eff and tfrac is not None:
-        dvec = np.asarray(eff["drift"]["direction"], float)
-        dvec = dvec / np.linalg.norm(dvec)
-        off = float(eff["drift"]["amplitude"]) * tfrac[:, None] * dvec[None, :]
+        off = drift_offset(eff["drift"], tfrac)
         out = out + (off[:, None, :] if out.ndim == 3 else off)
     return out

@@ -44,32 +44,61 @@ from .robot import Spec
 # ----------------------------------------------------------------------------- geometry
 @dataclass
 class Geom:
-    bp: np.ndarray        # (B, S+1) sorted break points, S = 2n segments
+    bp: np.ndarray        # (B, S+1) sorted break points
     kappa: np.ndarray     # (B, S, n) precurvature in each segment (0 where straight/absent)
     present: np.ndarray   # (B, S, n) bool
     endnode: np.ndarray   # (B, n) node index (1..S) of each tube's end
     ends: np.ndarray      # (B, n) e_i
     beta: np.ndarray      # (B, n)
+    eif: np.ndarray | None = None   # (B, S, n) factor on each tube's EI in each segment
 
     def take(self, idx):
         return Geom(self.bp[idx], self.kappa[idx], self.present[idx], self.endnode[idx],
-                    self.ends[idx], self.beta[idx])
+                    self.ends[idx], self.beta[idx], None if self.eif is None else self.eif[idx])
+
+    def EIp(self, spec, j):
+        """(B, n) bending stiffness of each tube present in segment j (0 where absent)."""
+        EI = spec.EI[None, :] if self.eif is None else spec.EI[None, :] * self.eif[:, j]
+        return np.where(self.present[:, j], EI, 0.0)
 
 
-def geometry(spec: Spec, beta: np.ndarray) -> Geom:
+def geometry(spec: Spec, beta: np.ndarray, ramp=None, steps: int = 8, ei_curved=None) -> Geom:
+    """Break points and per-segment data. Optional effects of the generator:
+
+    ramp (n,): precurvature varying along each tube's curved section,
+    kappa_i(s) = kappa_i (1 + ramp_i (s_c - 1/2)), s_c in [0, 1] the fraction of the curved
+    section (0 at its proximal start), held piecewise constant over ``steps`` equal sub-sections
+    (value at each sub-section's middle; extra break points).
+    ei_curved (n,): factor on tube i's EI over its curved (shape-set) section."""
     B, n = beta.shape
     e = np.maximum(beta + spec.L, 0.0)
     cst = np.minimum(np.maximum(beta + spec.straight, 0.0), e)
-    raw = np.concatenate([np.zeros((B, 1)), cst, e], axis=1)          # (B, 2n+1)
+    use_ramp = ramp is not None and np.any(np.asarray(ramp, float) != 0.0)
+    extra = np.zeros((B, 0))
+    if use_ramp:
+        f = np.arange(1, steps) / steps
+        c0 = beta + spec.straight                                      # (B, n) curved start
+        extra = c0[:, :, None] + f[None, None, :] * spec.curved[None, :, None]
+        extra = np.clip(extra, 0.0, e[:, :, None]).reshape(B, -1)
+    raw = np.concatenate([np.zeros((B, 1)), cst, e, extra], axis=1)
     order = np.argsort(raw, axis=1, kind="stable")
     bp = np.take_along_axis(raw, order, axis=1)
     inv = np.argsort(order, axis=1, kind="stable")                    # position of each raw entry
-    endnode = inv[:, 1 + n:]
+    endnode = inv[:, 1 + n:1 + 2 * n]
     mid = 0.5 * (bp[:, 1:] + bp[:, :-1])                              # (B, S)
     present = mid[:, :, None] < e[:, None, :]
     curved = present & (mid[:, :, None] >= cst[:, None, :])
-    kappa = np.where(curved, spec.kappa[None, None, :], 0.0)
-    return Geom(bp, kappa, present, endnode, e, beta)
+    kap = np.broadcast_to(spec.kappa[None, None, :], curved.shape)
+    if use_ramp:
+        sc = (mid[:, :, None] - (beta + spec.straight)[:, None, :]) / spec.curved[None, None, :]
+        k = np.clip(np.floor(sc * steps), 0, steps - 1)
+        sc_mid = (k + 0.5) / steps
+        kap = kap * (1.0 + np.asarray(ramp, float)[None, None, :] * (sc_mid - 0.5))
+    kappa = np.where(curved, kap, 0.0)
+    eif = None
+    if ei_curved is not None and np.any(np.asarray(ei_curved, float) != 1.0):
+        eif = np.where(curved, np.asarray(ei_curved, float)[None, None, :], 1.0)
+    return Geom(bp, kappa, present, endnode, e, beta, eif)
 
 
 # ----------------------------------------------------------------------------- small helpers
@@ -88,6 +117,32 @@ def _clearance_rot(psi_in: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """Body-frame rotation Rz(psi) Ry(delta) Rz(-psi): about (-sin psi, cos psi, 0)."""
     axis = np.stack([-np.sin(psi_in), np.cos(psi_in), np.zeros_like(psi_in)], axis=1)
     return _rot_axis_angle(axis, delta)
+
+
+def _clearance_event(clearance, psi_in, phi, pair):
+    """Body-frame rotation (B,3,3) and body-frame offset (B,3) where an outer tube ends.
+
+    ``clearance(phi, pair)`` returns either the in-plane tilt delta (B,) (rad, about the inner
+    tube's curvature axis a = (-sin psi, cos psi, 0), turning the tangent toward its bending
+    direction b = (cos psi, sin psi, 0)) or a tuple (tilt_in, tilt_out, jump_b, jump_a): tilt_out
+    (rad) about b (a sideways lean), and a lateral jump of the backbone (mm) along b and a."""
+    out = clearance(phi, pair)
+    B = psi_in.shape[0]
+    if isinstance(out, tuple):
+        t_in, t_out, j_b, j_a = (np.broadcast_to(np.asarray(v, float), (B,)) for v in out)
+    else:
+        t_in = np.asarray(out, float)
+        t_out = j_b = j_a = np.zeros(B)
+    c, s = np.cos(psi_in), np.sin(psi_in)
+    z = np.zeros(B)
+    a = np.stack([-s, c, z], axis=1)
+    b = np.stack([c, s, z], axis=1)
+    rv = t_in[:, None] * a + t_out[:, None] * b
+    ang = np.linalg.norm(rv, axis=1)
+    axis = np.where(ang[:, None] > 0, rv / np.where(ang > 0, ang, 1.0)[:, None], a)
+    Q = _rot_axis_angle(axis, ang)
+    off = j_b[:, None] * b + j_a[:, None] * a
+    return Q, off
 
 
 def _bend_xy(psi, kap, EIp):
@@ -114,26 +169,45 @@ def _arc(ux, uy, h):
     return dp, Rj
 
 
-def rigid(spec: Spec, alpha, beta, *, clearance=None, friction_mu=0.0, rel_dir=None):
+def end_torque(spec, g, o, M, mu, contact, rel):
+    """Friction torque where outer tube o ends (N mm): T = s mu (|M| + contact M_c l_c / L_o),
+    s = ``rel`` the direction of the relative rotation of the pair (inner minus outer), |M| the
+    outer tube's bending moment there, M_c = EI_o EI_i / (EI_o + EI_i) |kappa_o - kappa_i| the
+    moment scale of the pair's contact (i = o - 1; their curvature mismatch, nominal), l_c = the
+    outer tube's exposed length (the contact length in front of the plane), L_o its length.
+    ``contact`` 0 is the study's concentrated end moment."""
+    T = np.abs(M)
+    if contact:
+        i = o - 1
+        Mc = spec.EI[o] * spec.EI[i] / (spec.EI[o] + spec.EI[i]) * abs(spec.kappa[o] - spec.kappa[i])
+        T = T + contact * Mc * g.ends[:, o] / spec.L[o]
+    return mu * rel * T
+
+
+def rigid(spec: Spec, alpha, beta, *, clearance=None, friction_mu=0.0, rel_dir=None,
+          friction_contact=0.0, ramp=None, ei_curved=None):
     """Closed-form rigid backbone. Returns a Backbone (node frames per break point).
 
-    clearance: callable(phi (B,) relative rotation inner - outer, pair index j) -> delta (B,) rad.
+    clearance: callable(phi (B,) relative rotation inner - outer, pair index j) -> delta (B,) rad
+    or (tilt_in, tilt_out, jump_b, jump_a) (see _clearance_event).
     friction_mu with rel_dir (B, n-1): end-moment friction as a rotation correction dtheta of
-    each tube of a pair: the end torque T = mu sign |M| twists the straight transmission of the
-    outer tube by +T l_o/GJ_o and of the inner tube by -T l_i/GJ_i (l: base to the outer end).
+    each tube of a pair: the end torque T (:func:`end_torque`) twists the straight transmission
+    of the outer tube by +T l_o/GJ_o and of the inner tube by -T l_i/GJ_i (l: base to the outer
+    end). ramp / ei_curved: see :func:`geometry`.
     """
     alpha = np.asarray(alpha, float)
     beta = np.asarray(beta, float)
-    g = geometry(spec, beta)
+    g = geometry(spec, beta, ramp=ramp, ei_curved=ei_curved)
     if friction_mu and rel_dir is not None and spec.n > 1:
         bb0 = _rigid_pass(spec, g, alpha, None)
-        alpha = alpha + _friction_dtheta(spec, g, alpha, bb0.u, friction_mu, rel_dir)
+        alpha = alpha + _friction_dtheta(spec, g, alpha, bb0.u, friction_mu, rel_dir,
+                                         friction_contact)
     bb = _rigid_pass(spec, g, alpha, clearance)
     bb.alpha_eff = alpha
     return bb
 
 
-def _friction_dtheta(spec, g, alpha, u, mu, rel_dir):
+def _friction_dtheta(spec, g, alpha, u, mu, rel_dir, contact=0.0):
     B, n = alpha.shape
     d = np.zeros_like(alpha)
     rows = np.arange(B)
@@ -143,8 +217,9 @@ def _friction_dtheta(spec, g, alpha, u, mu, rel_dir):
         a = alpha[:, o]
         uox = np.cos(a) * ux + np.sin(a) * uy
         uoy = -np.sin(a) * ux + np.cos(a) * uy
-        M = spec.EI[o] * np.hypot(uox, uoy - g.kappa[rows, j, o])
-        T = mu * rel_dir[:, o - 1] * M
+        EIo = spec.EI[o] if g.eif is None else spec.EI[o] * g.eif[rows, j, o]
+        M = EIo * np.hypot(uox, uoy - g.kappa[rows, j, o])
+        T = end_torque(spec, g, o, M, mu, contact, rel_dir[:, o - 1])
         d[:, o] += T * (g.ends[:, o] - g.beta[:, o]) / spec.GJ[o]
         d[:, o - 1] -= T * (g.ends[:, o] - g.beta[:, o - 1]) / spec.GJ[o - 1]
     return d
@@ -188,6 +263,8 @@ def _rigid_pass(spec, g, alpha, clearance):
     B, n = alpha.shape
     S = g.bp.shape[1] - 1
     EIp = np.where(g.present, spec.EI[None, None, :], 0.0)
+    if g.eif is not None:
+        EIp = EIp * g.eif
     Sx, Sy, EIt = _bend_xy(alpha[:, None, :], g.kappa, EIp)
     EIt = np.where(EIt > 0, EIt, 1.0)
     u = np.stack([Sx / EIt, Sy / EIt], axis=2)                      # (B, S, 2)
@@ -206,8 +283,9 @@ def _rigid_pass(spec, g, alpha, clearance):
                 msk = g.endnode[:, o] == j + 1
                 if msk.any():
                     phi = alpha[msk, o - 1] - alpha[msk, o]
-                    delta = clearance(phi, o - 1)
-                    Rc[msk] = Rc[msk] @ _clearance_rot(alpha[msk, o - 1], delta)
+                    Q, off = _clearance_event(clearance, alpha[msk, o - 1], phi, o - 1)
+                    pc[msk] = pc[msk] + np.einsum("bij,bj->bi", Rc[msk], off)
+                    Rc[msk] = Rc[msk] @ Q
         P[:, j + 1] = pc
         R[:, j + 1] = Rc
     return RigidBackbone(g, P, R, u)
@@ -248,11 +326,14 @@ class CosseratBackbone(Backbone):
 class _Problem:
     """Everything the integrator needs for a batch (rows may be replicated for the Jacobian)."""
 
-    def __init__(self, spec, g, alpha, torsion, wvec, F, clearance, mu, rel_dir):
+    def __init__(self, spec, g, alpha, torsion, wvec, F, clearance, mu, rel_dir, contact=0.0,
+                 coupling=None):
         self.spec, self.g, self.alpha = spec, g, alpha
+        self.contact = contact    # friction torque growth with contact length (end_torque)
+        self.coupling = coupling  # (n,) mm: torsional compliance of the drive couplings
         self.torsion = torsion
         self.wvec = wvec          # (n, 3) weight per length of each tube, N/mm, base frame
-        self.F = F                # (3,) tip force N
+        self.F = F                # (3,) or (B, 3) tip force N
         self.clearance = clearance
         self.mu = mu
         self.rel_dir = rel_dir    # (B, n-1) or None
@@ -260,8 +341,10 @@ class _Problem:
 
     def take(self, idx):
         return _Problem(self.spec, self.g.take(idx), self.alpha[idx], self.torsion, self.wvec,
-                        self.F, self.clearance, self.mu,
-                        None if self.rel_dir is None else self.rel_dir[idx])
+                        self.F if self.F is None or self.F.ndim == 1 else self.F[idx],
+                        self.clearance, self.mu,
+                        None if self.rel_dir is None else self.rel_dir[idx], self.contact,
+                        self.coupling)
 
 
 def _deriv(X, s, kap, EIp, GJ, EIt, nA, nB, n, full, torsion):
@@ -325,12 +408,12 @@ def _integrate(pb: _Problem, X, full, K, record=False):
         Kj = int(K[j])
         kap = g.kappa[:, j]
         pres = g.present[:, j]
-        EIp = np.where(pres, spec.EI[None, :], 0.0)
+        EIp = g.EIp(spec, j)
         EIt = np.sum(EIp, axis=1)
         EIt = np.where(EIt > 0, EIt, 1.0)
         nA = nB = None
         if full and pb.loaded:
-            nA = np.zeros((B, 3)) if pb.F is None else np.tile(pb.F, (B, 1))
+            nA = np.zeros((B, 3)) if pb.F is None else np.broadcast_to(pb.F, (B, 3)).copy()
             nB = np.zeros((B, 3))
             if pb.wvec is not None:
                 wsum_e = (pres * g.ends) @ pb.wvec          # sum_i present w_i e_i  (B,3)
@@ -368,17 +451,19 @@ def _integrate(pb: _Problem, X, full, K, record=False):
                     a = X[msk, o]
                     uox = np.cos(a) * ux + np.sin(a) * uy
                     uoy = -np.sin(a) * ux + np.cos(a) * uy
-                    M = spec.EI[o] * np.sqrt(uox ** 2 + (uoy - kap[msk, o]) ** 2 + 1e-30)
-                    To = pb.mu * pb.rel_dir[msk, o - 1] * M
+                    M = EIp[msk, o] * np.sqrt(uox ** 2 + (uoy - kap[msk, o]) ** 2 + 1e-30)
+                    To = end_torque(spec, g.take(msk), o, M, pb.mu, pb.contact,
+                                    pb.rel_dir[msk, o - 1])
                     T[msk, o] = To
                     if pb.torsion:
                         X[msk, n + o - 1] += To / spec.GJ[o - 1]
                 if full and pb.clearance is not None:
                     psi_in = X[msk, o - 1]
                     phi = psi_in - X[msk, o]
-                    delta = pb.clearance(phi, o - 1)
+                    Q, off = _clearance_event(pb.clearance, psi_in, phi, o - 1)
                     R = X[msk, 2 * n + 3:2 * n + 12].reshape(-1, 3, 3)
-                    X[msk, 2 * n + 3:2 * n + 12] = (R @ _clearance_rot(psi_in, delta)).reshape(-1, 9)
+                    X[msk, 2 * n:2 * n + 3] += np.einsum("bij,bj->bi", R, off)
+                    X[msk, 2 * n + 3:2 * n + 12] = (R @ Q).reshape(-1, 9)
         if record:
             # the jump changes the tangent at the node; the next segment records it afresh
             pass
@@ -395,7 +480,8 @@ def _initial(pb: _Problem, x, EIref):
     X = np.zeros((B, 2 * n + 15))
     if pb.torsion:
         uz0 = x[:, :n]
-        X[:, 0:n] = pb.alpha - pb.g.beta * uz0
+        lt = pb.g.beta if pb.coupling is None else pb.g.beta - pb.coupling[None, :]
+        X[:, 0:n] = pb.alpha - lt * uz0
         X[:, n:2 * n] = uz0
     else:
         X[:, 0:n] = pb.alpha
@@ -602,7 +688,7 @@ def _m0_guess(pb, bb):
     B, S, K1 = bb.s.shape
     nf = np.zeros((B, S, K1, 3))
     if pb.F is not None:
-        nf += pb.F
+        nf += pb.F if pb.F.ndim == 1 else pb.F[:, None, None, :]
     if pb.wvec is not None:
         pres = (g.ends[:, None, None, :] > bb.s[..., None])
         rem = np.where(pres, g.ends[:, None, None, :] - bb.s[..., None], 0.0)
@@ -613,7 +699,8 @@ def _m0_guess(pb, bb):
 
 
 def cosserat(spec: Spec, alpha, beta, *, torsion=True, gravity=None, tip_force=None,
-             clearance=None, friction_mu=0.0, rel_dir=None, h_max=10.0, tol=1e-10, max_iter=12):
+             clearance=None, friction_mu=0.0, rel_dir=None, h_max=10.0, tol=1e-10, max_iter=12,
+             friction_contact=0.0, ramp=None, ei_curved=None, coupling=None, extra_weight=None):
     """Solve the (loaded) Cosserat rod BVP for a batch. gravity: (3,) m/s^2 in the base frame
     (None = no weight); tip_force: (3,) N. Returns a CosseratBackbone (with .ok per row).
 
@@ -622,19 +709,24 @@ def cosserat(spec: Spec, alpha, beta, *, torsion=True, gravity=None, tip_force=N
     alpha = np.asarray(alpha, float)
     beta = np.asarray(beta, float)
     B, n = alpha.shape
-    g = geometry(spec, beta)
+    g = geometry(spec, beta, ramp=ramp, ei_curved=ei_curved)
     wvec = None
     if gravity is not None and np.any(np.asarray(gravity) != 0):
-        wvec = spec.weight_per_mm[:, None] * (np.asarray(gravity, float) / 9.81)[None, :]
+        w = spec.weight_per_mm if extra_weight is None else spec.weight_per_mm + extra_weight
+        wvec = w[:, None] * (np.asarray(gravity, float) / 9.81)[None, :]
     F = None if tip_force is None or not np.any(np.asarray(tip_force) != 0) else np.asarray(tip_force, float)
-    pb = _Problem(spec, g, alpha, torsion, wvec, F, clearance, friction_mu, rel_dir)
+    cpl = None if coupling is None or not np.any(np.asarray(coupling) != 0) else \
+        np.asarray(coupling, float)
+    pb = _Problem(spec, g, alpha, torsion, wvec, F, clearance, friction_mu, rel_dir,
+                  friction_contact, cpl)
     seg = np.diff(g.bp, axis=1)
     K = np.maximum(1, np.ceil(seg.max(axis=0) / h_max)).astype(int) if B else np.ones(seg.shape[1], int)
     K[seg.max(axis=0) <= 0] = 0 if B else 1
     EIref = float(np.sum(spec.EI))
     ok = np.ones(B, bool)
     # (1) unloaded torsion
-    pb0 = _Problem(spec, g, alpha, torsion, None, None, clearance, friction_mu, rel_dir)
+    pb0 = _Problem(spec, g, alpha, torsion, None, None, clearance, friction_mu, rel_dir,
+                   friction_contact, cpl)
     if torsion:
         x, conv = _newton(pb0, np.zeros((B, n)), False, K, EIref, tol, max_iter)
         if n == 2 and conv.any():
@@ -651,6 +743,19 @@ def cosserat(spec: Spec, alpha, beta, *, torsion=True, gravity=None, tip_force=N
             else:
                 xs = _scan_starts(pb0.take(bad), spec, K, EIref)
                 xb, cb = _newton(pb0.take(bad), xs, False, K, EIref, tol, max_iter)
+            x[bad] = xb
+            conv[bad] = cb
+        if not conv.all() and cpl is not None:
+            # compliant couplings: continue from the solution without them (the branch the
+            # robot is on as the coupling compliance grows from 0)
+            bad = np.flatnonzero(~conv)
+            pbb = pb0.take(bad)
+            xb = np.zeros((bad.size, n))
+            cb = np.ones(bad.size, bool)
+            for f in (0.0, 0.25, 0.5, 0.75, 1.0):
+                pbb.coupling = f * cpl
+                xb, cf = _newton(pbb, xb, False, K, EIref, tol, max_iter)
+                cb &= cf
             x[bad] = xb
             conv[bad] = cb
         ok &= conv
@@ -672,4 +777,5 @@ def cosserat(spec: Spec, alpha, beta, *, torsion=True, gravity=None, tip_force=N
     XL, T, rec = _integrate(pb, X0, True, K, record=True)
     r = _residual(pb, XL, T, EIref)
     ok = ok & conv & (np.max(np.abs(r), axis=1) < 1e-8)
-    return CosseratBackbone(g, rec[0], rec[1], rec[2], ok, dict(K=K, x=x, state_end=XL))
+    return CosseratBackbone(g, rec[0], rec[1], rec[2], ok,
+                            dict(K=K, x=x, state_end=XL, m0=X0[:, 2 * n + 12:2 * n + 15].copy()))
