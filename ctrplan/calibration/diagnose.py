@@ -719,14 +719,17 @@ def _distinguish(F: np.ndarray, G: np.ndarray, r: np.ndarray, fit_rows: np.ndarr
 def _nuisances(robot, prob, data, final_pred, fit_rows, val, train, test, min_gain, sw,
                ordered, base_pred) -> list[dict]:
     """Test every nuisance (see NUISANCES) on two residuals: the calibrated robot model's, and
-    the base model's after the best rigid transform (before any robot effect could absorb a
+    the base model's after the best affine map (before any robot effect could absorb a
     field). Claimed when either shows it, distinguishably from the configuration."""
     r = data.tip - final_pred[:, -1]
     r = np.where(np.isfinite(r), r, 0.0)
     pb = base_pred[:, -1]
     okb = np.all(np.isfinite(pb), axis=1) & train
-    R, t = ev.kabsch(pb[okb], data.tip[okb])
-    r0 = data.tip - (pb @ R.T + t)
+    # an affine map (rigid transform, scale, shear) is registration / tracker calibration, not
+    # a field: the field must explain what the best affine map of the base model leaves
+    X = np.hstack([pb, np.ones((len(pb), 1))])
+    A, *_ = np.linalg.lstsq(X[okb], data.tip[okb], rcond=None)
+    r0 = data.tip - X @ A
     r0 = np.where(np.isfinite(r0), r0, 0.0)
     G = _config_features(robot, data, sw, ordered, fit_rows)
     feats = {k: F for k in NUISANCES
@@ -750,7 +753,7 @@ def _nuisances(robot, prob, data, final_pred, fit_rows, val, train, test, min_ga
         left = r - corr
         why = (f"calibrated model's residual: validation mean {e_model:.3f} mm -> {e_nuis:.3f} "
                f"mm with it, {e_conf:.3f} mm with configuration features instead; base model "
-               f"after a rigid transform: {b_model:.3f} -> {b_nuis:.3f} mm, {b_conf:.3f} mm")
+               f"after an affine map: {b_model:.3f} -> {b_nuis:.3f} mm, {b_conf:.3f} mm")
         out.append({"kind": kind, "claimed": claimed, "why": why, "validation_gain": gain,
                     "validation_mean_with_mm": e_nuis, "validation_mean_config_mm": e_conf,
                     "base_validation_mean_with_mm": b_nuis,
@@ -790,6 +793,7 @@ def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_ga
     Returns the effects, their score and the fitted parameter names per effect.
     """
     free_cur: dict[str, list[str]] = {}
+    base_val = cur.test_mean
     while len(current) < max_effects:
         remaining = [c for c in cands if c not in current]
         if steps:
@@ -835,7 +839,8 @@ def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_ga
 
         def named_grade(r: FitResult, cur: FitResult = cur) -> bool:
             return bool(r.bic() - cur.bic() < -bic_threshold
-                        and _gain(cur.test_mean, r.test_mean) >= min_gain)
+                        and _gain(cur.test_mean, r.test_mean) >= min_gain
+                        and cur.test_mean - r.test_mean >= MIN_SHARE * base_val)
 
         def keep_grade(r: FitResult, cur: FitResult = cur) -> bool:
             return bool(r.bic() - cur.bic() < 0.0 and _gain(cur.test_mean, r.test_mean) >= keep_gain)
@@ -899,8 +904,11 @@ def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_ga
 #: the joint model is tried when the one-at-a-time effects leave more than this many times the
 #: noise floor's mean tip error on the validation rows
 JOINT_TRIGGER = 3.0
-#: effects that switch to a slower kernel (loaded / torsionally compliant): in the joint model
-#: only when the one-at-a-time selection accepted them
+#: an effect is named only when it accounts for at least this share of the base model's
+#: validation mean error (smaller refinements stay in the model, listed as partial)
+MIN_SHARE = 0.15
+#: effects that switch to a slower kernel (loaded / torsionally compliant): never in the joint
+#: model (it is compared with the one-at-a-time model, which may hold them)
 SLOW = ("load", "torsion")
 
 
@@ -917,9 +925,8 @@ def _joint(prob, robot, base, cands, steps, bic_threshold, min_gain, keep_gain, 
         if st.accepted:
             first.setdefault(st.effect, Candidate(st.effect, st.delta_bic, st.error_after_mm,
                                                   st.named, st.form))
-    accepted = {st.effect for st in steps if st.accepted}
     chosen = sorted((c for c in first.values() if c.delta_bic < 0.0 and c.effect in cands
-                     and (c.effect not in SLOW or c.effect in accepted)),
+                     and c.effect not in SLOW),
                     key=lambda c: c.delta_bic)[:max_effects]
     if len(chosen) < 2:
         return None
@@ -936,6 +943,7 @@ def _joint(prob, robot, base, cands, steps, bic_threshold, min_gain, keep_gain, 
         free[c.effect] = list(nm)
         forms[c.effect] = lab
     k_all = sum(len(v) for v in free.values())
+    base_val = prob.score({}).test_mean
     full = prob.fit(fixed, free, max_iter=2 * fit_iter, k_total=k_all)
     drops: dict[str, FitResult] = {}
     for e in free:
@@ -956,7 +964,8 @@ def _joint(prob, robot, base, cands, steps, bic_threshold, min_gain, keep_gain, 
         d = drops[e]
         dbic = float(model.bic() - d.bic())
         gain = _gain(d.test_mean, model.test_mean)
-        named = bool(dbic < -bic_threshold and gain >= min_gain)
+        named = bool(dbic < -bic_threshold and gain >= min_gain
+                     and d.test_mean - model.test_mean >= MIN_SHARE * base_val)
         vals = {e: {k: model.effects[e][k] for k in mfree[e]}}
         sig = {e: {k: model.sigma.get(e, {}).get(k, math.nan) for k in mfree[e]}}
         out_steps.append(Step(e, True, vals, sig, float(d.test_mean), float(model.test_mean),
