@@ -743,11 +743,16 @@ def _nuisances(robot, prob, data, final_pred, fit_rows, val, train, test, min_ga
     order = sorted(feats, key=lambda k: mean(r - _ridge(feats[k], r, fit_rows), val))
     for kind in order:
         F = feats[kind]
-        e_model, e_nuis, e_conf = _distinguish(F, G, r, fit_rows, val)
+        rm = r
+        if kind == "~field":
+            # its affine part (in the measured position) is registration / tracker scale: the
+            # field must explain what an affine map leaves
+            rm = r - _ridge(F[:, :4], r, fit_rows)
+        e_model, e_nuis, e_conf = _distinguish(F, G, rm, fit_rows, val)
         b_model, b_nuis, b_conf = _distinguish(F, G, r0, fit_rows, val)
         gain = _gain(e_model, e_nuis)
-        on_model = bool(gain >= min_gain and e_nuis <= DISTINGUISH * e_conf)
-        on_base = bool(_gain(b_model, b_nuis) >= min_gain and b_nuis <= DISTINGUISH * b_conf)
+        on_model = bool(gain >= 2 * min_gain and e_nuis <= DISTINGUISH * e_conf)
+        on_base = bool(_gain(b_model, b_nuis) >= 2 * min_gain and b_nuis <= DISTINGUISH * b_conf)
         claimed = on_model or on_base
         corr = _ridge(F, r, train)                 # fitted on fit + validation rows
         left = r - corr
@@ -760,7 +765,9 @@ def _nuisances(robot, prob, data, final_pred, fit_rows, val, train, test, min_ga
                     "base_validation_mean_config_mm": b_conf,
                     "test_mean_with_mm": mean(left, test),
                     "test_max_with_mm": float(np.linalg.norm(left[test], axis=1).max()),
-                    "features": F})
+                    # what a named effect must not mostly be: the nonconstant terms of a drift,
+                    # the nonlinear terms of a field
+                    "features": F[:, 1:] if kind == "~drift" else F[:, 4:]})
         if claimed:
             r = left
             r0 = r0 - _ridge(F, r0, train)
