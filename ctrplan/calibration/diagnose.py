@@ -1,31 +1,39 @@
 """The sim-vs-measured workflow: find where the model and the data disagree, name the missing
 effect, add it, and show the gap shrink — and say so when the data cannot tell.
 
-Procedure (:func:`diagnose`):
+Procedure (:func:`diagnose`). Calibrating (the most accurate physically parameterised model
+on data not used to choose it) and naming (which effects the evidence singles out) are two
+decisions:
 
 1. Data check: enough distinct configurations, a measurable noise floor below what any effect
    can change, an error the vocabulary can reach at all. Otherwise the report says that the data
    cannot support a diagnosis and what experiment would (status ``insufficient data``).
-2. Split the data holding out whole sweeps. A data set with a single sweep is cut into 8
-   contiguous blocks, every 4th held out; the report then names the held-out rows (never the
-   sweep as if it were held out) and warns that they are neighbours of training rows. The model
-   is always evaluated on all rows in order (friction depends on the history); only the rows'
-   roles differ.
-3. Evidence from the data alone (:mod:`ctrplan.calibration.evidence`): noise floor, hysteresis,
-   residual harmonics per relative rotation, trend with insertion, rigid-transform test.
-4. Screen every form of every candidate effect not yet in the model (friction: dead band,
-   presliding, lag, relative lag, end moment; clearance: harmonic series in the relative
-   rotation of first / second order, curvature-jump gap): fit its parameters alone on top of the
-   current model (bounded least squares, a few iterations); the ``refit_top`` best (by BIC) are
-   refitted jointly with the effects already added.
-5. A candidate is justified only by BOTH ``BIC_new - BIC_current < -bic_threshold`` (training
-   residuals) AND a held-out mean tip error cut of at least ``min_gain``. The justified candidate
-   with the lowest BIC is added (in the form that won); repeat until nothing is justified.
-6. Honest remainder: when the effects found leave more than ``max_remainder`` of the initial
-   error above the noise floor, no vocabulary form explains the data: nothing is named (the
-   partial fits are listed as such) and ``unexplained`` says what the residual still correlates
-   with and how much is left. ``unexplained`` is also reported (without un-naming) whenever the
-   final residual stays clearly above the noise floor.
+2. Split (:func:`split_three`): fit / validation / test rows. With ``MIN_SWEEPS_WHOLE`` sweeps
+   or more, whole sweeps; with fewer, contiguous blocks of every sweep (named in the report,
+   with a warning that they neighbour fit rows). Parameters are fitted on the fit rows, effects
+   and forms chosen on the validation rows; the test rows choose nothing and give the reported
+   errors. The model is always evaluated on all rows in order (friction depends on the history).
+3. Evidence from the data alone (:mod:`ctrplan.calibration.evidence`).
+4. Forward selection (:func:`_select`): every form of every candidate effect is fitted alone on
+   top of the current model (robust soft-L1 loss, see :meth:`Problem.fit`); the leading ones are
+   refitted jointly with the effects already in. A candidate enters the model when it lowers the
+   BIC and the validation error by ``keep_gain``; it is *named* only when ``dBIC <
+   -bic_threshold``, the validation error drops by ``min_gain`` and by ``MIN_SHARE`` of the base
+   model's validation error.
+5. Joint model (:func:`_joint`): when step 4 leaves more than ``JOINT_TRIGGER`` times the noise,
+   every effect that lowered the BIC in the first screen is fitted jointly (registration,
+   precurvature, stiffness, friction and clearance are often uncertain all at once on a real
+   robot; one at a time none of them helps), then each is dropped in turn: the drop decides
+   whether it stays and whether it is named. The joint model replaces step 4's when it is
+   better on validation.
+6. The chosen model is refitted on fit + validation rows and written as ``calibrated.yaml``
+   whether or not its effects are named (unnamed ones are listed as ``partial``).
+7. Nuisances (:func:`_nuisances`), only after the robot: a drift in time and a tracker-field
+   distortion, claimed only where the data tell them apart from the robot; never in the model.
+8. Honest remainder: when the named effects leave more than ``max_remainder`` of the initial
+   validation error above the noise floor, nothing is named and ``unexplained`` says what the
+   residual still correlates with and how much is left; ``unexplained`` is also reported
+   (without un-naming) whenever the residual stays clearly above the noise floor.
 """
 
 from __future__ import annotations
