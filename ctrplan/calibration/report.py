@@ -120,7 +120,7 @@ def markdown(rep) -> str:
         if s.accepted and s.effect in NUISANCES:
             lines += [f"## Step {k}: the residual follows {NUISANCES[s.effect]} "
                       "(outside the effect vocabulary: not named, not in the calibrated model)", "",
-                      f"Removing it lowers the held-out mean tip error {s.error_before_mm:.3f} -> "
+                      f"Removing it lowers the validation mean tip error {s.error_before_mm:.3f} -> "
                       f"{s.error_after_mm:.3f} mm (ΔBIC {s.delta_bic:.1f}); later steps are "
                       "screened on the data with it removed.", ""]
         elif s.accepted:
@@ -130,8 +130,8 @@ def markdown(rep) -> str:
         else:
             lines += [f"## Step {k}: nothing more justified", ""]
         if s.accepted and s.effect not in NUISANCES:
-            lines += ["| effect | parameter | fitted ± 1 sigma | held-out before (mm) | "
-                      "held-out after (mm) | ΔBIC | held-out gain | runner-up (ΔBIC) |",
+            lines += ["| effect | parameter | fitted ± 1 sigma | validation before (mm) | "
+                      "validation after (mm) | ΔBIC | validation gain | runner-up (ΔBIC) |",
                       "|---|---|---|---|---|---|---|---|"]
             first = True
             for eff, vals in s.parameters.items():
@@ -150,10 +150,10 @@ def markdown(rep) -> str:
                 lines += ["", f"Ambiguous at this step: {s.runner_up} explains the data almost as "
                               "well (ΔBIC within the ambiguity margin)."]
         elif not s.accepted:
-            lines += [f"Best remaining candidate {s.runner_up}: ΔBIC {s.delta_bic:.1f}, held-out "
+            lines += [f"Best remaining candidate {s.runner_up}: ΔBIC {s.delta_bic:.1f}, validation "
                       f"gain {100 * s.heldout_gain:.1f} % — not justified."]
         lines += ["", "Screened candidates (best form of each; `~` = outside the vocabulary):", "",
-                  "| candidate | form | ΔBIC | held-out mean (mm) | justified |",
+                  "| candidate | form | ΔBIC | validation mean (mm) | named-grade |",
                   "|---|---|---|---|---|"]
         for c in s.screened:
             lines.append(f"| {c.effect} | {c.form or '-'} | {c.delta_bic:.1f} | "
