@@ -837,6 +837,10 @@ def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_ga
                                         max(2, screen_iter // 3),
                                         k_total=k_cur + len(names))
         ranked = sorted(results, key=lambda c: results[c].bic())
+        if not current and ("registration", "") in results:
+            # registration is part of the base on a real set-up (the tracker frame is rarely
+            # known): shares are of the error a registered base leaves
+            base_val = min(base_val, results[("registration", "")].test_mean)
         # the screen holds the effects already added fixed; the leading candidates are refitted
         # jointly with them (their parameters may have absorbed part of the new effect)
         if current:
@@ -852,10 +856,10 @@ def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_ga
                     results[key].values, results[key].sigma = _fill_values(results[key], free)
             ranked = sorted(results, key=lambda c: results[c].bic())
 
-        def named_grade(r: FitResult, cur: FitResult = cur) -> bool:
+        def named_grade(r: FitResult, cur: FitResult = cur, ref: float = base_val) -> bool:
             return bool(r.bic() - cur.bic() < -bic_threshold
                         and _gain(cur.test_mean, r.test_mean) >= min_gain
-                        and cur.test_mean - r.test_mean >= MIN_SHARE * base_val)
+                        and cur.test_mean - r.test_mean >= MIN_SHARE * ref)
 
         def keep_grade(r: FitResult, cur: FitResult = cur) -> bool:
             return bool(r.bic() - cur.bic() < 0.0 and _gain(cur.test_mean, r.test_mean) >= keep_gain)
@@ -920,7 +924,8 @@ def _select(prob, robot, base, cands, current, cur, steps, bic_threshold, min_ga
 #: noise floor's mean tip error on the validation rows
 JOINT_TRIGGER = 3.0
 #: an effect is named only when it accounts for at least this share of the base model's
-#: validation mean error (smaller refinements stay in the model, listed as partial)
+#: validation mean error (of the registered base's, when registration alone lowers it; smaller
+#: refinements stay in the model, listed as partial)
 MIN_SHARE = 0.15
 #: effects that switch to a slower kernel (loaded / torsionally compliant): never in the joint
 #: model (it is compared with the one-at-a-time model, which may hold them)
@@ -959,6 +964,9 @@ def _joint(prob, robot, base, cands, steps, bic_threshold, min_gain, keep_gain, 
         forms[c.effect] = lab
     k_all = sum(len(v) for v in free.values())
     base_val = prob.score({}).test_mean
+    reg = first.get("registration")
+    if reg is not None and steps[0].screened and reg.test_mean_mm > 0:
+        base_val = min(base_val, reg.test_mean_mm)
     full = prob.fit(fixed, free, max_iter=2 * fit_iter, k_total=k_all)
     drops: dict[str, FitResult] = {}
     for e in free:
