@@ -407,7 +407,12 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
             settings["greedy_steps"] = [
                 {"effect": st.effect, "form": st.form, "validation_mean_mm": st.error_after_mm}
                 for st in steps if st.accepted]
+            greedy_named = {st.effect for st in steps if st.accepted and st.named}
             current, cur, free, steps[:] = joint
+            for st in steps:
+                # evidence from either test names an effect: alone (one at a time) or
+                # dropped from the joint model
+                st.named = st.named or st.effect in greedy_named
             warnings.append(f"effects one at a time left {greedy_val:.3f} mm on the validation "
                             f"rows; fitted jointly {cur.test_mean:.3f} mm: the joint model is "
                             "used, each effect judged by dropping it from the joint model")
