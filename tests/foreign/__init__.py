@@ -23,7 +23,7 @@ rows without it (design "sweeps", n=1000, seed=1, no noise; measured 2026-11-25)
     friction presliding          1.16 / 3.99        1.53 / 18.10
     precurvature                 2.72 / 7.26        7.48 / 15.94
     stiffness                    2.49 / 4.43        1.18 / 3.22
-    load (gravity, tip force,    3.63 / 11.16       3.69 / 10.24
+    load (gravity, tip force,    3.62 / 11.06       3.64 / 10.05
           filled lumen, tether)
     joint_offset                 3.04 / 4.15        3.97 / 9.67
     registration (+ scale)       5.37 / 7.79        5.33 / 6.87

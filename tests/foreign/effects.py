@@ -75,7 +75,7 @@ load          {"gravity": [gx, gy, gz] m/s^2 in the base frame (default [9.81, 0
               ``density`` or nitinol 6450), "tip_force": [Fx, Fy, Fz] N (default "auto":
               (0, -1e-5 EI_1, 0) N, EI_1 of the innermost tube in N mm^2), "lumen_density":
               kg/m^3 of what fills the innermost tube's lumen (a wire, a fibre, fluid; default
-              5000), "tether": N/mm (default 1.5e-4) and "anchor": [3] mm (default "auto":
+              2500), "tether": N/mm (default 1.5e-4) and "anchor": [3] mm (default "auto":
               (0.15, 0, 1.0) L_1): a cable (the tracker sensor's lead, a tissue attachment)
               pulls the tip toward the anchor with F = tether (anchor - tip) (fixed point in the
               tip), "base_compliance": rad per N mm (default 0): the mount turns the whole
@@ -163,7 +163,7 @@ def defaults(name: str, n: int, spec=None) -> dict:
                 "torsion": _alt(n, 1.0, 0.8, 1.1)}
     if name == "load":
         return {"gravity": [9.81, 0.0, 0.0], "density": None, "tip_force": "auto",
-                "lumen_density": 5000.0, "tether": 1.5e-4, "anchor": "auto", "base_compliance": 0.0}
+                "lumen_density": 2500.0, "tether": 1.5e-4, "anchor": "auto", "base_compliance": 0.0}
     if name == "joint_offset":
         return {"alpha": _alt(n, 0.05, -0.06, 0.04), "beta": _alt(n, -1.5, -1.0, -0.5),
                 "periodic": _alt(n, 0.03, 0.025, 0.02), "periodic_phase": _alt(n, 0.7, 2.1, -1.3),
