@@ -24,8 +24,9 @@ args = parser.parse_args()
 out = Path(args.out or tempfile.mkdtemp(prefix="ctrplan_calibrate_"))
 
 robot = ctrplan.load_robot("seed1")
-# Random back-and-forth trajectories, 4 sweeps (whole sweeps are held out for testing).
-q, sweep = design(robot, ["random_walk"], rows=120 if args.quick else 400, sweeps=4, seed=1)
+# Random back-and-forth trajectories, 4 sweeps (fewer than 8: every sweep is cut into fit,
+# validation and test blocks; with 8 or more, whole sweeps are held out).
+q, sweep = design(robot, ["random_walk"], rows=160 if args.quick else 400, sweeps=4, seed=1)
 hidden = {"clearance": {"length": 20.0, "limit": 0.05}}
 data = simulate(robot, q, hidden, base="rigid", sweep=sweep, noise_mm=0.1, seed=1)
 

@@ -85,7 +85,7 @@ def test_single_sweep_is_not_held_out_while_trained_on(clean):
     train_rows = rep.train_sweeps[0]
     assert rep.test_sweeps[0] != train_rows        # held-out rows are named, and differ
     assert any("one sweep only" in w for w in rep.warnings)
-    assert any("4 separate sweeps" in x for x in rep.experiment)
+    assert any("8 separate sweeps" in x for x in rep.experiment)
     assert rep.to_dict()["split"]["method"].startswith("contiguous blocks")
 
 

@@ -71,6 +71,8 @@ class Problem:
         self.tip = data.tip
         self.use = slice(None) if data.points is not None else slice(1, 2)
         self.evals = 0
+        #: smallest scale (mm per coordinate) of the robust soft-L1 loss; None: least squares
+        self.robust: float | None = None
 
     # -------------------------------------------------------------- predictions
     def predict_many(self, effect_sets: Sequence[Mapping[str, Mapping[str, float]]]) -> list[np.ndarray]:
@@ -200,8 +202,18 @@ class Problem:
             return J
 
         if len(specs):
+            loss, f_scale = "linear", 1.0
+            if self.robust is not None:
+                # why: a scale from the noise floor alone would treat every row as an outlier
+                # while the model is still far off; 3 robust sd of the start residual keeps the
+                # fit least squares for the bulk of the rows and down-weights only the rows far
+                # beyond them (tracker glitches, mis-synchronised samples)
+                r0 = fun(z0)
+                mad = float(np.median(np.abs(r0 - np.median(r0)))) * 1.4826
+                loss, f_scale = "soft_l1", max(float(self.robust), 3.0 * mad)
             res = least_squares(fun, z0, jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0,
-                                max_nfev=max_iter, xtol=1e-6, ftol=1e-6, gtol=1e-8)
+                                max_nfev=max_iter, xtol=1e-6, ftol=1e-6, gtol=1e-8,
+                                loss=loss, f_scale=f_scale)
             z = res.x
             J = res.jac
             nfev = int(res.nfev + res.njev)

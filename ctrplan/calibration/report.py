@@ -62,13 +62,17 @@ def markdown(rep) -> str:
     if rep.experiment:
         lines += ["**What experiment would support a diagnosis:**", ""] + \
             [f"- {w}" for w in rep.experiment] + [""]
-    lines += ["Selection rule: an effect is added only when its BIC change is below "
-              f"-{rep.settings['bic_threshold']:g} (training residuals) AND it lowers the held-out "
-              f"mean tip error by at least {100 * rep.settings['min_heldout_gain']:.0f} %; effects "
-              f"are named only when they leave at most "
-              f"{100 * rep.settings.get('max_remainder', 0.5):.0f} % of the held-out error above "
-              f"the noise floor. Held-out: {', '.join(rep.test_sweeps)} "
-              f"({rep.split.get('method', 'whole sweeps')}).", ""]
+    st = rep.settings
+    lines += ["Selection rule: parameters are fitted on the fit rows; an effect enters the "
+              f"calibrated model when it lowers the BIC and the validation mean tip error by at "
+              f"least {100 * st.get('keep_gain', 0.02):.0f} %; it is NAMED only when its BIC "
+              f"change is below -{st['bic_threshold']:g} AND it lowers the validation error by "
+              f"at least {100 * st['min_heldout_gain']:.0f} %, and the named effects leave at "
+              f"most {100 * st.get('max_remainder', 0.5):.0f} % of the validation error above "
+              "the noise floor. The chosen model is refitted on fit + validation rows; the errors "
+              f"above are on the test rows, which chose nothing: {', '.join(rep.test_sweeps)} "
+              f"({rep.split.get('method', 'whole sweeps')}). Step tables show validation "
+              "errors.", ""]
     lines += _evidence_md(rep)
     if rep.effects:
         lines += ["## Evidence for each named effect", ""]
@@ -95,7 +99,11 @@ def markdown(rep) -> str:
                          f"{o['heldout_mean_mm_once_removed']:.3f} mm.")
         lines.append("")
     if rep.partial:
-        lines += ["Partial fits (not named): " + ", ".join(rep.partial) + ".", ""]
+        lines += ["Partial (in the calibrated model, not named): " + ", ".join(rep.partial)
+                  + ".", ""]
+    for o in getattr(rep, "nuisance_tests", []) or []:
+        lines += [f"Nuisance test {o['kind'].lstrip('~')} (after the robot fit): "
+                  + ("claimed" if o["claimed"] else "not claimed") + f" ({o['why']}).", ""]
     from ctrplan.calibration.diagnose import headline
 
     lr = rep.learned_residual
@@ -112,16 +120,18 @@ def markdown(rep) -> str:
         if s.accepted and s.effect in NUISANCES:
             lines += [f"## Step {k}: the residual follows {NUISANCES[s.effect]} "
                       "(outside the effect vocabulary: not named, not in the calibrated model)", "",
-                      f"Removing it lowers the held-out mean tip error {s.error_before_mm:.3f} -> "
+                      f"Removing it lowers the validation mean tip error {s.error_before_mm:.3f} -> "
                       f"{s.error_after_mm:.3f} mm (ΔBIC {s.delta_bic:.1f}); later steps are "
                       "screened on the data with it removed.", ""]
         elif s.accepted:
-            lines += [f"## Step {k}: {s.effect}" + (f" (form: {s.form})" if s.form else ""), ""]
+            lines += [f"## Step {k}: {s.effect}" + (f" (form: {s.form})" if s.form else "")
+                      + ("" if getattr(s, "named", True) else
+                         " (kept in the model; evidence too weak to name it)"), ""]
         else:
             lines += [f"## Step {k}: nothing more justified", ""]
         if s.accepted and s.effect not in NUISANCES:
-            lines += ["| effect | parameter | fitted ± 1 sigma | held-out before (mm) | "
-                      "held-out after (mm) | ΔBIC | held-out gain | runner-up (ΔBIC) |",
+            lines += ["| effect | parameter | fitted ± 1 sigma | validation before (mm) | "
+                      "validation after (mm) | ΔBIC | validation gain | runner-up (ΔBIC) |",
                       "|---|---|---|---|---|---|---|---|"]
             first = True
             for eff, vals in s.parameters.items():
@@ -140,10 +150,10 @@ def markdown(rep) -> str:
                 lines += ["", f"Ambiguous at this step: {s.runner_up} explains the data almost as "
                               "well (ΔBIC within the ambiguity margin)."]
         elif not s.accepted:
-            lines += [f"Best remaining candidate {s.runner_up}: ΔBIC {s.delta_bic:.1f}, held-out "
+            lines += [f"Best remaining candidate {s.runner_up}: ΔBIC {s.delta_bic:.1f}, validation "
                       f"gain {100 * s.heldout_gain:.1f} % — not justified."]
         lines += ["", "Screened candidates (best form of each; `~` = outside the vocabulary):", "",
-                  "| candidate | form | ΔBIC | held-out mean (mm) | justified |",
+                  "| candidate | form | ΔBIC | validation mean (mm) | named-grade |",
                   "|---|---|---|---|---|"]
         for c in s.screened:
             lines.append(f"| {c.effect} | {c.form or '-'} | {c.delta_bic:.1f} | "

@@ -15,9 +15,12 @@ log = logging.getLogger("ctrplan")
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "diagnose", help="name the effects missing from the model and fit them",
-        description="Compare the mechanics model with measured data, screen the candidate "
-                    "effects, add an effect only when held-out error and BIC justify it, and "
-                    "write report.json, report.md, PNG plots and the calibrated model "
+        description="Compare the mechanics model with measured data: fit the candidate effects "
+                    "on fit sweeps, choose effects and forms on validation sweeps, report the "
+                    "error on test sweeps used for nothing else. calibrated.yaml holds every "
+                    "effect that lowers the validation error; report.json names only those "
+                    "with evidence (BIC and validation error) and lists the rest as partial. "
+                    "Writes report.json, report.md, PNG plots and the calibrated model "
                     "(calibrated.yaml for --model; calibrated_robot.yaml for --robot).")
     add_robot_arg(p)
     p.add_argument("--data", required=True, help="measured CSV (format: docs/conventions.md)")
@@ -26,11 +29,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--effects", default=None,
                    help="comma-separated candidate effects (default: all)")
     p.add_argument("--holdout", type=float, default=0.25,
-                   help="fraction of sweeps held out (default 0.25)")
+                   help="fraction of sweeps held out for test, and as many for validation "
+                        "(default 0.25; fewer than 8 sweeps: blocks of every sweep)")
     p.add_argument("--bic-threshold", type=float, default=10.0,
-                   help="an effect must lower BIC by more than this (default 10)")
+                   help="a named effect must lower BIC by more than this (default 10)")
     p.add_argument("--min-gain", type=float, default=0.05,
-                   help="and cut held-out mean tip error by at least this fraction (default 0.05)")
+                   help="and cut the validation mean tip error by at least this fraction "
+                        "(default 0.05)")
     p.add_argument("--seed", type=int, default=0, help="seed of the sweep split (default 0)")
     p.add_argument("--best", action="store_true",
                    help="also build the best model of the robot: hold out test sweeps (or blocks) "
@@ -83,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
                       "error_after_mm": round(rep.error_after_mm, 4),
                       "max_before_mm": round(rep.max_before_mm, 4),
                       "max_after_mm": round(rep.max_after_mm, 4),
+                      "partial": rep.partial,
                       "unexplained": rep.unexplained is not None, "warnings": rep.warnings,
                       "out": str(args.out), **extra}))
     return 0
