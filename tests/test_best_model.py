@@ -99,7 +99,7 @@ def test_a_learned_residual_takes_up_an_effect_outside_the_fitted_families(best_
     assert model.base_spec["kind"] == "effect" and "precurvature" in model.base.effects
 
 
-def test_best_with_tip_only_data_writes_no_profile(tmp_path):
+def test_best_with_tip_only_data_extends_the_tip_bound(tmp_path):
     from ctrplan.calibration.best import best_model
     from ctrplan.measured import MeasuredData
     from tests.foreign import generate
@@ -114,7 +114,12 @@ def test_best_with_tip_only_data_writes_no_profile(tmp_path):
     assert set(table["candidates"]) == {"nominal", "calibrated", "calibrated+learned"}
     assert all("error_profile" not in v for v in table["candidates"].values())
     best = load_model(str(tmp_path / table["files"]["best_model"]), "seed1")
-    assert best.error_profile is None
+    # no measured profile: the tip bound extended along the shaft (bound x arc-length fraction)
+    prof = best.error_profile
+    eq = best.error_quantiles
+    assert prof["fractions"][0] == 0.0 and prof["fractions"][-1] == 1.0
+    for k in ("p50", "p95", "p99", "max"):
+        np.testing.assert_allclose(prof[k], np.asarray(prof["fractions"]) * eq[k], rtol=1e-9)
     test = np.asarray(table["split"]["test_row_indices"])
     assert set(np.asarray(d.sweep)[test]) == set(table["split"]["test_sweeps"])
     # tip deviations recomputed with the generator's own directions of motion (rows in order)

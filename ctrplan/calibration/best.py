@@ -368,13 +368,19 @@ def _attach_bound(model: Any, row: dict[str, Any], shapes: bool, split: dict[str
     prof = row.get("error_profile") if shapes else None
     src = {"part": "best-model test rows (" + split["method"] + ")",
            "rows": row["rows"], "metric": METRIC}
+    extended = False
+    if not prof and eq:   # tip-only: the bound along the shaft by the documented extension rule
+        from ctrplan.shape.error_bounds import extend_tip_bound
+
+        prof, extended = extend_tip_bound(eq).to_dict(), True
     model.error_profile = dict(prof) if prof else None
     if hasattr(model, "meta"):                    # learned model: where the numbers come from
         model.meta["error_quantiles_source"] = src
         model.meta.pop("error_profile_source", None)
         if prof:
-            model.meta["error_profile_source"] = {**src, "metric": "distance of the backbone point "
-                                                  "at each arc-length fraction, mm"}
+            model.meta["error_profile_source"] = {**src, "metric": (
+                "tip bound x arc-length fraction (error_bounds.extend_tip_bound)" if extended else
+                "distance of the backbone point at each arc-length fraction, mm")}
 
 
 def _write(res: BestResult, models: dict[str, Any], out: Path) -> None:

@@ -159,9 +159,15 @@ class DiagnoseReport:
     nuisance_tests: list = field(default_factory=list)
 
     def model(self) -> EffectModel:
-        """The calibrated shape model (with its held-out error quantiles)."""
+        """The calibrated shape model with its held-out error quantiles (tip error on the test
+        rows) and the error profile along the shaft they imply
+        (:func:`ctrplan.shape.error_bounds.extend_tip_bound`: tip bound x arc-length fraction),
+        which ``--margin auto`` pads each capsule with."""
+        from ctrplan.shape.error_bounds import extend_tip_bound
+
+        prof = extend_tip_bound(self.error_quantiles).to_dict() if self.error_quantiles else None
         return EffectModel(self.robot, self.base, self.model_effects,
-                           error_quantiles=self.error_quantiles)
+                           error_quantiles=self.error_quantiles, error_profile=prof)
 
     def headline(self) -> str:
         """One line: held-out mean AND max tip error before -> after, each judged honestly."""
