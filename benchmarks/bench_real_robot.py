@@ -32,6 +32,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -145,7 +146,8 @@ def replay(scene: str, path: np.ndarray, target: np.ndarray, effects: dict) -> d
             "tip_error_truth_mm": float(np.linalg.norm(rep.tip[-1] - target))}
 
 
-def plan_flow(flow: str, model, margin, targets: int, time_limit: float, effects: dict) -> list[dict]:
+def plan_flow(flow: str, model, margin, targets: int, time_limit: float, effects: dict,
+              objective: str | None = None) -> list[dict]:
     from ctrplan.planning import PlanConfig, plan_to_target
     from ctrplan.planning.plan import scene_by_name
 
@@ -154,12 +156,15 @@ def plan_flow(flow: str, model, margin, targets: int, time_limit: float, effects
         sc = scene_by_name(s)
         for t in sc.targets[:targets]:
             cfg = PlanConfig() if margin == "default" else PlanConfig(margin_mm=margin)
+            if objective is not None:
+                cfg = replace(cfg, objective=objective)
             r = plan_to_target(ROBOT, sc, t.position, model=model, time_limit=time_limit, seed=0,
                                config=cfg)
             row = {"flow": flow, "scene": s, "target": t.name, "success": bool(r.success),
                    "status": r.status.value, "planning_time_s": r.planning_time_s,
                    "time_cap_hit": bool(r.time_cap_hit), "margin_mm": r.margin_mm,
-                   "min_clearance_planning_mm": r.min_clearance_mm if r.success else None}
+                   "min_clearance_planning_mm": r.min_clearance_mm if r.success else None,
+                   "goal_shift_mm": float(r.goal_shift_mm)}
             if r.success:
                 row.update(replay(s, r.path, np.asarray(t.position, float), effects))
             rows.append(row)
@@ -191,17 +196,28 @@ def default_allowed() -> float:
 
 def verdicts(res: dict) -> dict:
     th = THRESHOLDS
-    c, d = res["calibrated"]["summary"], res["default"]["summary"]
+    c = res["calibrated"]["summary"]
     med = c["tip_error_truth_median_mm"]
     return {
         "calibrated_success": c["success_rate"] >= th["calibrated_success_min"],
         "calibrated_no_penetration": c["penetrating_states"] <= th["calibrated_penetrating_max"],
         "calibrated_tip_error": med is not None and med <= th["calibrated_tip_error_median_max_mm"],
-        "default_penetration_reduced": d["contact_fraction"] <= default_allowed(),
+        "default_penetration_reduced": default_reduced(res),
     }
 
 
-def run(seed: int = 1, time_limit: float = 10.0, targets: int = 3, flows=("calibrated", "default"),
+def default_reduced(res: dict) -> bool:
+    """The default flow's states in contact with the truth are at most (1 - 0.9) x those of the
+    margin-0 first-solution plans to the same targets in the same run (``first`` flow); without
+    that flow, against the issue's measured share (44 of 913)."""
+    d = res["default"]["summary"]
+    if "first" in res:
+        return d["contact_states"] <= (1 - THRESHOLDS["default_reduction_min"]) * \
+            res["first"]["summary"]["contact_states"]
+    return d["contact_fraction"] <= default_allowed()
+
+
+def run(seed: int = 1, time_limit: float = 10.0, targets: int = 3, flows=("calibrated", "default", "first"),
         out: Path | None = OUT) -> dict:
     import numba
 
@@ -223,6 +239,9 @@ def run(seed: int = 1, time_limit: float = 10.0, targets: int = 3, flows=("calib
         if "default" in flows:
             rows = plan_flow("default", "physics", "default", targets, time_limit, effects)
             res["default"] = {"plans": rows, "summary": summary(rows)}
+        if "first" in flows:   # the baseline: margin 0, first solution (before issue 18)
+            rows = plan_flow("first", "physics", 0.0, targets, time_limit, effects, objective="first")
+            res["first"] = {"plans": rows, "summary": summary(rows)}
     if "calibrated" in res and "default" in res:
         res["verdicts"] = verdicts(res)
     res["wall_s"] = time.perf_counter() - t0

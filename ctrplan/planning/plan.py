@@ -993,7 +993,11 @@ def _profile(run: _Run, path: np.ndarray, out_q: np.ndarray, seg: np.ndarray) ->
         joins = np.flatnonzero(np.r_[False, seg[1:] != seg[:-1]])
         direction[joins] = 0        # a waypoint joins two edges: both directions checked
     profile = _state_clearance(run.validator, _opt.FieldClearance(run.world), out_q, direction)
-    profile = profile + run.margin_mm
+    from ctrplan.shape.error_bounds import margin_least
+
+    # measured with capsules grown by the margin: add back the smallest margin along the shaft
+    # (the whole margin where it is uniform), which keeps it a clearance of the tube itself
+    profile = profile + margin_least(run.margin_mm)
     if run.cfg.objective == "clearance":
         value = _opt.clearance_integral(profile, out_q, n, w)
     elif run.cfg.objective == "length":
