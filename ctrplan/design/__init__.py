@@ -28,11 +28,17 @@ from pathlib import Path
 
 import numpy as np
 
-from ctrplan.design.space import DEFAULT_STRAIN_LIMIT, Bounds, constraint_report, load_stock, make_space
+from ctrplan.design.space import (
+    DEFAULT_STRAIN_LIMIT,
+    Bounds,
+    constraint_report,
+    load_stock,
+    make_space,
+)
 from ctrplan.errors import InputError
 from ctrplan.robot import Robot
 
-__all__ = ["DesignConfig", "DesignResult", "DesignStatus", "TargetOutcome", "design", "resolve_scene",
+__all__ = ["DEFAULT_STRAIN_LIMIT", "Bounds", "DesignConfig", "DesignResult", "DesignStatus", "TargetOutcome", "design", "resolve_scene",
            "resolve_targets"]
 
 
@@ -55,7 +61,8 @@ class DesignConfig:
     time_limit : wall-clock cap (s); ``time_cap_hit`` when it stopped the search.
     workers : local worker processes (results do not depend on it).
     generation : designs per generation (fixed, so results do not depend on ``workers``).
-    patience : generations without improvement before stopping once every target is reached.
+    patience : generations without improvement before stopping once every target is reached
+        with at least ``clearance_goal_mm`` of clearance.
     bounds : design-variable bounds and constraint limits (:class:`~ctrplan.design.space.Bounds`;
         ``strain_limit`` default 6 %, see :data:`~ctrplan.design.space.DEFAULT_STRAIN_LIMIT`).
     stock : a CSV of stock tube sizes (od_mm,id_mm), None for the shipped table.
@@ -74,6 +81,7 @@ class DesignConfig:
     workers: int = 1
     generation: int = 8
     patience: int = 3
+    clearance_goal_mm: float = 0.5
     bounds: Bounds = field(default_factory=Bounds)
     stock: str | None = None
     margin_mm: float | None = None
@@ -244,7 +252,7 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
         state_path.parent.mkdir(parents=True, exist_ok=True)
     bar = _progress.bar(total=cfg.budget, desc="design", unit="design", disable=not progress)
     search = Search(space, str(sc.path), pts, settings, cfg.seed, cfg.budget, plan_budget,
-                    cfg.generation, cfg.patience, cfg.time_limit, state_path,
+                    cfg.generation, cfg.patience, cfg.time_limit, state_path, cfg.clearance_goal_mm,
                     _state_key(sc, names, pts, cfg, fixed), progress=bar.update)
     try:
         search.run(cfg.workers)
@@ -296,5 +304,3 @@ class _CallableModule(types.ModuleType):
 
 
 sys.modules[__name__].__class__ = _CallableModule
-
-DEFAULT_STRAIN_LIMIT = DEFAULT_STRAIN_LIMIT

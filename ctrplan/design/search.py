@@ -80,7 +80,7 @@ class Search:
 
     def __init__(self, space: Space, scene_spec, targets: np.ndarray, settings: EvalSettings,
                  seed: int, budget: int, plan_budget: int, generation: int, patience: int,
-                 time_limit: float, state_path: Path | None, state_key: str,
+                 time_limit: float, state_path: Path | None, clearance_goal_mm: float, state_key: str,
                  progress: Callable[[int], None] | None = None):
         self.space = space
         self.scene_spec = scene_spec
@@ -94,6 +94,7 @@ class Search:
         self.time_limit = float(time_limit)
         self.state_path = state_path
         self.state_key = state_key
+        self.clearance_goal = float(clearance_goal_mm)
         self.progress = progress
         self.cache: dict[str, dict] = {}
         self.evaluations: list[dict] = []
@@ -272,7 +273,8 @@ class Search:
                     sigma = max(0.01, sigma * 0.7)
                 if not self.space.k_max:
                     break                       # nothing to design: the --from robot as it is
-                if best_score is not None and best_score[0] == T and stale >= self.patience:
+                if (best_score is not None and best_score[0] == T and best_score[1] >= self.clearance_goal
+                        and stale >= self.patience):
                     break
 
     def best(self) -> dict | None:
