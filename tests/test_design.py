@@ -222,3 +222,33 @@ def test_default_design_on_design_bend(tmp_path, capsys):
     target = ",".join(str(v) for v in doc["targets"][0]["position"])
     assert main(["-q", "plan", "--scene", scene.path, "--robot", str(out / "robot.yaml"),
                  "--target", target, "--out", str(tmp_path / "p.json")]) == 0
+
+
+@pytest.mark.statistical
+def test_interrupted_search_resumes_to_the_same_design(quick, tmp_path, monkeypatch):
+    """Ctrl-C after the first generation: the state file keeps it; the rerun evaluates only
+    what is left and ends with the same design as the uninterrupted run."""
+    from ctrplan import progress
+
+    _, out = quick
+    real = progress.bar
+
+    class Stop:
+        def __init__(self, *a, **k):
+            self.inner = real(*a, **k)
+
+        def update(self, n):
+            raise KeyboardInterrupt
+
+        def close(self):
+            self.inner.close()
+
+    monkeypatch.setattr(progress, "bar", Stop)
+    with pytest.raises(KeyboardInterrupt):
+        design("design_bend", NAMES, QUICK, out=tmp_path / "d")
+    monkeypatch.setattr(progress, "bar", real)
+    assert (tmp_path / "d" / "state.json").is_file()
+    again = design("design_bend", NAMES, QUICK, out=tmp_path / "d", progress=False)
+    assert again.counts["resumed"] >= QUICK.generation
+    again.robot.save(tmp_path / "r.yaml")
+    assert (tmp_path / "r.yaml").read_bytes() == (out / "robot.yaml").read_bytes()
