@@ -24,7 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--from", dest="start_from", default=None, metavar="ROBOT",
                    help="keep this robot's tubes (outermost) and design tubes inside them")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--budget", type=int, default=120, help="designs screened (default 120)")
+    p.add_argument("--budget", type=int, default=400,
+                   help="designs screened (default 400; at most 24 of them are planned in full)")
     p.add_argument("--time", type=float, default=1200.0, help="wall-clock cap, s (default 1200)")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
     p.add_argument("--strain-limit", type=float, default=None,
@@ -85,5 +86,6 @@ def run(args: argparse.Namespace) -> int:
     for t in result.targets:
         c = f"{t.clearance_mm:.2f} mm" if t.reached else "-"
         print(f"  {t.name}: {'reached' if t.reached else t.status}, clearance {c}")
-    print(f"wrote {out / 'robot.yaml'}, {out / 'design.json'} and {out / 'report.md'}")
+    written = ([out / "robot.yaml"] if result.robot is not None else []) + [out / "design.json", out / "report.md"]
+    print("wrote " + ", ".join(str(p) for p in written))
     return 0 if result.success else 1

@@ -57,7 +57,7 @@ class DesignConfig:
     tubes : the largest number of tubes (1-3; designs with fewer are tried and preferred).
     seed : seeds the search and every plan (same seed, same design).
     budget : designs screened (a count); plan_budget : designs planned in full (None:
-        max(4, budget // 6)).
+        max(4, min(24, budget // 6))).
     time_limit : wall-clock cap (s); ``time_cap_hit`` when it stopped the search.
     workers : local worker processes (results do not depend on it).
     generation : designs per generation (fixed, so results do not depend on ``workers``).
@@ -75,7 +75,7 @@ class DesignConfig:
 
     tubes: int = 2
     seed: int = 0
-    budget: int = 120
+    budget: int = 400
     plan_budget: int | None = None
     time_limit: float = 1200.0
     workers: int = 1
@@ -245,8 +245,8 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
                             margin_mm=cfg.margin_mm, plan_time_s=cfg.plan_time_s,
                             plan_states=cfg.plan_states, stability_step_mm=cfg.stability_step_mm,
                             stability_step_rad=cfg.stability_step_rad, curvature_bound=float(kbound),
-                            screen_tolerance_mm=max(2.0, 2 * cfg.tolerance_mm))
-    plan_budget = cfg.plan_budget or max(4, cfg.budget // 6)
+                            screen_tolerance_mm=cfg.tolerance_mm)
+    plan_budget = cfg.plan_budget or max(4, min(24, cfg.budget // 6))
     state_path = Path(out) / STATE_FILE if out is not None else None
     if state_path is not None:
         state_path.parent.mkdir(parents=True, exist_ok=True)

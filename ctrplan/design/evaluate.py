@@ -77,7 +77,8 @@ def _shape(model, q, points):
 def screen(robot: Robot, scene, world, targets_base: np.ndarray, settings: EvalSettings,
            seed: int) -> dict:
     """Stages 1-3. Returns ``entry_ok``, ``errors`` (T,) mm (None: nothing free near),
-    ``passed`` (T,) bool and ``timings``."""
+    ``passed`` (T,) bool, ``goal_clearance_mm`` (T,) (the largest conservative clearance of a
+    collision-free IK goal within tolerance; None where none) and ``timings``."""
     from ctrplan.planning.ik import IKConfig, solve_ik
     from ctrplan.shape.physics import PhysicsModel
 
@@ -91,7 +92,8 @@ def screen(robot: Robot, scene, world, targets_base: np.ndarray, settings: EvalS
     free0 = ~world.collides(_shape(model, rots, settings.screen_points))
     timings["screen_entry"] = time.perf_counter() - t0
     if not free0.any():
-        return {"entry_ok": False, "errors": [None] * T, "passed": [False] * T, "timings": timings}
+        return {"entry_ok": False, "errors": [None] * T, "passed": [False] * T,
+                "goal_clearance_mm": [None] * T, "timings": timings}
     t1 = time.perf_counter()
     q = robot.sample(settings.screen_samples, seed=seed)
     sh = _shape(model, q, settings.screen_points)
@@ -100,6 +102,7 @@ def screen(robot: Robot, scene, world, targets_base: np.ndarray, settings: EvalS
     timings["screen_sample"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     errors = np.full(T, math.inf)
+    goal_clear = np.full(T, math.nan)
     pool = np.flatnonzero(free) if free.any() else np.arange(len(q))
     cfg = IKConfig(max_iter=15)
     for j in range(T):
@@ -109,16 +112,23 @@ def screen(robot: Robot, scene, world, targets_base: np.ndarray, settings: EvalS
         ok = np.isfinite(res.error_mm)
         if ok.any():
             sol = res.q[ok]
-            fr = ~world.collides(_shape(model, sol, settings.screen_points))
+            rep = world.check(_shape(model, sol, settings.screen_points))
+            fr = ~rep.collides
             err = res.error_mm[ok][fr]
             if len(err):
                 errors[j] = float(err.min())
+                # clearance at the goals that reach (a bound the whole path cannot beat)
+                within = err <= settings.screen_tolerance_mm
+                if within.any():
+                    goal_clear[j] = float(np.max(np.asarray(rep.clearance_mm)[fr][within]))
         if not math.isfinite(errors[j]) and free.any():
             # no free IK solution: the free sampled tip workspace's distance (a smooth signal)
             errors[j] = float(d.min()) + 10.0
     timings["screen_ik"] = time.perf_counter() - t2
     return {"entry_ok": True, "errors": [float(e) if math.isfinite(e) else None for e in errors],
-            "passed": (errors <= settings.screen_tolerance_mm).tolist(), "timings": timings}
+            "passed": (errors <= settings.screen_tolerance_mm).tolist(),
+            "goal_clearance_mm": [float(c) if math.isfinite(c) else None for c in goal_clear],
+            "timings": timings}
 
 
 def dense_path(path: np.ndarray, n: int, step_mm: float, step_rad: float) -> np.ndarray:

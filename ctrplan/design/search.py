@@ -56,6 +56,11 @@ class Runner:
 
     def __exit__(self, *exc) -> None:
         if self._ex is not None:
+            if exc[0] is not None:
+                # Ctrl-C or an error: stop every worker now, not after its current design
+                # (the executor keeps its processes in a private dict; nothing public does this)
+                for proc in list(getattr(self._ex, "_processes", {}).values()):
+                    proc.terminate()
             self._ex.shutdown(wait=exc[0] is None, cancel_futures=True)
             self._ex = None
 
@@ -69,10 +74,9 @@ class Runner:
 
 def _worker_init() -> None:
     import os
-    import signal
 
+    # one intra-op thread per worker (before torch is imported): the pool is the parallelism
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    signal.signal(signal.SIGINT, signal.SIG_IGN)   # the parent handles Ctrl-C and stops the pool
 
 
 class Search:
@@ -141,7 +145,7 @@ class Search:
         if ev.get("robot") is None or not ev.get("entry_ok", False):
             return (-1, 0.0, -math.inf, 0.0)
         count = ev["reached"] if ev.get("planned") else ev["screen_passed"]
-        clear = ev.get("clearance_bin", 0.0) if ev.get("planned") else 0.0
+        clear = ev.get("clearance_bin", 0.0) if ev.get("planned") else ev.get("goal_clearance_bin", 0.0)
         return (count, clear, -ev["screen_error"], -ev["simplicity"][1])
 
     @staticmethod
@@ -188,6 +192,9 @@ class Search:
             ev["screen_passed"] = int(np.sum(s["passed"]))
             ev["screen_errors"] = [None if not math.isfinite(e) else float(e) for e in errs]
             ev["screen_error"] = float(np.sum(np.minimum(errs, 100.0)))
+            gc = [c for c, p in zip(s.get("goal_clearance_mm", []), s["passed"]) if p and c is not None]
+            # optimistic: the goals' clearance bounds the plans' (planned designs use their own)
+            ev["goal_clearance_bin"] = float(math.floor(min(gc) / 0.25) * 0.25) if gc else 0.0
         return evs
 
     def _plan_promising(self, runner: Runner, evs: list[dict]) -> None:
@@ -235,6 +242,7 @@ class Search:
         sigma = 0.15
         stale = 0
         best_score = None
+        best_key = None
         T = len(self.targets)
         with Runner(workers) as runner:
             while len(self.evaluations) < self.budget:
@@ -267,10 +275,14 @@ class Search:
                 if cur is not None and (best_score is None or cur > best_score):
                     best_score = cur
                     stale = 0
-                    sigma = min(0.3, sigma * 1.3)
                 else:
                     stale += 1
-                    sigma = max(0.01, sigma * 0.7)
+                # step size (1/5 success rule): grow when more than a fifth of the children
+                # beat the best design before this generation, shrink otherwise
+                if len(self.evaluations) > n_init and best_key is not None:
+                    wins = sum(self.search_key(e) > best_key for e in evs)
+                    sigma = min(0.3, sigma * 1.5) if wins > 0.2 * len(evs) else max(0.005, sigma * 0.7)
+                best_key = max(self.search_key(e) for e in self.evaluations)
                 if not self.space.k_max:
                     break                       # nothing to design: the --from robot as it is
                 if (best_score is not None and best_score[0] == T and best_score[1] >= self.clearance_goal
