@@ -27,7 +27,7 @@ from ctrplan.design import Bounds, DesignConfig, design  # noqa: E402
 TARGETS = "t01,t02,t03,t04,t05,t06"
 
 
-def run(budget: int = 24) -> dict:
+def run(budget: int = 96) -> dict:
     cfg = DesignConfig(tubes=1, budget=budget, generation=8,
                        bounds=Bounds(curvature=(0.0, 0.06), curved_length=(10.0, 100.0),
                                      straight_length=(20.0, 120.0)))
@@ -54,7 +54,7 @@ def run(budget: int = 24) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--budget", type=int, default=24)
+    ap.add_argument("--budget", type=int, default=96)
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "design.json"))
     args = ap.parse_args(argv)
     res = run(args.budget)

@@ -209,17 +209,32 @@ class Search:
             if len(chosen) >= 2:     # at most two planned designs per generation
                 break
             chosen.append(e)
-        jobs, need = [], []
+        # one job per (design, target): the pool plans the targets of a design side by side
+        jobs, owners = [], []
         for e in chosen:
             c = self.cache[e["key"]]
             if "plans" in c:
                 self.resumed += 1
                 continue
             todo = [j for j, p in enumerate(c["screen"]["passed"]) if p]
-            jobs.append(self._job(decode(self.space, e["k"], np.array(e["u"])), "plan", todo))
-            need.append(e)
-        for e, res in zip(need, runner.map(jobs)):
-            self.cache[e["key"]]["plans"] = res
+            dec = decode(self.space, e["k"], np.array(e["u"]))
+            for j in todo or [None]:
+                jobs.append(self._job(dec, "plan", [] if j is None else [j]))
+                owners.append(e)
+        merged: dict[str, dict] = {}
+        for e, job, res in zip(owners, jobs, runner.map(jobs)):
+            m = merged.get(e["key"])
+            if m is None:
+                merged[e["key"]] = res
+                continue
+            for j in job["todo"]:
+                for k in ("status", "reached", "clearance_mm", "tip_error_mm", "stable"):
+                    m[k][j] = res[k][j]
+            m["stability_states"] += res["stability_states"]
+            for k, v in res["timings"].items():
+                m["timings"][k] = m["timings"].get(k, 0.0) + v
+        for key, res in merged.items():
+            self.cache[key]["plans"] = res
             for k, v in res["timings"].items():
                 self.timings[k] = self.timings.get(k, 0.0) + v
         for e in chosen:
