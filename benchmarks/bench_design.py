@@ -41,7 +41,7 @@ def run(budget: int = 96) -> dict:
         stages = {k: v for k, v in r.timings.items() if k != "total"}
         total_stage = sum(stages.values())
         out["runs"][str(workers)] = {
-            "wall_s": wall, "evaluations": r.counts["evaluations"], "planned": r.counts["planned"],
+            "wall_s": wall, "load_average_1min_after": os.getloadavg()[0], "evaluations": r.counts["evaluations"], "planned": r.counts["planned"],
             "evaluations_per_s": r.counts["evaluations"] / wall, "reached": r.reached,
             "stage_s": stages, "stage_share": {k: v / total_stage for k, v in stages.items()},
         }
