@@ -226,7 +226,8 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
     """
     from ctrplan import progress as _progress
     from ctrplan.design.evaluate import EvalSettings, plans
-    from ctrplan.design.search import STATE_FILE, Search, decode
+    from ctrplan.design.search import STATE_FILE, Search
+    from ctrplan.design.space import decode
     from ctrplan.robot import load_robot
 
     cfg = config or DesignConfig()
@@ -265,7 +266,7 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
     constraints: dict = {}
     t_final = time.perf_counter()
     if best is not None:
-        robot = decode(space, best["k"], np.array(best["u"]), name="design").robot
+        robot = decode(space, best["k"], np.array(best["u"]), name=f"design_{sc.name}").robot
         todo = list(range(len(pts)))
         res = plans(robot, sc, pts, todo, settings, cfg.seed, keep=True)
         for j, n in enumerate(names):
@@ -288,8 +289,14 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
     timings["total"] = time.perf_counter() - t0
     counts = {"evaluations": len(search.evaluations), "planned": search.planned,
               "resumed": search.resumed, "targets": len(pts)}
-    msg = (f"{reached}/{len(pts)} targets reached" + (f" by a {robot.n}-tube design" if robot else
-                                                      ": no feasible design found"))
+    if robot is not None:
+        msg = f"{reached}/{len(pts)} targets reached by a {robot.n}-tube design"
+    else:
+        from collections import Counter
+
+        why = Counter(b for e in search.evaluations for b in set(e["binding"])).most_common(2)
+        msg = (f"0/{len(pts)} targets reached: no design passed the screen"
+               + (f" (most often bound by: {', '.join(k for k, _ in why)})" if why else ""))
     return DesignResult(success=status is DesignStatus.ALL_REACHED, status=status, message=msg,
                         robot=robot, targets=tuple(outcomes), evaluations=tuple(search.evaluations),
                         binding=binding, constraints=constraints, timings=timings, counts=counts,

@@ -69,8 +69,7 @@ def context(scene_spec, settings: EvalSettings):
 
 
 def _shape(model, q, points):
-    from ctrplan.shape.physics import PhysicsModel  # noqa: F401  (model is one)
-
+    """Backbones of configurations q (B, 2n) in one batched physics call."""
     return model.shape(np.atleast_2d(q), points=points)
 
 

@@ -265,6 +265,8 @@ class Search:
                     self.time_cap_hit = True
                     break
                 m = min(self.generation, self.budget - len(self.evaluations))
+                if not self.space.k_max:
+                    m = 1                       # nothing to design: the --from robot as it is
                 if len(self.evaluations) < n_init or not self.space.k_max:
                     cands = [self._random(rng) for _ in range(m)]
                 else:
@@ -299,7 +301,7 @@ class Search:
                     sigma = min(0.3, sigma * 1.5) if wins > 0.2 * len(evs) else max(0.005, sigma * 0.7)
                 best_key = max(self.search_key(e) for e in self.evaluations)
                 if not self.space.k_max:
-                    break                       # nothing to design: the --from robot as it is
+                    break
                 if (best_score is not None and best_score[0] == T and best_score[1] >= self.clearance_goal
                         and stale >= self.patience):
                     break
