@@ -252,3 +252,17 @@ def test_interrupted_search_resumes_to_the_same_design(quick, tmp_path, monkeypa
     assert again.counts["resumed"] >= QUICK.generation
     again.robot.save(tmp_path / "r.yaml")
     assert (tmp_path / "r.yaml").read_bytes() == (out / "robot.yaml").read_bytes()
+
+
+def test_stability_check_rejects_a_snapping_path():
+    """two_tube_nylon with deep overlap of the curved sections: rotating the inner tube through
+    180 deg passes states with two stable equilibria (the snap; tests/test_stability.py shows
+    the untwisted 180 deg state is unstable under an independent energy oracle), while inserting
+    with the curvatures aligned is stable throughout."""
+    from ctrplan.design.evaluate import EvalSettings, stable_along
+
+    rb = load_robot("two_tube_nylon")
+    s = EvalSettings()
+    assert not stable_along(rb, np.array([[0.0, 0, -150, -60], [math.pi, 0, -150, -60]]), s)[0]
+    ok, states = stable_along(rb, np.array([[0.3, 0.3, -150, -60], [0.3, 0.3, -100, -20]]), s)
+    assert ok and states >= 40          # interpolated at 1 mm: 40 mm of insertion
