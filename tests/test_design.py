@@ -266,3 +266,35 @@ def test_stability_check_rejects_a_snapping_path():
     assert not stable_along(rb, np.array([[0.0, 0, -150, -60], [math.pi, 0, -150, -60]]), s)[0]
     ok, states = stable_along(rb, np.array([[0.3, 0.3, -150, -60], [0.3, 0.3, -100, -20]]), s)
     assert ok and states >= 40          # interpolated at 1 mm: 40 mm of insertion
+
+
+def test_every_decoded_design_meets_the_hard_constraints_by_hand():
+    """200 random points of the design space (1-3 tubes): each robot decoded satisfies strain,
+    nesting gap, length and stroke limits computed here from its tube values, and a repair
+    that hits a limit is named (strain: curvature exactly at limit / (od / 2))."""
+    from ctrplan.design.space import Bounds, decode, load_stock, make_space
+
+    b = Bounds(strain_limit=0.05, min_gap_mm=0.1, max_length_mm=300.0, max_stroke_mm=200.0)
+    stock = load_stock()
+    rng = np.random.default_rng(3)
+    named = set()
+    for tubes in (1, 2, 3):
+        space = make_space(b, stock, (), tubes)
+        for _ in range(70):
+            k = int(rng.integers(1, tubes + 1))
+            dec = decode(space, k, rng.uniform(size=space.dim))
+            named |= set(dec.binding)
+            if dec.robot is None:
+                continue
+            t = dec.robot.tubes
+            assert len(t) == k
+            for x in t:
+                assert x.od / 2 * x.curvature <= 0.05 + 1e-9
+                assert x.straight_length + x.curved_length <= 300.0 + 1e-6
+                assert x.straight_length <= 200.0 + 1e-9
+                assert (x.od, x.id) in stock
+                if "strain" in dec.binding and abs(x.od / 2 * x.curvature - 0.05) < 1e-6:
+                    named.add("strain-at-limit")
+            for a, c in zip(t[:-1], t[1:]):
+                assert (c.id - a.od) / 2 >= 0.1 - 1e-12
+    assert {"strain", "strain-at-limit", "stroke"} <= named

@@ -216,8 +216,9 @@ def decode(space: Space, k: int, u: np.ndarray, name: str = "design") -> Decoded
             binding.append("length")
             if curved < b.curved_length[0]:
                 return Decoded(None, ("joints", "length"), {"tubes": k})
+        # values rounded for robot.yaml; curvature rounded down so the strain limit still holds
         tubes.insert(0, Tube(od=float(od), id=float(id_), straight_length=float(round(straight, 3)),
-                             curved_length=float(round(curved, 3)), curvature=float(round(kappa, 7)),
+                             curved_length=float(round(curved, 3)), curvature=math.floor(kappa * 1e7) / 1e7,
                              youngs_modulus=NITINOL_E_MPA, poisson_ratio=NITINOL_POISSON))
         outer_len, outer_straight = tubes[0].length, tubes[0].straight_length
     all_tubes = tuple(tubes) + space.fixed
