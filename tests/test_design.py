@@ -159,6 +159,9 @@ def test_quick_design_reaches_every_target_within_the_constraints(quick):
     assert doc["reached"] == len(DEPTHS) and len(doc["evaluations"]) == result.counts["evaluations"]
     assert all((out / t["path_file"]).is_file() for t in doc["targets"])
     assert (out / "coverage.png").read_bytes()[:4] == b"\x89PNG"
+    assert (out / "paths.png").read_bytes()[:4] == b"\x89PNG" and (out / "paths.html").is_file()
+    plan = __import__("json").loads((out / doc["targets"][0]["path_file"]).read_text())
+    assert load_robot(plan["robot"]) == load_robot(out / "robot.yaml")
 
 
 def test_rerun_resumes_from_the_state_file_with_the_same_design(quick, tmp_path):
@@ -222,6 +225,7 @@ def test_default_design_on_design_bend(tmp_path, capsys):
     target = ",".join(str(v) for v in doc["targets"][0]["position"])
     assert main(["-q", "plan", "--scene", scene.path, "--robot", str(out / "robot.yaml"),
                  "--target", target, "--out", str(tmp_path / "p.json")]) == 0
+    assert main(["-q", "view", str(out / reached[0]["path_file"]), "--out", str(tmp_path / "v.png")]) == 0
 
 
 @pytest.mark.statistical

@@ -92,7 +92,7 @@ def write_outputs(result, out: str | Path) -> list[Path]:
             if t.plan is None:
                 continue
             doc = t.plan.to_json()
-            doc["robot"] = "robot.yaml"
+            doc["robot"] = str((out / "robot.yaml").resolve())   # `ctrplan view` loads it
             doc["robot_spec"] = result.robot.to_dict()
             doc["target_name"] = t.name
             doc["stable"] = bool(t.reached) if t.status != "UNSTABLE" else False
@@ -102,11 +102,31 @@ def write_outputs(result, out: str | Path) -> list[Path]:
     png = out / "coverage.png"
     _plot(result, png)
     written.append(png)
+    written += _scene_views(result, out)
     write_json_atomic(out / "design.json", design_json(result))
     written.append(out / "design.json")
     write_text_atomic(out / "report.md", report_md(result))
     written.append(out / "report.md")
     return written
+
+
+def _scene_views(result, out: Path) -> list[Path]:
+    """paths.png and paths.html: the chosen design at the end of each reached target's plan
+    (final backbones, scene frame) with the tip paths, in the scene."""
+    from ctrplan import viz
+    from ctrplan.collision.scene import load_scene
+
+    plans = [t.plan for t in result.targets if t.reached and t.plan is not None]
+    if not plans:
+        return []
+    scene = load_scene(result.scene)
+    meshes = viz.scene_meshes(scene)
+    backbones = np.stack([np.asarray(p.backbones)[-1] for p in plans])
+    tips = np.concatenate([np.asarray(p.tip_path) for p in plans])
+    title = f"{result.robot.name}: {len(plans)}/{len(result.targets)} targets"
+    viz.plan_png(out / "paths.png", meshes, backbones, tips, None, title=title, frames=len(plans))
+    viz.plan_html(out / "paths.html", meshes, backbones, tips, None, title=title, frames=len(plans))
+    return [out / "paths.png", out / "paths.html"]
 
 
 def _plot(result, path: Path) -> None:
@@ -159,6 +179,9 @@ def report_md(result) -> str:
             lines.append(f"| {k} | {val} | {lim} | {'yes' if v['satisfied'] else 'NO'} | "
                          f"{'yes' if v['binds'] else ''} |")
     t = result.timings
+    if any(t.reached for t in result.targets):
+        lines += ["", "## Paths", "", "![the design at each reached target](paths.png)", "",
+                  "Interactive view (offline): [paths.html](paths.html)."]
     lines += ["", "## Search", "", "![coverage against evaluations](coverage.png)", "",
               "Time per stage (s): " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()), ""]
     return "\n".join(lines)
