@@ -268,7 +268,7 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
     if best is not None:
         robot = decode(space, best["k"], np.array(best["u"]), name=f"design_{sc.name}").robot
         todo = list(range(len(pts)))
-        res = plans(robot, sc, pts, todo, settings, cfg.seed, keep=True)
+        res = plans(robot, sc, pts, todo, settings, cfg.seed, keep=True, objective="clearance")
         for j, n in enumerate(names):
             c = res["clearance_mm"][j]
             e = res["tip_error_mm"][j]

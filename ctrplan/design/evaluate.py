@@ -14,7 +14,8 @@ Stages (timed separately, ``timings``):
    passes the screen when a collision-free IK solution is within ``screen_tolerance_mm``.
 4. **plans** — (promising designs only) :func:`ctrplan.planning.plan_to_target` from the
    retracted start for each target that passed the screen, physics model, the planning
-   model's margin (auto unless set).
+   model's margin (auto unless set); in the search the first path found (objective ``first``,
+   cheap), for the chosen design the clearance objective (where plan_to_target has objectives).
 5. **stability** — every successful path is interpolated densely (``stability_step_mm`` /
    ``stability_step_rad``) and solved by the compliant model with the bistability probe: a
    state with two stable equilibria (snapping) or none stable fails the plan (``stability``).
@@ -160,17 +161,19 @@ def stable_along(robot: Robot, path: np.ndarray, settings: EvalSettings) -> tupl
     return bool(ok.all()), int(len(states))
 
 
-def plan_kwargs() -> dict:
-    """Extra keyword arguments for plan_to_target: the clearance objective where it exists."""
+def plan_kwargs(objective: str) -> dict:
+    """Extra keyword arguments for plan_to_target: the path objective, where plan_to_target
+    has one (``first`` in the search loop: cheap; ``clearance`` for the chosen design)."""
     from ctrplan.planning.plan import plan_to_target
 
     params = inspect.signature(plan_to_target).parameters
-    return {"objective": "clearance"} if "objective" in params else {}
+    return {"objective": objective} if "objective" in params else {}
 
 
 def plans(robot: Robot, scene, targets_scene: np.ndarray, todo: list[int], settings: EvalSettings,
-          seed: int, keep: bool = False) -> dict:
-    """Stages 4-5 for the targets ``todo``. Returns per target (T lists) ``status``,
+          seed: int, keep: bool = False, objective: str = "first") -> dict:
+    """Stages 4-5 for the targets ``todo`` (``objective``: the plans' path objective where
+    plan_to_target has one). Returns per target (T lists) ``status``,
     ``reached``, ``clearance_mm``, ``tip_error_mm``, ``stable``; ``results`` (PlanResults,
     only with ``keep``) and ``timings``."""
     from ctrplan.planning.plan import PlanConfig, plan_to_target
@@ -181,7 +184,7 @@ def plans(robot: Robot, scene, targets_scene: np.ndarray, todo: list[int], setti
            "stability_states": 0}
     t_plan = t_stab = 0.0
     cfg = PlanConfig(max_states=settings.plan_states, margin_mm=settings.margin_mm)
-    extra = plan_kwargs()
+    extra = plan_kwargs(objective)
     for j in todo:
         t0 = time.perf_counter()
         r = plan_to_target(robot, scene, targets_scene[j], model="physics", seed=seed,
