@@ -39,6 +39,9 @@ _EXPORTS = {
     "PlanStatus": "ctrplan.planning.plan",
     "PlanConfig": "ctrplan.planning.plan",
     "diagnose": "ctrplan.calibration.diagnose",
+    "design": "ctrplan.design",
+    "DesignConfig": "ctrplan.design",
+    "DesignResult": "ctrplan.design",
 }
 
 __all__ = sorted(_EXPORTS) + ["__version__"]

@@ -19,7 +19,7 @@ from ctrplan.errors import InputError
 #: Sub-command modules in ``ctrplan.commands``, in the order shown by ``--help``.
 COMMANDS = (
     "shape", "simulate", "train", "check", "scene", "plan", "plan_batch", "view",
-    "diagnose", "demo", "bench",
+    "diagnose", "design", "demo", "bench",
 )
 
 log = logging.getLogger("ctrplan")

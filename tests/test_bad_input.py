@@ -73,6 +73,24 @@ def _scene(i: Path, o: Path, yaml_text: str, mesh=None) -> list[str]:
             str(_w(i / "c.csv", f"{HEADER}\n{GOOD}\n")), "--out", str(o / "v.csv")]
 
 
+def _design(o: Path, *extra: str) -> list[str]:
+    argv = {"--scene": "design_bend", "--targets": "t01"}
+    for k, v in zip(extra[::2], extra[1::2]):
+        argv[k] = v
+    return ["design", *[x for kv in argv.items() for x in kv], "--budget", "1", "--out", str(o / "d")]
+
+
+def _no_wall_scene(i: Path) -> Path:
+    folder = i / "scene"
+    folder.mkdir(parents=True, exist_ok=True)
+    trimesh.creation.cylinder(radius=5.0, height=20.0, sections=16).apply_translation(
+        [100.0, 0.0, 0.0]).export(folder / "vessel.stl")
+    _w(folder / "scene.yaml", "name: s\nunits: mm\nmeshes:\n  - {name: vessel, file: vessel.stl, role: obstacle}\n"
+       "base_pose: {position: [0, 0, 0], quaternion: [1, 0, 0, 0]}\n"
+       "targets:\n  - {name: t01, position: [0, 0, 30]}\n")
+    return folder
+
+
 SCENE_OK = ("name: s\nunits: mm\nmeshes:\n  - {name: wall, file: %s, role: wall}\n"
             "base_pose: {position: [0, 0, -40], quaternion: [1, 0, 0, 0]}\n%s")
 
@@ -169,6 +187,11 @@ MAKERS = {
     "robot-not-nested": lambda i, o: _robot(
         i, o, "name: r\ntubes:\n  - " + TUBE % ("1.0", "0.8", "0.01") + "\n  - " + TUBE % ("1.5", "0.9", "0.01") + "\n"),
     "robot-curvature-implausible": lambda i, o: _robot(i, o, _one_tube(kappa="5.0")),
+    "design-unknown-target": lambda i, o: _design(o, "--targets", "t01,nope"),
+    "design-scene-no-wall": lambda i, o: _design(o, "--scene", str(_no_wall_scene(i))),
+    "design-infeasible-bounds": lambda i, o: _design(o, "--curvature", "0.5,0.6"),
+    "design-from-strain": lambda i, o: _design(o, "--from", str(_w(i / "r.yaml", _one_tube(
+        od="2.5", id_="2.2", kappa="0.05")))),
     "scene-alias-bomb": lambda i, o: _scene(i, o, SCENE_OK % ("wall.stl", _bomb())),
     "scene-too-many-aliases": lambda i, o: _scene(i, o, SCENE_OK % ("wall.stl", _many_aliases())),
     "scene-unknown-key": lambda i, o: _scene(i, o, SCENE_OK % ("wall.stl", "colour: red\n")),
@@ -285,6 +308,7 @@ COMMANDS = {
     "view": lambda i, out: ["view", str(i / "plan.json"), "--out", f"{out}.html"],
     "diagnose": lambda i, out: ["diagnose", "--robot", "seed1", "--data", str(i / "c.csv"), "--out", out],
     "demo": lambda i, out: ["demo", "--out", out],
+    "design": lambda i, out: ["design", "--scene", "design_bend", "--targets", "t01", "--out", out],
     "bench": lambda i, out: ["bench", "shape", "--quick", "--out", out],
 }
 

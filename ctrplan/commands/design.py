@@ -1,0 +1,91 @@
+"""``ctrplan design``: design a tube set for a scene and its targets."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "design", help="design a tube set that reaches the targets of a scene",
+        description="Search tube curvatures, curved and straight lengths and stock sizes for the "
+                    "design that reaches the most targets by a verified collision-free, elastically "
+                    "stable plan from the scene's entry, then has the most clearance, then is the "
+                    "simplest. Writes OUT/robot.yaml (loads in every command), OUT/design.json, "
+                    "OUT/report.md, OUT/coverage.png and OUT/paths/<target>.json. The search "
+                    "state goes to OUT/state.json after every generation: rerunning the same "
+                    "command resumes. Budgets are counts, so a seed gives the same design on any "
+                    "load and number of workers; --time is a cap. Exit 0 when every target is "
+                    "reached, 1 otherwise, 2 for bad input.")
+    p.add_argument("--scene", required=True, help="shipped scene name (or design_bend) or scene folder")
+    p.add_argument("--targets", required=True,
+                   help="comma-separated names of the scene's targets, or a CSV (x,y,z[,name], mm, scene frame)")
+    p.add_argument("--tubes", type=int, default=2, help="largest number of tubes, 1-3 (default 2)")
+    p.add_argument("--from", dest="start_from", default=None, metavar="ROBOT",
+                   help="keep this robot's tubes (outermost) and design tubes inside them")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--budget", type=int, default=400,
+                   help="designs screened (default 400; at most 24 of them are planned in full)")
+    p.add_argument("--time", type=float, default=1200.0, help="wall-clock cap, s (default 1200)")
+    p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
+    p.add_argument("--strain-limit", type=float, default=None,
+                   help="recoverable strain of the tube material (default 0.06, nitinol)")
+    p.add_argument("--min-gap", type=float, default=None, help="minimum radial gap between tubes, mm (default 0.05)")
+    p.add_argument("--max-length", type=float, default=None, help="longest tube, mm (default 400)")
+    p.add_argument("--max-stroke", type=float, default=None, help="longest translation stroke, mm (default 250)")
+    p.add_argument("--curvature", default=None, metavar="MIN,MAX", help="curvature bounds, 1/mm (default 0,0.08)")
+    p.add_argument("--curved-length", default=None, metavar="MIN,MAX", help="curved length bounds, mm (default 5,150)")
+    p.add_argument("--straight-length", default=None, metavar="MIN,MAX",
+                   help="straight length bounds, mm (default 10,300)")
+    p.add_argument("--stock", default=None, help="CSV of stock tube sizes (od_mm,id_mm); default the shipped table")
+    p.add_argument("--out", required=True, help="output folder")
+    p.set_defaults(func=run)
+
+
+def _pair(text: str | None, field: str, default: tuple[float, float]) -> tuple[float, float]:
+    from ctrplan.errors import InputError
+
+    if text is None:
+        return default
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(field, "", f"must be MIN,MAX, got {text!r}") from None
+    return lo, hi
+
+
+def run(args: argparse.Namespace) -> int:
+    from ctrplan.commands.plan import one_thread
+
+    one_thread()
+    from dataclasses import replace
+    from pathlib import Path
+
+    from ctrplan.design import DesignConfig, design
+    from ctrplan.design.report import write_outputs
+    from ctrplan.design.space import Bounds
+    from ctrplan.errors import InputError
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError("--out", "", f"{args.out!r} exists and is not a folder")
+    b = Bounds()
+    b = replace(b, curvature=_pair(args.curvature, "--curvature", b.curvature),
+                curved_length=_pair(args.curved_length, "--curved-length", b.curved_length),
+                straight_length=_pair(args.straight_length, "--straight-length", b.straight_length))
+    for name, attr in (("strain_limit", "strain_limit"), ("min_gap", "min_gap_mm"),
+                       ("max_length", "max_length_mm"), ("max_stroke", "max_stroke_mm")):
+        v = getattr(args, name)
+        if v is not None:
+            b = replace(b, **{attr: float(v)})
+    cfg = DesignConfig(tubes=args.tubes, seed=args.seed, budget=args.budget, time_limit=args.time,
+                       workers=args.workers, bounds=b, stock=args.stock)
+    result = design(args.scene, args.targets, cfg, start_from=args.start_from, out=out)
+    write_outputs(result, out)
+    print(f"{result.message} ({result.status.value}); binding: {', '.join(result.binding) or 'none'}")
+    for t in result.targets:
+        c = f"{t.clearance_mm:.2f} mm" if t.reached else "-"
+        print(f"  {t.name}: {'reached' if t.reached else t.status}, clearance {c}")
+    written = ([out / "robot.yaml"] if result.robot is not None else []) + [out / "design.json", out / "report.md"]
+    print("wrote " + ", ".join(str(p) for p in written))
+    return 0 if result.success else 1

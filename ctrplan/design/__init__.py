@@ -1,0 +1,313 @@
+"""``ctrplan design``: a tube set designed for an anatomy and its targets.
+
+:func:`design` searches curvature, curved length, straight length and stock size of each tube
+(:mod:`ctrplan.design.space`) for the design that reaches the most targets by a verified
+collision-free plan from the scene's entry (:func:`ctrplan.planning.plan_to_target`, physics
+model, the planning model's margin), then has the most clearance along those plans, then is
+the simplest (fewer, less curved, shorter tubes). Hard constraints (named in the results when
+they bind): nitinol's recoverable strain, nesting with a radial gap, length and stroke limits,
+elastic stability along every planned path, and a collision-free start at the scene's entry.
+
+Layering: design uses robot, shape, collision and planning; nothing imports design.
+``ctrplan.design`` is also callable: ``ctrplan.design(scene, targets, ...)`` is
+:func:`design`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import sys
+import time
+import types
+from dataclasses import asdict, dataclass, field
+from enum import Enum
+from pathlib import Path
+
+import numpy as np
+
+from ctrplan.design.space import (
+    DEFAULT_STRAIN_LIMIT,
+    Bounds,
+    constraint_report,
+    load_stock,
+    make_space,
+)
+from ctrplan.errors import InputError
+from ctrplan.robot import Robot
+
+__all__ = ["DEFAULT_STRAIN_LIMIT", "Bounds", "DesignConfig", "DesignResult", "DesignStatus", "TargetOutcome", "design", "resolve_scene",
+           "resolve_targets"]
+
+
+class DesignStatus(str, Enum):
+    """Outcome of :func:`design`."""
+
+    ALL_REACHED = "ALL_REACHED"      # the design reaches every target
+    PARTIAL = "PARTIAL"              # some targets reached
+    NONE_REACHED = "NONE_REACHED"    # no design evaluated reaches any target
+
+
+@dataclass(frozen=True)
+class DesignConfig:
+    """Settings of :func:`design` (defaults: what ``ctrplan design`` uses).
+
+    tubes : the largest number of tubes (1-3; designs with fewer are tried and preferred).
+    seed : seeds the search and every plan (same seed, same design).
+    budget : designs screened (a count); plan_budget : designs planned in full (None:
+        max(4, min(24, budget // 6))).
+    time_limit : wall-clock cap (s); ``time_cap_hit`` when it stopped the search.
+    workers : local worker processes (results do not depend on it).
+    generation : designs per generation (fixed, so results do not depend on ``workers``).
+    patience : generations without improvement before stopping once every target is reached
+        with at least ``clearance_goal_mm`` of clearance.
+    bounds : design-variable bounds and constraint limits (:class:`~ctrplan.design.space.Bounds`;
+        ``strain_limit`` default 6 %, see :data:`~ctrplan.design.space.DEFAULT_STRAIN_LIMIT`).
+    stock : a CSV of stock tube sizes (od_mm,id_mm), None for the shipped table.
+    margin_mm : planning margin (None: the planning model's own bound, 0 for physics).
+    tolerance_mm : tip-to-target distance a plan must reach.
+    screen_samples : configurations sampled per design in the workspace pre-screen.
+    plan_time_s, plan_states : per-plan wall-clock cap and state budget.
+    stability_step_mm, stability_step_rad : interpolation of each path for the stability check.
+    """
+
+    tubes: int = 2
+    seed: int = 0
+    budget: int = 400
+    plan_budget: int | None = None
+    time_limit: float = 1200.0
+    workers: int = 1
+    generation: int = 8
+    patience: int = 3
+    clearance_goal_mm: float = 0.5
+    bounds: Bounds = field(default_factory=Bounds)
+    stock: str | None = None
+    margin_mm: float | None = None
+    tolerance_mm: float = 1.0
+    screen_samples: int = 1024
+    plan_time_s: float = 10.0
+    plan_states: int = 30_000
+    stability_step_mm: float = 1.0
+    stability_step_rad: float = 0.02
+
+    def __post_init__(self) -> None:
+        for name in ("budget", "generation", "screen_samples", "plan_states", "workers"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise InputError(f"--{name.replace('_', '-')}", "", f"must be an integer >= 1, got {v!r}")
+        if self.plan_budget is not None and (not isinstance(self.plan_budget, int) or self.plan_budget < 1):
+            raise InputError("plan_budget", "", f"must be an integer >= 1, got {self.plan_budget!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise InputError("--seed", "", f"must be >= 0, got {self.seed!r}")
+        if not (isinstance(self.time_limit, (int, float)) and self.time_limit > 0):
+            raise InputError("--time", "", f"must be > 0 s, got {self.time_limit!r}")
+        if self.margin_mm is not None and not (math.isfinite(self.margin_mm) and self.margin_mm >= 0):
+            raise InputError("--margin", "", f"must be >= 0 mm, got {self.margin_mm!r}")
+
+
+@dataclass(frozen=True)
+class TargetOutcome:
+    """One target under the chosen design: ``reached`` by a verified, stable, collision-free
+    plan; ``clearance_mm`` (min along the plan, planning and reference model), ``tip_error_mm``
+    (physics), ``status`` (the plan's, or UNSTABLE / NOT_TRIED), ``plan`` (the PlanResult)."""
+
+    name: str
+    position: np.ndarray
+    reached: bool
+    status: str
+    clearance_mm: float
+    tip_error_mm: float
+    plan: object = None
+
+
+@dataclass(frozen=True)
+class DesignResult:
+    """Result of :func:`design`.
+
+    success : every target reached. robot : the chosen design (None when no design was
+    feasible). targets : per target outcome. evaluations : every design evaluated (dicts as in
+    design.json). binding : hard constraints that bind at the chosen design. constraints :
+    each constraint's value, limit, satisfied, binds. timings : seconds per stage.
+    """
+
+    success: bool
+    status: DesignStatus
+    message: str
+    robot: Robot | None
+    targets: tuple[TargetOutcome, ...]
+    evaluations: tuple[dict, ...]
+    binding: tuple[str, ...]
+    constraints: dict
+    timings: dict
+    counts: dict
+    seed: int
+    scene: str
+    time_cap_hit: bool = False
+    config: DesignConfig = field(default_factory=DesignConfig)
+
+    @property
+    def reached(self) -> int:
+        """Number of targets reached."""
+        return sum(t.reached for t in self.targets)
+
+
+def resolve_scene(spec):
+    """A scene by name (shipped anatomy, or the design test scene ``design_bend``), folder or
+    object; InputError without a wall mesh (design needs the lumen to stay inside)."""
+    from ctrplan.collision.scene import anatomy_dir, load_scene
+
+    if isinstance(spec, (str, os.PathLike)):
+        s = str(spec)
+        packaged = Path(__file__).resolve().parents[1] / "data" / "scenes" / s
+        if not Path(s).exists() and not (anatomy_dir() / s).is_dir() and (packaged / "scene.yaml").is_file():
+            spec = str(packaged)
+    scene = load_scene(spec)
+    if not any(m.role == "wall" for m in scene.meshes):
+        raise InputError(str(Path(scene.path) / "scene.yaml"), "meshes",
+                         "no wall mesh: design needs the lumen the robot stays inside (role: wall)")
+    return scene
+
+
+def resolve_targets(scene, targets) -> tuple[list[str], np.ndarray]:
+    """(names, (T, 3) scene-frame positions) from target names of the scene (a list or a
+    comma-separated string), a CSV path (columns x,y,z and optionally name), or an array."""
+    if isinstance(targets, str) and (targets.lower().endswith(".csv") or Path(targets).is_file()):
+        from ctrplan.planning.batch import read_targets
+
+        rows = read_targets(targets, [str(scene.path)])
+        return [r[1] for r in rows], np.array([r[2] for r in rows], dtype=float)
+    if isinstance(targets, str):
+        targets = [t.strip() for t in targets.split(",") if t.strip()]
+    if isinstance(targets, np.ndarray) and targets.dtype.kind == "f":
+        pts = np.atleast_2d(targets).astype(float)
+        if pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
+            raise InputError("targets", "", "need (T, 3) finite positions (mm)")
+        return [f"p{i + 1}" for i in range(len(pts))], pts
+    names = list(targets)
+    if not names:
+        raise InputError("--targets", "", "no targets given")
+    known = {t.name: t for t in scene.targets}
+    for n in names:
+        if n not in known:
+            raise InputError("--targets", "", f"unknown target {n!r} in scene {scene.name!r} "
+                             f"(known: {', '.join(known) or 'none'})")
+    return names, np.array([known[n].position for n in names], dtype=float)
+
+
+def _state_key(scene, names, pts, cfg: DesignConfig, fixed) -> str:
+    d = {"scene": str(scene.path), "targets": [names, np.round(pts, 6).tolist()],
+         "cfg": {k: v for k, v in asdict(cfg).items() if k not in ("workers", "time_limit")},
+         "fixed": [asdict(t) for t in fixed], "version": 1}
+    return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def design(scene, targets, config: DesignConfig | None = None, start_from: Robot | str | None = None,
+           out: str | os.PathLike | None = None, progress: bool = True) -> DesignResult:
+    """Design a tube set for ``scene`` and ``targets``.
+
+    Parameters
+    ----------
+    scene : shipped name, folder or Scene (needs a wall mesh).
+    targets : names of the scene's targets (list or "a,b"), a CSV path (x,y,z[,name]) or a
+        (T, 3) array (mm, scene frame).
+    config : DesignConfig.
+    start_from : a robot whose tubes are kept as they are (outermost; ``--from``); designed
+        tubes go inside them. It must satisfy the strain limit.
+    out : folder for the resumable search state (``state.json``); None keeps it in memory.
+    progress : show a progress bar (on a terminal).
+
+    Raises
+    ------
+    InputError
+        Unknown scene or target, a scene without a wall, infeasible bounds (named), a
+        ``start_from`` robot beyond the strain limit.
+    """
+    from ctrplan import progress as _progress
+    from ctrplan.design.evaluate import EvalSettings, plans
+    from ctrplan.design.search import STATE_FILE, Search
+    from ctrplan.design.space import decode
+    from ctrplan.robot import load_robot
+
+    cfg = config or DesignConfig()
+    t0 = time.perf_counter()
+    sc = resolve_scene(scene)
+    names, pts = resolve_targets(sc, targets)
+    fixed: tuple = ()
+    src = ""
+    if start_from is not None:
+        fr = load_robot(start_from)
+        fixed, src = fr.tubes, str(fr.source if fr.source != "<memory>" else "--from")
+    stock = load_stock(cfg.stock)
+    space = make_space(cfg.bounds, stock, fixed, cfg.tubes, source=src)
+    kbound = max([cfg.bounds.curvature[1]] + [abs(t.curvature) for t in fixed])
+    settings = EvalSettings(screen_samples=cfg.screen_samples, tolerance_mm=cfg.tolerance_mm,
+                            margin_mm=cfg.margin_mm, plan_time_s=cfg.plan_time_s,
+                            plan_states=cfg.plan_states, stability_step_mm=cfg.stability_step_mm,
+                            stability_step_rad=cfg.stability_step_rad, curvature_bound=float(kbound),
+                            screen_tolerance_mm=cfg.tolerance_mm)
+    plan_budget = cfg.plan_budget or max(4, min(24, cfg.budget // 6))
+    state_path = Path(out) / STATE_FILE if out is not None else None
+    if state_path is not None:
+        state_path.parent.mkdir(parents=True, exist_ok=True)
+    bar = _progress.bar(total=cfg.budget, desc="design", unit="design", disable=not progress)
+    search = Search(space, str(sc.path), pts, settings, cfg.seed, cfg.budget, plan_budget,
+                    cfg.generation, cfg.patience, cfg.time_limit, state_path, cfg.clearance_goal_mm,
+                    _state_key(sc, names, pts, cfg, fixed), progress=bar.update)
+    try:
+        search.run(cfg.workers)
+    finally:
+        bar.close()
+    best = search.best()
+    outcomes: list[TargetOutcome] = []
+    robot = None
+    binding: tuple[str, ...] = ()
+    constraints: dict = {}
+    t_final = time.perf_counter()
+    if best is not None:
+        robot = decode(space, best["k"], np.array(best["u"]), name=f"design_{sc.name}").robot
+        todo = list(range(len(pts)))
+        res = plans(robot, sc, pts, todo, settings, cfg.seed, keep=True, objective="clearance")
+        for j, n in enumerate(names):
+            c = res["clearance_mm"][j]
+            e = res["tip_error_mm"][j]
+            outcomes.append(TargetOutcome(n, pts[j], bool(res["reached"][j]), res["status"][j],
+                                          math.nan if c is None else float(c),
+                                          math.nan if e is None else float(e), res["results"][j]))
+        constraints = constraint_report(robot, cfg.bounds)
+        constraints["stability"] = {"satisfied": all(s is not False for s in res["stable"]),
+                                    "binds": any(s is False for s in res["stable"]),
+                                    "states_checked": res["stability_states"]}
+        constraints["entry"] = {"satisfied": True, "binds": False}
+        binding = tuple(k for k, v in constraints.items() if v["binds"])
+    reached = sum(o.reached for o in outcomes)
+    status = (DesignStatus.ALL_REACHED if outcomes and reached == len(outcomes)
+              else DesignStatus.PARTIAL if reached else DesignStatus.NONE_REACHED)
+    timings = dict(search.timings)
+    timings["final_plans"] = time.perf_counter() - t_final
+    timings["total"] = time.perf_counter() - t0
+    counts = {"evaluations": len(search.evaluations), "planned": search.planned,
+              "resumed": search.resumed, "targets": len(pts)}
+    if robot is not None:
+        msg = f"{reached}/{len(pts)} targets reached by a {robot.n}-tube design"
+    else:
+        from collections import Counter
+
+        why = Counter(b for e in search.evaluations for b in set(e["binding"])).most_common(2)
+        msg = (f"0/{len(pts)} targets reached: no design passed the screen"
+               + (f" (most often bound by: {', '.join(k for k, _ in why)})" if why else ""))
+    return DesignResult(success=status is DesignStatus.ALL_REACHED, status=status, message=msg,
+                        robot=robot, targets=tuple(outcomes), evaluations=tuple(search.evaluations),
+                        binding=binding, constraints=constraints, timings=timings, counts=counts,
+                        seed=cfg.seed, scene=str(sc.path), time_cap_hit=search.time_cap_hit, config=cfg)
+
+
+class _CallableModule(types.ModuleType):
+    """Makes ``ctrplan.design(...)`` call :func:`design` (the subpackage shares its name)."""
+
+    def __call__(self, *args, **kwargs) -> DesignResult:
+        return design(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule
