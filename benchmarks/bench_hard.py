@@ -217,7 +217,7 @@ def markdown(table: list[dict]) -> str:
                      f"{r['success']}/{r['plans']} "
                      f"({100 * r['success_rate']:.0f} %) | {r['time_median_s']:.2f} / "
                      f"{r['time_p90_s']:.2f} | {r['length_median']:.0f} | "
-                     f"{r['clearance_median_mm']:.2f} | {r['recheck_clearance_median_mm']:.2f} | "
+                     f"{r['clearance_median_mm']:.2f} | {r.get('recheck_clearance_median_mm', float('nan')):.2f} | "
                      f"{r['recheck_clearance_min_mm']:.3f} | {r['recheck_failures']} |")
     return "\n".join(lines)
 

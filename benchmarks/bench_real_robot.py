@@ -258,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--time", type=float, default=10.0, help="time cap per plan (s)")
     ap.add_argument("--targets", type=int, default=3, help="first K targets per scene")
-    ap.add_argument("--flows", nargs="+", default=["calibrated", "default"])
+    ap.add_argument("--flows", nargs="+", default=["calibrated", "default", "first"])
     ap.add_argument("--out", default=str(OUT))
     args = ap.parse_args(argv)
     res = run(args.seed, args.time, args.targets, tuple(args.flows), Path(args.out))

@@ -256,8 +256,10 @@ def real_robot_block(rr: dict) -> str:
              "|---|---|---|---|---|---|---|---|"]
     names = {"calibrated": "measure, `diagnose --base compliant`, plan with the calibrated "
                            "model and `--margin auto`",
-             "default": "default `ctrplan plan` (nominal physics model, no calibration)"}
-    for f in ("calibrated", "default"):
+             "default": "default `ctrplan plan` (nominal physics model, no calibration)",
+             "first": "before: nominal physics model, margin 0, first solution "
+                      "(`--objective first`)"}
+    for f in ("calibrated", "default", "first"):
         if f not in rr:
             continue
         s = rr[f]["summary"]
