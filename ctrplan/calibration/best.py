@@ -48,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from ctrplan.calibration import diagnose as _diagnose
 from ctrplan.measured import MeasuredData, read_measured
 from ctrplan.robot import Robot, load_robot
 
@@ -129,29 +130,11 @@ def holdout_split(data: MeasuredData, test_fraction: float = 0.2, seed: int = 0,
     k = min(max(1, int(round(test_fraction * L))), max(1, L - 3))
     held = sorted({order[min(L - 1, int((i + 0.5) * L / k))] for i in range(k)})
     test = np.isin(lab.astype(str), held)
-    rows = np.flatnonzero(test)
     return test, lab, {"method": f"contiguous blocks held out ({len(held)} of {L}; fewer than 4 "
                                  "sweeps); the other blocks are separate development sweeps",
-                       "test_blocks": held, "test_rows": _row_ranges(rows)}
+                       "test_blocks": held, "test_rows": _diagnose.row_ranges(test)}
 
 
-def _row_ranges(idx: np.ndarray) -> list[str]:
-    """1-based data-row ranges ("rows a-b")."""
-    out = []
-    if not len(idx):
-        return out
-    start = prev = int(idx[0])
-    for i in idx[1:]:
-        i = int(i)
-        if i != prev + 1:
-            out.append(f"rows {start + 1}-{prev + 1}")
-            start = i
-        prev = i
-    out.append(f"rows {start + 1}-{prev + 1}")
-    return out
-
-
-# ---------------------------------------------------------------------------------- frames
 def to_robot_frame(effects: dict, points: np.ndarray) -> np.ndarray:
     """Sensor-frame points (..., 3) -> robot base frame, inverting a calibrated
     ``registration`` (p_sensor = R p + t); unchanged without one."""

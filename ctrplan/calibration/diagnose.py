@@ -271,7 +271,8 @@ def split_three(data: MeasuredData, holdout: float = 0.25,
     return ~test & ~val, val, test
 
 
-def _row_ranges(mask: np.ndarray) -> list[str]:
+def row_ranges(mask: np.ndarray) -> list[str]:
+    """1-based data-row ranges ("rows a-b") of the rows a boolean mask selects."""
     idx = np.nonzero(mask)[0]
     if not len(idx):
         return []
@@ -338,11 +339,11 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     if len(names) < MIN_SWEEPS_WHOLE:
         what = "the single sweep" if len(names) < 2 else f"each of the {len(names)} sweeps"
         split = {"method": f"contiguous blocks of {what} (of 8 blocks: 2 and 6 validation, "
-                 "4 and 8 test)", "test_rows": _row_ranges(test),
-                 "validation_rows": _row_ranges(val), "fit_rows": _row_ranges(fit_rows)}
-        train_sw = [f"{nm} ({', '.join(_row_ranges(train & (sw == nm)))})" for nm in names]
-        test_sw = [f"{nm} ({', '.join(_row_ranges(test & (sw == nm)))})" for nm in names]
-        val_sw = [f"{nm} ({', '.join(_row_ranges(val & (sw == nm)))})" for nm in names]
+                 "4 and 8 test)", "test_rows": row_ranges(test),
+                 "validation_rows": row_ranges(val), "fit_rows": row_ranges(fit_rows)}
+        train_sw = [f"{nm} ({', '.join(row_ranges(train & (sw == nm)))})" for nm in names]
+        test_sw = [f"{nm} ({', '.join(row_ranges(test & (sw == nm)))})" for nm in names]
+        val_sw = [f"{nm} ({', '.join(row_ranges(val & (sw == nm)))})" for nm in names]
         warnings.append(("one sweep only" if len(names) < 2 else f"only {len(names)} sweeps")
                         + ": the held-out rows are contiguous blocks of the same motion, next "
                         "to training rows, so the held-out error is optimistic; record at least "
@@ -355,7 +356,7 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
         train_sw = sorted(set(sw[train].tolist()))
         test_sw = sorted(set(sw[test].tolist()))
         val_sw = sorted(set(sw[val].tolist()))
-    split.update({"test_row_ranges": _row_ranges(test), "validation_sweeps": val_sw,
+    split.update({"test_row_ranges": row_ranges(test), "validation_sweeps": val_sw,
                   "fit_sweeps": sorted(set(sw[fit_rows].tolist()))})
     # selection problem: parameters fitted on the fit rows, effects chosen on validation rows
     prob = Problem(EffectModel(robot, base), data, fit_rows, val)
