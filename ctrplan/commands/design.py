@@ -14,8 +14,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "simplest. Writes OUT/robot.yaml (loads in every command), OUT/design.json, "
                     "OUT/report.md, OUT/coverage.png and OUT/paths/<target>.json. The search "
                     "state goes to OUT/state.json after every generation: rerunning the same "
-                    "command resumes. Budgets are counts, so a seed gives the same design on any "
-                    "load and number of workers; --time is a cap. Exit 0 when every target is "
+                    "command resumes. Evaluations run in this process, on a local process pool "
+                    "(--workers K) or on Ray (--ray ADDRESS, 'local' starts a Ray instance here; "
+                    "the same Ray path as plan-batch). Budgets are counts, so a seed gives the same "
+                    "design on any load, number of workers or Ray; --time is a cap. Exit 0 when every target is "
                     "reached, 1 otherwise, 2 for bad input.")
     p.add_argument("--scene", required=True, help="shipped scene name (or design_bend) or scene folder")
     p.add_argument("--targets", required=True,

@@ -8,6 +8,11 @@ the simplest (fewer, less curved, shorter tubes). Hard constraints (named in the
 they bind): nitinol's recoverable strain, nesting with a radial gap, length and stroke limits,
 elastic stability along every planned path, and a collision-free start at the scene's entry.
 
+Parallel evaluation (:class:`DesignConfig` ``workers`` or ``ray_address``): a local process
+pool, or Ray through :mod:`ctrplan.planning.ray_pool` (the code path of ``plan-batch --ray``).
+Candidates of a generation are fixed before they are evaluated and results are collected in
+order, so the design does not depend on where or in which order evaluations ran.
+
 Layering: design uses robot, shape, collision and planning; nothing imports design.
 ``ctrplan.design`` is also callable: ``ctrplan.design(scene, targets, ...)`` is
 :func:`design`.
