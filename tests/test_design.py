@@ -172,6 +172,64 @@ def test_rerun_resumes_from_the_state_file_with_the_same_design(quick, tmp_path)
     assert (tmp_path / "r.yaml").read_bytes() == (out / "robot.yaml").read_bytes()
 
 
+QUICK_CLI = ["--tubes", "1", "--budget", "32", "--curvature", "0,0.06", "--curved-length", "10,100",
+             "--straight-length", "20,120"]   # QUICK on the command line
+
+
+def _evaluated(doc: dict) -> list:
+    return [(e["parameters"], e["binding"], e["screen_passed"], e["planned"], e["reached"],
+             e.get("clearance_mm")) for e in doc["evaluations"]]
+
+
+@pytest.mark.statistical
+def test_ray_local_gives_the_same_design_as_one_worker(quick, tmp_path, capsys):
+    """``design --ray local`` (the plan-batch Ray path, a local instance) evaluates the same
+    designs in the same order and returns the same robot.yaml bytes as the in-process run."""
+    pytest.importorskip("ray")
+    from ctrplan.cli import main
+
+    result, out = quick
+    rc = main(["-q", "design", "--scene", "design_bend", "--targets", NAMES, *QUICK_CLI,
+               "--ray", "local", "--out", str(tmp_path / "ray")])
+    assert rc == 0, capsys.readouterr().err
+    assert (tmp_path / "ray" / "robot.yaml").read_bytes() == (out / "robot.yaml").read_bytes()
+    doc = __import__("json").loads((tmp_path / "ray" / "design.json").read_text())
+    one = __import__("json").loads((out / "design.json").read_text())
+    assert len(doc["evaluations"]) == result.counts["evaluations"]
+    assert _evaluated(doc) == _evaluated(one)
+
+
+def test_ray_missing_is_one_line_exit_2(tmp_path, capsys, monkeypatch):
+    """Without ray installed, --ray is bad input: one line naming --ray, exit 2, nothing written."""
+    import sys
+
+    from ctrplan.cli import main
+
+    monkeypatch.setitem(sys.modules, "ray", None)       # import ray -> ImportError
+    out = tmp_path / "d"
+    rc = main(["-q", "design", "--scene", "design_bend", "--targets", "t01", "--budget", "1",
+               "--ray", "local", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert err.count("\n") == 1 and "--ray" in err and "ray is not installed" in err
+    assert "Traceback" not in err and not out.exists()
+
+
+def test_ray_and_workers_exclude_each_other(tmp_path, capsys):
+    from ctrplan.cli import main
+    from ctrplan.errors import InputError
+
+    with pytest.raises(InputError, match="--workers"):
+        DesignConfig(workers=2, ray_address="local")
+    with pytest.raises(InputError, match="--ray"):
+        DesignConfig(ray_address="  ")
+    with pytest.raises(SystemExit) as exc:
+        main(["-q", "design", "--scene", "design_bend", "--targets", "t01", "--workers", "2",
+              "--ray", "local", "--out", str(tmp_path / "d")])
+    assert exc.value.code == 2 and "not allowed with argument" in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()
+
+
 @pytest.mark.statistical
 def test_same_seed_same_design_from_scratch(quick, tmp_path):
     _, out = quick

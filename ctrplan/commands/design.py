@@ -14,8 +14,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "simplest. Writes OUT/robot.yaml (loads in every command), OUT/design.json, "
                     "OUT/report.md, OUT/coverage.png and OUT/paths/<target>.json. The search "
                     "state goes to OUT/state.json after every generation: rerunning the same "
-                    "command resumes. Budgets are counts, so a seed gives the same design on any "
-                    "load and number of workers; --time is a cap. Exit 0 when every target is "
+                    "command resumes. Evaluations run in this process, on a local process pool "
+                    "(--workers K) or on Ray (--ray ADDRESS, 'local' starts a Ray instance here; "
+                    "the same Ray path as plan-batch). Budgets are counts, so a seed gives the same "
+                    "design on any load, number of workers or Ray; --time is a cap. Exit 0 when every target is "
                     "reached, 1 otherwise, 2 for bad input.")
     p.add_argument("--scene", required=True, help="shipped scene name (or design_bend) or scene folder")
     p.add_argument("--targets", required=True,
@@ -27,7 +29,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--budget", type=int, default=400,
                    help="designs screened (default 400; at most 24 of them are planned in full)")
     p.add_argument("--time", type=float, default=1200.0, help="wall-clock cap, s (default 1200)")
-    p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
+    where.add_argument("--ray", default=None, metavar="ADDRESS",
+                       help="evaluate on a Ray cluster at ADDRESS ('local' starts one here with every "
+                            "core); the same code path as plan-batch --ray, the same design as --workers 1. "
+                            "Needs pip install 'ctrplan[ray]'")
     p.add_argument("--strain-limit", type=float, default=None,
                    help="recoverable strain of the tube material (default 0.06, nitinol)")
     p.add_argument("--min-gap", type=float, default=None, help="minimum radial gap between tubes, mm (default 0.05)")
@@ -79,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         if v is not None:
             b = replace(b, **{attr: float(v)})
     cfg = DesignConfig(tubes=args.tubes, seed=args.seed, budget=args.budget, time_limit=args.time,
-                       workers=args.workers, bounds=b, stock=args.stock)
+                       workers=args.workers, ray_address=args.ray, bounds=b, stock=args.stock)
     result = design(args.scene, args.targets, cfg, start_from=args.start_from, out=out)
     write_outputs(result, out)
     print(f"{result.message} ({result.status.value}); binding: {', '.join(result.binding) or 'none'}")

@@ -8,6 +8,11 @@ the simplest (fewer, less curved, shorter tubes). Hard constraints (named in the
 they bind): nitinol's recoverable strain, nesting with a radial gap, length and stroke limits,
 elastic stability along every planned path, and a collision-free start at the scene's entry.
 
+Parallel evaluation (:class:`DesignConfig` ``workers`` or ``ray_address``): a local process
+pool, or Ray through :mod:`ctrplan.planning.ray_pool` (the code path of ``plan-batch --ray``).
+Candidates of a generation are fixed before they are evaluated and results are collected in
+order, so the design does not depend on where or in which order evaluations ran.
+
 Layering: design uses robot, shape, collision and planning; nothing imports design.
 ``ctrplan.design`` is also callable: ``ctrplan.design(scene, targets, ...)`` is
 :func:`design`.
@@ -60,6 +65,10 @@ class DesignConfig:
         max(4, min(24, budget // 6))).
     time_limit : wall-clock cap (s); ``time_cap_hit`` when it stopped the search.
     workers : local worker processes (results do not depend on it).
+    ray_address : run the evaluations on Ray instead (the same path as ``plan-batch --ray``,
+        :mod:`ctrplan.planning.ray_pool`): a cluster address, or ``"local"`` to start a Ray
+        instance on this machine with every core; results do not depend on it either.
+        Excludes ``workers > 1``. Needs ``pip install 'ctrplan[ray]'``.
     generation : designs per generation (fixed, so results do not depend on ``workers``).
     patience : generations without improvement before stopping once every target is reached
         with at least ``clearance_goal_mm`` of clearance.
@@ -79,6 +88,7 @@ class DesignConfig:
     plan_budget: int | None = None
     time_limit: float = 1200.0
     workers: int = 1
+    ray_address: str | None = None
     generation: int = 8
     patience: int = 3
     clearance_goal_mm: float = 0.5
@@ -103,6 +113,11 @@ class DesignConfig:
             raise InputError("--seed", "", f"must be >= 0, got {self.seed!r}")
         if not (isinstance(self.time_limit, (int, float)) and self.time_limit > 0):
             raise InputError("--time", "", f"must be > 0 s, got {self.time_limit!r}")
+        if self.ray_address is not None:
+            if not isinstance(self.ray_address, str) or not self.ray_address.strip():
+                raise InputError("--ray", "", f"must be a Ray address or 'local', got {self.ray_address!r}")
+            if self.workers > 1:
+                raise InputError("--workers", "", "use either --workers (a local process pool) or --ray, not both")
         if self.margin_mm is not None and not (math.isfinite(self.margin_mm) and self.margin_mm >= 0):
             raise InputError("--margin", "", f"must be >= 0 mm, got {self.margin_mm!r}")
 
@@ -198,7 +213,7 @@ def resolve_targets(scene, targets) -> tuple[list[str], np.ndarray]:
 
 def _state_key(scene, names, pts, cfg: DesignConfig, fixed) -> str:
     d = {"scene": str(scene.path), "targets": [names, np.round(pts, 6).tolist()],
-         "cfg": {k: v for k, v in asdict(cfg).items() if k not in ("workers", "time_limit")},
+         "cfg": {k: v for k, v in asdict(cfg).items() if k not in ("workers", "ray_address", "time_limit")},
          "fixed": [asdict(t) for t in fixed], "version": 1}
     return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()
 
@@ -231,6 +246,10 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
     from ctrplan.robot import load_robot
 
     cfg = config or DesignConfig()
+    if cfg.ray_address is not None:
+        from ctrplan.planning.ray_pool import require_ray
+
+        require_ray()       # before anything is loaded or written
     t0 = time.perf_counter()
     sc = resolve_scene(scene)
     names, pts = resolve_targets(sc, targets)
@@ -256,7 +275,7 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
                     cfg.generation, cfg.patience, cfg.time_limit, state_path, cfg.clearance_goal_mm,
                     _state_key(sc, names, pts, cfg, fixed), progress=bar.update)
     try:
-        search.run(cfg.workers)
+        search.run(cfg.workers, cfg.ray_address)
     finally:
         bar.close()
     best = search.best()

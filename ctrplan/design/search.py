@@ -38,14 +38,24 @@ def design_key(robot_dict: dict) -> str:
 
 
 class Runner:
-    """Runs evaluation jobs in this process or on a spawned process pool (results in order)."""
+    """Runs evaluation jobs in this process, on a spawned process pool (``workers > 1``) or on
+    Ray (``ray_address``: the same path as ``plan-batch --ray``,
+    :mod:`ctrplan.planning.ray_pool`); results always come back in the order of the jobs."""
 
-    def __init__(self, workers: int):
+    def __init__(self, workers: int, ray_address: str | None = None):
         self.workers = int(workers)
+        self.ray_address = ray_address
         self._ex = None
+        self._ray = None
 
     def __enter__(self) -> Runner:
-        if self.workers > 1:
+        if self.ray_address:
+            from ctrplan.planning.ray_pool import ray_session
+
+            # a local instance gets every core Ray detects (--workers and --ray exclude each other)
+            self._ray = ray_session(self.ray_address)
+            self._ray.__enter__()
+        elif self.workers > 1:
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor
 
@@ -55,6 +65,9 @@ class Runner:
         return self
 
     def __exit__(self, *exc) -> None:
+        if self._ray is not None:
+            ray, self._ray = self._ray, None
+            ray.__exit__(*exc)      # shuts down a local instance: its workers end with it
         if self._ex is not None:
             if exc[0] is not None:
                 # Ctrl-C or an error: stop every worker now, not after its current design
@@ -67,6 +80,10 @@ class Runner:
     def map(self, jobs: list[dict]) -> list[dict]:
         if not jobs:
             return []
+        if self._ray is not None:
+            from ctrplan.planning.ray_pool import ray_map
+
+            return ray_map(evaluate_job, jobs)
         if self._ex is None:
             return [evaluate_job(j) for j in jobs]
         return list(self._ex.map(evaluate_job, jobs))
@@ -250,7 +267,7 @@ class Search:
         self.planned += len(chosen)
 
     # ------------------------------------------------------------------ main loop
-    def run(self, workers: int = 1) -> None:
+    def run(self, workers: int = 1, ray_address: str | None = None) -> None:
         rng = np.random.default_rng(self.seed)
         t0 = time.perf_counter()
         n_init = min(self.budget, max(self.generation, self.budget // 3))
@@ -259,7 +276,7 @@ class Search:
         best_score = None
         best_key = None
         T = len(self.targets)
-        with Runner(workers) as runner:
+        with Runner(workers, ray_address) as runner:
             while len(self.evaluations) < self.budget:
                 if time.perf_counter() - t0 > self.time_limit:
                     self.time_cap_hit = True

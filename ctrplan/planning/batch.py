@@ -14,6 +14,7 @@ address, or ``"local"`` to start a local instance).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -292,33 +293,13 @@ def _worker_init() -> None:
 
 
 def _run_ray(todo: Sequence[Job], address: str, workers: int, record) -> None:
-    try:
-        import ray
-    except ImportError:
-        raise InputError("--ray", "", "ray is not installed (pip install 'ctrplan[ray]')") from None
-    started = False
-    if not ray.is_initialized():
-        env = {"env_vars": {"OMP_NUM_THREADS": "1"}}
-        if address == "local":
-            ray.init(num_cpus=max(1, workers), include_dashboard=False, log_to_driver=False,
-                     configure_logging=False, runtime_env=env)
-        else:
-            try:
-                ray.init(address=address, log_to_driver=False, configure_logging=False,
-                         runtime_env=env)
-            except Exception as exc:  # ray raises ConnectionError, RuntimeError, ValueError...
-                raise InputError("--ray", "", f"cannot connect to Ray at {address!r}: {exc}") from None
-        started = True
-    try:
-        remote = ray.remote(num_cpus=1)(_run_job_json)
-        pending = [remote.remote(asdict(job)) for job in todo]
-        while pending:
-            done, pending = ray.wait(pending, num_returns=1)
-            for ref in done:
-                record(ray.get(ref))
-    finally:
-        if started:
-            ray.shutdown()
+    # the one Ray path of every command (design too): ctrplan.planning.ray_pool
+    from ctrplan.planning.ray_pool import ray_as_completed, ray_session
+
+    with ray_session(address, num_cpus=max(1, workers)), \
+            contextlib.closing(ray_as_completed(_run_job_json, [asdict(job) for job in todo])) as results:
+        for _, res in results:
+            record(res)
 
 
 # ---------------------------------------------------------------------- tables

@@ -1,0 +1,89 @@
+"""Ray for every parallel command: one way to start or join a cluster and to run tasks on it.
+
+``plan-batch --ray ADDRESS`` (:func:`ctrplan.planning.batch.run_batch`) and ``design --ray
+ADDRESS`` (:class:`ctrplan.design.search.Runner`) both run their work here:
+:func:`ray_session` connects to the cluster at ADDRESS, or with ``"local"`` starts a private
+Ray instance on this machine (shut down again on exit); :func:`ray_as_completed` submits one
+task per argument (one CPU each, ``OMP_NUM_THREADS=1`` in every worker: the tasks are the
+parallelism) and yields ``(index, result)`` as the tasks finish. Callers that need results in
+order (design) put them back in order by index, so the outcome never depends on which worker
+finished first.
+
+Ray is optional (``pip install 'ctrplan[ray]'``); without it :func:`require_ray` raises
+:class:`~ctrplan.errors.InputError` (one line on the command line, exit 2).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
+
+from ctrplan.errors import InputError
+
+#: ``--ray local``: start a Ray instance on this machine instead of joining a cluster.
+LOCAL = "local"
+
+
+def require_ray():
+    """The ``ray`` module, or InputError naming ``--ray`` when it is not installed."""
+    try:
+        import ray
+    except ImportError:
+        raise InputError("--ray", "", "ray is not installed (pip install 'ctrplan[ray]')") from None
+    return ray
+
+
+@contextlib.contextmanager
+def ray_session(address: str, num_cpus: int | None = None) -> Iterator[Any]:
+    """Ray connected for the body: a cluster at ``address``, or a local instance for
+    ``"local"`` (``num_cpus`` CPUs; None: every core Ray detects). A session this call started
+    is shut down at exit (its workers end with it); an already initialised Ray is used as it is."""
+    ray = require_ray()
+    started = False
+    if not ray.is_initialized():
+        env = {"env_vars": {"OMP_NUM_THREADS": "1"}}
+        if address == LOCAL:
+            ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False,
+                     configure_logging=False, runtime_env=env)
+        else:
+            try:
+                ray.init(address=address, log_to_driver=False, configure_logging=False,
+                         runtime_env=env)
+            except Exception as exc:  # ray raises ConnectionError, RuntimeError, ValueError...
+                raise InputError("--ray", "", f"cannot connect to Ray at {address!r}: {exc}") from None
+        started = True
+    try:
+        yield ray
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def ray_as_completed(fn: Callable[[Any], Any], args: Sequence[Any]) -> Iterator[tuple[int, Any]]:
+    """Run ``fn(a)`` for every ``a`` in ``args`` as Ray tasks (inside :func:`ray_session`);
+    yield ``(index into args, result)`` as each finishes. Closing the iterator early (an
+    error, Ctrl-C) cancels the tasks still pending."""
+    ray = require_ray()
+    remote = ray.remote(num_cpus=1)(fn)
+    refs = [remote.remote(a) for a in args]
+    index = {ref: i for i, ref in enumerate(refs)}
+    pending = list(refs)
+    try:
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            for ref in done:
+                yield index[ref], ray.get(ref)
+    finally:
+        for ref in pending:
+            with contextlib.suppress(Exception):
+                ray.cancel(ref, force=True)
+
+
+def ray_map(fn: Callable[[Any], Any], args: Sequence[Any]) -> list[Any]:
+    """``[fn(a) for a in args]`` as Ray tasks (inside :func:`ray_session`), results in order."""
+    out: list[Any] = [None] * len(args)
+    with contextlib.closing(ray_as_completed(fn, args)) as it:
+        for i, res in it:
+            out[i] = res
+    return out
