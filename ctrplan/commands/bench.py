@@ -254,7 +254,7 @@ def real_robot_block(rr: dict) -> str:
              f"{th['depth_mm']:g} mm | centreline crosses the wall | deepest (mm; at least the "
              "tube radius where the centreline crosses) | truth tip error median (mm) |",
              "|---|---|---|---|---|---|---|---|"]
-    names = {"calibrated": "measure, `diagnose --base compliant`, plan with the calibrated "
+    names = {"calibrated": "measure, `diagnose --model physics`, plan with the calibrated "
                            "model and `--margin auto`",
              "default": "default `ctrplan plan` (nominal physics model, no calibration)",
              "first": "before: nominal physics model, margin 0, first solution "
