@@ -199,3 +199,25 @@ def test_default_outputs_are_written(tmp_path, monkeypatch, capsys):
         assert (tmp_path / DEFAULT_OUT[cmd]).is_file() and (tmp_path / DEFAULT_OUT[cmd]).stat().st_size > 0, cmd
     summary = capsys.readouterr().out
     assert "SUCCESS" in summary and "closest approach" in summary and "nominal model" in summary
+
+
+def test_documented_defaults_are_the_code_defaults():
+    """docs/conventions.md's table of default outputs and the README's command table say what
+    the parsers do."""
+    import re
+    from pathlib import Path
+
+    from ctrplan.commands._vocab import DEFAULT_OUT
+
+    root = Path(__file__).resolve().parents[1]
+    conv = (root / "docs" / "conventions.md").read_text(encoding="utf-8")
+    table = dict(re.findall(r"^\| `([a-z -]+)` \| `([^`]+)` \|$", conv, re.M))
+    for cmd, out in DEFAULT_OUT.items():
+        assert table.get(cmd, "").rstrip("/") == out, (cmd, table.get(cmd))
+    parser = build_parser()
+    for cmd in ("plan", "shape", "check", "simulate", "diagnose", "plan-batch", "design"):
+        argv = {"plan": ["--scene", "a", "--target", "t01"], "shape": ["--robot", "r", "--configs", "c"],
+                "check": ["--scene", "a", "--robot", "r", "--configs", "c"], "simulate": ["--robot", "r"],
+                "diagnose": ["--robot", "r", "--data", "d"], "plan-batch": ["--targets", "t"],
+                "design": ["--scene", "s", "--targets", "t"]}[cmd]
+        assert parser.parse_args([cmd, *argv]).out == DEFAULT_OUT[cmd], cmd
