@@ -382,8 +382,9 @@ def glance_block(bench: dict) -> str:
     if pl:
         r = next((r for r in pl["table"] if r["scene"] == "all" and r["model"] == "physics"), None)
         if r:
-            parts.append(f"planning {round(r['success_rate'] * r['plans'])}/{r['plans']} shipped "
-                         f"targets x seeds, median {r['median_s']:.2f} s per plan")
+            parts.append(f"planning to the shipped targets {round(r['success_rate'] * r['plans'])}"
+                         f"/{r['plans']} plans found (targets x seeds), median {r['median_s']:.2f} s "
+                         "per plan")
     m = bench["machine"]
     return (f"On one core of a shared {m['cores']}-core VM ({m['date']}): " + "; ".join(parts)
             + ". Details in [docs/performance.md](docs/performance.md).")
