@@ -26,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "demo.html (interactive, works offline) to --out.")
     p.add_argument("--scene", default=DEFAULT_SCENE, help=f"shipped scene or folder (default {DEFAULT_SCENE})")
     p.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot (default {DEFAULT_ROBOT})")
-    p.add_argument("--target", default=None, help="target name in the scene (default: the first one)")
+    p.add_argument("--target", default=None, help="target in the scene: anatomical name or id t01.. (default: the first one)")
     p.add_argument("--model", default="physics", help="shape model (default physics: margin 0; the learned model plans with its error bound as margin)")
     p.add_argument("--time", type=float, default=5.0, help="planning time limit, s (default 5)")
     p.add_argument("--seed", type=int, default=0)

@@ -110,7 +110,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", required=True, help="shipped scene name or scene folder")
     p.add_argument("--target", required=True, nargs="+", metavar="X,Y,Z",
                    help="X,Y,Z or X Y Z in mm (scene frame; negative values welcome: "
-                        "--target -5,20,0), or the name of one of the scene's example targets")
+                        "--target -5,20,0), or one of the scene's example targets by anatomical name "
+                        "(carina, ...) or id (t01, ...): `ctrplan scene list`")
     p.add_argument("--start", default="retracted", nargs="+", metavar="retracted|A1,..,Bn",
                    help="start configuration: 'retracted' (default; the tube rotations are "
                         "changed only if it collides) or 2n values alpha1..alphaN (rad), "
