@@ -12,7 +12,7 @@ independent re-check (:mod:`tests.foreign.recheck`: foreign mechanics with the t
 600+ backbone points, exact FCL cylinders, >= 10 interpolated states per edge):
 
 * **calibrate-then-plan**: ~320 rows of back-and-forth sweeps measured on the truth (noise
-  0.08 mm), ``ctrplan diagnose --base compliant`` (the CLI, as a user runs it), then
+  0.08 mm), ``ctrplan diagnose --model physics`` (the CLI, as a user runs it), then
   ``plan_to_target`` with ``calibrated.yaml`` and ``--margin auto`` to the first ``--targets``
   example targets of each of the four shipped scenes;
 * **default**: ``plan_to_target`` with the defaults (nominal physics model, no calibration).
@@ -107,7 +107,7 @@ def deviation(effects: dict, n: int = 200, seed: int = 0, points: int = 50) -> d
 def calibrate(effects: dict, work: Path, seed: int, rr=None, rows: int = 320,
               noise_mm: float = 0.08) -> dict:
     """Measure the truth (back-and-forth sweeps, rows in order of motion) and run
-    ``ctrplan diagnose --base compliant`` on the CSV."""
+    ``ctrplan diagnose --model physics`` on the CSV."""
     from tests.foreign import generate
 
     if rr is not None:
@@ -119,7 +119,7 @@ def calibrate(effects: dict, work: Path, seed: int, rr=None, rows: int = 320,
     data.write_csv(csv)
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "ctrplan.cli", "--quiet", "diagnose", "--robot", ROBOT,
-                           "--data", str(csv), "--base", "compliant", "--out", str(work / "report")],
+                           "--data", str(csv), "--model", "physics", "--out", str(work / "report")],
                           capture_output=True, text=True, cwd=ROOT, timeout=900)
     if proc.returncode != 0:
         raise RuntimeError(f"ctrplan diagnose failed: {proc.stderr[-2000:]}")

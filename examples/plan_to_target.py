@@ -18,7 +18,7 @@ target = scene.targets[0]                                # a reachable example t
 result = ctrplan.plan_to_target(robot, scene, target.position, model="physics",
                                 time_limit=2.0 if args.quick else 5.0, seed=0)
 
-print(f"{target.name}: {result.status.name}, tip error {result.tip_error_mm:.3f} mm, "
+print(f"{target.display}: {result.status.name}, tip error {result.tip_error_mm:.3f} mm, "
       f"min clearance {result.min_clearance_mm:.2f} mm, {len(result.path)} states")
 if args.out:
     from pathlib import Path

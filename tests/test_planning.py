@@ -312,7 +312,7 @@ def test_cli_plan_writes_plan_json(tmp_path):
     assert main(["-q", "plan", "--scene", "airway", "--target", "t03", "--model", "physics",
                  "--out", str(out)]) == 0
     plan = json.loads(out.read_text())
-    assert plan["success"] and plan["status"] == "SUCCESS" and plan["target_name"] == "t03"
+    assert plan["success"] and plan["status"] == "SUCCESS" and plan["target_name"] == "mid_trachea_2" and plan["target_id"] == "t03"
 
 
 @pytest.mark.parametrize("args,needle", [

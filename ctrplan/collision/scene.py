@@ -16,7 +16,7 @@ wheel carries them inside the package (``ctrplan/anatomy/``, copied there by ``s
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +55,14 @@ class Target:
     name: str
     position: np.ndarray
     config: np.ndarray | None = None
+    #: the anatomical name of a shipped scene's target (``name`` stays its id, ``t01``..; both
+    #: are accepted wherever a target name is: :meth:`Scene.find_target`)
+    label: str = field(default="", compare=False)
+
+    @property
+    def display(self) -> str:
+        """``label (id)`` where the target has an anatomical name, else its name."""
+        return f"{self.label} ({self.name})" if self.label else self.name
 
 
 @dataclass(frozen=True)
@@ -95,6 +103,18 @@ class Scene:
             if m.name == name:
                 return m
         raise KeyError(name)
+
+    def find_target(self, key: str) -> Target | None:
+        """The target whose anatomical name or id (``t01``..) is ``key``, else None."""
+        key = str(key).strip()
+        for t in self.targets:
+            if key in (t.name, t.label):
+                return t
+        return None
+
+    def target_names(self) -> str:
+        """The targets for an error message: ``carina (t01), ...``."""
+        return ", ".join(t.display for t in self.targets) or "none"
 
     def target_positions(self) -> np.ndarray:
         """(T, 3) target positions, mm, scene frame."""
@@ -179,6 +199,10 @@ def scene_from_dict(data: object, yml: Path) -> Scene:
         meshes.append(SceneMesh(name=mname, role=role, mesh=load_mesh(path), file=str(entry["file"])))
     base_pose = _parse_pose(data.get("base_pose"), src)
     targets = _parse_targets(data.get("targets") or [], src)
+    if yml.parent.resolve() == (anatomy_dir() / name).resolve():  # a shipped scene
+        from ctrplan.collision.target_names import anatomical_name
+
+        targets = tuple(replace(t, label=anatomical_name(name, t.name)) for t in targets)
     scene = Scene(name=name, path=str(yml.parent), meshes=tuple(meshes), base_pose=base_pose,
                   targets=targets, source=str(data.get("source", "")),
                   licence=str(data.get("licence", "")), frame=str(data.get("frame", "")),

@@ -14,7 +14,9 @@ def add_robot_arg(p: argparse.ArgumentParser, required: bool = True) -> None:
 
 
 def add_model_arg(p: argparse.ArgumentParser, default: str = "physics") -> None:
-    p.add_argument("--model", default=default,
+    from ctrplan.commands._vocab import model_name
+
+    p.add_argument("--model", default=default, type=model_name,
                    help="physics (torsionally compliant), rigid, learned (shipped default network) "
                         "or a model file written by 'ctrplan train'")
 

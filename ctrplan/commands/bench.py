@@ -29,8 +29,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--readme", metavar="FILE",
                    help=f"also put the tables into FILE between the lines {START} and {END}, and "
                         "rewrite FILE's other generated blocks (<!-- NAME:start --> ... "
-                        "<!-- NAME:end -->: perf-summary, hard, hard-summary, real-robot) from the "
-                        "JSON in --out (how README.md's planning and performance numbers are made)")
+                        "<!-- NAME:end -->: glance, perf-summary, hard, hard-summary, real-robot, "
+                        "validation) from the JSON in --out, and the same blocks of "
+                        "docs/performance.md and docs/validation.md beside FILE (how every "
+                        "number of the README and those docs is made)")
     p.add_argument("--no-run", action="store_true",
                    help="run no suite: only rewrite --readme's blocks from the JSON already in --out")
     p.set_defaults(func=run)
@@ -254,7 +256,7 @@ def real_robot_block(rr: dict) -> str:
              f"{th['depth_mm']:g} mm | centreline crosses the wall | deepest (mm; at least the "
              "tube radius where the centreline crosses) | truth tip error median (mm) |",
              "|---|---|---|---|---|---|---|---|"]
-    names = {"calibrated": "measure, `diagnose --base compliant`, plan with the calibrated "
+    names = {"calibrated": "measure, `diagnose --model physics`, plan with the calibrated "
                            "model and `--margin auto`",
              "default": "default `ctrplan plan` (nominal physics model, no calibration)",
              "first": "before: nominal physics model, margin 0, first solution "
@@ -276,14 +278,132 @@ def real_robot_block(rr: dict) -> str:
     return "\n".join(lines)
 
 
+# ----------------------------------------------------------------------------- docs/validation.md
+def _m_learned_foreign_best_gain(res: Path) -> str | None:
+    d = _load(res / "learned_foreign.json")
+    if not d:
+        return None
+    best = max((k for k in d["summary"] if isinstance(d["summary"][k], dict)),
+               key=lambda k: d["summary"][k]["gain_vs_physics"])
+    g = d["summary"][best]
+    return (f"{best}: {100 * g['gain_vs_physics']:.0f} % ({g['mean_mm']:.2f} vs physics "
+            f"{d['summary']['physics']:.2f} mm, {d['seeds']} seeds; `learned_foreign.json`)")
+
+
+def _m_learned_foreign_auto_ratio(res: Path) -> str | None:
+    d = _load(res / "learned_foreign_auto.json")
+    if not d:
+        return None
+    return (f"{d['auto_over_best']:.3f}x the best ({d['best_variant']}), {d['seeds']} seeds "
+            "(`learned_foreign_auto.json`)")
+
+
+def _m_hard_rrtconnect_success(res: Path) -> str | None:
+    d = _load(res / "hard" / "summary.json")
+    if not d:
+        return None
+    r = next((r for r in d["table"] if r["model"] == "physics" and r["planner"] == "rrtconnect"), None)
+    if r is None:
+        return None
+    fails = sum(1 for x in d["records"] if x["success"] and x.get("recheck_free") is False)
+    return (f"{r['success']}/{r['plans']}; {fails} re-check failures "
+            "(`hard/summary.json`)")
+
+
+def _m_real_robot(flow: str):
+    def f(res: Path) -> str | None:
+        d = _load(res / "real_robot.json")
+        if not d or flow not in d:
+            return None
+        s = d[flow]["summary"]
+        if flow == "calibrated":
+            return (f"{s['success']}/{s['plans']} planned, {s['penetrating_states']} states deeper, "
+                    f"tip error median {s['tip_error_truth_median_mm']:.2f} mm (`real_robot.json`)")
+        b = d["first"]["summary"]
+        return (f"{s['contact_states']} vs {b['contact_states']} contact states "
+                "(`real_robot.json`)")
+    return f
+
+
+#: claim ``measured`` key -> its value as text, computed from the JSON in benchmarks/results/
+MEASURED = {
+    "learned_foreign_best_gain": _m_learned_foreign_best_gain,
+    "learned_foreign_auto_ratio": _m_learned_foreign_auto_ratio,
+    "hard_rrtconnect_success": _m_hard_rrtconnect_success,
+    "real_robot_calibrated": _m_real_robot("calibrated"),
+    "real_robot_default": _m_real_robot("default"),
+}
+
+
+def load_claims(path: Path) -> list[dict]:
+    """The claims registry (docs/validation.yaml): a list of {area, claim, test, threshold,
+    asserts, measured?}."""
+    import yaml
+
+    try:
+        data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as e:
+        raise InputError(str(path), "", f"cannot read: {e}") from None
+    if not isinstance(data, list):
+        raise InputError(str(path), "", "expected a list of claims")
+    for k, c in enumerate(data):
+        for key in ("area", "claim", "test", "threshold", "asserts"):
+            if not isinstance(c, dict) or not c.get(key):
+                raise InputError(str(path), f"[{k}].{key}", "missing")
+        if c.get("measured") and c["measured"] not in MEASURED:
+            raise InputError(str(path), f"[{k}].measured", f"unknown key {c['measured']!r}")
+    return data
+
+
+def validation_block(claims: list[dict], results: Path) -> str:
+    """docs/validation.md's claims table from the registry and the committed JSON."""
+    rows = ["| area | claim | enforced by | threshold | last measured |", "|---|---|---|---|---|"]
+    for c in claims:
+        m = MEASURED[c["measured"]](results) if c.get("measured") else None
+        path, _, name = c["test"].partition("::")
+        rows.append(f"| {c['area']} | {c['claim']} | `{path}::{name}` | {c['threshold']} | "
+                    f"{m or 'each CI run (asserted; no separate record)'} |")
+    return "\n".join(rows)
+
+
+def glance_block(bench: dict) -> str:
+    """The README's few numbers (from bench.json)."""
+    su = bench["suites"]
+    parts = []
+    sh = su.get("shape")
+    if sh:
+        parts.append(f"compliant mechanics {sh['per_shape_s']['compliant']['10000'] * 1e6:.0f} µs "
+                     "per shape (batch 10,000)")
+    le = su.get("learned")
+    if le:
+        big = {r["batch"]: r for r in le["table"]}[le["largest_batch"]]
+        parts.append(f"the learned model {big['learned_us_per_shape']:.2f} µs per shape")
+    pl = su.get("planning")
+    if pl:
+        r = next((r for r in pl["table"] if r["scene"] == "all" and r["model"] == "physics"), None)
+        if r:
+            parts.append(f"planning to the shipped targets {round(r['success_rate'] * r['plans'])}"
+                         f"/{r['plans']} plans found (targets x seeds), median {r['median_s']:.2f} s "
+                         "per plan")
+    m = bench["machine"]
+    return (f"On one core of a shared {m['cores']}-core VM ({m['date']}): " + "; ".join(parts)
+            + ". Details in [docs/performance.md](docs/performance.md).")
+
+
 def readme_blocks(results: Path) -> dict[str, str]:
-    """Marker name -> generated markdown, for every block whose JSON is in ``results``."""
+    """Marker name -> generated markdown, for every block whose JSON is in ``results``
+    (the blocks of README.md, docs/performance.md and docs/validation.md; names are unique
+    across the three)."""
     results = Path(results)
     out: dict[str, str] = {}
     bench = _load(results / "bench.json")
     if bench:
         out["bench"] = to_markdown(bench)
         out["perf-summary"] = summary_block(bench, _load(results / "learned_gpu_h100.json"))
+        out["glance"] = glance_block(bench)
+    claims = results.resolve().parents[1] / "docs" / "validation.yaml"
+    if claims.is_file():
+        out["validation"] = validation_block(load_claims(claims), results)
     hard = _load(results / "hard" / "summary.json")
     if hard:
         out["hard"] = load_suite("hard").markdown(hard["table"])
@@ -302,6 +422,22 @@ def refresh_readme(text: str, results: Path, source: str) -> str:
     return text
 
 
+#: the documents beside README.md whose generated blocks ``--readme`` also rewrites
+DOCS = ("docs/performance.md", "docs/validation.md")
+
+
+def refresh_docs(readme: Path, results: Path) -> None:
+    """Rewrite the generated blocks of docs/performance.md and docs/validation.md beside
+    ``readme`` (where they exist)."""
+    from ctrplan.io import write_text_atomic
+
+    for rel in DOCS:
+        doc = readme.resolve().parent / rel
+        if doc.is_file():
+            text = doc.read_text(encoding="utf-8")
+            write_text_atomic(doc, refresh_readme(text, results, str(doc)))
+
+
 def run(args: argparse.Namespace) -> int:
     from ctrplan.io import write_json_atomic, write_text_atomic
 
@@ -314,11 +450,15 @@ def run(args: argparse.Namespace) -> int:
             readme = Path(args.readme).read_text(encoding="utf-8")
         except (OSError, UnicodeDecodeError) as e:
             raise InputError(args.readme, "", f"cannot read: {e}") from None
-        splice(readme, "", args.readme)
+        docs = [Path(args.readme).resolve().parent / d for d in DOCS]
+        texts = [readme] + [d.read_text(encoding="utf-8") for d in docs if d.is_file()]
+        if not any(START in t for t in texts):   # the tables must have somewhere to go
+            splice(readme, "", args.readme)
     if getattr(args, "no_run", False):
         if readme is None:
             raise InputError("--no-run", "", "needs --readme FILE")
         write_text_atomic(Path(args.readme), refresh_readme(readme, Path(args.out), args.readme))
+        refresh_docs(Path(args.readme), Path(args.out))
         return 0
     results = {"machine": machine(), "quick": bool(args.quick), "suites": {}}
     for name in args.suites:
@@ -332,7 +472,9 @@ def run(args: argparse.Namespace) -> int:
     md = to_markdown(results)
     write_text_atomic(out / "bench.md", md)
     if readme is not None:
-        write_text_atomic(Path(args.readme), refresh_readme(splice(readme, md, args.readme), out,
-                                                            args.readme))
+        if START in readme:
+            readme = splice(readme, md, args.readme)
+        write_text_atomic(Path(args.readme), refresh_readme(readme, out, args.readme))
+        refresh_docs(Path(args.readme), out)
     print(md)
     return 0

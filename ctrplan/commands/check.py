@@ -6,6 +6,7 @@ import argparse
 import logging
 
 from ctrplan.commands._common import add_model_arg, add_robot_arg, output_path
+from ctrplan.commands._vocab import DEFAULT_OUT
 from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
@@ -34,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "capsule's arc length (error_profile), else the uniform p99 of its "
                         "error_quantiles; 0 for a model without a bound (uncalibrated)")
     p.add_argument("--exact", action="store_true", help="every verdict from FCL (no prefilter)")
-    p.add_argument("--out", required=True, help="output verdicts .csv")
+    p.add_argument("--out", default=DEFAULT_OUT["check"], help=f"output verdicts .csv (default {DEFAULT_OUT['check']})")
     p.set_defaults(func=run)
 
 

@@ -26,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "demo.html (interactive, works offline) to --out.")
     p.add_argument("--scene", default=DEFAULT_SCENE, help=f"shipped scene or folder (default {DEFAULT_SCENE})")
     p.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot (default {DEFAULT_ROBOT})")
-    p.add_argument("--target", default=None, help="target name in the scene (default: the first one)")
+    p.add_argument("--target", default=None, help="target in the scene: anatomical name or id t01.. (default: the first one)")
     p.add_argument("--model", default="physics", help="shape model (default physics: margin 0; the learned model plans with its error bound as margin)")
     p.add_argument("--time", type=float, default=5.0, help="planning time limit, s (default 5)")
     p.add_argument("--seed", type=int, default=0)
@@ -61,16 +61,15 @@ def run(args: argparse.Namespace) -> int:
     if args.target is None:
         target = scene.targets[0]
     else:
-        names = {t.name: t for t in scene.targets}
-        if args.target not in names:
+        target = scene.find_target(args.target)
+        if target is None:
             raise InputError("--target", "", f"no target {args.target!r} in scene {scene.name!r} "
-                                             f"(have: {', '.join(names)})")
-        target = names[args.target]
+                                             f"(have: {scene.target_names()})")
     result = plan_to_target(robot, scene, target.position, model=args.model,
                             time_limit=args.time, seed=args.seed)
     plan = result.to_json()
     plan["target"] = [float(v) for v in target.position]
-    plan["target_name"] = target.name
+    plan["target_name"], plan["target_id"] = (target.label or target.name), target.name
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "plan.json", plan)
     files = [out / "plan.json"]
@@ -81,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         render_plan(plan, out / "demo.png")
         render_plan(plan, out / "demo.html")
         files += [out / "demo.png", out / "demo.html"]
-    print(f"ctrplan demo: robot {robot.name}, scene {scene.name}, target {target.name} "
+    print(f"ctrplan demo: robot {robot.name}, scene {scene.name}, target {target.display} "
           f"{tuple(round(float(v), 1) for v in target.position)} mm, model {plan.get('model')}")
     print(f"  status {plan['status']}  success {plan['success']}  planning time "
           f"{plan['planning_time_s']:.2f} s  tip error {_mm(plan['tip_error_mm'])}  "

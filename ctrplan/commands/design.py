@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from ctrplan.commands._vocab import DEFAULT_OUT
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -45,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--straight-length", default=None, metavar="MIN,MAX",
                    help="straight length bounds, mm (default 10,300)")
     p.add_argument("--stock", default=None, help="CSV of stock tube sizes (od_mm,id_mm); default the shipped table")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", default=DEFAULT_OUT["design"], help=f"output folder (default {DEFAULT_OUT['design']})")
     p.set_defaults(func=run)
 
 

@@ -7,6 +7,7 @@ import json
 import logging
 
 from ctrplan.commands._common import add_robot_arg
+from ctrplan.commands._vocab import DEFAULT_OUT, add_mechanics_model_arg, base_of
 from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
@@ -24,8 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "(calibrated.yaml for --model; calibrated_robot.yaml for --robot).")
     add_robot_arg(p)
     p.add_argument("--data", required=True, help="measured CSV (format: docs/conventions.md)")
-    p.add_argument("--base", choices=["rigid", "compliant"], default="rigid",
-                   help="base mechanics model (default rigid, the 'traditional' model)")
+    add_mechanics_model_arg(p, "rigid", "mechanics model the effects are added to")
     p.add_argument("--effects", default=None,
                    help="comma-separated candidate effects (default: all)")
     p.add_argument("--holdout", type=float, default=0.25,
@@ -48,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "comparison as best_model.json / best_model.md")
     p.add_argument("--test-fraction", type=float, default=0.2,
                    help="with --best: fraction of the sweeps held out for the comparison (default 0.2)")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", default=DEFAULT_OUT["diagnose"], help=f"output folder (default {DEFAULT_OUT['diagnose']})")
     p.set_defaults(func=run)
 
 
@@ -70,13 +70,13 @@ def run(args: argparse.Namespace) -> int:
     if args.best:
         from ctrplan.calibration.best import best_model
 
-        best = best_model(robot, data, out=args.out, base=args.base, test_fraction=args.test_fraction,
+        best = best_model(robot, data, out=args.out, base=base_of(args.model), test_fraction=args.test_fraction,
                           seed=args.seed, diagnose_kwargs=dict(
                               candidates=cands, holdout=args.holdout, bic_threshold=args.bic_threshold,
                               min_gain=args.min_gain))
         rep = best.report
     else:
-        rep = diagnose(robot, data, base=args.base, candidates=cands, holdout=args.holdout,
+        rep = diagnose(robot, data, base=base_of(args.model), candidates=cands, holdout=args.holdout,
                        seed=args.seed, bic_threshold=args.bic_threshold, min_gain=args.min_gain,
                        out=args.out)
     extra = {} if best is None else {"best": {

@@ -8,6 +8,7 @@ import math
 import re
 
 from ctrplan.commands._common import add_model_arg, output_path
+from ctrplan.commands._vocab import DEFAULT_OUT
 from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
@@ -109,14 +110,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", required=True, help="shipped scene name or scene folder")
     p.add_argument("--target", required=True, nargs="+", metavar="X,Y,Z",
                    help="X,Y,Z or X Y Z in mm (scene frame; negative values welcome: "
-                        "--target -5,20,0), or the name of one of the scene's example targets")
+                        "--target -5,20,0), or one of the scene's example targets by anatomical name "
+                        "(carina, ...) or id (t01, ...): `ctrplan scene list`")
     p.add_argument("--start", default="retracted", nargs="+", metavar="retracted|A1,..,Bn",
                    help="start configuration: 'retracted' (default; the tube rotations are "
                         "changed only if it collides) or 2n values alpha1..alphaN (rad), "
                         "beta1..betaN (mm), comma- or space-separated")
     add_planning_args(p)
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--out", required=True, help="output plan .json")
+    p.add_argument("--out", default=DEFAULT_OUT["plan"], help=f"output plan .json (default {DEFAULT_OUT['plan']})")
     allow_negative_values(p)
     p.set_defaults(func=run)
 
@@ -161,11 +163,11 @@ def parse_target(text: str, scene) -> tuple[list[float], str]:
         if not all(math.isfinite(v) for v in xyz):
             raise InputError("--target", "", f"must be finite numbers (mm), got {text!r}")
         return xyz, ""
-    names = {t.name: t for t in scene.targets}
-    if text in names:
-        return [float(v) for v in names[text].position], text
+    t = scene.find_target(text)
+    if t is not None:
+        return [float(v) for v in t.position], t.name
     raise InputError("--target", "", f"must be X,Y,Z in mm or a target name of scene {scene.name!r} "
-                                     f"({', '.join(names) or 'none'}), got {text!r}")
+                                     f"({scene.target_names()}), got {text!r}")
 
 
 def one_thread() -> None:
@@ -198,8 +200,9 @@ def run(args: argparse.Namespace) -> int:
                             config=config, start=start)
     plan = result.to_json()
     plan["scene"] = args.scene
-    if name:
-        plan["target_name"] = name
+    if name:  # the anatomical name where the scene has one; target_id is t01..
+        t = scene.find_target(name)
+        plan["target_name"], plan["target_id"] = (t.label or t.name), t.name
     write_json_atomic(out, plan)
     log.info("%s: %s in %.2f s (tip error %s mm, %d states) -> %s", result.status.value,
              result.message, result.planning_time_s,

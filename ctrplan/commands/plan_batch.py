@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 
+from ctrplan.commands._vocab import DEFAULT_OUT
 from ctrplan.commands.plan import add_planning_args, one_thread
 from ctrplan.errors import InputError
 
@@ -31,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     where.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
     where.add_argument("--ray", default=None, metavar="ADDRESS",
                        help="run on a Ray cluster at ADDRESS ('local' starts one here)")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", default=DEFAULT_OUT["plan-batch"], help=f"output folder (default {DEFAULT_OUT['plan-batch']})")
     p.set_defaults(func=run)
 
 

@@ -8,6 +8,7 @@ import logging
 import numpy as np
 
 from ctrplan.commands._common import add_model_arg, output_path
+from ctrplan.commands._vocab import DEFAULT_OUT
 
 log = logging.getLogger("ctrplan")
 
@@ -23,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     ls.set_defaults(func=run_list)
     sh = ss.add_parser("show", help="render a scene", description="Render a scene to PNG or HTML.")
     sh.add_argument("scene", help="shipped scene name or scene folder")
-    sh.add_argument("--out", required=True, help="output .png or .html")
+    sh.add_argument("--out", default=DEFAULT_OUT["scene show"], help=f"output .png or .html (default {DEFAULT_OUT['scene show']})")
     sh.add_argument("--configs", help="configuration CSV: draw these robot shapes")
     sh.add_argument("--robot", default="seed1", help="robot for --configs (default seed1)")
     add_model_arg(sh)
@@ -61,7 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     fl.add_argument("--max-mb", type=float, default=None, metavar="MB",
                     help="memory budget for the volume (default 2048)")
     fl.add_argument("--licence", default=None, help="licence of the image, written into scene.yaml")
-    fl.add_argument("--out", required=True, help="scene folder to write")
+    fl.add_argument("--out", default=DEFAULT_OUT["scene from-labels"], help=f"scene folder to write (default {DEFAULT_OUT['scene from-labels']})")
     from ctrplan.commands.plan import allow_negative_values
 
     allow_negative_values(fl)
@@ -76,6 +77,8 @@ def run_list(args: argparse.Namespace) -> int:
         sc = load_scene(name)
         roles = ", ".join(f"{m.name} ({m.role})" for m in sc.meshes)
         print(f"{name}: {len(sc.targets)} targets; {roles}")
+        if sc.targets:
+            print(f"  targets: {sc.target_names()}")
     return 0
 
 
@@ -169,7 +172,7 @@ def render_html(scene, out, backbones: np.ndarray) -> None:
     t = scene.target_positions()
     if len(t):
         traces.append(go.Scatter3d(x=t[:, 0], y=t[:, 1], z=t[:, 2], mode="markers+text",
-                                   text=[x.name for x in scene.targets], marker={"size": 4, "color": TARGET_COLOUR},
+                                   text=[x.display for x in scene.targets], marker={"size": 4, "color": TARGET_COLOUR},
                                    name="targets"))
     for k, b in enumerate(backbones):
         traces.append(go.Scatter3d(x=b[:, 0], y=b[:, 1], z=b[:, 2], mode="lines",

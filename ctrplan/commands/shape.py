@@ -7,6 +7,7 @@ import argparse
 import numpy as np
 
 from ctrplan.commands._common import add_model_arg, add_robot_arg, output_path
+from ctrplan.commands._vocab import DEFAULT_OUT
 from ctrplan.errors import InputError
 
 
@@ -19,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--configs", required=True, help="configuration CSV (alpha1..alphaN,beta1..betaN)")
     add_model_arg(p)
     p.add_argument("--points", type=int, default=20, help="points per backbone, base to tip (default 20)")
-    p.add_argument("--out", required=True, help="output .npz or .csv")
+    p.add_argument("--out", default=DEFAULT_OUT["shape"], help=f"output .npz or .csv (default {DEFAULT_OUT['shape']})")
     p.set_defaults(func=run)
 
 

@@ -8,6 +8,7 @@ import logging
 import numpy as np
 
 from ctrplan.commands._common import add_robot_arg, output_path
+from ctrplan.commands._vocab import DEFAULT_OUT, add_mechanics_model_arg, base_of
 from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
@@ -34,15 +35,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sweeps", type=int, default=4, help="sweeps per experiment (default 4)")
     p.add_argument("--effect", action="append", default=[], metavar="NAME[:PARAM=VALUE,...]",
                    help="hidden effect (repeatable); unnamed parameters stay off")
-    p.add_argument("--base", choices=["rigid", "compliant"], default="rigid",
-                   help="base mechanics model of the simulated robot (default rigid)")
+    add_mechanics_model_arg(p, "rigid", "mechanics model of the simulated robot")
     p.add_argument("--noise", type=float, default=0.0, help="noise std per coordinate, mm (default 0)")
     p.add_argument("--points", type=int, default=0,
                    help="also record M backbone points per row (default 0: tip only)")
     p.add_argument("--step", type=float, default=None,
                    help="integrator step of the simulated truth, mm (default: the model's)")
     p.add_argument("--seed", type=int, default=0, help="random seed (configurations and noise)")
-    p.add_argument("--out", required=True, help="output measured CSV")
+    p.add_argument("--out", default=DEFAULT_OUT["simulate"], help=f"output measured CSV (default {DEFAULT_OUT['simulate']})")
     p.set_defaults(func=run)
 
 
@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         if name in effects:
             raise InputError("--effect", name, "given twice")
         effects[name] = vals
-    complete_effects(effects, robot, args.base, source="--effect")
+    complete_effects(effects, robot, base_of(args.model), source="--effect")
     if args.n < 1:
         raise InputError("--n", "", f"must be >= 1, got {args.n}")
     if args.points < 0 or args.points == 1:
@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         q = robot.sample(args.n, args.seed)
         sweep = np.array([f"random{k // 50 + 1}" for k in range(len(q))], dtype=object)
-    data = simulate(robot, q, effects, args.base, sweep, args.noise, args.points, args.seed,
+    data = simulate(robot, q, effects, base_of(args.model), sweep, args.noise, args.points, args.seed,
                     args.step)
     write_measured(out, robot, data)
     log.info("wrote %d measured rows (hidden: %s; noise %g mm) to %s", len(data),

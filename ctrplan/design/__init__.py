@@ -203,12 +203,12 @@ def resolve_targets(scene, targets) -> tuple[list[str], np.ndarray]:
     names = list(targets)
     if not names:
         raise InputError("--targets", "", "no targets given")
-    known = {t.name: t for t in scene.targets}
-    for n in names:
-        if n not in known:
+    found = [scene.find_target(n) for n in names]   # anatomical names or ids (t01..)
+    for n, t in zip(names, found):
+        if t is None:
             raise InputError("--targets", "", f"unknown target {n!r} in scene {scene.name!r} "
-                             f"(known: {', '.join(known) or 'none'})")
-    return names, np.array([known[n].position for n in names], dtype=float)
+                             f"(known: {scene.target_names()})")
+    return names, np.array([t.position for t in found], dtype=float)
 
 
 def _state_key(scene, names, pts, cfg: DesignConfig, fixed) -> str:
