@@ -204,10 +204,8 @@ def run(args: argparse.Namespace) -> int:
         t = scene.find_target(name)
         plan["target_name"], plan["target_id"] = (t.label or t.name), t.name
     write_json_atomic(out, plan)
-    log.info("%s: %s in %.2f s (tip error %s mm, %d states) -> %s", result.status.value,
-             result.message, result.planning_time_s,
-             "n/a" if plan["tip_error_mm"] is None else f"{plan['tip_error_mm']:.3f}",
-             len(plan["path"]), out)
+    log.info("planned in %.2f s (%d states) -> %s", result.planning_time_s, len(plan["path"]),
+             out)
     print(summary_line(plan, str(args.model), str(args.robot)))
     if result.status in (PlanStatus.UNREACHABLE, PlanStatus.TARGET_IN_COLLISION):
         raise InputError("--target", "", f"{result.status.value}: {result.message} (wrote {out})")

@@ -627,6 +627,25 @@ def _same_tubes(a: Robot, b: Robot) -> bool:
     return a.n == b.n and np.allclose(a.lengths, b.lengths)
 
 
+def _start_collision_hint(robot, validator, start) -> str:
+    """What the user can do about a start configuration in collision: where it touches, how
+    deep, how far the start reaches past the base and the outer tube's radius (the base must
+    lie inside the lumen by more than that radius, and the lumen must hold the start)."""
+    try:
+        _, clearance, contact = validator.check_states(start[None], exact=True, joints=False)
+        points = validator.shapes(start[None]).points[0]
+    except Exception:  # the hint is a courtesy: never let it hide the status itself
+        return ""
+    reach = float(np.linalg.norm(points - points[0], axis=1).max())
+    radius = float(max(t.od for t in robot.tubes)) / 2.0
+    mesh = str(contact[0]) or "the anatomy"
+    depth = float(clearance[0])
+    where = f" ({-depth:.2f} mm into {mesh})" if np.isfinite(depth) and depth < 0 else ""
+    return (f"{where}; it reaches {reach:.1f} mm past the base with an outer radius of "
+            f"{radius:.2f} mm: place base_pose inside the lumen by more than that radius, with "
+            f"room for the start ahead of it (check it with `ctrplan check`), or give --start")
+
+
 def _stage_checks(run: _Run, start) -> np.ndarray:
     """Stage 1: reach, start configuration, target. Returns the start (2n,)."""
     t0 = time.perf_counter()
@@ -652,7 +671,8 @@ def _stage_checks(run: _Run, start) -> np.ndarray:
         run.clock("checks", t0)
         which = "retracted, any tube rotation" if retracted else "given with --start"
         raise _Stop(run.finish(PlanStatus.START_IN_COLLISION,
-                               f"the start configuration ({which}) collides with the scene"))
+                               f"the start configuration ({which}) collides with the scene"
+                               + _start_collision_hint(robot, validator, start)))
     tip_radius = float(robot.tubes[0].od) / 2.0
     blocked = target_blocked(run.scene, run.world, run.target, tip_radius)
     if blocked and run.cfg.approach:
