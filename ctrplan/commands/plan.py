@@ -198,6 +198,7 @@ def run(args: argparse.Namespace) -> int:
                             config=config, start=start)
     plan = result.to_json()
     plan["scene"] = args.scene
+    plan["robot"] = str(args.robot)   # the name or path given; robot_spec holds the robot itself
     if name:
         plan["target_name"] = name
     write_json_atomic(out, plan)
