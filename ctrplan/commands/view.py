@@ -79,13 +79,14 @@ def plan_robot(plan: dict, source: str):
     name = plan["robot"]
     if not isinstance(name, str) or not name:
         raise InputError(source, "robot", "must be a robot name or robot YAML path")
+    try:
+        robot = load_robot(name)
+    except InputError as exc:
+        raise InputError(source, "robot", str(exc)) from None
     if name not in SHIPPED_ROBOTS:
         log.warning("%s has no robot_spec: drawing the robot file %s as it is now, which may "
                     "differ from the robot that planned", source, name)
-    try:
-        return load_robot(name)
-    except InputError as exc:
-        raise InputError(source, "robot", str(exc)) from None
+    return robot
 
 
 def check_scene_field(spec, source: str) -> str:
