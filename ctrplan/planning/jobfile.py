@@ -46,6 +46,8 @@ def validate_job_file(path: str | Path, data: Any, job: Any) -> dict:
         raise bad("job_id", f"is not {job.id!r}")
     for key, want in asdict(job).items():
         have = data.get(key)
+        if key == "planner" and "requested_planner" in data:
+            have = data["requested_planner"]      # "planner" holds what solved it ("direct")
         if key == "target":
             want = [float(v) for v in want]
             ok = (isinstance(have, list) and len(have) == 3
