@@ -480,3 +480,27 @@ def test_plan_batch_on_a_full_disk_says_one_line_exit_2_nothing_written(tmp_path
     assert left == ["jobs", "jobs.csv", "summary.csv"]            # no job file, no temporary
     for p in (out / "jobs.csv", out / "summary.csv"):            # the old tables, whole
         assert p.read_bytes() == done[p]
+
+
+def test_view_draws_the_planned_tip_after_the_robot_file_changed(tmp_path, monkeypatch, capsys):
+    """Issue 24: view drew another robot (tip 3.7 mm from the planned one). Plan with a robot
+    YAML, change the file, view: the drawn tips are the planned tip path."""
+    from ctrplan import viz
+    from ctrplan.robot import load_robot
+
+    spec = load_robot("seed1").to_dict()
+    robot = tmp_path / "r.yaml"
+    robot.write_text(yaml.safe_dump(spec))
+    out = tmp_path / "plan.json"
+    rc = cli.main(["-q", "plan", "--scene", "airway", "--target", "t01", "--robot", str(robot),
+                   "--objective", "first", "--time", "5", "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    spec["tubes"][2]["curvature"] *= 1.5
+    robot.write_text(yaml.safe_dump(spec))                          # edited after planning
+    drawn = {}
+    monkeypatch.setattr(viz, "plan_html", lambda out, meshes, backbones, tip, target, title="":
+                        drawn.update(backbones=backbones, tip=tip))
+    rc = cli.main(["-q", "view", str(out), "--out", str(tmp_path / "v.html")])
+    assert rc == 0, capsys.readouterr().err
+    planned = np.asarray(json.loads(out.read_text())["tip_path"])
+    assert np.abs(drawn["backbones"][:, -1] - planned).max() < 1e-3
