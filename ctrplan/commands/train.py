@@ -241,16 +241,22 @@ def run(args: argparse.Namespace) -> int:
         "ctrplan_version": __version__,
     })
     sel = report.selection or {}
-    if sel.get("mode") == "auto":
-        from ctrplan.io import jsonable, write_json_atomic, write_text_atomic
+    import contextlib
 
-        side = out.with_suffix(".variants.json")
-        write_json_atomic(side, jsonable(sel))
-        write_text_atomic(out.with_suffix(".variants.md"), T.selection_markdown(sel))
-        log.info("variant %s chosen by validation error: %s (table: %s)", sel["chosen"],
-                 ", ".join(f"{r['variant']} {r['val_max_dev_mean_mm']:.3f} mm" for r in sel["candidates"]),
-                 side)
-    model.save(out)
+    from ctrplan.io import atomic_path, jsonable, write_json_atomic, write_text_atomic
+
+    # Every file goes to a temporary beside its target and all are renamed into place only
+    # after all were written: a full disk leaves the previous model (and tables) as they were.
+    with contextlib.ExitStack() as stack:
+        if sel.get("mode") == "auto":
+            side = out.with_suffix(".variants.json")
+            write_json_atomic(stack.enter_context(atomic_path(side)), jsonable(sel))
+            write_text_atomic(stack.enter_context(atomic_path(out.with_suffix(".variants.md"))),
+                              T.selection_markdown(sel))
+            log.info("variant %s chosen by validation error: %s (table: %s)", sel["chosen"],
+                     ", ".join(f"{r['variant']} {r['val_max_dev_mean_mm']:.3f} mm"
+                               for r in sel["candidates"]), side)
+        model.save(stack.enter_context(atomic_path(out)))
     for name, m in report.metrics.items():
         log.info("%s: max deviation %.3f +- %.3f mm, MSE %.4f mm^2, sum of deviations %.2f mm (n=%d)",
                  name, m["max_dev_mean"], m["max_dev_std"], m["mse_mean"], m["sum_dev_mean"], m["n"])
