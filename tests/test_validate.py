@@ -225,6 +225,11 @@ def test_a_zero_span_learned_model_gives_no_ok_shapes_and_collides(tmp_path):
         "base_pose": {"position": [0, 0, 0], "quaternion": [1, 0, 0, 0]}}))
     world = CollisionWorld(folder, cache=tmp_path / "cache")
     assert world.check(shape).collides.all()
+    assert world.check_exact(shape).collides.all()
+    assert world.collides(shape).all()
+    assert world.first_collision(shape) == 0
+    # the field walk over NaN capsules never ended (check/plan/demo hung): now a proven hit
+    assert (world.clearance_exact(shape) < 0).all()
 
 
 def test_physics_with_a_non_finite_tube_value_is_not_ok():
