@@ -232,15 +232,20 @@ def test_a_zero_span_learned_model_gives_no_ok_shapes_and_collides(tmp_path):
     assert (world.clearance_exact(shape) < 0).all()
 
 
-def test_physics_with_a_non_finite_tube_value_is_not_ok():
+def test_physics_and_calibrated_models_with_a_non_finite_tube_value_are_not_ok():
     from ctrplan.robot import load_robot
+    from ctrplan.shape.effects import EffectModel
     from ctrplan.shape.physics import PhysicsModel
 
     r = load_robot("seed1")
     object.__setattr__(r.tubes[0], "curvature", float("nan"))   # bypasses the reader on purpose
+    q = np.array([[0.1, 0.2, 0.3, -150, -100, -50], [0.0, 0.0, 0.0, -100, -80, -40]])
     for torsion in (False, True):
-        shape = PhysicsModel(r, torsion=torsion).shape(np.array([[0.1, 0.2, 0.3, -150, -100, -50]]))
+        shape = PhysicsModel(r, torsion=torsion).shape(q)
         assert not shape.ok.any()
+    for base in ("rigid", "compliant"):
+        shape = EffectModel(r, base, {"precurvature": {"scale1": 1.2}}).shape(q)
+        assert not np.isfinite(shape.points).all() and not shape.ok.any()
 
 
 # ---------------------------------------------------------------------------- symlinked meshes
