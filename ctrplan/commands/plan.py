@@ -144,7 +144,10 @@ def parse_start(tokens, robot) -> object:
     vals = _numbers(tokens, "--start")
     if vals is None or len(vals) != robot.dof:
         raise InputError("--start", "", f"must be 'retracted' or {robot.dof} numbers alpha1..alpha{robot.n} "
-                         f"(rad), beta1..beta{robot.n} (mm), got {' '.join(tokens)!r}")
+                         f"(rad), beta1..beta{robot.n} (mm), got {' '.join(tokens)[:80]!r}")
+    from ctrplan.robot import check_config_plausible
+
+    check_config_plausible([vals], robot, "--start", row_offset=1, row_word="configuration")
     return vals
 
 
