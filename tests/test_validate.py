@@ -512,5 +512,13 @@ def test_view_draws_the_planned_tip_after_the_robot_file_changed(tmp_path, monke
                         drawn.update(backbones=backbones, tip=tip))
     rc = cli.main(["-q", "view", str(out), "--out", str(tmp_path / "v.html")])
     assert rc == 0, capsys.readouterr().err
-    planned = np.asarray(json.loads(out.read_text())["tip_path"])
+    plan = json.loads(out.read_text())
+    planned = np.asarray(plan["tip_path"])
     assert np.abs(drawn["backbones"][:, -1] - planned).max() < 1e-3
+    # the test can fail: the edited file's robot puts the tip elsewhere (what view drew before)
+    from ctrplan.collision.scene import load_scene
+    from ctrplan.shape.physics import PhysicsModel
+
+    wrong = load_scene("airway").to_scene(PhysicsModel(load_robot(robot)).backbone(np.asarray(plan["path"]),
+                                                                                   points=40))
+    assert np.linalg.norm(wrong[:, -1] - planned, axis=1).max() > 1.0
