@@ -83,6 +83,36 @@ class Tube:
         return shear * 2.0 * self.second_moment
 
 
+#: Plausibility ranges (inclusive) of every number in a robot, a model file or a configuration,
+#: in the units of docs/conventions.md ("Plausibility ranges" lists the same table). A value
+#: outside is refused as a typo or a units mistake before any mechanics runs: finite but absurd
+#: values (an angle of 1e20 rad, a translation of 1e12 mm, E = 1e300 MPa) would otherwise give
+#: overflowing, NaN or meaningless shapes.
+PLAUSIBLE: dict[str, tuple[float, float]] = {
+    "diameter": (0.0, 50.0),            # od, id (mm): the widest catheter-like tube is ~10 mm
+    "length": (0.0, 5000.0),            # straight/curved length, |beta| (mm)
+    "curvature": (-10.0, 10.0),         # 1/mm (a bend radius of at least 0.1 mm)
+    "youngs_modulus": (1.0, 2.0e6),     # MPa: soft silicone ~1, nitinol 6e4, tungsten 4e5
+    "shear_modulus": (0.3, 1.0e6),      # MPa, G = E / (2 (1 + nu)) (follows from the two)
+    "poisson_ratio": (0.0, 0.5),        # dimensionless, 0.5 itself excluded (incompressible)
+    "density": (100.0, 25000.0),        # kg/m^3: foams to tungsten/osmium
+    "angle": (-1.0e4, 1.0e4),           # rad: unwrapped tube rotations (~1600 turns)
+}
+
+
+def check_plausible(value: float, kind: str, source: str, field_: str, unit: str = "") -> float:
+    """``value`` as a float when finite and inside :data:`PLAUSIBLE` [kind]; else InputError
+    naming ``source`` and ``field_`` (one line, with the range and unit)."""
+    lo, hi = PLAUSIBLE[kind]
+    v = float(value)
+    if not math.isfinite(v):
+        raise InputError(source, field_, f"must be a finite number, got {v!r}")
+    if not lo <= v <= hi:
+        raise InputError(source, field_, f"{v:.6g} is outside the plausible range [{lo:g}, {hi:g}]"
+                                         f"{' ' + unit if unit else ''} (a typo or a units mistake?)")
+    return v
+
+
 #: Required tube fields (``density`` is optional).
 _TUBE_FIELDS = tuple(f.name for f in fields(Tube) if f.name != "density")
 
@@ -249,6 +279,44 @@ class Robot:
         write_text_atomic(path, text)
 
 
+def robot_digest(spec: dict[str, Any]) -> str:
+    """sha256 (hex) of a robot's tube values (:meth:`Robot.to_dict`) in canonical JSON: the
+    ``robot_sha256`` field of plan.json (equal digests = the same robot, whatever its name or
+    file)."""
+    import hashlib
+    import json
+
+    text = json.dumps(spec, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def robot_record(robot: Robot) -> dict[str, Any]:
+    """The plan.json fields that carry the robot itself: ``robot_spec`` (its tube values, as in
+    a robot YAML) and ``robot_sha256`` (:func:`robot_digest` of them)."""
+    spec = robot.to_dict()
+    return {"robot_spec": spec, "robot_sha256": robot_digest(spec)}
+
+
+def robot_from_record(plan: dict[str, Any], source: str) -> Robot | None:
+    """The robot a plan.json was planned with, from its ``robot_spec`` (validated as a robot
+    file, and against ``robot_sha256`` when present); None when the plan has no robot_spec (a
+    plan written before it was recorded)."""
+    spec = plan.get("robot_spec")
+    if spec is None:
+        return None
+    robot = robot_from_dict(spec, source=f"{source}: robot_spec")
+    digest = plan.get("robot_sha256")
+    if digest is not None:
+        try:
+            same = isinstance(digest, str) and robot_digest(spec) == digest
+        except (TypeError, ValueError):
+            same = False
+        if not same:
+            raise InputError(source, "robot_sha256", "does not match robot_spec: the plan was "
+                             "edited after planning, so the robot that planned is unknown")
+    return robot
+
+
 def wrap_angle(a: np.ndarray) -> np.ndarray:
     """Wrap angles to (-pi, pi]."""
     a = np.asarray(a, dtype=float)
@@ -264,6 +332,12 @@ def _validate_tubes(tubes: tuple[Tube, ...], source: str) -> None:
             v = getattr(t, k)
             if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
                 raise InputError(source, f"{where}.{k}", f"must be a finite number, got {v!r}")
+        for k, kind, unit in (("od", "diameter", "mm"), ("id", "diameter", "mm"),
+                              ("straight_length", "length", "mm"),
+                              ("curved_length", "length", "mm"),
+                              ("curvature", "curvature", "1/mm"),
+                              ("youngs_modulus", "youngs_modulus", "MPa")):
+            check_plausible(getattr(t, k), kind, source, f"{where}.{k}", unit)
         if t.od <= 0:
             raise InputError(source, f"{where}.od", f"must be > 0, got {t.od}")
         if not 0 <= t.id < t.od:
@@ -286,11 +360,15 @@ def _validate_tubes(tubes: tuple[Tube, ...], source: str) -> None:
             raise InputError(source, f"{where}.youngs_modulus", f"must be > 0, got {t.youngs_modulus}")
         if not 0 <= t.poisson_ratio < 0.5:
             raise InputError(source, f"{where}.poisson_ratio", f"must be in [0, 0.5), got {t.poisson_ratio}")
+        check_plausible(t.torsional_stiffness / (2.0 * t.second_moment), "shear_modulus", source,
+                        f"{where}.youngs_modulus", "MPa (shear modulus E / (2 (1 + nu)))")
         if t.density is not None and (isinstance(t.density, bool)
                                       or not isinstance(t.density, (int, float))
                                       or not math.isfinite(t.density) or t.density <= 0):
             raise InputError(source, f"{where}.density",
                              f"must be a finite number > 0 (kg/m^3), got {t.density!r}")
+        if t.density is not None:
+            check_plausible(t.density, "density", source, f"{where}.density", "kg/m^3")
         if i > 0 and not tubes[i - 1].od < t.id:
             raise InputError(
                 source, f"{where}.id",
@@ -342,6 +420,8 @@ def robot_from_dict(data: Any, source: str = "<memory>") -> Robot:
             raise InputError(source, "beta_min", "must be a list of finite numbers (mm)")
         if any(b > 0 for b in beta_min):
             raise InputError(source, "beta_min", "values must be <= 0 mm")
+        for i, b in enumerate(beta_min):
+            check_plausible(-b, "length", source, f"beta_min[{i}]", "mm (as a retraction)")
         beta_min = tuple(float(b) for b in beta_min)
     return Robot(name=name, tubes=tuple(tubes), beta_min=beta_min, source=source)
 
@@ -359,7 +439,34 @@ def load_robot(name_or_path: str | os.PathLike | Robot) -> Robot:
     path = Path(s)
     if not path.exists():
         raise InputError(s, "", f"no such robot file, and not a shipped robot ({', '.join(SHIPPED_ROBOTS)})")
+    check_regular_file(path, (".yaml", ".yml"), "a robot YAML")
     return robot_from_dict(load_yaml(path), source=str(path))
+
+
+#: Largest robot or calibrated-model YAML read (bytes): real ones are about 1 kB.
+MAX_YAML_BYTES = 1 << 20
+
+
+def check_regular_file(path: str | os.PathLike, suffixes: tuple[str, ...], what: str,
+                       max_bytes: int = MAX_YAML_BYTES) -> Path:
+    """``path`` when it is a regular file (after symlinks) with one of ``suffixes`` and at most
+    ``max_bytes`` long; else InputError. Keeps devices (/dev/zero), FIFOs, folders and
+    arbitrary files named as a robot or model out of the readers."""
+    p = Path(path)
+    try:
+        st = p.stat()
+    except OSError:
+        raise InputError(str(path), "", "file not found") from None
+    import stat as _stat
+
+    if not _stat.S_ISREG(st.st_mode):
+        raise InputError(str(path), "", f"not a regular file: expected {what}")
+    if not p.name.lower().endswith(suffixes):
+        raise InputError(str(path), "", f"expected {what} ({' or '.join(suffixes)} file)")
+    if st.st_size > max_bytes:
+        raise InputError(str(path), "", f"{st.st_size} bytes is more than {what} can be "
+                                        f"({max_bytes} bytes)")
+    return p
 
 
 def read_configs(path: str | os.PathLike, robot: Robot, check: bool = True) -> np.ndarray:
@@ -372,6 +479,7 @@ def read_configs(path: str | os.PathLike, robot: Robot, check: bool = True) -> n
     if not body:
         raise InputError(str(path), "rows", "no configurations (only a header)")
     q = parse_float_columns(path, header, body, robot.column_names)
+    check_config_plausible(q, robot, str(path))
     if check:
         ok = robot.is_valid(q)
         if not ok.all():
@@ -383,6 +491,28 @@ def read_configs(path: str | os.PathLike, robot: Robot, check: bool = True) -> n
                 f"(worst constraint off by {-viol.min():.6g} mm)",
             )
     return q
+
+
+def check_config_plausible(q: np.ndarray, robot: Robot, source: str, row_offset: int = 2,
+                           row_word: str = "row") -> None:
+    """Refuse configurations whose rotations or translations lie outside :data:`PLAUSIBLE`
+    (|alpha| <= 1e4 rad, |beta| <= 5000 mm), naming the row (``row_offset`` + index) and the
+    column. Finite values beyond these lose all precision (1e20 rad has no meaningful angle)."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    if q.size == 0:
+        return
+    n = robot.n
+    for cols, kind, unit in ((slice(0, n), "angle", "rad"), (slice(n, 2 * n), "length", "mm")):
+        lo, hi = PLAUSIBLE[kind]
+        lo = -hi if kind == "length" else lo
+        block = q[:, cols]
+        bad = ~((block >= lo) & (block <= hi))
+        if bad.any():
+            k, j = (int(x[0]) for x in np.nonzero(bad))
+            name = robot.column_names[cols.start + j]
+            raise InputError(source, f"{row_word} {k + row_offset}: {name}",
+                             f"{block[k, j]:.6g} is outside the plausible range [{lo:g}, {hi:g}] "
+                             f"{unit} (a typo or a units mistake?)")
 
 
 def write_configs(path: str | os.PathLike, robot: Robot, q: np.ndarray) -> None:

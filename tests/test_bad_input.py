@@ -232,7 +232,94 @@ MAKERS = {
     "model-unknown": lambda i, o: _shape(i, o, f"{HEADER}\n{GOOD}\n", "--model", "nope"),
     "effect-unknown": lambda i, o: ["simulate", "--robot", "seed1", "--n", "5", "--effect", "magic:x=1",
                                     "--out", str(o / "m.csv")],
+    # branch valid: plausibility ranges, model files, confined paths, honest train, job files
+    "robot-implausible-modulus": lambda i, o: _robot(i, o, _one_tube().replace("60000", "1e300")),
+    "robot-implausible-length": lambda i, o: _robot(i, o, _one_tube().replace("straight_length: 100",
+                                                                              "straight_length: 1.0e12")),
+    "config-implausible-angle": lambda i, o: _shape(i, o, f"{HEADER}\n1e20,0.2,0.3,-150,-100,-50\n"),
+    "robot-not-regular-file": lambda i, o: ["shape", "--robot", "/dev/zero", "--configs",
+                                            str(_w(i / "c.csv", f"{HEADER}\n{GOOD}\n")), "--out", str(o / "s.npz")],
+    "model-not-regular-file": lambda i, o: _shape(i, o, f"{HEADER}\n{GOOD}\n", "--model", "/dev/zero"),
+    "model-zero-span": lambda i, o: _shape(i, o, f"{HEADER}\n{GOOD}\n", "--model",
+                                           str(_edited_model(i / "m.pt", zero_span=True))),
+    "model-other-robot": lambda i, o: ["shape", "--robot", "two_tube_nylon", "--configs",
+                                       str(_w(i / "c.csv", "alpha1,alpha2,beta1,beta2\n0,0,-20,-10\n")),
+                                       "--model", str(_edited_model(i / "m.pt")), "--out", str(o / "s.npz")],
+    "train-no-variety": lambda i, o: ["train", "--robot", "seed1", "--sim", "0", "--real",
+                                      str(_identical_rows(i / "m.csv")), "--out", str(o / "m.pt")],
+    "view-robot-edited": lambda i, o: _view(i, o, robot_spec="edited"),
+    "view-robot-device": lambda i, o: _view(i, o, robot="/dev/zero"),
+    "view-scene-arbitrary": lambda i, o: _view(i, o, scene=str(_w(i / "notes.txt", "hello\n"))),
+    "view-target-malformed": lambda i, o: _view(i, o, target=[1.0, 2.0]),
+    "scene-mesh-symlink": lambda i, o: _symlinked_mesh_scene(i, o),
+    "batch-job-edited": lambda i, o: _edited_job(i, o),
 }
+
+
+def _edited_model(path: Path, zero_span: bool = False) -> Path:
+    """The shipped seed1 network, copied (and with ``zero_span`` its beta spans set to 0)."""
+    import json
+
+    import torch
+
+    obj = torch.load(ROOT / "ctrplan" / "data" / "models" / "seed1.pt", weights_only=True)
+    if zero_span:
+        meta = json.loads(obj["meta_json"])
+        meta["normalisation"]["beta_span_mm"] = [0.0] * 3
+        obj["meta_json"] = json.dumps(meta)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(obj, path)
+    return path
+
+
+def _identical_rows(path: Path, rows: int = 300) -> Path:
+    """300 copies of one measured row (configuration, tip, 3 backbone points)."""
+    cols = [*HEADER.split(","), "tip_x", "tip_y", "tip_z"] + [f"p{k}_{c}" for k in (1, 2, 3) for c in "xyz"]
+    row = [*GOOD.split(","), "1", "2", "100", "0", "0", "0", "0.5", "1", "50", "1", "2", "100"]
+    return _w(path, ",".join(cols) + "\n" + (",".join(row) + "\n") * rows)
+
+
+def _view(i: Path, o: Path, **edit) -> list[str]:
+    """``view`` of a plan.json (seed1, airway, one state) with fields replaced by ``edit``
+    (``robot_spec="edited"``: the recorded robot changed after planning; ``robot=``: a plan
+    without a recorded robot naming that robot)."""
+    import json
+
+    from ctrplan.robot import load_robot, robot_record
+
+    plan = {"scene": "airway", "robot": "seed1", "model": "physics", "status": "SUCCESS",
+            "path": [[0.1, 0.2, 0.3, -150, -100, -50]], "target": [0.0, 0.0, 0.0],
+            **robot_record(load_robot("seed1"))}
+    if edit.pop("robot_spec", "") == "edited":
+        plan["robot_spec"]["tubes"][0]["curvature"] = 0.02
+    if "robot" in edit:
+        del plan["robot_spec"], plan["robot_sha256"]
+    plan.update(edit)
+    return ["view", str(_w(i / "plan.json", json.dumps(plan))), "--out", str(o / "v.html")]
+
+
+def _symlinked_mesh_scene(i: Path, o: Path) -> list[str]:
+    argv = _scene(i, o, SCENE_OK % ("link.stl", ""))
+    trimesh.creation.cylinder(radius=10.0, height=100.0, sections=16).export(i / "elsewhere.stl")
+    (i / "scene" / "link.stl").symlink_to(i / "elsewhere.stl")
+    return argv
+
+
+def _edited_job(i: Path, o: Path) -> list[str]:
+    """A finished-looking job file for the job plan-batch will make, edited to an unknown status."""
+    import json
+    from dataclasses import asdict
+
+    from ctrplan.planning.batch import make_jobs
+
+    targets = _w(i / "t.csv", "scene,name,x,y,z\nairway,t,0,0,0\n")
+    job = make_jobs([("airway", "t", (0.0, 0.0, 0.0))], seeds=(0,), robot="seed1", model="physics",
+                    planner="rrtconnect", time_limit=5.0, tolerance_mm=1.0, margin="auto",
+                    objective="clearance")[0]
+    data = {"job_id": job.id, **asdict(job), "target": [0.0, 0.0, 0.0], "status": "GREAT",
+            "success": True, "message": "", "planning_time_s": 1.0}
+    _w(o / "b" / "jobs" / f"{job.id}.json", json.dumps(data))
+    return ["plan-batch", "--targets", str(targets), "--out", str(o / "b")]
 
 
 def _mkdir(p: Path) -> Path:

@@ -162,6 +162,9 @@ def test_quick_design_reaches_every_target_within_the_constraints(quick):
     assert (out / "paths.png").read_bytes()[:4] == b"\x89PNG" and (out / "paths.html").is_file()
     plan = __import__("json").loads((out / doc["targets"][0]["path_file"]).read_text())
     assert load_robot(plan["robot"]) == load_robot(out / "robot.yaml")
+    from ctrplan.robot import robot_from_record  # view draws the recorded robot (digest checked)
+
+    assert robot_from_record(plan, "plan.json") == load_robot(out / "robot.yaml")
 
 
 def test_rerun_resumes_from_the_state_file_with_the_same_design(quick, tmp_path):

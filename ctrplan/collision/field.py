@@ -581,6 +581,16 @@ def capsule_bounds(field: DistanceField, a: np.ndarray, b: np.ndarray, r: np.nda
     """
     if unsure is None:
         unsure = np.zeros(r.shape, dtype=np.uint64)
+    # A capsule with a non-finite end or radius (a model that produced NaN) would walk its
+    # segment for ever (no step reaches a NaN length): such a row is a proven collision
+    # (depth +inf, clearance -inf), never free, and the walk skips it.
+    finite = (np.isfinite(a).all(axis=(1, 2)) & np.isfinite(b).all(axis=(1, 2))
+              & np.isfinite(r).all(axis=1))
+    if not finite.all():
+        bad = np.asarray(active, dtype=bool) & ~finite
+        clear[bad] = -np.inf
+        depth[bad] = np.inf
+        active = np.ascontiguousarray(np.asarray(active, dtype=bool) & finite)
     _capsule_bounds(a, b, r, active, field.lb, field.ub, field.side,
                     int(bad_side) if field.watertight else 0, field.origin, field.h, field.box_lo,
                     field.box_hi, float(sample_mm), EPS_MM, bool(trace), np.uint64(bit), clear,

@@ -220,7 +220,15 @@ def _mesh_path(yml: Path, file: str, src: str, fieldname: str) -> Path:
         raise InputError(src, fieldname, f"{file!r} is an absolute path: name a file inside the scene folder")
     if ".." in rel.parts or ".." in Path(file.replace("\\", "/")).parts:
         raise InputError(src, fieldname, f"{file!r} leaves the scene folder ('..')")
-    return yml.parent / rel
+    path = yml.parent / rel
+    # Symlinks too: the file the name finally resolves to must lie inside the (resolved) scene
+    # folder, so a scene cannot make ctrplan read files elsewhere on the machine.
+    folder = os.path.realpath(yml.parent)
+    real = os.path.realpath(path)
+    if os.path.commonpath([folder, real]) != folder:
+        raise InputError(src, fieldname, f"{file!r} is a symlink that leaves the scene folder "
+                                          f"(resolves outside {folder!r})")
+    return path
 
 
 def load_mesh(path: str | os.PathLike):

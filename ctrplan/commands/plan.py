@@ -146,7 +146,10 @@ def parse_start(tokens, robot) -> object:
     vals = _numbers(tokens, "--start")
     if vals is None or len(vals) != robot.dof:
         raise InputError("--start", "", f"must be 'retracted' or {robot.dof} numbers alpha1..alpha{robot.n} "
-                         f"(rad), beta1..beta{robot.n} (mm), got {' '.join(tokens)!r}")
+                         f"(rad), beta1..beta{robot.n} (mm), got {' '.join(tokens)[:80]!r}")
+    from ctrplan.robot import check_config_plausible
+
+    check_config_plausible([vals], robot, "--start", row_offset=1, row_word="configuration")
     return vals
 
 
@@ -200,6 +203,7 @@ def run(args: argparse.Namespace) -> int:
                             config=config, start=start)
     plan = result.to_json()
     plan["scene"] = args.scene
+    plan["robot"] = str(args.robot)   # the name or path given; robot_spec holds the robot itself
     if name:  # the anatomical name where the scene has one; target_id is t01..
         t = scene.find_target(name)
         plan["target_name"], plan["target_id"] = (t.label or t.name), t.name

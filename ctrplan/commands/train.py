@@ -184,6 +184,9 @@ def run(args: argparse.Namespace) -> int:
     real = T.from_measured(args.real, robot) if args.real else None
     if real is not None and len(real) < 3:
         raise InputError(args.real, "rows", "need at least 3 rows (train/validation/test)")
+    if real is not None:
+        for line in check_variety(real.q, real.points, args.real, robot.column_names):
+            log.warning("%s", line)
     base = None
     if args.init:
         from ctrplan.shape.models import load_model
@@ -238,21 +241,83 @@ def run(args: argparse.Namespace) -> int:
         "ctrplan_version": __version__,
     })
     sel = report.selection or {}
-    if sel.get("mode") == "auto":
-        from ctrplan.io import jsonable, write_json_atomic, write_text_atomic
+    import contextlib
 
-        side = out.with_suffix(".variants.json")
-        write_json_atomic(side, jsonable(sel))
-        write_text_atomic(out.with_suffix(".variants.md"), T.selection_markdown(sel))
-        log.info("variant %s chosen by validation error: %s (table: %s)", sel["chosen"],
-                 ", ".join(f"{r['variant']} {r['val_max_dev_mean_mm']:.3f} mm" for r in sel["candidates"]),
-                 side)
-    model.save(out)
+    from ctrplan.io import atomic_path, jsonable, write_json_atomic, write_text_atomic
+
+    # Every file goes to a temporary beside its target and all are renamed into place only
+    # after all were written: a full disk leaves the previous model (and tables) as they were.
+    with contextlib.ExitStack() as stack:
+        if sel.get("mode") == "auto":
+            side = out.with_suffix(".variants.json")
+            write_json_atomic(stack.enter_context(atomic_path(side)), jsonable(sel))
+            write_text_atomic(stack.enter_context(atomic_path(out.with_suffix(".variants.md"))),
+                              T.selection_markdown(sel))
+            log.info("variant %s chosen by validation error: %s (table: %s)", sel["chosen"],
+                     ", ".join(f"{r['variant']} {r['val_max_dev_mean_mm']:.3f} mm"
+                               for r in sel["candidates"]), side)
+        model.save(stack.enter_context(atomic_path(out)))
     for name, m in report.metrics.items():
         log.info("%s: max deviation %.3f +- %.3f mm, MSE %.4f mm^2, sum of deviations %.2f mm (n=%d)",
                  name, m["max_dev_mean"], m["max_dev_std"], m["mse_mean"], m["sum_dev_mean"], m["n"])
     eq = report.error_quantiles or {}
-    log.info("error quantiles (held-out max deviation, mm): %s",
-             ", ".join(f"{k} {v:.3f}" for k, v in eq.items()))
+    for line in quantile_summary(eq, model.meta.get("error_quantiles_source") or {}):
+        log.info("%s", line)
     log.info("wrote %s (%.0f s)", out, time.perf_counter() - t0)
     return 0
+
+
+#: Fewest distinct configurations (and distinct measured shapes) ``train`` accepts in --real:
+#: below it the train / validation / test parts cannot each hold different configurations, so
+#: a held-out error would be measured on the training rows themselves.
+MIN_DISTINCT = 10
+#: Fewest held-out configurations for which a p99 is more than the largest value seen.
+MIN_ROWS_P99 = 100
+
+
+def check_variety(q, points, source: str, columns) -> list[str]:
+    """Refuse measured data without variety; return warnings for data with little.
+
+    q : (N, 2n) configurations; points : (N, M, 3) measured backbones, mm. Refused (InputError)
+    when fewer than :data:`MIN_DISTINCT` distinct configurations or distinct shapes (rounded to
+    1e-9) are present: 300 identical rows would otherwise train a model and report a held-out
+    error measured on copies of its training rows. Warned: more than half the rows repeat
+    another row (held-out errors optimistic), and joints that never move (the model knows them
+    at one value only)."""
+    import numpy as np
+
+    q = np.asarray(q, dtype=float)
+    n_rows = len(q)
+    distinct = len(np.unique(np.round(q, 9), axis=0))
+    shapes = len(np.unique(np.round(np.asarray(points, dtype=float).reshape(n_rows, -1), 9), axis=0))
+    if min(distinct, shapes) < MIN_DISTINCT:
+        what = "configurations" if distinct <= shapes else "measured shapes"
+        raise InputError(source, "rows", f"only {min(distinct, shapes)} distinct {what} in {n_rows} "
+                         f"rows (need >= {MIN_DISTINCT}): data without variety cannot train a model, "
+                         f"and its held-out error would be measured on copies of training rows")
+    out = []
+    if distinct < n_rows / 2:
+        out.append(f"{source}: only {distinct} distinct configurations in {n_rows} rows: held-out "
+                   f"rows repeat training rows, so the reported errors are optimistic")
+    still = [c for c, j in zip(columns, range(q.shape[1])) if np.ptp(q[:, j]) == 0]
+    if still:
+        out.append(f"{source}: {', '.join(still)} never move(s) in the data: the model is trained "
+                   f"(and its domain set) at that one value only")
+    return out
+
+
+def quantile_summary(eq: dict, source: dict) -> list[str]:
+    """The held-out error quantiles as printed by ``train``, with the number of configurations
+    they rest on, and a note where that number cannot support a quantile (p99 of fewer than
+    :data:`MIN_ROWS_P99` configurations is the max, or nearly)."""
+    if not eq:
+        return ["no held-out error quantiles (no test rows)"]
+    rows = source.get("rows")
+    head = (f"error quantiles (held-out max deviation over {rows} configurations, mm): "
+            if rows is not None else "error quantiles (held-out max deviation, mm): ")
+    lines = [head + ", ".join(f"{k} {v:.3f}" for k, v in eq.items())]
+    if rows is not None and rows < MIN_ROWS_P99:
+        lines.append(f"note: {rows} held-out configurations cannot support a p99 (needs >= "
+                     f"{MIN_ROWS_P99}); the p99 here is interpolated among the largest few values, "
+                     f"treat it as the max")
+    return lines

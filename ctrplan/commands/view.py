@@ -15,6 +15,9 @@ from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
 
+#: Largest plan.json read (bytes); a plan of 10,000 states is about 2 MB.
+MAX_PLAN_BYTES = 64 << 20
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("view", help="render a plan.json as interactive HTML or PNG",
@@ -29,12 +32,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def read_plan(path: str | Path) -> dict:
     """Read and check a plan.json (fields in docs/conventions.md)."""
-    path = Path(path)
+    from ctrplan.robot import check_regular_file
+
+    path = check_regular_file(path, (".json",), "a plan.json", max_bytes=MAX_PLAN_BYTES)
     try:
         plan = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise InputError(str(path), "", "file not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise InputError(str(path), "", f"not a readable JSON file ({exc.__class__.__name__})") from None
     if not isinstance(plan, dict):
         raise InputError(str(path), "", "expected a JSON object")
@@ -43,27 +48,95 @@ def read_plan(path: str | Path) -> dict:
             raise InputError(str(path), key, "missing")
     try:
         q = np.asarray(plan["path"], dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(str(path), "path", "must be a list of configurations") from None
     if q.ndim != 2 or len(q) == 0 or not np.all(np.isfinite(q)):
         raise InputError(str(path), "path", "must be a non-empty list of finite configurations")
     plan["_q"] = q
+    for key, width in (("target", None), ("tip_path", 3)):
+        v = plan.get(key)
+        if v is None:
+            continue
+        try:
+            a = np.asarray(v, dtype=float)
+        except (TypeError, ValueError, OverflowError):
+            a = np.zeros((0, 0))
+        good = a.shape == (3,) if width is None else (a.ndim == 2 and a.shape[1:] == (3,) and len(a))
+        if not good or not np.all(np.isfinite(a)):
+            raise InputError(str(path), key, "must be X, Y, Z (mm)" if width is None else
+                             "must be a non-empty list of finite X, Y, Z points (mm)")
     return plan
+
+
+def plan_robot(plan: dict, source: str):
+    """The robot that made the plan: its recorded ``robot_spec`` (checked against
+    ``robot_sha256``); for a plan without one (written before robots were recorded), the shipped
+    robot of that name or a robot YAML (a regular ``.yaml`` file; anything else is refused)."""
+    from ctrplan.robot import SHIPPED_ROBOTS, load_robot, robot_from_record
+
+    robot = robot_from_record(plan, source)
+    if robot is not None:
+        return robot
+    name = plan["robot"]
+    if not isinstance(name, str) or not name:
+        raise InputError(source, "robot", "must be a robot name or robot YAML path")
+    try:
+        robot = load_robot(name)
+    except InputError as exc:
+        raise InputError(source, "robot", str(exc)) from None
+    if name not in SHIPPED_ROBOTS:
+        log.warning("%s has no robot_spec: drawing the robot file %s as it is now, which may "
+                    "differ from the robot that planned", source, name)
+    return robot
+
+
+def check_scene_field(spec, source: str) -> str:
+    """A plan's ``scene``: a shipped scene name or a scene folder (its scene.yaml), nothing else."""
+    from ctrplan.collision.scene import anatomy_dir
+
+    if not isinstance(spec, str) or not spec:
+        raise InputError(source, "scene", "must be a scene name or folder")
+    p = Path(spec)
+    if p.is_dir() and (p / "scene.yaml").is_file():
+        return spec
+    if p.name in ("scene.yaml", "scene.yml") and p.is_file():
+        return spec
+    if "/" not in spec and "\\" not in spec and (anatomy_dir() / spec / "scene.yaml").is_file():
+        return spec
+    raise InputError(source, "scene", f"{spec[:80]!r} is not a shipped scene or a scene folder")
+
+
+def check_model_field(spec, source: str) -> str:
+    """A plan's ``model``: a model name or a model file (checked by the model loader)."""
+    from ctrplan.shape.models import MODEL_NAMES
+
+    if not isinstance(spec, str) or not spec:
+        raise InputError(source, "model", "must be a model name or a model file path")
+    if spec in MODEL_NAMES:
+        return spec
+    from ctrplan.shape.models import check_model_file
+
+    try:
+        check_model_file(spec)
+    except InputError as exc:
+        raise InputError(source, "model", str(exc)) from None
+    return spec
 
 
 def render_plan(plan: dict, out: Path, points: int = 40, source: str = "plan") -> None:
     """Recompute the backbones of a plan's path with its model and render them."""
     from ctrplan import viz
     from ctrplan.collision.scene import load_scene
-    from ctrplan.robot import load_robot
+    from ctrplan.robot import check_config_plausible
     from ctrplan.shape.models import load_model
 
-    robot = load_robot(plan["robot"])
+    robot = plan_robot(plan, source)
     q = plan["_q"]
     if q.shape[1] != robot.dof:
         raise InputError(source, "path", f"configurations have {q.shape[1]} values, robot needs {robot.dof}")
-    scene = load_scene(plan["scene"])
-    model = load_model(plan["model"], robot)
+    check_config_plausible(q, robot, source, row_offset=0, row_word="path state")
+    scene = load_scene(check_scene_field(plan["scene"], source))
+    model = load_model(check_model_field(plan["model"], source), robot)
     backbones = scene.to_scene(model.backbone(q, points=points))
     tip_path = np.asarray(plan.get("tip_path") or backbones[:, -1], dtype=float)
     target = plan.get("target")

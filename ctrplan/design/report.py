@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ctrplan.io import write_json_atomic, write_text_atomic
+from ctrplan.robot import robot_record
 
 
 def _num(v) -> float | None:
@@ -93,7 +94,7 @@ def write_outputs(result, out: str | Path) -> list[Path]:
                 continue
             doc = t.plan.to_json()
             doc["robot"] = str((out / "robot.yaml").resolve())   # `ctrplan view` loads it
-            doc["robot_spec"] = result.robot.to_dict()
+            doc.update(robot_record(result.robot))      # robot_spec + robot_sha256
             doc["target_name"] = t.name
             doc["stable"] = bool(t.reached) if t.status != "UNSTABLE" else False
             (out / "paths").mkdir(exist_ok=True)

@@ -221,7 +221,9 @@ def _done(path: Path, job: Job) -> dict | None:
         return None
     if not isinstance(data, dict) or data.get("job_id") != job.id or "status" not in data:
         return None
-    return data
+    from ctrplan.planning.jobfile import validate_job_file  # an edited file is not trusted
+
+    return validate_job_file(path, data, job)
 
 
 def run_batch(jobs: Sequence[Job], out: str | os.PathLike, workers: int = 1,

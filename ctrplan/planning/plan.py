@@ -237,6 +237,7 @@ class PlanResult:
     calibrated: bool = False
     goal_shift_mm: float = 0.0
     goal: list | None = None
+    robot_spec: dict | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The plan.json fields of docs/conventions.md (plus diagnostics), JSON-ready (no NaN: null instead)."""
@@ -267,6 +268,8 @@ class PlanResult:
             "goal": None if self.goal is None else [float(v) for v in self.goal],
             "seed": int(self.seed),
             "robot": self.robot,
+            # the robot itself (tube values + digest): view and re-checks use it, never a look-up
+            **({} if self.robot_spec is None else robot_record_of(self.robot_spec)),
             "model": self.model,
             "scene": self.scene,
             "target": [float(v) for v in self.target],
@@ -285,6 +288,13 @@ def check_objective(objective) -> str:
         raise InputError("--objective", "", f"must be one of {', '.join(_opt.OBJECTIVES)}, "
                          f"got {objective!r}")
     return key
+
+
+def robot_record_of(spec: dict) -> dict[str, Any]:
+    """``robot_spec`` and ``robot_sha256`` for plan.json (:func:`ctrplan.robot.robot_record`)."""
+    from ctrplan.robot import robot_digest
+
+    return {"robot_spec": spec, "robot_sha256": robot_digest(spec)}
 
 
 def _num(v: float) -> float | None:
@@ -606,7 +616,7 @@ def _prepare(robot, scene, target, model, planner, time_limit, seed, tolerance_m
             if getattr(pmodel, "name", "") != cfg.reference or margin_peak(margin) > 0:
                 reference = planning_model_of(resolve_model(cfg.reference, robot))
     meta = dict(target=target, planner=requested, requested_planner=requested, seed=int(seed),
-                robot=robot.name, model=_model_label(model_spec, given),
+                robot=robot.name, robot_spec=robot.to_dict(), model=_model_label(model_spec, given),
                 scene=_scene_label(scene_spec, scene), tolerance_mm=float(tolerance_mm),
                 time_limit_s=float(time_limit), margin_mm=margin_peak(margin), margin_auto=auto,
                 curvature_bound_per_mm=float(curvature), reference_model=ref_label,

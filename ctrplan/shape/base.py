@@ -19,7 +19,7 @@ class Shape:
     s : (B, m) float, mm — arc length of each point.
     radius : (B, m) float, mm — outer radius of the outermost tube present at each point.
     ok : (B,) bool — False where the model could not produce a trustworthy shape (the shooting
-        did not converge); callers must treat such shapes as invalid.
+        did not converge, or a point, arc length, radius or pad is not finite); callers must treat such shapes as invalid.
     pad : (B, m - 1) float, mm, or None — the model's bound of the distance between its
         continuous backbone and the chord between consecutive points (sagitta of its curvature
         bound, tangent jumps, polynomial bound; see :mod:`ctrplan.collision.capsules`). Collision
@@ -32,6 +32,23 @@ class Shape:
     radius: np.ndarray
     ok: np.ndarray
     pad: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        # Every model's result passes here: a shape with a non-finite point, arc length, radius
+        # or pad (a model file edited to a zero span, an overflowing solver) is never "ok", so
+        # collision checking counts it as a collision instead of reporting it free.
+        pts = np.asarray(self.points, dtype=float)
+        ok = np.asarray(self.ok, dtype=bool)
+        if pts.ndim != 3 or len(pts) != len(ok):
+            return
+        fin = np.isfinite(pts).all(axis=(1, 2))
+        for extra in (self.s, self.radius, self.pad):
+            if extra is not None:
+                a = np.asarray(extra, dtype=float)
+                if a.ndim >= 1 and len(a) == len(ok):
+                    fin &= np.isfinite(a.reshape(len(a), -1)).all(axis=1)
+        if not fin.all():
+            object.__setattr__(self, "ok", ok & fin)
 
     @property
     def tip(self) -> np.ndarray:

@@ -683,9 +683,13 @@ class EffectModel:
         model = cls.from_dict(load_yaml(path), source=str(path))
         if robot is not None:
             r = load_robot(robot)
-            if r.n != model.robot.n or not np.allclose(r.lengths, model.robot.lengths):
+            same = r.n == model.robot.n and all(
+                np.allclose(r.array(k), model.robot.array(k), rtol=1e-9, atol=1e-9)
+                for k in ("straight_length", "curved_length", "od", "id"))
+            if not same:
                 raise InputError(str(path), "robot", f"calibrated for robot {model.robot.name!r} "
-                                 f"({model.robot.n} tubes), not {r.name!r} ({r.n} tubes)")
+                                 f"({model.robot.n} tubes), whose tubes (lengths, diameters) "
+                                 f"differ from {r.name!r} ({r.n} tubes)")
         return model
 
 

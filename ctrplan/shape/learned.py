@@ -46,6 +46,7 @@ Options recorded in the model file:
 
 from __future__ import annotations
 
+import io
 import json
 import os
 from importlib import resources
@@ -719,8 +720,14 @@ class LearnedModel:
         """Write the model file atomically (tensors + JSON metadata)."""
         from ctrplan.io import atomic_path
 
+        # Serialise in memory first: torch.save reports a failed write (a full disk) as a
+        # RuntimeError from its zip writer; a plain file write raises OSError, which the command
+        # line reports as one line (and atomic_path leaves nothing behind).
+        buf = io.BytesIO()
+        torch.save(self._file_object(), buf)
         with atomic_path(path) as tmp:
-            torch.save(self._file_object(), tmp)
+            with open(tmp, "wb") as fh:
+                fh.write(buf.getbuffer())
 
     def _file_object(self) -> dict[str, Any]:
         state = {k: v.detach().cpu().contiguous() for k, v in self.net.state_dict().items()}
@@ -815,6 +822,7 @@ class LearnedModel:
         for t in list(model.net.state_dict().values()) + [model.coef_mean, model.coef_std, model.beta_span]:
             if not torch.all(torch.isfinite(t)):
                 raise InputError(src, "state", "contains non-finite weights")
+        _check_normalisation(model, src)
         if domain is not None and (len(domain["beta_min_mm"]) != robot.n or len(domain["alpha_arcs_rad"]) != robot.n):
             raise InputError(src, "domain", f"expects {robot.n} tubes")
         model.error_quantiles = eq
@@ -938,6 +946,25 @@ def training_domain(robot: Robot, q: np.ndarray, source: str = "") -> dict[str, 
                     "the rotation arc seen per tube ([centre, half-width] rad; null = whole circle)"}
 
 
+def _check_normalisation(model: LearnedModel, src: str) -> None:
+    """Refuse a model file whose input scaling cannot give finite shapes: every translation
+    span must be a positive length no longer than the plausible tube length (a zero span
+    divides by zero and gives NaN backbones), every offset a plausible length, every output
+    scale finite and >= 0."""
+    from ctrplan.robot import PLAUSIBLE
+
+    top = PLAUSIBLE["length"][1]
+    lo = model.beta_lo.double().numpy()
+    span = model.beta_span.double().numpy()
+    if not np.all(np.isfinite(lo)) or np.any(np.abs(lo) > top):
+        raise InputError(src, "normalisation.beta_lo_mm", f"must be finite lengths within +-{top:g} mm")
+    if not np.all(np.isfinite(span)) or np.any(span <= 0) or np.any(span > top):
+        raise InputError(src, "normalisation.beta_span_mm",
+                         f"every span must be > 0 and <= {top:g} mm, got {span.tolist()}"[:200])
+    if np.any(model.coef_std.double().numpy() < 0):
+        raise InputError(src, "normalisation.coef_std", "must be >= 0")
+
+
 def _check_quantiles(eq: Any) -> dict[str, float] | None:
     if eq is None:
         return None
@@ -957,10 +984,20 @@ def _check_domain(dom: Any) -> dict[str, Any] | None:
     for k in ("beta_min_mm", "beta_max_mm", "alpha_arcs_rad"):
         if not isinstance(dom.get(k), list):
             raise ValueError(f"domain.{k} missing")
-    np.asarray(dom["beta_min_mm"], dtype=float), np.asarray(dom["beta_max_mm"], dtype=float)
+    lo, hi = np.asarray(dom["beta_min_mm"], dtype=float), np.asarray(dom["beta_max_mm"], dtype=float)
+    if lo.shape != hi.shape or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))) \
+            or np.any(lo > hi):
+        raise ValueError("domain.beta_min_mm / beta_max_mm must be finite with min <= max")
     for arc in dom["alpha_arcs_rad"]:
         if arc is not None and (not isinstance(arc, list) or len(arc) != 2):
             raise ValueError("domain.alpha_arcs_rad entries must be [centre, half-width] or null")
+        if arc is not None:
+            c, h = float(arc[0]), float(arc[1])
+            if not (np.isfinite(c) and np.isfinite(h) and 0 <= h <= np.pi + 1e-9):
+                raise ValueError("domain.alpha_arcs_rad: centre must be finite, half-width in [0, pi]")
+    tol = dom.get("tolerance", 0.0)
+    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not (0 <= tol <= 1.0):
+        raise ValueError("domain.tolerance must be a number in [0, 1]")
     return dom
 
 

@@ -35,6 +35,7 @@ def load_model(spec: str | os.PathLike | ShapeModel, robot: Robot | str) -> Shap
     path = Path(s)
     if not path.exists():
         raise InputError("--model", "", f"{s!r} is not a model name ({', '.join(MODEL_NAMES)}) or an existing file")
+    check_model_file(path)
     from ctrplan.shape.effects import EffectModel, is_effect_model_file
 
     if is_effect_model_file(path):  # a calibrated model written by `ctrplan diagnose`
@@ -42,3 +43,17 @@ def load_model(spec: str | os.PathLike | ShapeModel, robot: Robot | str) -> Shap
     from ctrplan.shape.learned import LearnedModel
 
     return LearnedModel.load(path, robot=robot)
+
+
+#: Largest model file read (bytes): trained networks are a few MB, calibrated YAML about 2 kB.
+MAX_MODEL_BYTES = 256 << 20
+
+
+def check_model_file(path: str | os.PathLike) -> Path:
+    """``path`` when it is a regular ``.pt`` / ``.yaml`` / ``.yml`` file of a plausible size
+    (devices, FIFOs and arbitrary files are refused before anything is read)."""
+    from ctrplan.robot import check_regular_file
+
+    return check_regular_file(path, (".pt", ".yaml", ".yml"),
+                              "a model file (.pt from ctrplan train, calibrated .yaml)",
+                              max_bytes=MAX_MODEL_BYTES)

@@ -1,0 +1,119 @@
+"""Validation of a ``plan-batch`` job file read back on resume.
+
+A job file (``<out>/jobs/<id>.json``) is an output of an earlier run, but on resume it is input:
+it may have been edited, truncated or replaced. Before its result is counted as done, every field
+the batch uses is checked here: the job's own settings must equal the job being resumed (so an
+edited robot, model, scene or target is never trusted), the status must be one of the plan
+statuses and agree with ``success``, numbers must be finite numbers or null, the path must be
+configurations of the recorded robot within the plausible ranges, and a recorded robot must match
+its digest. Anything else is an :class:`~ctrplan.errors.InputError` naming the file and the
+field, with how to recover (delete the file and the job runs again).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+from ctrplan.errors import InputError
+
+#: Fields that hold a number (mm, s) or null in a job file.
+NUMBER_FIELDS = ("planning_time_s", "tip_error_mm", "tip_error_physics_mm", "min_clearance_mm",
+                 "min_clearance_reference_mm", "margin_mm", "objective_value")
+#: Fields that hold true/false when present.
+BOOL_FIELDS = ("min_clearance_exact", "min_clearance_reference_exact", "calibrated",
+               "margin_auto", "time_cap_hit")
+#: Longest text accepted in a job file's string fields (a message is one line).
+MAX_TEXT = 4000
+
+
+def validate_job_file(path: str | Path, data: Any, job: Any) -> dict:
+    """``data`` (the parsed job file at ``path``) when it is a trustworthy result of ``job`` (a
+    :class:`~ctrplan.planning.batch.Job`); InputError naming the file and field otherwise."""
+    from ctrplan.planning.plan import PlanStatus
+
+    src = str(path)
+    hint = "(delete the file to run the job again)"
+
+    def bad(field: str, what: str) -> InputError:
+        return InputError(src, field, f"{what} {hint}")
+
+    if not isinstance(data, dict):
+        raise bad("", "expected a JSON object")
+    if data.get("job_id") != job.id:
+        raise bad("job_id", f"is not {job.id!r}")
+    for key, want in asdict(job).items():
+        have = data.get(key)
+        if key == "planner" and "requested_planner" in data:
+            have = data["requested_planner"]      # "planner" holds what solved it ("direct")
+        if key == "target":
+            want = [float(v) for v in want]
+            ok = (isinstance(have, list) and len(have) == 3
+                  and all(_is_number(v) for v in have) and [float(v) for v in have] == want)
+        else:
+            ok = type(have) is type(want) and have == want
+        if not ok:
+            raise bad(key, f"differs from the job being resumed ({str(have)[:60]!r} instead of "
+                           f"{str(want)[:60]!r})")
+    statuses = {s.value for s in PlanStatus}
+    status = data.get("status")
+    if status not in statuses:
+        raise bad("status", f"must be one of {', '.join(sorted(statuses))}, got {str(status)[:40]!r}")
+    if not isinstance(data.get("success"), bool) or data["success"] != (status == "SUCCESS"):
+        raise bad("success", f"must be {str(status == 'SUCCESS').lower()} for status {status}")
+    msg = data.get("message", "")
+    if not isinstance(msg, str) or len(msg) > MAX_TEXT:
+        raise bad("message", f"must be text of at most {MAX_TEXT} characters")
+    if data.get("scene") != job.scene:
+        raise bad("scene", f"is not the job's scene {job.scene!r}")
+    for key in NUMBER_FIELDS:
+        v = data.get(key)
+        if v is not None and not (_is_number(v) and math.isfinite(float(v))):
+            raise bad(key, f"must be a finite number or null, got {str(v)[:40]!r}")
+    t = data.get("planning_time_s")
+    if t is not None and float(t) < 0:
+        raise bad("planning_time_s", f"must be >= 0, got {t!r}")
+    for key in BOOL_FIELDS:
+        if key in data and not isinstance(data[key], bool):
+            raise bad(key, f"must be true or false, got {str(data[key])[:40]!r}")
+    _check_robot_and_path(data, src, hint, status)
+    return data
+
+
+def _check_robot_and_path(data: dict, src: str, hint: str, status: str) -> None:
+    """The recorded robot (``robot_spec`` + ``robot_sha256``) and the path's configurations."""
+    import numpy as np
+
+    from ctrplan.robot import check_config_plausible, robot_from_record
+
+    try:
+        robot = robot_from_record(data, src)
+    except InputError as exc:
+        raise InputError(exc.source, exc.field, f"{exc.message} {hint}") from None
+    path = data.get("path")
+    if path is None:
+        if status == "SUCCESS":
+            raise InputError(src, "path", f"missing for a successful job {hint}")
+        return
+    try:
+        q = np.asarray(path, dtype=float)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(src, "path", f"must be a list of configurations {hint}") from None
+    if q.size == 0 and status != "SUCCESS":
+        return
+    if q.ndim != 2 or len(q) == 0 or not np.all(np.isfinite(q)):
+        raise InputError(src, "path", f"must be a non-empty list of finite configurations {hint}")
+    if robot is not None:
+        if q.shape[1] != robot.dof:
+            raise InputError(src, "path", f"configurations have {q.shape[1]} values, the recorded "
+                                          f"robot needs {robot.dof} {hint}")
+        try:
+            check_config_plausible(q, robot, src, row_offset=0, row_word="path state")
+        except InputError as exc:
+            raise InputError(src, exc.field, f"{exc.message} {hint}") from None
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
