@@ -1,5 +1,9 @@
 """Bounded nonlinear least squares of effect parameters against measured data.
 
+Used by the screening and selection stage (:mod:`ctrplan.calibration.select`) and, as stage 4
+of the calibration pipeline, for the final refit of the chosen model on fit + validation rows
+(:func:`final_fit`).
+
 Every residual evaluation is one batched kernel call over the whole data set (rows in order of
 motion, so friction sees the true history even for held-out rows); the finite-difference
 Jacobian stacks all perturbed parameter sets into one kernel call as well. Parameters that act
@@ -142,15 +146,10 @@ class Problem:
                          test_max=float(e[self.test].max()), train_mean=float(e[self.train].mean()))
 
     # -------------------------------------------------------------- fitting
-    def fit(self, fixed: Mapping[str, Mapping[str, float]], free: Mapping[str, Sequence[str]],
-            start: Mapping[str, Mapping[str, float]] | None = None, max_iter: int = 20,
-            k_total: int | None = None) -> FitResult:
-        """Fit the ``free`` parameters (effect -> names) with everything else held at ``fixed``.
-
-        ``fixed`` must hold complete dicts of every effect (free ones included, as start values
-        unless ``start`` overrides them). ``k_total`` (default: the number of free parameters) is
-        the parameter count used by the information criterion.
-        """
+    def _start(self, fixed: Mapping[str, Mapping[str, float]], free: Mapping[str, Sequence[str]],
+               start: Mapping[str, Mapping[str, float]] | None):
+        """(complete effects, free (effect, Param) specs, scales, scaled bounds lo / hi, scaled
+        start z0) of a fit; parameters are scaled as ``(value - off) / scale``."""
         base = {a: dict(b) for a, b in fixed.items()}
         specs: list[tuple[str, Param]] = []
         for eff, names in free.items():
@@ -168,6 +167,18 @@ class Problem:
         # shrinks steps there), and many effects are off at a bound (lengths, lost angles)
         z0 = np.where(z0 <= lo + 1e-9, np.minimum(lo + 1.0, 0.5 * (lo + hi)), z0)
         z0 = np.where(z0 >= hi - 1e-9, np.maximum(hi - 1.0, 0.5 * (lo + hi)), z0)
+        return base, specs, scale, lo, hi, z0
+
+    def fit(self, fixed: Mapping[str, Mapping[str, float]], free: Mapping[str, Sequence[str]],
+            start: Mapping[str, Mapping[str, float]] | None = None, max_iter: int = 20,
+            k_total: int | None = None) -> FitResult:
+        """Fit the ``free`` parameters (effect -> names) with everything else held at ``fixed``.
+
+        ``fixed`` must hold complete dicts of every effect (free ones included, as start values
+        unless ``start`` overrides them). ``k_total`` (default: the number of free parameters) is
+        the parameter count used by the information criterion.
+        """
+        base, specs, scale, lo, hi, z0 = self._start(fixed, free, start)
         h = 1e-3
 
         def effects_at(z: np.ndarray) -> dict[str, dict[str, float]]:
@@ -265,3 +276,37 @@ def _uncertainty(J: np.ndarray, rss: float, n: int) -> np.ndarray:
     s2 = rss / max(n - k, 1)
     cov = np.linalg.pinv(J.T @ J) * s2
     return np.sqrt(np.clip(np.diag(cov), 0.0, None))
+
+
+@dataclass(frozen=True)
+class FinalFit:
+    """The chosen model refitted on fit + validation rows: complete effects, the fitted
+    parameters' sigma (NaN when the refit did not improve on the selected values), predicted
+    points (B, m, 3) and tip errors (B,) mm of every row."""
+
+    effects: dict[str, dict[str, float]]
+    sigma: dict[str, dict[str, float]]
+    pred: np.ndarray
+    err: np.ndarray
+
+
+def final_fit(prob: Problem, train: np.ndarray, test: np.ndarray,
+              effects: dict[str, dict[str, float]], free: Mapping[str, Sequence[str]],
+              fit_iter: int, base_pred: np.ndarray) -> FinalFit:
+    """Refit ``free`` parameters of ``effects`` on the ``train`` rows (same robust loss as
+    ``prob``), kept only when it lowers the training residual; predictions use ``prob``."""
+    sigma: dict[str, dict[str, float]] = {}
+    if effects and free:
+        prob_all = Problem(EffectModel(prob.robot, prob.model.base), prob.data, train, test)
+        prob_all.robust = prob.robust
+        sel = prob_all.score(effects)
+        k_all = sum(len(v) for v in free.values())
+        refit = prob_all.fit(effects, free, max_iter=fit_iter, k_total=k_all)
+        if refit.rss <= sel.rss * (1 + 1e-9):
+            effects = refit.effects
+            sigma = refit.sigma
+        else:
+            sigma = {e: {k: math.nan for k in names} for e, names in free.items()}
+        prob.evals += prob_all.evals
+    pred = prob.predict_many([effects])[0] if effects else base_pred
+    return FinalFit(effects, sigma, pred, prob.errors(pred))
