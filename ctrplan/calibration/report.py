@@ -21,10 +21,12 @@ the previous report complete (or none), never a mix. Files in the output folder:
 from __future__ import annotations
 
 import contextlib
+import errno
 import math
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
 
@@ -254,13 +256,29 @@ REPORT_FILES = ("report.json", "report.md", "calibrated.yaml", "calibrated_robot
 
 def write_report(rep: DiagnoseReport, data: MeasuredData, out: str | os.PathLike,
                  base_pred: np.ndarray, final_pred: np.ndarray, test: np.ndarray) -> Path:
-    """Write every report file into folder ``out`` as a set; returns the folder.
+    """Write every report file into folder ``out`` as a set (:func:`output_set`, replacing
+    the previous report's :data:`REPORT_FILES`); returns the folder.
 
-    The files are written into a temporary folder beside ``out`` and moved in only when all of
-    them are complete (renames need no free space), replacing the previous report's files
-    (:data:`REPORT_FILES`; other files in ``out`` are left alone). A write that fails (a full
-    disk) leaves ``out`` as it was: the previous report complete, or no report, never a mix;
-    it raises :class:`InputError` naming ``--out`` (one line on the command line, exit 2).
+    A write that fails (a full disk) leaves ``out`` as it was: the previous report complete,
+    or no report, never a mix; it raises :class:`InputError` naming ``--out`` (one line on the
+    command line, exit 2).
+    """
+    out = Path(out)
+    with output_set(out, REPORT_FILES) as folder:
+        _write_files(rep, data, folder, base_pred, final_pred, test)
+    return out
+
+
+@contextlib.contextmanager
+def output_set(out: str | os.PathLike, names: Sequence[str]) -> Iterator[Path]:
+    """Yield an empty temporary folder beside folder ``out``; when the block ends normally,
+    move everything written there into ``out`` (created), replacing the entries ``names`` of a
+    previous set (those the new set lacks are removed; other files in ``out`` stay). Renames
+    need no free space; should one fail, the previous entries are put back.
+
+    When the block fails, ``out`` is untouched and the temporary folder removed (with the
+    folders created for it). A write error (OSError, or the InputError of a file write under
+    the temporary folder) becomes an InputError naming ``--out``; other errors pass unchanged.
     """
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -271,16 +289,27 @@ def write_report(rep: DiagnoseReport, data: MeasuredData, out: str | os.PathLike
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.diagnose-", dir=out.parent))
     except OSError as exc:
         raise _out_error(out, exc) from None
+    ok = False
     try:
-        _write_files(rep, data, tmp, base_pred, final_pred, test)
-        _swap_in(tmp, out)
+        yield tmp
+        _swap_in(tmp, out, names)
+        ok = True
     except (OSError, InputError) as exc:
-        if made is not None:
-            shutil.rmtree(made, ignore_errors=True)
+        if not _is_write_error(exc, tmp, out):
+            raise
         raise _out_error(out, exc) from None
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return out
+        if not ok and made is not None:
+            shutil.rmtree(made, ignore_errors=True)
+
+
+def _is_write_error(exc: Exception, tmp: Path, out: Path) -> bool:
+    if isinstance(exc, InputError):
+        return exc.source.startswith(str(tmp))
+    where = str(getattr(exc, "filename", None) or "")
+    return (where.startswith((str(tmp), str(out)))
+            or getattr(exc, "errno", None) in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG))
 
 
 def _write_files(rep: DiagnoseReport, data: MeasuredData, folder: Path, base_pred: np.ndarray,
@@ -294,9 +323,9 @@ def _write_files(rep: DiagnoseReport, data: MeasuredData, folder: Path, base_pre
     _plots(rep, data, folder, base_pred, final_pred, test)
 
 
-def _swap_in(tmp: Path, out: Path) -> None:
-    """Move the complete new report from ``tmp`` into ``out`` (a new folder: one rename);
-    the previous report's files go to a backup folder first and come back if a move fails."""
+def _swap_in(tmp: Path, out: Path, names: Sequence[str]) -> None:
+    """Move the complete new set from ``tmp`` into ``out`` (a new folder: one rename); the
+    previous set's entries go to a backup folder first and come back if a move fails."""
     if not out.exists():
         os.rename(tmp, out)
         return
@@ -304,23 +333,30 @@ def _swap_in(tmp: Path, out: Path) -> None:
     moved_old: list[str] = []
     moved_new: list[str] = []
     try:
-        for name in REPORT_FILES:
-            if (out / name).is_file():
+        for name in names:
+            if (out / name).exists():
                 os.replace(out / name, backup / name)
                 moved_old.append(name)
         for f in sorted(tmp.iterdir()):
             os.replace(f, out / f.name)
             moved_new.append(f.name)
     except OSError:
-        for name in moved_new:           # roll back: the previous report, complete
+        for name in moved_new:           # roll back: the previous set, complete
             with contextlib.suppress(OSError):
-                os.unlink(out / name)
+                _remove(out / name)
         for name in moved_old:
             with contextlib.suppress(OSError):
                 os.replace(backup / name, out / name)
         raise
     finally:
         shutil.rmtree(backup, ignore_errors=True)
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    else:
+        os.unlink(path)
 
 
 def _first_missing(folder: Path) -> Path | None:
