@@ -61,6 +61,9 @@ CANDIDATES = ("nominal", "calibrated", "calibrated+learned", "learned")
 #: fewer development rows than this: no learned candidates (nothing to train and validate on)
 MIN_LEARNED_ROWS = 20
 #: the comparison metric
+#: files and folders of the comparison (next to diagnose's report files)
+BEST_FILES = ("best_model.yaml", "best_model.pt", "best_model.json", "best_model.md",
+              "best_candidates")
 METRIC = "max deviation along the shaft per test configuration (tip deviation with tip-only data), mm"
 
 
@@ -229,9 +232,6 @@ def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: 
     :func:`diagnose` (candidates, holdout, bic_threshold, ...). epochs / patience / width /
     depth : the learned networks' training. learned : False = physics candidates only.
     """
-    from ctrplan.calibration.diagnose import diagnose
-    from ctrplan.shape.effects import EffectModel
-
     t0 = time.perf_counter()
     robot = load_robot(robot)
     if not isinstance(data, MeasuredData):
@@ -241,7 +241,31 @@ def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: 
 
         raise InputError("--test-fraction", "", f"must be in (0, 1), got {test_fraction}")
     rows = _split_rows(data, test_fraction, seed)
-    shapes, split = rows.shapes, rows.split
+    if out is None:
+        res = _best(robot, rows, None, base, seed, diagnose_kwargs, learned,
+                    dict(epochs=epochs, patience=patience, width=width, depth=depth), t0)
+    else:
+        # diagnose's report and the comparison are one set: written beside ``out`` and
+        # swapped in whole (a full disk leaves the previous set complete)
+        from ctrplan.calibration.report import REPORT_FILES, output_set
+
+        with output_set(out, REPORT_FILES + BEST_FILES) as stage:
+            res = _best(robot, rows, stage, base, seed, diagnose_kwargs, learned,
+                        dict(epochs=epochs, patience=patience, width=width, depth=depth), t0)
+    log.info("best model: %s (test mean max deviation %.3f mm)", res.winner,
+             res.candidates[res.winner]["mean_mm"])
+    return res
+
+
+def _best(robot: Robot, rows: _Rows, out: Path | None, base: str, seed: int,
+          diagnose_kwargs: dict[str, Any] | None, learned: bool, net: dict[str, int],
+          t0: float) -> BestResult:
+    """The work of :func:`best_model` (started at ``t0``, perf_counter), writing into folder
+    ``out`` (None: nothing written)."""
+    from ctrplan.calibration.diagnose import diagnose
+    from ctrplan.shape.effects import EffectModel
+
+    data, shapes, split = rows.data, rows.shapes, rows.split
     log.info("best model: %d test rows held out (%s), diagnose on %d rows", int(rows.test.sum()),
              split["method"], int(rows.dev.sum()))
     dkw = dict(diagnose_kwargs or {})
@@ -272,8 +296,7 @@ def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: 
         log.info("best model: %s", skipped)
         learned = False
     if learned:
-        _learned_candidates(robot, rows, target, models, desc, selections, seed,
-                            dict(epochs=epochs, patience=patience, width=width, depth=depth))
+        _learned_candidates(robot, rows, target, models, desc, selections, seed, net)
     table, winner = _compare(models, desc, selections, rows, target)
     res = BestResult(winner=winner, model=models[winner], candidates=table, split=split,
                      report=rep, shapes=shapes)
@@ -285,7 +308,6 @@ def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: 
     res.elapsed_s = time.perf_counter() - t0
     if out is not None:
         _write(res, models, Path(out))
-    log.info("best model: %s (test mean max deviation %.3f mm)", winner, table[winner]["mean_mm"])
     return res
 
 
