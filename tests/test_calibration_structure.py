@@ -2,6 +2,7 @@
 
 - no import cycle anywhere in ``ctrplan/`` (module-level and function-level imports alike;
   a cycle found by Tarjan's strongly connected components over the import graph);
+- the calibration stages in pipeline order, none importing a later one;
 - no function in ``ctrplan/calibration/`` longer than ``MAX_LINES`` lines;
 - every calibration module says in its docstring what it is; each stage module names its stage;
 - the public names stay importable where they always were.
@@ -138,6 +139,21 @@ def test_no_import_cycle_in_ctrplan():
     assert cycles(g) == []
 
 
+#: the calibration pipeline's modules in order (nuisance: tested after the fit, before the verdict)
+PIPELINE = ["data", "evidence", "select", "fit", "nuisance", "verdict", "report"]
+
+
+def test_no_stage_imports_a_later_one():
+    g = import_graph(ROOT)
+    mods = [f"ctrplan.calibration.{m}" for m in PIPELINE]
+    for i, m in enumerate(mods):
+        later = set(mods[i + 1:]) | {"ctrplan.calibration.diagnose", "ctrplan.calibration.best"}
+        assert not g[m] & later, (m, g[m] & later)
+    # the shared pieces import no stage at all
+    for m in ("result", "lsq", "binned"):
+        assert not g[f"ctrplan.calibration.{m}"] & set(mods), m
+
+
 def _long_functions(path: Path, limit: int) -> list[str]:
     out = []
     for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
@@ -161,7 +177,7 @@ def test_no_function_in_calibration_exceeds_the_limit():
     assert long == [], long
 
 
-STAGES = {"data": "Stage 1", "evidence": "Stage 2", "select": "Stage 3", "fit": "stage 4",
+STAGES = {"data": "Stage 1", "evidence": "Stage 2", "select": "Stage 3", "fit": "Stage 4",
           "verdict": "Stage 5", "report": "Stage 6"}
 
 

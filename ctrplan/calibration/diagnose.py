@@ -15,9 +15,11 @@ stage                  module                                        result
 6. report              :mod:`ctrplan.calibration.report`             files (written as a set)
 =====================  ============================================  =========================
 
-The public result :class:`DiagnoseReport` is in :mod:`ctrplan.calibration.result` (imported by
-every stage; it imports none); :mod:`ctrplan.calibration.binned` holds the report's descriptive
-binned statistics, :mod:`ctrplan.calibration.residual` the optional learned residual.
+No stage imports a later one (``tests/test_calibration_structure.py``). The public result
+:class:`DiagnoseReport` is in :mod:`ctrplan.calibration.result` (it imports no stage); the
+least-squares engine used by stages 3 and 4 is :mod:`ctrplan.calibration.lsq`;
+:mod:`ctrplan.calibration.binned` holds the report's descriptive binned statistics,
+:mod:`ctrplan.calibration.residual` the optional learned residual.
 
 Procedure (:func:`diagnose`). Calibrating (the most accurate physically parameterised model
 on data not used to choose it) and naming (which effects the evidence singles out) are two
@@ -32,8 +34,8 @@ decisions:
    and forms chosen on the validation rows; the test rows choose nothing and give the reported
    errors. The model is always evaluated on all rows in order (friction depends on the history).
 3. Evidence from the data alone (:mod:`ctrplan.calibration.evidence`).
-4. Forward selection (:func:`ctrplan.calibration.select.forward`): every form of every candidate effect is fitted alone on
-   top of the current model (robust soft-L1 loss, see :meth:`Problem.fit`); the leading ones are
+4. Forward selection (:func:`ctrplan.calibration.select.forward`): every form of every
+   candidate effect is fitted alone on top of the current model (robust soft-L1 loss, see :meth:`Problem.fit`); the leading ones are
    refitted jointly with the effects already in. A candidate enters the model when it lowers the
    BIC and the validation error by ``keep_gain``; it is *named* only when ``dBIC <
    -bic_threshold``, the validation error drops by ``min_gain`` and by ``MIN_SHARE`` of the base
@@ -75,7 +77,8 @@ from ctrplan.calibration.data import (
     split_three,
 )
 from ctrplan.calibration.evidence import CHI3_MEAN
-from ctrplan.calibration.fit import FinalFit, Problem, final_fit
+from ctrplan.calibration.fit import FinalFit, final_fit
+from ctrplan.calibration.lsq import Problem
 from ctrplan.calibration.nuisance import NUISANCES, Nuisances
 from ctrplan.calibration.nuisance import screen as screen_nuisances
 from ctrplan.calibration.result import Candidate, DiagnoseReport, DiagnoseStatus, Step, headline

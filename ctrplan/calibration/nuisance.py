@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ctrplan.calibration.fit import Problem
+from ctrplan.calibration.data import Split
+from ctrplan.calibration.lsq import Problem
 from ctrplan.calibration.select import gain as _gain
 from ctrplan.measured import MeasuredData
 from ctrplan.robot import Robot
@@ -30,11 +31,11 @@ class Nuisances:
     warnings: tuple[str, ...] = ()
 
 
-def screen(robot: Robot, prob: Problem, data: MeasuredData, split, final_pred: np.ndarray,
+def screen(robot: Robot, prob: Problem, data: MeasuredData, split: Split, final_pred: np.ndarray,
            base_pred: np.ndarray, current: dict, named: Sequence[str], min_gain: float
            ) -> Nuisances:
-    """Test the nuisances on the calibrated and the base model's residuals (``split``: a
-    :class:`ctrplan.calibration.data.Split`); un-name effects that a claimed nuisance mimics."""
+    """Test the nuisances on the calibrated and the base model's residuals; un-name the
+    effects (``named``) that a claimed nuisance mimics."""
     outside = _nuisances(robot, prob, data, final_pred, split.fit, split.val, split.train,
                          split.test, min_gain, split.sweeps, split.ordered, base_pred)
     claimed = [o["kind"] for o in outside if o["claimed"]]

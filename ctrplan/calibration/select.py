@@ -23,7 +23,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from ctrplan.calibration.fit import FitResult, Problem
+from ctrplan.calibration.lsq import FitResult, Problem
 from ctrplan.calibration.result import Candidate, Step
 from ctrplan.robot import Robot
 from ctrplan.shape.effects import effect_form, effect_variants, off_values
