@@ -58,7 +58,9 @@ def run(tmp_path_factory):
 
 
 def _snapshot(folder: Path) -> dict[str, bytes]:
-    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+    """Every file under ``folder`` (relative path -> bytes)."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file()}
 
 
 def _write(run, out: Path) -> Path:
@@ -75,15 +77,16 @@ def _other_report(run):
 
 
 @contextlib.contextmanager
-def _disk_full_at(k: int):
-    """The k-th atomic file write (1-based) fails with ENOSPC after writing part of its file."""
+def _disk_full_at(k: int, name: str | None = None):
+    """The k-th atomic file write (1-based; of files called ``name`` when given) fails with
+    ENOSPC after writing part of its file."""
     real = io_mod.atomic_path
     count = {"n": 0}
 
     @contextlib.contextmanager
     def failing(path, suffix=None):
         with real(path, suffix) as tmp:
-            count["n"] += 1
+            count["n"] += name is None or Path(path).name == name
             if count["n"] == k:
                 tmp.write_bytes(b"partial")
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp))
@@ -180,3 +183,21 @@ def test_cli_full_disk_one_line_exit_2(run, tmp_path, capsys):
     assert err.count("\n") == 1 and "No space left on device" in err and "Traceback" not in err
     assert _snapshot(out) == before
     assert sorted(os.listdir(tmp_path)) == ["m.csv", "out"]
+
+
+def test_best_report_and_comparison_are_one_set(run, tmp_path):
+    """``diagnose --best``: diagnose's report and best_model.* are replaced together."""
+    from ctrplan.calibration.best import best_model
+
+    out = tmp_path / "best"
+    best_model("seed1", run["data"], out=out, learned=False,
+               diagnose_kwargs=dict(candidates=["registration"], nuisances=False))
+    names = set(os.listdir(out))
+    assert names >= EXPECTED | {"best_model.json", "best_model.md", "best_candidates"}
+    before = _snapshot(out)
+    assert "best_candidates/calibrated.yaml" in before
+    with _disk_full_at(1, "best_model.json"), pytest.raises(InputError):
+        best_model("seed1", run["data"], out=out, learned=False, seed=1,
+                   diagnose_kwargs=dict(candidates=["registration"], nuisances=False))
+    assert _snapshot(out) == before
+    assert os.listdir(tmp_path) == ["best"]
