@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from ctrplan.calibration import diagnose as _diagnose
+from ctrplan.calibration.data import row_ranges
 from ctrplan.measured import MeasuredData, read_measured
 from ctrplan.robot import Robot, load_robot
 
@@ -61,6 +61,9 @@ CANDIDATES = ("nominal", "calibrated", "calibrated+learned", "learned")
 #: fewer development rows than this: no learned candidates (nothing to train and validate on)
 MIN_LEARNED_ROWS = 20
 #: the comparison metric
+#: files and folders of the comparison (next to diagnose's report files)
+BEST_FILES = ("best_model.yaml", "best_model.pt", "best_model.json", "best_model.md",
+              "best_candidates")
 METRIC = "max deviation along the shaft per test configuration (tip deviation with tip-only data), mm"
 
 
@@ -132,7 +135,7 @@ def holdout_split(data: MeasuredData, test_fraction: float = 0.2, seed: int = 0,
     test = np.isin(lab.astype(str), held)
     return test, lab, {"method": f"contiguous blocks held out ({len(held)} of {L}; fewer than 4 "
                                  "sweeps); the other blocks are separate development sweeps",
-                       "test_blocks": held, "test_rows": _diagnose.row_ranges(test)}
+                       "test_blocks": held, "test_rows": row_ranges(test)}
 
 
 def to_robot_frame(effects: dict, points: np.ndarray) -> np.ndarray:
@@ -178,6 +181,44 @@ def _metrics(dev: np.ndarray, common: np.ndarray, shapes: bool) -> dict[str, Any
 
 
 # ---------------------------------------------------------------------------------- main
+@dataclass(frozen=True)
+class _Rows:
+    """The measured rows and how :func:`best_model` splits them: ``test`` (B,) mask of the
+    untouched test rows, ``labels`` development sweep labels, ``direction`` (B, 2n) of motion
+    (zeros when rows are independent samples), ``dev_data`` the development rows."""
+
+    data: MeasuredData
+    shapes: bool
+    ordered: bool
+    direction: np.ndarray
+    test: np.ndarray
+    labels: np.ndarray
+    split: dict[str, Any]
+    dev_data: MeasuredData
+
+    @property
+    def dev(self) -> np.ndarray:
+        return ~self.test
+
+
+def _split_rows(data: MeasuredData, test_fraction: float, seed: int) -> _Rows:
+    from ctrplan.shape.base import direction_from_rows
+
+    sw = np.asarray(data.sweeps()).astype(str)
+    ordered = _ordered(sw)
+    direction = (direction_from_rows(data.q, sw) if ordered else np.zeros(data.q.shape, dtype=np.int8))
+    test, labels, split = holdout_split(data, test_fraction, seed)
+    dev = ~test
+    split.update({"rows": len(data), "test_rows_count": int(test.sum()), "dev_rows": int(dev.sum()),
+                  "test_row_indices": np.flatnonzero(test).tolist(),
+                  "row_index_note": "0-based data rows of the measured CSV (header excluded)"})
+    dev_data = MeasuredData(q=data.q[dev], tip=data.tip[dev],
+                            time=None if data.time is None else data.time[dev],
+                            sweep=np.asarray(labels[dev], dtype=object),
+                            points=None if data.points is None else data.points[dev])
+    return _Rows(data, data.points is not None, ordered, direction, test, labels, split, dev_data)
+
+
 def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: str | os.PathLike | None = None,
                base: str = "rigid", test_fraction: float = 0.2, seed: int = 0,
                diagnose_kwargs: dict[str, Any] | None = None, epochs: int = 300, patience: int = 20,
@@ -191,13 +232,6 @@ def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: 
     :func:`diagnose` (candidates, holdout, bic_threshold, ...). epochs / patience / width /
     depth : the learned networks' training. learned : False = physics candidates only.
     """
-    import torch
-
-    from ctrplan.calibration.diagnose import diagnose
-    from ctrplan.shape import training as T
-    from ctrplan.shape.base import direction_from_rows
-    from ctrplan.shape.effects import EffectModel
-
     t0 = time.perf_counter()
     robot = load_robot(robot)
     if not isinstance(data, MeasuredData):
@@ -206,25 +240,38 @@ def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: 
         from ctrplan.errors import InputError
 
         raise InputError("--test-fraction", "", f"must be in (0, 1), got {test_fraction}")
-    shapes = data.points is not None
-    sw = np.asarray(data.sweeps()).astype(str)
-    ordered = _ordered(sw)
-    direction = (direction_from_rows(data.q, sw) if ordered else np.zeros(data.q.shape, dtype=np.int8))
-    test, labels, split = holdout_split(data, test_fraction, seed)
-    dev = ~test
-    split.update({"rows": len(data), "test_rows_count": int(test.sum()), "dev_rows": int(dev.sum()),
-                  "test_row_indices": np.flatnonzero(test).tolist(),
-                  "row_index_note": "0-based data rows of the measured CSV (header excluded)"})
-    dev_data = MeasuredData(q=data.q[dev], tip=data.tip[dev],
-                            time=None if data.time is None else data.time[dev],
-                            sweep=np.asarray(labels[dev], dtype=object),
-                            points=None if data.points is None else data.points[dev])
-    log.info("best model: %d test rows held out (%s), diagnose on %d rows", int(test.sum()),
-             split["method"], int(dev.sum()))
+    rows = _split_rows(data, test_fraction, seed)
+    if out is None:
+        res = _best(robot, rows, None, base, seed, diagnose_kwargs, learned,
+                    dict(epochs=epochs, patience=patience, width=width, depth=depth), t0)
+    else:
+        # diagnose's report and the comparison are one set: written beside ``out`` and
+        # swapped in whole (a full disk leaves the previous set complete)
+        from ctrplan.calibration.report import REPORT_FILES, output_set
+
+        with output_set(out, REPORT_FILES + BEST_FILES) as stage:
+            res = _best(robot, rows, stage, base, seed, diagnose_kwargs, learned,
+                        dict(epochs=epochs, patience=patience, width=width, depth=depth), t0)
+    log.info("best model: %s (test mean max deviation %.3f mm)", res.winner,
+             res.candidates[res.winner]["mean_mm"])
+    return res
+
+
+def _best(robot: Robot, rows: _Rows, out: Path | None, base: str, seed: int,
+          diagnose_kwargs: dict[str, Any] | None, learned: bool, net: dict[str, int],
+          t0: float) -> BestResult:
+    """The work of :func:`best_model` (started at ``t0``, perf_counter), writing into folder
+    ``out`` (None: nothing written)."""
+    from ctrplan.calibration.diagnose import diagnose
+    from ctrplan.shape.effects import EffectModel
+
+    data, shapes, split = rows.data, rows.shapes, rows.split
+    log.info("best model: %d test rows held out (%s), diagnose on %d rows", int(rows.test.sum()),
+             split["method"], int(rows.dev.sum()))
     dkw = dict(diagnose_kwargs or {})
     if "learned_residual" in inspect.signature(diagnose).parameters:
         dkw.setdefault("learned_residual", False)   # superseded by the candidates below
-    rep = diagnose(robot, dev_data, base=base, seed=seed, out=out, **dkw)
+    rep = diagnose(robot, rows.dev_data, base=base, seed=seed, out=out, **dkw)
     calibrated = rep.model()
     effects = {k: dict(v) for k, v in calibrated.effects.items()}
     frame_effects = {k: v for k, v in effects.items() if k != "registration"}
@@ -244,45 +291,78 @@ def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: 
                 f" ({', '.join(frame_effects)})" if frame_effects else " (no effect kept: nominal)")}
     selections: dict[str, Any] = {}
     skipped = None
-    if learned and int(dev.sum()) < MIN_LEARNED_ROWS:
-        skipped = f"learned candidates skipped: {int(dev.sum())} development rows (< {MIN_LEARNED_ROWS})"
+    if learned and int(rows.dev.sum()) < MIN_LEARNED_ROWS:
+        skipped = f"learned candidates skipped: {int(rows.dev.sum())} development rows (< {MIN_LEARNED_ROWS})"
         log.info("best model: %s", skipped)
         learned = False
     if learned:
-        torch_threads = torch.get_num_threads()
-        sdata = T.ShapeData(data.q, target, source=str(getattr(data, "source", "measured")),
-                            direction=direction.astype(float) if ordered else None, sweep=labels)
-        dv = sdata.subset(np.flatnonzero(dev))
-        tr, va = _train_val(dv, seed)
-        motion = ordered and T.has_motion(dv)
-        cfg = T.TrainConfig(epochs=epochs, patience=patience, batch_size=128, seed=seed, progress=False,
-                            label="train (real)")
-        fine = cfg.replace(lr=5e-4, label="fine-tune (real)")
-        res_base = models["calibrated"].planning_model()
-        terms = None if shapes else 1
-        cands = ["residual", "residual+direction"] if motion else ["residual"]
-        m, _, sel = T.select_variant(robot, tr, va, None, candidates=cands, residual_base=res_base,
-                                     width=width, depth=depth, seed=seed,
-                                     terms=terms or 7, fine=fine, real_only=cfg)
+        _learned_candidates(robot, rows, target, models, desc, selections, seed, net)
+    table, winner = _compare(models, desc, selections, rows, target)
+    res = BestResult(winner=winner, model=models[winner], candidates=table, split=split,
+                     report=rep, shapes=shapes)
+    split["frame"] = ("robot base frame (measured points mapped with the calibrated registration)"
+                      if "registration" in effects else "robot base frame (no registration calibrated)")
+    if skipped:
+        split["note"] = skipped
+    split["directions"] = "from the row order of the whole data set" if rows.ordered else "none (rows are independent samples)"
+    res.elapsed_s = time.perf_counter() - t0
+    if out is not None:
+        _write(res, models, Path(out))
+    return res
+
+
+def _learned_candidates(robot: Robot, rows: _Rows, target: np.ndarray, models: dict[str, Any],
+                        desc: dict[str, str], selections: dict[str, Any], seed: int,
+                        net: dict[str, int]) -> None:
+    """Add the learned candidates (calibrated + learned residual; learned alone where shapes
+    are measured) to ``models`` / ``desc`` / ``selections``, each variant chosen on a
+    validation part of the development sweeps."""
+    import torch
+
+    from ctrplan.shape import training as T
+
+    data, shapes, ordered = rows.data, rows.shapes, rows.ordered
+    width, depth = net["width"], net["depth"]
+    torch_threads = torch.get_num_threads()
+    sdata = T.ShapeData(data.q, target, source=str(getattr(data, "source", "measured")),
+                        direction=rows.direction.astype(float) if ordered else None,
+                        sweep=rows.labels)
+    dv = sdata.subset(np.flatnonzero(rows.dev))
+    tr, va = _train_val(dv, seed)
+    motion = ordered and T.has_motion(dv)
+    cfg = T.TrainConfig(epochs=net["epochs"], patience=net["patience"], batch_size=128, seed=seed,
+                        progress=False, label="train (real)")
+    fine = cfg.replace(lr=5e-4, label="fine-tune (real)")
+    res_base = models["calibrated"].planning_model()
+    terms = None if shapes else 1
+    cands = ["residual", "residual+direction"] if motion else ["residual"]
+    m, _, sel = T.select_variant(robot, tr, va, None, candidates=cands, residual_base=res_base,
+                                 width=width, depth=depth, seed=seed,
+                                 terms=terms or 7, fine=fine, real_only=cfg)
+    m.set_domain(dv.q, source="measured (development rows)")
+    models["calibrated+learned"] = m
+    selections["calibrated+learned"] = sel
+    desc["calibrated+learned"] = (f"learned residual ({sel['chosen']}) over the calibrated model"
+                                  + ("" if shapes else ", one basis term (tip-only data)"))
+    if shapes:
+        sim = _shipped(robot)
+        cands = ["pure", "direction"] if motion else ["pure"]
+        m, _, sel = T.select_variant(robot, tr, va, None, candidates=cands, sim_model=sim,
+                                     width=width, depth=depth, seed=seed, fine=fine, real_only=cfg)
         m.set_domain(dv.q, source="measured (development rows)")
-        models["calibrated+learned"] = m
-        selections["calibrated+learned"] = sel
-        desc["calibrated+learned"] = (f"learned residual ({sel['chosen']}) over the calibrated model"
-                                      + ("" if shapes else ", one basis term (tip-only data)"))
-        if shapes:
-            sim = _shipped(robot)
-            cands = ["pure", "direction"] if motion else ["pure"]
-            m, _, sel = T.select_variant(robot, tr, va, None, candidates=cands, sim_model=sim,
-                                         width=width, depth=depth, seed=seed, fine=fine, real_only=cfg)
-            m.set_domain(dv.q, source="measured (development rows)")
-            models["learned"] = m
-            selections["learned"] = sel
-            desc["learned"] = (f"learned alone ({sel['chosen']}; "
-                               + ("the shipped network fine-tuned" if sim is not None else "a new network")
-                               + ")")
-        torch.set_num_threads(torch_threads)
-    # ---------------------------------------------------------------- compare on the test rows
-    qt, dt, yt = data.q[test], direction[test], target[test]
+        models["learned"] = m
+        selections["learned"] = sel
+        desc["learned"] = (f"learned alone ({sel['chosen']}; "
+                           + ("the shipped network fine-tuned" if sim is not None else "a new network")
+                           + ")")
+    torch.set_num_threads(torch_threads)
+
+
+def _compare(models: dict[str, Any], desc: dict[str, str], selections: dict[str, Any],
+             rows: _Rows, target: np.ndarray) -> tuple[dict[str, dict[str, Any]], str]:
+    """Every candidate on the same test rows: (table, winner); attaches each model's bound."""
+    data, test, split, shapes = rows.data, rows.test, rows.split, rows.shapes
+    qt, dt, yt = data.q[test], rows.direction[test], target[test]
     table: dict[str, dict[str, Any]] = {}
     devs = {name: _deviations(model, qt, dt, yt) for name, model in models.items()}
     common = np.all([np.isfinite(d.max(axis=1)) for d in devs.values()], axis=0)
@@ -296,18 +376,7 @@ def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: 
     for name, model in models.items():
         _attach_bound(model, table[name], shapes, split)
         table[name]["winner"] = name == winner
-    res = BestResult(winner=winner, model=models[winner], candidates=table, split=split,
-                     report=rep, shapes=shapes)
-    split["frame"] = ("robot base frame (measured points mapped with the calibrated registration)"
-                      if "registration" in effects else "robot base frame (no registration calibrated)")
-    if skipped:
-        split["note"] = skipped
-    split["directions"] = "from the row order of the whole data set" if ordered else "none (rows are independent samples)"
-    res.elapsed_s = time.perf_counter() - t0
-    if out is not None:
-        _write(res, models, Path(out))
-    log.info("best model: %s (test mean max deviation %.3f mm)", winner, table[winner]["mean_mm"])
-    return res
+    return table, winner
 
 
 def choose_winner(table: dict[str, dict[str, Any]]) -> str:

@@ -1,5 +1,9 @@
 """Evidence from the data alone, before (and after) fitting any effect.
 
+Stage 2 of the calibration pipeline (:mod:`ctrplan.calibration.diagnose`): data-only
+statistical tests whose results feed the data check, the screening and the conclusion (the
+descriptive binned statistics of the report are :mod:`ctrplan.calibration.binned`).
+
 Every test works on the tip residual ``r = predicted - measured`` (B, 3) of a model and on the
 configurations, directions of motion and times of the rows:
 
@@ -31,14 +35,71 @@ explains is above the noise floor's share. All numbers are JSON-ready.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import stats
 
+from ctrplan.calibration.data import Split, data_check
+from ctrplan.measured import MeasuredData
 from ctrplan.robot import Robot
 from ctrplan.shape.base import direction_from_rows
 
 P_SIGNIFICANT = 1e-3
+#: mean norm of a 3-d Gaussian vector with unit sd per axis: sqrt(8 / pi)
+CHI3_MEAN = math.sqrt(8.0 / math.pi)
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """Result of the evidence stage: the data-only tests on the base model's residual
+    (``before``, see :func:`collect`), the noise floor (sd per axis, mm; None when not
+    measurable), ``insufficient`` = (reasons, experiments) when the data cannot support a
+    diagnosis (:func:`ctrplan.calibration.data.data_check`), the candidates left to screen, the
+    robust loss's scale (mm) and what this stage warns about."""
+
+    before: dict
+    noise_sd: float | None
+    insufficient: tuple[list[str], list[str]] | None
+    candidates: tuple[str, ...]
+    robust_scale: float | None
+    warnings: tuple[str, ...] = ()
+    experiment: tuple[str, ...] = ()
+
+    @property
+    def e_noise(self) -> float:
+        """The noise floor's mean tip error (mm; 0 when not measured)."""
+        return CHI3_MEAN * self.noise_sd if self.noise_sd else 0.0
+
+
+def gather(robot: Robot, data: MeasuredData, split: Split, base_pred: np.ndarray,
+           candidates: Sequence[str], min_configurations: int) -> Evidence:
+    """The evidence stage: tests on the base model's predictions ``base_pred`` (B, m, 3), the
+    data check, and friction dropped from the candidates when the rows show no reversals."""
+    before = collect(robot, data.q, base_pred[:, -1], data.tip, split.sweeps, data.time,
+                     split.ordered)
+    noise_sd = before["noise"].get("sd_mm")
+    insufficient = data_check(robot, data, before, base_pred[:, -1], min_configurations)
+    hyst = before["hysteresis"]
+    cands = list(candidates)
+    warnings, experiment = [], []
+    if not insufficient and "friction" in cands and not hyst.get("tested"):
+        if "no motion" in hyst.get("why", "") or "one way" in hyst.get("why", "") \
+                or "not in order" in hyst.get("why", ""):
+            cands = [c for c in cands if c != "friction"]
+            warnings.append(f"friction not screened: {hyst['why']}")
+            experiment.append("move each joint back and forth over the same range (reversals "
+                              "reveal friction)")
+    return Evidence(before, noise_sd, insufficient, tuple(cands), robust_scale(noise_sd),
+                    tuple(warnings), tuple(experiment))
+
+
+def robust_scale(noise_sd: float | None) -> float | None:
+    """The robust loss's smallest scale (mm per coordinate): 3 noise sd (see Problem.fit)."""
+    if noise_sd is None or not math.isfinite(noise_sd):
+        return None
+    return max(3.0 * float(noise_sd), 0.05)
 
 
 def _sweep_starts(sweep: np.ndarray) -> np.ndarray:

@@ -1,6 +1,8 @@
-"""Write a diagnose report: report.json, report.md, PNG plots and the calibrated model files.
+"""Stage 6 of the calibration pipeline: write the report, as a set (:func:`write_report`).
 
-Files in the output folder:
+report.json, report.md, PNG plots and the calibrated model files are written into a temporary
+folder beside the output folder and moved in only when all are complete, so a full disk leaves
+the previous report complete (or none), never a mix. Files in the output folder:
 
 ``report.json``          docs/conventions.md fields (effects, parameters, steps, error_before_mm,
                          error_after_mm) plus conclusion, split, diagnostics and settings.
@@ -18,13 +20,23 @@ Files in the output folder:
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import math
 import os
+import shutil
+import tempfile
+from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from ctrplan.calibration.binned import motion_direction
+from ctrplan.calibration.evidence import supporting
+from ctrplan.calibration.nuisance import NUISANCES
+from ctrplan.calibration.result import DiagnoseReport, headline
+from ctrplan.errors import InputError
 from ctrplan.io import jsonable, save_figure, write_json_atomic, write_text_atomic
 from ctrplan.measured import MeasuredData
 from ctrplan.robot import Robot, wrap_angle
@@ -51,9 +63,9 @@ def _fmt(v: float | None, s: float | None = None) -> str:
     return f"{v:.4g} ± {s:.2g}"
 
 
-def markdown(rep) -> str:
-    from ctrplan.calibration.evidence import supporting
-
+def markdown(rep: DiagnoseReport) -> str:
+    """report.md: headline, conclusion, warnings, selection rule, evidence, remainder, the
+    learned residual, a table per step and the file list."""
     lines = [rep.headline() + ".", "",
              f"# ctrplan diagnose: {rep.robot.name} ({rep.base} base)", "",
              f"**Conclusion: {rep.conclusion}.**", ""]
@@ -62,109 +74,134 @@ def markdown(rep) -> str:
     if rep.experiment:
         lines += ["**What experiment would support a diagnosis:**", ""] + \
             [f"- {w}" for w in rep.experiment] + [""]
-    st = rep.settings
-    lines += ["Selection rule: parameters are fitted on the fit rows; an effect enters the "
-              f"calibrated model when it lowers the BIC and the validation mean tip error by at "
-              f"least {100 * st.get('keep_gain', 0.02):.0f} %; it is NAMED only when its BIC "
-              f"change is below -{st['bic_threshold']:g} AND it lowers the validation error by "
-              f"at least {100 * st['min_heldout_gain']:.0f} %, and the named effects leave at "
-              f"most {100 * st.get('max_remainder', 0.5):.0f} % of the validation error above "
-              "the noise floor. The chosen model is refitted on fit + validation rows; the errors "
-              f"above are on the test rows, which chose nothing: {', '.join(rep.test_sweeps)} "
-              f"({rep.split.get('method', 'whole sweeps')}). Step tables show validation "
-              "errors.", ""]
+    lines += _rule_md(rep)
     lines += _evidence_md(rep)
-    if rep.effects:
-        lines += ["## Evidence for each named effect", ""]
-        for e in rep.effects:
-            sup = supporting(e, rep.evidence_before)
-            form = rep.forms.get(e)
-            head = f"- **{e}**" + (f" (form: {form})" if form else "") + ": "
-            lines.append(head + ("; ".join(sup) if sup else "no data-only test singles it out; "
-                                 "named by the fit (BIC and held-out error) alone"))
-        lines.append("")
-    if rep.unexplained:
-        u = rep.unexplained
-        corr = ", ".join(f"{c['description']} (r2 {c['r2']:.2f})" if c.get("r2") is not None
-                         else c["description"] for c in u.get("correlates_with", []))
-        lines += ["## Unexplained remainder", "",
-                  f"Held-out mean error {u['heldout_mean_mm']:.3f} mm against "
-                  f"{u['noise_mean_mm']:.3f} mm expected from the noise floor: "
-                  f"{u['excess_mean_mm']:.3f} mm left ({100 * u['fraction_of_initial_excess']:.0f} % "
-                  "of the initial excess). " + (f"It still correlates with: {corr}." if corr else
-                                                "No tested quantity explains it.")]
-        for o in u.get("outside_vocabulary", []):
-            lines.append(f"It follows {o['description']}: with that removed (not a vocabulary "
-                         f"effect) the held-out mean error would be "
-                         f"{o['heldout_mean_mm_once_removed']:.3f} mm.")
-        lines.append("")
+    lines += _named_md(rep)
+    lines += _unexplained_md(rep)
     if rep.partial:
         lines += ["Partial (in the calibrated model, not named): " + ", ".join(rep.partial)
                   + ".", ""]
     for o in getattr(rep, "nuisance_tests", []) or []:
         lines += [f"Nuisance test {o['kind'].lstrip('~')} (after the robot fit): "
                   + ("claimed" if o["claimed"] else "not claimed") + f" ({o['why']}).", ""]
-    from ctrplan.calibration.diagnose import headline
-
-    lr = rep.learned_residual
-    if lr and "heldout_mean_after_mm" in lr:
-        lines += ["## Learned residual (separate from the calibrated model)", "",
-                  f"A learned correction on top of the calibrated model ({lr['method']}). "
-                  + headline(lr["heldout_mean_before_mm"], lr["heldout_mean_after_mm"],
-                             lr["heldout_max_before_mm"], lr["heldout_max_after_mm"]) + ": "
-                  + ("offered (it lowers the held-out mean error)." if lr["offered"] else
-                     f"not offered: {lr.get('why')}."), ""]
+    lines += _learned_md(rep)
     for k, s in enumerate(rep.steps, 1):
-        from ctrplan.calibration.diagnose import NUISANCES
-
-        if s.accepted and s.effect in NUISANCES:
-            lines += [f"## Step {k}: the residual follows {NUISANCES[s.effect]} "
-                      "(outside the effect vocabulary: not named, not in the calibrated model)", "",
-                      f"Removing it lowers the validation mean tip error {s.error_before_mm:.3f} -> "
-                      f"{s.error_after_mm:.3f} mm (ΔBIC {s.delta_bic:.1f}); later steps are "
-                      "screened on the data with it removed.", ""]
-        elif s.accepted:
-            lines += [f"## Step {k}: {s.effect}" + (f" (form: {s.form})" if s.form else "")
-                      + ("" if getattr(s, "named", True) else
-                         " (kept in the model; evidence too weak to name it)"), ""]
-        else:
-            lines += [f"## Step {k}: nothing more justified", ""]
-        if s.accepted and s.effect not in NUISANCES:
-            lines += ["| effect | parameter | fitted ± 1 sigma | validation before (mm) | "
-                      "validation after (mm) | ΔBIC | validation gain | runner-up (ΔBIC) |",
-                      "|---|---|---|---|---|---|---|---|"]
-            first = True
-            for eff, vals in s.parameters.items():
-                for p, v in vals.items():
-                    sig = s.sigma.get(eff, {}).get(p)
-                    cells = [eff, p, _fmt(v, sig)]
-                    if first:
-                        cells += [f"{s.error_before_mm:.3f}", f"{s.error_after_mm:.3f}",
-                                  f"{s.delta_bic:.1f}", f"{100 * s.heldout_gain:.1f} %",
-                                  f"{s.runner_up or '-'} ({_fmt(s.runner_up_delta_bic)})"]
-                    else:
-                        cells += [""] * 5
-                    lines.append("| " + " | ".join(cells) + " |")
-                    first = False
-            if s.ambiguous:
-                lines += ["", f"Ambiguous at this step: {s.runner_up} explains the data almost as "
-                              "well (ΔBIC within the ambiguity margin)."]
-        elif not s.accepted:
-            lines += [f"Best remaining candidate {s.runner_up}: ΔBIC {s.delta_bic:.1f}, validation "
-                      f"gain {100 * s.heldout_gain:.1f} % — not justified."]
-        lines += ["", "Screened candidates (best form of each; `~` = outside the vocabulary):", "",
-                  "| candidate | form | ΔBIC | validation mean (mm) | named-grade |",
-                  "|---|---|---|---|---|"]
-        for c in s.screened:
-            lines.append(f"| {c.effect} | {c.form or '-'} | {c.delta_bic:.1f} | "
-                         f"{c.test_mean_mm:.3f} | {'yes' if c.justified else 'no'} |")
-        lines.append("")
+        lines += _step_md(k, s)
     lines += ["## Files", "", "- `calibrated.yaml`: calibrated model (`--model calibrated.yaml`)",
               "- `calibrated_robot.yaml`: robot with precurvature/stiffness folded in (`--robot`)",
               "- plots: `residuals_rotation.png`, `residuals_insertion.png`, `errors_by_step.png`, "
               "`tip_paths.png`" + (", `residuals_arclength.png`" if rep.settings.get("shapes_measured") else ""),
               ""]
     return "\n".join(lines)
+
+
+def _rule_md(rep: DiagnoseReport) -> list[str]:
+    st = rep.settings
+    return ["Selection rule: parameters are fitted on the fit rows; an effect enters the "
+            f"calibrated model when it lowers the BIC and the validation mean tip error by at "
+            f"least {100 * st.get('keep_gain', 0.02):.0f} %; it is NAMED only when its BIC "
+            f"change is below -{st['bic_threshold']:g} AND it lowers the validation error by "
+            f"at least {100 * st['min_heldout_gain']:.0f} %, and the named effects leave at "
+            f"most {100 * st.get('max_remainder', 0.5):.0f} % of the validation error above "
+            "the noise floor. The chosen model is refitted on fit + validation rows; the errors "
+            f"above are on the test rows, which chose nothing: {', '.join(rep.test_sweeps)} "
+            f"({rep.split.get('method', 'whole sweeps')}). Step tables show validation "
+            "errors.", ""]
+
+
+def _named_md(rep: DiagnoseReport) -> list[str]:
+    if not rep.effects:
+        return []
+    lines = ["## Evidence for each named effect", ""]
+    for e in rep.effects:
+        sup = supporting(e, rep.evidence_before)
+        form = rep.forms.get(e)
+        head = f"- **{e}**" + (f" (form: {form})" if form else "") + ": "
+        lines.append(head + ("; ".join(sup) if sup else "no data-only test singles it out; "
+                             "named by the fit (BIC and held-out error) alone"))
+    return lines + [""]
+
+
+def _unexplained_md(rep: DiagnoseReport) -> list[str]:
+    u = rep.unexplained
+    if not u:
+        return []
+    corr = ", ".join(f"{c['description']} (r2 {c['r2']:.2f})" if c.get("r2") is not None
+                     else c["description"] for c in u.get("correlates_with", []))
+    lines = ["## Unexplained remainder", "",
+             f"Held-out mean error {u['heldout_mean_mm']:.3f} mm against "
+             f"{u['noise_mean_mm']:.3f} mm expected from the noise floor: "
+             f"{u['excess_mean_mm']:.3f} mm left ({100 * u['fraction_of_initial_excess']:.0f} % "
+             "of the initial excess). " + (f"It still correlates with: {corr}." if corr else
+                                           "No tested quantity explains it.")]
+    for o in u.get("outside_vocabulary", []):
+        lines.append(f"It follows {o['description']}: with that removed (not a vocabulary "
+                     f"effect) the held-out mean error would be "
+                     f"{o['heldout_mean_mm_once_removed']:.3f} mm.")
+    return lines + [""]
+
+
+def _learned_md(rep: DiagnoseReport) -> list[str]:
+    lr = rep.learned_residual
+    if not (lr and "heldout_mean_after_mm" in lr):
+        return []
+    return ["## Learned residual (separate from the calibrated model)", "",
+            f"A learned correction on top of the calibrated model ({lr['method']}). "
+            + headline(lr["heldout_mean_before_mm"], lr["heldout_mean_after_mm"],
+                       lr["heldout_max_before_mm"], lr["heldout_max_after_mm"]) + ": "
+            + ("offered (it lowers the held-out mean error)." if lr["offered"] else
+               f"not offered: {lr.get('why')}."), ""]
+
+
+def _step_md(k: int, s) -> list[str]:
+    """The section of step ``k`` (1-based): heading, parameter table, screened candidates."""
+    if s.accepted and s.effect in NUISANCES:
+        lines = [f"## Step {k}: the residual follows {NUISANCES[s.effect]} "
+                 "(outside the effect vocabulary: not named, not in the calibrated model)", "",
+                 f"Removing it lowers the validation mean tip error {s.error_before_mm:.3f} -> "
+                 f"{s.error_after_mm:.3f} mm (ΔBIC {s.delta_bic:.1f}); later steps are "
+                 "screened on the data with it removed.", ""]
+    elif s.accepted:
+        lines = [f"## Step {k}: {s.effect}" + (f" (form: {s.form})" if s.form else "")
+                 + ("" if getattr(s, "named", True) else
+                    " (kept in the model; evidence too weak to name it)"), ""]
+    else:
+        lines = [f"## Step {k}: nothing more justified", ""]
+    if s.accepted and s.effect not in NUISANCES:
+        lines += _params_table(s)
+    elif not s.accepted:
+        lines += [f"Best remaining candidate {s.runner_up}: ΔBIC {s.delta_bic:.1f}, validation "
+                  f"gain {100 * s.heldout_gain:.1f} % — not justified."]
+    lines += ["", "Screened candidates (best form of each; `~` = outside the vocabulary):", "",
+              "| candidate | form | ΔBIC | validation mean (mm) | named-grade |",
+              "|---|---|---|---|---|"]
+    for c in s.screened:
+        lines.append(f"| {c.effect} | {c.form or '-'} | {c.delta_bic:.1f} | "
+                     f"{c.test_mean_mm:.3f} | {'yes' if c.justified else 'no'} |")
+    return lines + [""]
+
+
+def _params_table(s) -> list[str]:
+    lines = ["| effect | parameter | fitted ± 1 sigma | validation before (mm) | "
+             "validation after (mm) | ΔBIC | validation gain | runner-up (ΔBIC) |",
+             "|---|---|---|---|---|---|---|---|"]
+    first = True
+    for eff, vals in s.parameters.items():
+        for p, v in vals.items():
+            sig = s.sigma.get(eff, {}).get(p)
+            cells = [eff, p, _fmt(v, sig)]
+            if first:
+                cells += [f"{s.error_before_mm:.3f}", f"{s.error_after_mm:.3f}",
+                          f"{s.delta_bic:.1f}", f"{100 * s.heldout_gain:.1f} %",
+                          f"{s.runner_up or '-'} ({_fmt(s.runner_up_delta_bic)})"]
+            else:
+                cells += [""] * 5
+            lines.append("| " + " | ".join(cells) + " |")
+            first = False
+    if s.ambiguous:
+        lines += ["", f"Ambiguous at this step: {s.runner_up} explains the data almost as "
+                      "well (ΔBIC within the ambiguity margin)."]
+    return lines
 
 
 def _evidence_md(rep) -> list[str]:
@@ -211,40 +248,157 @@ def _evidence_md(rep) -> list[str]:
     return lines + [""]
 
 
-def write_report(rep, data: MeasuredData, out: str | os.PathLike, base_pred: np.ndarray,
-                 final_pred: np.ndarray, test: np.ndarray) -> Path:
-    """Write every report file into folder ``out`` (created); returns the folder."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        from ctrplan.errors import InputError
+#: every file a diagnose report may hold: a new report replaces all of them as a set
+REPORT_FILES = ("report.json", "report.md", "calibrated.yaml", "calibrated_robot.yaml",
+                "residuals_rotation.png", "residuals_insertion.png", "residuals_arclength.png",
+                "errors_by_step.png", "tip_paths.png")
 
-        raise InputError("--out", "", f"{str(out)!r} exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
-    d = rep.to_dict()
-    d["files"] = {"model": "calibrated.yaml", "robot": "calibrated_robot.yaml"}
-    write_json_atomic(out / "report.json", jsonable(d))
-    write_text_atomic(out / "report.md", markdown(rep))
-    rep.model().save(out / "calibrated.yaml")
-    folded = folded_robot(rep.robot, rep.model_effects)
-    folded.save(out / "calibrated_robot.yaml")
-    _plots(rep, data, out, base_pred, final_pred, test)
+
+def write_report(rep: DiagnoseReport, data: MeasuredData, out: str | os.PathLike,
+                 base_pred: np.ndarray, final_pred: np.ndarray, test: np.ndarray) -> Path:
+    """Write every report file into folder ``out`` as a set (:func:`output_set`, replacing
+    the previous report's :data:`REPORT_FILES`); returns the folder.
+
+    A write that fails (a full disk) leaves ``out`` as it was: the previous report complete,
+    or no report, never a mix; it raises :class:`InputError` naming ``--out`` (one line on the
+    command line, exit 2).
+    """
+    out = Path(out)
+    with output_set(out, REPORT_FILES) as folder:
+        _write_files(rep, data, folder, base_pred, final_pred, test)
     return out
 
 
-def _plots(rep, data, out: Path, base_pred, final_pred, test) -> None:
+@contextlib.contextmanager
+def output_set(out: str | os.PathLike, names: Sequence[str]) -> Iterator[Path]:
+    """Yield an empty temporary folder beside folder ``out``; when the block ends normally,
+    move everything written there into ``out`` (created), replacing the entries ``names`` of a
+    previous set (those the new set lacks are removed; other files in ``out`` stay). Renames
+    need no free space; should one fail, the previous entries are put back.
+
+    When the block fails, ``out`` is untouched and the temporary folder removed (with the
+    folders created for it). A write error (OSError, or the InputError of a file write under
+    the temporary folder) becomes an InputError naming ``--out``; other errors pass unchanged.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError("--out", "", f"{str(out)!r} exists and is not a folder")
+    made = _first_missing(out.parent)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.diagnose-", dir=out.parent))
+    except OSError as exc:
+        raise _out_error(out, exc) from None
+    ok = False
+    try:
+        yield tmp
+        _swap_in(tmp, out, names)
+        ok = True
+    except (OSError, InputError) as exc:
+        if not _is_write_error(exc, tmp, out):
+            raise
+        raise _out_error(out, exc) from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if not ok and made is not None:
+            shutil.rmtree(made, ignore_errors=True)
+
+
+def _is_write_error(exc: Exception, tmp: Path, out: Path) -> bool:
+    if isinstance(exc, InputError):
+        return exc.source.startswith(str(tmp))
+    where = str(getattr(exc, "filename", None) or "")
+    return (where.startswith((str(tmp), str(out)))
+            or getattr(exc, "errno", None) in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG))
+
+
+def _write_files(rep: DiagnoseReport, data: MeasuredData, folder: Path, base_pred: np.ndarray,
+                 final_pred: np.ndarray, test: np.ndarray) -> None:
+    d = rep.to_dict()
+    d["files"] = {"model": "calibrated.yaml", "robot": "calibrated_robot.yaml"}
+    write_json_atomic(folder / "report.json", jsonable(d))
+    write_text_atomic(folder / "report.md", markdown(rep))
+    rep.model().save(folder / "calibrated.yaml")
+    folded_robot(rep.robot, rep.model_effects).save(folder / "calibrated_robot.yaml")
+    _plots(rep, data, folder, base_pred, final_pred, test)
+
+
+def _swap_in(tmp: Path, out: Path, names: Sequence[str]) -> None:
+    """Move the complete new set from ``tmp`` into ``out`` (a new folder: one rename); the
+    previous set's entries go to a backup folder first and come back if a move fails."""
+    if not out.exists():
+        os.rename(tmp, out)
+        return
+    backup = Path(tempfile.mkdtemp(prefix=f".{out.name}.previous-", dir=out.parent))
+    moved_old: list[str] = []
+    moved_new: list[str] = []
+    try:
+        for name in names:
+            if (out / name).exists():
+                os.replace(out / name, backup / name)
+                moved_old.append(name)
+        for f in sorted(tmp.iterdir()):
+            os.replace(f, out / f.name)
+            moved_new.append(f.name)
+    except OSError:
+        for name in moved_new:           # roll back: the previous set, complete
+            with contextlib.suppress(OSError):
+                _remove(out / name)
+        for name in moved_old:
+            with contextlib.suppress(OSError):
+                os.replace(backup / name, out / name)
+        raise
+    finally:
+        shutil.rmtree(backup, ignore_errors=True)
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    else:
+        os.unlink(path)
+
+
+def _first_missing(folder: Path) -> Path | None:
+    """The outermost ancestor of ``folder`` (itself included) that does not exist yet."""
+    missing = None
+    p = Path(os.path.abspath(folder))
+    while not p.exists():
+        missing = p
+        p = p.parent
+    return missing
+
+
+def _out_error(out: Path, exc: Exception) -> InputError:
+    reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else (
+        exc.message if isinstance(exc, InputError) else exc.__class__.__name__)
+    return InputError("--out", "", f"cannot write the report to {str(out)!r} ({reason}); "
+                      "nothing there was changed")
+
+
+def _plots(rep: DiagnoseReport, data: MeasuredData, out: Path, base_pred: np.ndarray,
+           final_pred: np.ndarray, test: np.ndarray) -> None:
+    """Write the report's PNG plots into ``out``."""
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ctrplan.calibration.diagnostics import motion_direction
-
-    robot = rep.robot
-    n = robot.n
-    sweep = data.sweeps()
     eb = np.linalg.norm(base_pred[:, -1] - data.tip, axis=1)
     ea = np.linalg.norm(final_pred[:, -1] - data.tip, axis=1)
-    # residual vs relative rotation, by direction of motion
+    _plot_rotation(rep, data, out, eb, ea)
+    _plot_insertion(rep, data, out, eb, ea)
+    if data.points is not None and base_pred.shape[1] == data.points.shape[1]:
+        _plot_arclength(rep, data, out, base_pred, final_pred)
+    _plot_steps(rep, out)
+    _plot_tip_paths(data, out, base_pred, final_pred, test)
+
+
+def _plot_rotation(rep: DiagnoseReport, data: MeasuredData, out: Path, eb: np.ndarray,
+                   ea: np.ndarray) -> None:
+    """Residual vs relative rotation, by direction of motion."""
+    import matplotlib.pyplot as plt
+
+    n = rep.robot.n
+    sweep = data.sweeps()
     pairs = max(1, n - 1)
     fig, axes = plt.subplots(1, pairs, figsize=(5.5 * pairs, 4), dpi=100, squeeze=False)
     for i in range(n - 1):
@@ -264,27 +418,42 @@ def _plots(rep, data, out: Path, base_pred, final_pred, test) -> None:
         axes[0, 0].text(0.5, 0.5, "single tube: no relative rotation", ha="center")
     fig.suptitle("Residuals vs relative rotation, split by direction of motion")
     save_figure(fig, out / "residuals_rotation.png")
-    # vs insertion
+
+
+def _plot_insertion(rep: DiagnoseReport, data: MeasuredData, out: Path, eb: np.ndarray,
+                    ea: np.ndarray) -> None:
+    import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
-    ins = robot.tip_length(data.q)
+    ins = rep.robot.tip_length(data.q)
     ax.scatter(ins, eb, s=6, c="#c0392b", alpha=0.5, label=f"{rep.base} base")
     ax.scatter(ins, ea, s=6, c="#0b8a3c", alpha=0.5, label="calibrated")
     ax.set_xlabel("insertion: tip arc length (mm)")
     ax.set_ylabel("tip error (mm)")
     ax.legend()
     save_figure(fig, out / "residuals_insertion.png")
-    if data.points is not None and base_pred.shape[1] == data.points.shape[1]:
-        fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
-        fr = np.linspace(0, 1, data.points.shape[1])
-        ax.plot(fr, np.nanmean(np.linalg.norm(base_pred - data.points, axis=2), 0), "o-",
-                c="#c0392b", label=f"{rep.base} base")
-        ax.plot(fr, np.nanmean(np.linalg.norm(final_pred - data.points, axis=2), 0), "o-",
-                c="#0b8a3c", label="calibrated")
-        ax.set_xlabel("arc length / tip arc length")
-        ax.set_ylabel("mean backbone error (mm)")
-        ax.legend()
-        save_figure(fig, out / "residuals_arclength.png")
-    # errors per step
+
+
+def _plot_arclength(rep: DiagnoseReport, data: MeasuredData, out: Path, base_pred: np.ndarray,
+                    final_pred: np.ndarray) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+    fr = np.linspace(0, 1, data.points.shape[1])
+    ax.plot(fr, np.nanmean(np.linalg.norm(base_pred - data.points, axis=2), 0), "o-",
+            c="#c0392b", label=f"{rep.base} base")
+    ax.plot(fr, np.nanmean(np.linalg.norm(final_pred - data.points, axis=2), 0), "o-",
+            c="#0b8a3c", label="calibrated")
+    ax.set_xlabel("arc length / tip arc length")
+    ax.set_ylabel("mean backbone error (mm)")
+    ax.legend()
+    save_figure(fig, out / "residuals_arclength.png")
+
+
+def _plot_steps(rep: DiagnoseReport, out: Path) -> None:
+    """Held-out mean and max tip error after each step."""
+    import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
     labels = ["base"] + [s.effect for s in rep.steps if s.accepted]
     means = [rep.error_before_mm] + [s.error_after_mm for s in rep.steps if s.accepted]
@@ -296,7 +465,14 @@ def _plots(rep, data, out: Path, base_pred, final_pred, test) -> None:
     ax.set_ylabel("tip error (mm)")
     ax.legend()
     save_figure(fig, out / "errors_by_step.png")
-    # tip paths of the held-out sweeps
+
+
+def _plot_tip_paths(data: MeasuredData, out: Path, base_pred: np.ndarray,
+                    final_pred: np.ndarray, test: np.ndarray) -> None:
+    """Tip paths (x-y) of up to four held-out sweeps."""
+    import matplotlib.pyplot as plt
+
+    sweep = data.sweeps()
     names = list(dict.fromkeys(sweep[test].tolist()))[:4]
     fig, axes = plt.subplots(1, max(1, len(names)), figsize=(4.5 * max(1, len(names)), 4.2),
                              dpi=100, squeeze=False)

@@ -1,4 +1,7 @@
-"""Residual diagnostics: where does the model disagree with the data?
+"""Binned residual statistics for the report (``diagnostics`` in report.json and the plots).
+
+Stage: report. Descriptive only: nothing here tests a hypothesis or decides anything (the
+data-only tests that feed the decisions are :mod:`ctrplan.calibration.evidence`).
 
 Tip errors are binned against the relative rotation of each adjacent tube pair (split by the
 direction in which that relative angle is moving), against insertion (tip arc length), and, when

@@ -1,0 +1,206 @@
+"""Nuisances outside the effect vocabulary, screened after the fit (calibration pipeline,
+between the final fit and the conclusion; never part of the calibrated model).
+
+A drift of the sensor in time and a distortion of the tracker field are claimed only where the
+data tell them apart from the robot (see ``NUISANCES``); a named effect that is itself mostly
+such a function of a claimed nuisance is un-named (:func:`screen`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ctrplan.calibration.data import Split
+from ctrplan.calibration.lsq import Problem
+from ctrplan.calibration.select import gain as _gain
+from ctrplan.measured import MeasuredData
+from ctrplan.robot import Robot
+
+
+@dataclass(frozen=True)
+class Nuisances:
+    """Result of the nuisance screen: every test (report.json ``nuisance_tests``, with its
+    ``features``), the claimed kinds, the effects still named, and warnings for un-named ones."""
+
+    tests: list[dict]
+    claimed: list[str]
+    named: list[str]
+    warnings: tuple[str, ...] = ()
+
+
+def screen(robot: Robot, prob: Problem, data: MeasuredData, split: Split, final_pred: np.ndarray,
+           base_pred: np.ndarray, current: dict, named: Sequence[str], min_gain: float
+           ) -> Nuisances:
+    """Test the nuisances on the calibrated and the base model's residuals; un-name the
+    effects (``named``) that a claimed nuisance mimics."""
+    outside = _nuisances(robot, prob, data, final_pred, split.fit, split.val, split.train,
+                         split.test, min_gain, split.sweeps, split.ordered, base_pred)
+    claimed = [o["kind"] for o in outside if o["claimed"]]
+    named = list(named)
+    warnings = []
+    for o in outside:
+        if not o["claimed"]:
+            continue
+        for e in list(named):
+            frac = _explained_by(robot, prob, data, current, e, o["features"], split.train)
+            if frac > FIELD_LIKE:
+                named.remove(e)
+                warnings.append(f"{e} is not named: {100 * frac:.0f} % of what it changes is "
+                                f"also {NUISANCES[o['kind']]}, which the data show is at work")
+    return Nuisances(outside, claimed, named, tuple(warnings))
+
+
+#: Nuisances outside the effect vocabulary, tested only AFTER the robot model is fitted (so they
+#: never absorb the robot's own effects): a sensor drift in time (quadratic) and a smooth
+#: tracker-field distortion (a quadratic function of the measured tip position, ridge
+#: penalised). One is claimed only where the data tell it apart from the robot: on the
+#: validation rows, the nuisance's features must explain the robot model's residual clearly
+#: better (by ``DISTINGUISH``) than smooth features of the configuration
+#: (harmonics of the relative rotations, insertions, direction of motion) - a field gives the
+#: same correction wherever the tip is, however it got there; a robot effect does not. The
+#: calibrated model never contains a nuisance; a named effect whose change to the tips is itself
+#: mostly (``FIELD_LIKE``) such a function of the claimed nuisance is no longer named.
+NUISANCES = {"~drift": "a drift of the sensor in time", "~field": "a distortion of the tracker "
+             "field (a smooth function of the measured position)"}
+DISTINGUISH = 0.9
+FIELD_LIKE = 0.8
+RIDGE = 1e-2
+
+
+def _standardise(F: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Columns scaled to unit rms on ``rows`` (a constant column stays 1)."""
+    s = np.sqrt(np.mean(F[rows] ** 2, axis=0))
+    return F / np.where(s > 0, s, 1.0)
+
+
+def _nuisance_features(kind: str, data: MeasuredData, rows: np.ndarray) -> np.ndarray | None:
+    """(B, k) features of nuisance ``kind`` for every row, or None when it cannot be tested."""
+    if kind == "~drift":
+        t = data.time
+        if t is None or len(t) < 8 or not np.ptp(t) > 0:
+            return None
+        x = (np.asarray(t, dtype=float) - np.min(t)) / np.ptp(t)
+        return np.stack([np.ones_like(x), x, x * x], axis=1)
+    p = np.asarray(data.tip, dtype=float)
+    c = p - p[rows].mean(0)
+    sc = float(np.max(np.abs(c[rows])))
+    if not sc > 0:
+        return None
+    x, y, z = (c / sc).T
+    return _standardise(np.stack([np.ones_like(x), x, y, z, x * x, y * y, z * z, x * y, x * z,
+                                  y * z], axis=1), rows)
+
+
+def _config_features(robot: Robot, data: MeasuredData, sw: np.ndarray, ordered: bool,
+                     rows: np.ndarray) -> np.ndarray:
+    """(B, k) configuration features of the same kind of flexibility as a nuisance's."""
+    from ctrplan.shape.base import direction_from_rows
+
+    n = robot.n
+    q = data.q
+    cols = [np.ones(len(q))]
+    for i in range(n - 1):
+        phi = q[:, i] - q[:, i + 1]
+        cols += [np.cos(phi), np.sin(phi), np.cos(2 * phi), np.sin(2 * phi)]
+    b = q[:, n:]
+    b = (b - b[rows].mean(0)) / np.maximum(np.ptp(b[rows], axis=0), 1e-9)
+    cols += list(b.T)
+    if ordered:
+        d = direction_from_rows(q, sw).astype(float)[:, :n]
+        cols += list(d.T)
+    return _standardise(np.stack(cols, axis=1), rows)
+
+
+def _ridge(F: np.ndarray, R: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    A = F[rows]
+    ok = np.all(np.isfinite(A), axis=1) & np.all(np.isfinite(R[rows]), axis=1)
+    A = A[ok]
+    lam = RIDGE * len(A)
+    coef = np.linalg.solve(A.T @ A + lam * np.eye(A.shape[1]), A.T @ R[rows][ok])
+    return np.nan_to_num(F) @ coef
+
+
+def _distinguish(F: np.ndarray, G: np.ndarray, r: np.ndarray, fit_rows: np.ndarray,
+                 val: np.ndarray) -> tuple[float, float, float]:
+    """Validation mean |r| as is, after a ridge fit on nuisance features F, after one on
+    configuration features G (both fitted on ``fit_rows``)."""
+    def mean(x):
+        return float(np.linalg.norm(x[val], axis=1).mean())
+
+    return mean(r), mean(r - _ridge(F, r, fit_rows)), mean(r - _ridge(G, r, fit_rows))
+
+
+def _nuisances(robot, prob, data, final_pred, fit_rows, val, train, test, min_gain, sw,
+               ordered, base_pred) -> list[dict]:
+    """Test every nuisance (see NUISANCES) on two residuals: the calibrated robot model's, and
+    the base model's after the best affine map (before any robot effect could absorb a
+    field). Claimed when either shows it, distinguishably from the configuration."""
+    r = data.tip - final_pred[:, -1]
+    r = np.where(np.isfinite(r), r, 0.0)
+    pb = base_pred[:, -1]
+    okb = np.all(np.isfinite(pb), axis=1) & train
+    # an affine map (rigid transform, scale, shear) is registration / tracker calibration, not
+    # a field: the field must explain what the best affine map of the base model leaves
+    X = np.hstack([pb, np.ones((len(pb), 1))])
+    A, *_ = np.linalg.lstsq(X[okb], data.tip[okb], rcond=None)
+    r0 = data.tip - X @ A
+    r0 = np.where(np.isfinite(r0), r0, 0.0)
+    G = _config_features(robot, data, sw, ordered, fit_rows)
+    feats = {k: F for k in NUISANCES
+             if (F := _nuisance_features(k, data, fit_rows)) is not None}
+
+    def mean(x, rows):
+        return float(np.linalg.norm(x[rows], axis=1).mean())
+
+    out = []
+    # the nuisance that explains most is tested first, the next on what it leaves
+    order = sorted(feats, key=lambda k: mean(r - _ridge(feats[k], r, fit_rows), val))
+    for kind in order:
+        F = feats[kind]
+        rm = r
+        if kind == "~field":
+            # its affine part (in the measured position) is registration / tracker scale: the
+            # field must explain what an affine map leaves
+            rm = r - _ridge(F[:, :4], r, fit_rows)
+        e_model, e_nuis, e_conf = _distinguish(F, G, rm, fit_rows, val)
+        b_model, b_nuis, b_conf = _distinguish(F, G, r0, fit_rows, val)
+        gain = _gain(e_model, e_nuis)
+        on_model = bool(gain >= 2 * min_gain and e_nuis <= DISTINGUISH * e_conf)
+        on_base = bool(_gain(b_model, b_nuis) >= 2 * min_gain and b_nuis <= DISTINGUISH * b_conf)
+        claimed = on_model or on_base
+        corr = _ridge(F, r, train)                 # fitted on fit + validation rows
+        left = r - corr
+        why = (f"calibrated model's residual: validation mean {e_model:.3f} mm -> {e_nuis:.3f} "
+               f"mm with it, {e_conf:.3f} mm with configuration features instead; base model "
+               f"after an affine map: {b_model:.3f} -> {b_nuis:.3f} mm, {b_conf:.3f} mm")
+        out.append({"kind": kind, "claimed": claimed, "why": why, "validation_gain": gain,
+                    "validation_mean_with_mm": e_nuis, "validation_mean_config_mm": e_conf,
+                    "base_validation_mean_with_mm": b_nuis,
+                    "base_validation_mean_config_mm": b_conf,
+                    "test_mean_with_mm": mean(left, test),
+                    "test_max_with_mm": float(np.linalg.norm(left[test], axis=1).max()),
+                    # what a named effect must not mostly be: the nonconstant terms of a drift,
+                    # the nonlinear terms of a field
+                    "features": F[:, 1:] if kind == "~drift" else F[:, 4:]})
+        if claimed:
+            r = left
+            r0 = r0 - _ridge(F, r0, train)
+    return out
+
+
+def _explained_by(robot, prob, data, current, effect, F, rows) -> float:
+    """Fraction of what ``effect`` changes at the tips (sum of squares over ``rows``) that a
+    least-squares function of the nuisance features F reproduces."""
+    without = {k: v for k, v in current.items() if k != effect}
+    a, b = prob.predict_many([current, without])
+    d = a[:, -1] - b[:, -1]
+    d = np.where(np.isfinite(d), d, 0.0)
+    ss = float((d[rows] ** 2).sum())
+    if ss <= 0:
+        return 0.0
+    coef, *_ = np.linalg.lstsq(F[rows], d[rows], rcond=None)
+    left = d[rows] - F[rows] @ coef
+    return float(1.0 - (left ** 2).sum() / ss)

@@ -1,0 +1,365 @@
+"""Stage 3 of the calibration pipeline: screening and selection of the missing effects.
+
+Forward selection (:func:`forward`): every form of every candidate effect is fitted alone on
+top of the current model (robust soft-L1 loss, see :meth:`Problem.fit`); the leading ones are
+refitted jointly with the effects already in. A candidate enters the model when it lowers the
+BIC and the validation error by ``keep_gain``; it is *named* only when ``dBIC <
+-bic_threshold``, the validation error drops by ``min_gain`` and by ``MIN_SHARE`` of the base
+model's validation error.
+
+Joint model (:func:`joint`): when forward selection leaves more than ``JOINT_TRIGGER`` times the
+noise, every effect that lowered the BIC in the first screen is fitted jointly, then each is
+dropped in turn: the drop decides whether it stays and whether it is named. The joint model
+replaces the forward one when it is better on validation (:func:`select`).
+
+Parameters are fitted on the fit rows (``prob.train``), effects and forms chosen on the
+validation rows (``prob.test``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from ctrplan.calibration.lsq import FitResult, Problem
+from ctrplan.calibration.result import Candidate, Step
+from ctrplan.robot import Robot
+from ctrplan.shape.effects import effect_form, effect_variants, off_values
+
+log = logging.getLogger("ctrplan")
+
+#: the joint model is tried when the one-at-a-time effects leave more than this many times the
+#: noise floor's mean tip error on the validation rows
+JOINT_TRIGGER = 3.0
+#: an effect is named only when it accounts for at least this share of the base model's
+#: validation mean error (of the registered base's, when registration alone lowers it; smaller
+#: refinements stay in the model, listed as partial)
+MIN_SHARE = 0.15
+#: effects that switch to a slower kernel (loaded / torsionally compliant): never in the joint
+#: model (it is compared with the one-at-a-time model, which may hold them)
+SLOW = ("load", "torsion")
+
+Effects = dict[str, dict[str, float]]
+
+
+@dataclass(frozen=True)
+class SelectConfig:
+    """Thresholds and budgets of the selection (see :func:`ctrplan.calibration.diagnose.diagnose`)."""
+
+    bic_threshold: float = 10.0
+    min_gain: float = 0.05
+    keep_gain: float = 0.02
+    ambiguity_bic: float = 10.0
+    screen_iter: int = 8
+    fit_iter: int = 25
+    refit_top: int = 3
+    max_effects: int = 6
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Result of the selection stage: the chosen effects (complete parameter dicts), their
+    score on the validation rows, the fitted parameter names per effect, the steps (accepted
+    effects, then a rejected screen), and what the joint model added to the settings and
+    warnings."""
+
+    effects: Effects
+    score: FitResult
+    free: dict[str, list[str]]
+    steps: list[Step]
+    settings: dict
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def in_model(self) -> list[str]:
+        """Effects in the calibrated model, in the order they were added."""
+        return [s.effect for s in self.steps if s.accepted]
+
+    @property
+    def named(self) -> list[str]:
+        """Effects with evidence enough to be named."""
+        return [s.effect for s in self.steps if s.accepted and s.named]
+
+
+@dataclass(frozen=True)
+class _Grades:
+    """The two grades of a fit against the current model ``cur``: named-grade (BIC below
+    -bic_threshold, validation gain >= min_gain and >= MIN_SHARE of ``ref``) and keep-grade."""
+
+    cur: FitResult
+    ref: float
+    cfg: SelectConfig
+
+    def named(self, r: FitResult) -> bool:
+        cur, cfg = self.cur, self.cfg
+        return bool(r.bic() - cur.bic() < -cfg.bic_threshold
+                    and gain(cur.test_mean, r.test_mean) >= cfg.min_gain
+                    and cur.test_mean - r.test_mean >= MIN_SHARE * self.ref)
+
+    def keep(self, r: FitResult) -> bool:
+        return bool(r.bic() - self.cur.bic() < 0.0
+                    and gain(self.cur.test_mean, r.test_mean) >= self.cfg.keep_gain)
+
+
+def select(prob: Problem, robot: Robot, base: str, cands: Sequence[str], cfg: SelectConfig,
+           e_noise: float, base_score: FitResult) -> Selection:
+    """Forward selection from the base model (its score ``base_score``), then the joint model
+    when forward selection leaves more than ``JOINT_TRIGGER`` times the noise floor's mean tip
+    error ``e_noise`` (mm)."""
+    steps: list[Step] = []
+    current, cur, free = forward(prob, robot, base, cands, {}, base_score, steps, cfg)
+    settings: dict = {}
+    warnings: list[str] = []
+    if steps and cands and cur.test_mean > JOINT_TRIGGER * e_noise + 0.05 and cfg.max_effects > 1:
+        # the effects one at a time left much more than the noise: effects that are uncertain
+        # all at once (registration, precurvature, stiffness, friction, clearance on a real
+        # robot) only show jointly; the joint model wins when it lowers the validation error
+        greedy_val = cur.test_mean
+        jm = joint(prob, robot, base, cands, steps, cfg)
+        if jm is not None and jm[1].test_mean < greedy_val * (1.0 - cfg.keep_gain):
+            settings["greedy_steps"] = [
+                {"effect": st.effect, "form": st.form, "validation_mean_mm": st.error_after_mm}
+                for st in steps if st.accepted]
+            greedy_named = {st.effect for st in steps if st.accepted and st.named}
+            current, cur, free, steps[:] = jm
+            for st in steps:
+                # evidence from either test names an effect: alone (one at a time) or
+                # dropped from the joint model
+                st.named = st.named or st.effect in greedy_named
+            warnings.append(f"effects one at a time left {greedy_val:.3f} mm on the validation "
+                            f"rows; fitted jointly {cur.test_mean:.3f} mm: the joint model is "
+                            "used, each effect judged by dropping it from the joint model")
+        settings["joint_model_tried"] = True
+    return Selection(current, cur, free, steps, settings, tuple(warnings))
+
+
+def forward(prob: Problem, robot: Robot, base: str, cands: Sequence[str], current: Effects,
+            cur: FitResult, steps: list[Step], cfg: SelectConfig
+            ) -> tuple[Effects, FitResult, dict[str, list[str]]]:
+    """Forward selection over effect forms (module docstring); appends to ``steps``.
+
+    Returns the effects, their score and the fitted parameter names per effect.
+    """
+    free_cur: dict[str, list[str]] = {}
+    base_val = cur.test_mean
+    while len(current) < cfg.max_effects:
+        remaining = [c for c in cands if c not in current]
+        if steps:
+            # after the first step, re-screen only the effects that lowered the BIC before
+            # (an effect that explained nothing then rarely explains something now; this keeps
+            # the workflow's runtime within its budget)
+            prev = {c.effect: c.delta_bic for c in steps[-1].screened}
+            remaining = [c for c in remaining if prev.get(c, -1.0) < 0.0]
+        if not remaining:
+            break
+        results, frees = _screen(prob, robot, base, remaining, current, free_cur, cfg)
+        if not current and ("registration", "") in results:
+            # registration is part of the base on a real set-up (the tracker frame is rarely
+            # known): shares are of the error a registered base leaves
+            base_val = min(base_val, results[("registration", "")].test_mean)
+        if current:
+            _refit_leaders(prob, results, frees, free_cur, cur, cfg)
+        grades = _Grades(cur, base_val, cfg)
+        screened, best_form = _best_forms(results, grades)
+        if not screened:
+            break
+        step = _step(prob, results, frees, free_cur, screened, best_form, grades)
+        steps.append(step[0])
+        if step[1] is None:
+            break
+        cur, free_cur = step[1], step[2]
+        current = cur.effects
+    return current, cur, free_cur
+
+
+def _screen(prob: Problem, robot: Robot, base: str, remaining: Sequence[str], current: Effects,
+            free_cur: dict[str, list[str]], cfg: SelectConfig):
+    """Every form of every remaining effect fitted alone on top of ``current`` (held fixed)."""
+    k_cur = sum(len(v) for v in free_cur.values())
+    results: dict[tuple[str, str], FitResult] = {}
+    frees: dict[tuple[str, str], list[str]] = {}
+    for c in remaining:
+        for label, fixed_form, names in effect_variants(c, robot, base):
+            if not names:
+                continue
+            start = {**off_values(c, robot, base), **fixed_form}
+            fixed = {**current, c: start}
+            key = (c, label)
+            frees[key] = names
+            # later steps: a short screen (the leading candidates are refitted in full
+            # later), since every solve now carries the effects already found
+            results[key] = prob.fit(fixed, {c: names},
+                                    max_iter=cfg.screen_iter if not current else
+                                    max(2, cfg.screen_iter // 3),
+                                    k_total=k_cur + len(names))
+    return results, frees
+
+
+def _refit_leaders(prob: Problem, results: dict, frees: dict, free_cur: dict[str, list[str]],
+                   cur: FitResult, cfg: SelectConfig) -> None:
+    """The screen holds the effects already added fixed; the leading candidates are refitted
+    jointly with them (their parameters may have absorbed part of the new effect)."""
+    ranked = sorted(results, key=lambda c: results[c].bic())
+    lead = [k for k in ranked if results[k].bic() - cur.bic() < 0.0
+            and gain(cur.test_mean, results[k].test_mean) > -0.5]
+    for key in lead[:cfg.refit_top]:
+        free = {**free_cur, key[0]: frees[key]}
+        jf = prob.fit(results[key].effects, free, max_iter=cfg.fit_iter,
+                      k_total=sum(len(v) for v in free.values()))
+        if jf.rss <= results[key].rss * (1 + 1e-9):
+            results[key] = jf
+        else:
+            results[key].values, results[key].sigma = fill_values(results[key], free)
+
+
+def _best_forms(results: dict, grades: _Grades) -> tuple[list[Candidate], dict]:
+    """Best form per effect: a named-grade form with the lowest BIC, else the kept form with
+    the lowest validation error, else the lowest BIC; forms never compete as "ambiguous".
+    Returns the screened candidates (sorted by dBIC) and effect -> best (effect, form) key."""
+    ranked = sorted(results, key=lambda c: results[c].bic())
+    best_form: dict[str, tuple[str, str]] = {}
+    for c in dict.fromkeys(k[0] for k in ranked):
+        forms_c = [k for k in ranked if k[0] == c]
+        good = [k for k in forms_c if grades.named(results[k])]
+        kept = sorted((k for k in forms_c if grades.keep(results[k])),
+                      key=lambda k: results[k].test_mean)
+        best_form[c] = good[0] if good else (kept[0] if kept else forms_c[0])
+    cur = grades.cur
+    screened = [Candidate(c, float(results[key].bic() - cur.bic()),
+                          float(results[key].test_mean), grades.named(results[key]), key[1])
+                for c, key in best_form.items()]
+    screened.sort(key=lambda s: s.delta_bic)
+    return screened, best_form
+
+
+def _step(prob: Problem, results: dict, frees: dict, free_cur: dict[str, list[str]],
+          screened: list[Candidate], best_form: dict, grades: _Grades):
+    """The step this screen makes: (Step, new score, new free names), or (rejected Step, None,
+    None) when no candidate is justified or kept."""
+    cur, cfg = grades.cur, grades.cfg
+    justified = [s for s in screened if s.justified]
+    kept = sorted((s for s in screened if grades.keep(results[best_form[s.effect]])),
+                  key=lambda s: s.test_mean_mm)
+    best = justified[0] if justified else (kept[0] if kept else screened[0])
+    runner = next((s for s in screened if s is not best), None)
+    if not (best.justified or kept):
+        return Step(None, False, {}, {}, cur.test_mean, cur.test_mean, cur.test_max,
+                    cur.test_max, best.delta_bic, gain(cur.test_mean, best.test_mean_mm),
+                    best.effect, None, False, screened), None, None
+    key = best_form[best.effect]
+    jf = results[key]
+    free_new = {**free_cur, best.effect: frees[key]}
+    polished = prob.fit(jf.effects, free_new, max_iter=cfg.fit_iter,
+                        k_total=sum(len(v) for v in free_new.values()))
+    if polished.rss <= jf.rss * (1 + 1e-9) and polished.test_mean <= jf.test_mean * 1.05:
+        jf = polished
+    if not jf.values or best.effect not in jf.values:
+        jf.values, jf.sigma = fill_values(jf, free_new)
+    ambiguous = bool(best.justified and runner is not None and runner.justified
+                     and runner.delta_bic - best.delta_bic < cfg.ambiguity_bic)
+    dbic = jf.bic() - cur.bic()
+    form = effect_form(best.effect, jf.effects[best.effect])
+    step = Step(best.effect, True, jf.values, jf.sigma, cur.test_mean, jf.test_mean,
+                cur.test_max, jf.test_max, float(dbic), gain(cur.test_mean, jf.test_mean),
+                runner.effect if runner else None, runner.delta_bic if runner else None,
+                ambiguous, screened, form, named=bool(best.justified))
+    log.info("added %s%s%s: validation mean tip error %.3f -> %.3f mm (dBIC %.1f)",
+             best.effect, f" ({form})" if form else "",
+             "" if best.justified else " (kept, not named)", cur.test_mean, jf.test_mean, dbic)
+    return step, jf, free_new
+
+
+def joint(prob: Problem, robot: Robot, base: str, cands: Sequence[str], steps: list[Step],
+          cfg: SelectConfig):
+    """Every effect that lowered the BIC in the first screen, in its best screened form
+    (clearance with both harmonics), fitted jointly; then each effect dropped in turn (the rest
+    refitted briefly): effects whose removal does not raise the validation error by
+    ``keep_gain`` leave the model; an effect is named when its removal raises the BIC by more
+    than ``bic_threshold`` and its presence cuts the validation error by ``min_gain``.
+    Returns (effects, score, fitted names, steps) or None."""
+    first = {c.effect: c for c in steps[0].screened} if steps[0].screened else {}
+    for st in steps:
+        if st.accepted:
+            first.setdefault(st.effect, Candidate(st.effect, st.delta_bic, st.error_after_mm,
+                                                  st.named, st.form))
+    chosen = sorted((c for c in first.values() if c.delta_bic < 0.0 and c.effect in cands
+                     and c.effect not in SLOW),
+                    key=lambda c: c.delta_bic)[:cfg.max_effects]
+    if len(chosen) < 2:
+        return None
+    fixed, free = _joint_start(chosen, robot, base)
+    k_all = sum(len(v) for v in free.values())
+    base_val = prob.score({}).test_mean
+    reg = first.get("registration")
+    if reg is not None and steps[0].screened and reg.test_mean_mm > 0:
+        base_val = min(base_val, reg.test_mean_mm)
+    full = prob.fit(fixed, free, max_iter=2 * cfg.fit_iter, k_total=k_all)
+    drops: dict[str, FitResult] = {}
+    for e in free:
+        fx = {k: v for k, v in full.effects.items() if k != e}
+        fr = {k: v for k, v in free.items() if k != e}
+        drops[e] = prob.fit(fx, fr, max_iter=max(4, cfg.fit_iter // 3),
+                            k_total=k_all - len(free[e]))
+    keep = [e for e in free if drops[e].test_mean > full.test_mean * (1.0 + cfg.keep_gain)]
+    model, mfree = full, free
+    if keep and len(keep) < len(free):
+        kf = {e: free[e] for e in keep}
+        reduced = prob.fit({e: full.effects[e] for e in keep}, kf, max_iter=cfg.fit_iter,
+                           k_total=sum(len(v) for v in kf.values()))
+        if reduced.test_mean <= full.test_mean:
+            model, mfree = reduced, kf
+    out_steps = [_drop_step(e, model, mfree, drops[e], base_val, cfg) for e in mfree]
+    out_steps.sort(key=lambda st: st.delta_bic)
+    return model.effects, model, mfree, out_steps
+
+
+def _joint_start(chosen: Sequence[Candidate], robot: Robot, base: str):
+    """Start values and free parameter names of the joint model (clearance with both
+    harmonics, the other effects in their best screened form)."""
+    fixed: Effects = {}
+    free: dict[str, list[str]] = {}
+    for c in chosen:
+        variants = {lab: (fx, nm) for lab, fx, nm in effect_variants(c.effect, robot, base)}
+        lab = "harmonic2" if c.effect == "clearance" and "harmonic2" in variants else c.form
+        if lab not in variants:
+            lab = next(iter(variants))
+        fx, nm = variants[lab]
+        fixed[c.effect] = {**off_values(c.effect, robot, base), **fx}
+        free[c.effect] = list(nm)
+    return fixed, free
+
+
+def _drop_step(e: str, model: FitResult, mfree: dict[str, list[str]], d: FitResult,
+               base_val: float, cfg: SelectConfig) -> Step:
+    """The step of effect ``e`` in the joint model, judged by the fit ``d`` without it."""
+    dbic = float(model.bic() - d.bic())
+    g = gain(d.test_mean, model.test_mean)
+    named = bool(dbic < -cfg.bic_threshold and g >= cfg.min_gain
+                 and d.test_mean - model.test_mean >= MIN_SHARE * base_val)
+    vals = {e: {k: model.effects[e][k] for k in mfree[e]}}
+    sig = {e: {k: model.sigma.get(e, {}).get(k, math.nan) for k in mfree[e]}}
+    return Step(e, True, vals, sig, float(d.test_mean), float(model.test_mean),
+                float(d.test_max), float(model.test_max), dbic, g, None, None,
+                False, [], effect_form(e, model.effects[e]) or "", named=named)
+
+
+def labels(steps: list[Step], effects: Sequence[str]) -> list[str]:
+    """``effect (form)`` labels of accepted steps, in the order they were added."""
+    return [f"{s.effect} ({s.form})" if s.form else s.effect
+            for s in steps if s.accepted and s.effect in effects]
+
+
+def gain(before: float, after: float) -> float:
+    """Relative drop ``(before - after) / before`` (0 when ``before`` is not positive)."""
+    if not math.isfinite(before) or before <= 0:
+        return 0.0
+    return float((before - after) / before)
+
+
+def fill_values(fit: FitResult, free: dict[str, list[str]]):
+    """(values, sigma) of the ``free`` parameters of ``fit``."""
+    vals = {e: {k: fit.effects[e][k] for k in names} for e, names in free.items()}
+    sig = {e: {k: fit.sigma.get(e, {}).get(k, math.nan) for k in names} for e, names in free.items()}
+    return vals, sig
