@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from ctrplan.commands._common import add_model_arg, add_robot_arg, output_path
+from ctrplan.commands._common import POINTS, add_model_arg, add_robot_arg, output_path
 from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_robot_arg(p)
     p.add_argument("--configs", required=True, help="configuration CSV (alpha1..alphaN,beta1..betaN)")
     add_model_arg(p)
-    p.add_argument("--points", type=int, default=21, help="backbone points (capsules + 1, default 21)")
+    p.add_argument("--points", type=POINTS, default=21, help="backbone points (capsules + 1, default 21)")
     p.add_argument("--margin", default="auto", metavar="MM|auto",
                    help="safety margin added to the tube radii, mm; 'auto' (default) = the "
                         "model's error bound: the p99 of its held-out deviation at each "

@@ -7,7 +7,7 @@ import logging
 import math
 import re
 
-from ctrplan.commands._common import add_model_arg, output_path
+from ctrplan.commands._common import POSITIVE, SEED, add_model_arg, output_path
 from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
@@ -50,8 +50,8 @@ def add_planning_args(p: argparse.ArgumentParser) -> None:
     add_model_arg(p, default="physics")
     p.add_argument("--planner", default="rrtconnect",
                    help="rrtconnect (default), rrt, rrtstar, bitstar, kpiece, bkpiece, lbkpiece (prm is refused: it deadlocks with Python validity checkers)")
-    p.add_argument("--time", type=float, default=5.0, help="time limit per plan, s (default 5)")
-    p.add_argument("--tolerance", type=float, default=1.0,
+    p.add_argument("--time", type=POSITIVE, default=5.0, help="time limit per plan, s (default 5)")
+    p.add_argument("--tolerance", type=POSITIVE, default=1.0,
                    help="accepted tip-to-target distance, mm (default 1)")
     add_margin_arg(p, "while planning")
     p.add_argument("--objective", default="clearance", metavar="clearance|length|first",
@@ -115,7 +115,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "changed only if it collides) or 2n values alpha1..alphaN (rad), "
                         "beta1..betaN (mm), comma- or space-separated")
     add_planning_args(p)
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=SEED, default=0, help="random seed (default 0)")
     p.add_argument("--out", required=True, help="output plan .json")
     allow_negative_values(p)
     p.set_defaults(func=run)

@@ -6,7 +6,7 @@ import argparse
 
 import numpy as np
 
-from ctrplan.commands._common import add_model_arg, add_robot_arg, output_path
+from ctrplan.commands._common import POINTS, add_model_arg, add_robot_arg, output_path
 from ctrplan.errors import InputError
 
 
@@ -18,7 +18,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_robot_arg(p)
     p.add_argument("--configs", required=True, help="configuration CSV (alpha1..alphaN,beta1..betaN)")
     add_model_arg(p)
-    p.add_argument("--points", type=int, default=20, help="points per backbone, base to tip (default 20)")
+    p.add_argument("--points", type=POINTS, default=20, help="points per backbone, base to tip (default 20)")
     p.add_argument("--out", required=True, help="output .npz or .csv")
     p.set_defaults(func=run)
 

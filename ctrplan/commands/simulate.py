@@ -7,7 +7,14 @@ import logging
 
 import numpy as np
 
-from ctrplan.commands._common import add_robot_arg, output_path
+from ctrplan.commands._common import (
+    NONNEGATIVE,
+    POSITIVE,
+    SEED,
+    add_robot_arg,
+    int_arg,
+    output_path,
+)
 from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
@@ -28,20 +35,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--experiment", action="append", default=None,
                      choices=["feed", "inner_rotation", "outer_rotation", "random_walk"],
                      help="experiment design (repeatable; one after the other)")
-    p.add_argument("--n", type=int, default=200,
+    p.add_argument("--n", type=int_arg(1), default=200,
                    help="rows: random configurations (no --configs/--experiment) or rows per "
                         "experiment (default 200)")
-    p.add_argument("--sweeps", type=int, default=4, help="sweeps per experiment (default 4)")
+    p.add_argument("--sweeps", type=int_arg(1, 1_000_000), default=4, help="sweeps per experiment (default 4)")
     p.add_argument("--effect", action="append", default=[], metavar="NAME[:PARAM=VALUE,...]",
                    help="hidden effect (repeatable); unnamed parameters stay off")
     p.add_argument("--base", choices=["rigid", "compliant"], default="rigid",
                    help="base mechanics model of the simulated robot (default rigid)")
-    p.add_argument("--noise", type=float, default=0.0, help="noise std per coordinate, mm (default 0)")
-    p.add_argument("--points", type=int, default=0,
+    p.add_argument("--noise", type=NONNEGATIVE, default=0.0, help="noise std per coordinate, mm (default 0)")
+    p.add_argument("--points", type=int_arg(0, 100_000), default=0,
                    help="also record M backbone points per row (default 0: tip only)")
-    p.add_argument("--step", type=float, default=None,
+    p.add_argument("--step", type=POSITIVE, default=None,
                    help="integrator step of the simulated truth, mm (default: the model's)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (configurations and noise)")
+    p.add_argument("--seed", type=SEED, default=0, help="random seed (configurations and noise)")
     p.add_argument("--out", required=True, help="output measured CSV")
     p.set_defaults(func=run)
 
