@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import enum
+import io
 import json
 import math
 import os
@@ -88,6 +89,31 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         if tmp_path.exists():
             tmp_path.unlink()
         interrupt.pending_removed(str(tmp_path))
+
+
+@contextlib.contextmanager
+def scratch_files(beside: str | os.PathLike, count: int) -> Iterator[list[Path]]:
+    """Yield ``count`` empty scratch files in the folder of ``beside`` (an output being built
+    in parts); all are removed on exit, and by the Ctrl-C watchdog if it must kill us."""
+    from ctrplan import interrupt
+
+    folder = Path(beside).parent
+    paths: list[Path] = []
+    try:
+        for _ in range(count):
+            try:
+                fd, tmp = tempfile.mkstemp(prefix=f".{Path(beside).name}.part.", dir=folder)
+            except OSError as exc:
+                raise _os_error(Path(beside), exc) from None
+            os.close(fd)
+            paths.append(Path(tmp))
+            interrupt.pending_added(tmp)
+        yield paths
+    finally:
+        for p in paths:
+            with contextlib.suppress(OSError):
+                p.unlink()
+            interrupt.pending_removed(str(p))
 
 
 def save_figure(fig: Any, path: str | os.PathLike, dpi: int | None = None) -> None:
@@ -379,6 +405,24 @@ CHUNK_ROWS = 50_000
 _TUBE_COLUMN = re.compile(r"^(alpha|beta)([0-9]+)$")
 
 
+class _CappedReader(io.RawIOBase):
+    """A raw reader that refuses to read past ``cap`` bytes (a file that grows while read)."""
+
+    def __init__(self, raw: Any, cap: int, path: Path):
+        self.raw, self.cap, self.path, self.done = raw, cap, path, 0
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, b: Any) -> int:
+        n = self.raw.readinto(b)
+        self.done += n or 0
+        if self.done > self.cap:
+            raise InputError(str(self.path), "", f"file grew beyond the {self.cap / 2 ** 20:.0f} MB "
+                             "limit while read (lift with --max-mb)")
+        return n
+
+
 def _csv_header(path: Path, row: list[str]) -> list[str]:
     header = [h.strip() for h in row]
     seen: set[str] = set()
@@ -403,7 +447,8 @@ def iter_csv_rows(path: str | os.PathLike, kind: str = "csv",
     rows: list[list[str]] = []
     first = 2
     try:
-        with open(path, encoding="utf-8-sig", newline="") as fh:
+        with open(path, "rb") as raw, io.TextIOWrapper(
+                io.BufferedReader(_CappedReader(raw, cap, path)), encoding="utf-8-sig", newline="") as fh:
             for r in csv.reader(fh):
                 if not r or not any(c.strip() for c in r):
                     continue
@@ -415,9 +460,6 @@ def iter_csv_rows(path: str | os.PathLike, kind: str = "csv",
                                      f"has {len(r)} values but the header has {len(header)} columns")
                 rows.append(r)
                 if len(rows) >= chunk_rows:
-                    if fh.tell() > cap:
-                        raise InputError(str(path), "", f"file grew beyond the {cap / 2 ** 20:.0f} "
-                                         "MB limit while read (lift with --max-mb)")
                     yield header, first, rows
                     first += len(rows)
                     rows = []
