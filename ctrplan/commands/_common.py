@@ -124,6 +124,22 @@ def add_max_mb_arg(p: argparse.ArgumentParser) -> None:
                         "configuration CSVs, 64 for YAML/JSON); files are checked before reading")
 
 
+#: Default memory budget (MB) of a command whose memory use is known up front.
+MEMORY_BUDGET_MB = 2048.0
+
+
+def refuse_costly(field: str, request: str, estimate: float, limit: float, unit: str,
+                  lift: str) -> None:
+    """Refuse, before any work, a request whose cost is known up front to exceed ``limit``:
+    one line with the request, the estimate and how to lift the limit."""
+    def fmt(x: float) -> str:
+        return f"{x:,.0f}" if x < 1e7 else f"{x:.2e}"
+
+    if not estimate <= limit:
+        raise InputError(field, "", f"{request} needs about {fmt(estimate)} {unit}, above the "
+                         f"limit of {fmt(limit)} (lift with {lift})")
+
+
 def add_max_mb_everywhere(parser: argparse.ArgumentParser) -> None:
     """Give every (sub-)command that lacks it the ``--max-mb`` option."""
     subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
