@@ -204,10 +204,12 @@ class Robot:
         have = 0
         drawn = 0
         while have < n:
-            if have == 0 and drawn >= 1_000_000:
-                # e.g. two tubes of equal length force beta_i = beta_(i+1): a set of zero volume
+            if drawn >= max(1_000_000, 1000 * n):
+                # e.g. two tubes of equal length force beta_i = beta_(i+1): a set of zero volume;
+                # a budget of draws, so a sliver of valid volume cannot run for ever either
                 raise InputError(self.source, "tubes", "the joint constraints leave (almost) no "
-                                 "volume to sample from: no valid configuration in 1e6 draws")
+                                 f"volume to sample from: {have} valid configurations in "
+                                 f"{drawn} draws")
             m = max(4096, 2 * (n - have))
             drawn += m
             beta = rng.uniform(lo, hi, size=(m, self.n))
