@@ -221,6 +221,12 @@ def excerpt(value: Any, n: int = 40) -> str:
     return cut
 
 
+def short_field(name: str, n: int = 40) -> str:
+    """A field name (a CSV column, a key) as shown in an error: as it is when short, else an
+    :func:`excerpt`."""
+    return name if len(name) <= n else excerpt(name, n)
+
+
 def check_input_file(path: str | os.PathLike, kind: str = "text") -> int:
     """Before reading: ``path`` must be a regular file (not a device such as /dev/zero, a
     pipe or a folder) no larger than the cap for ``kind``; returns its size in bytes.
@@ -241,8 +247,8 @@ def check_input_file(path: str | os.PathLike, kind: str = "text") -> int:
                          "end to read to)")
     cap = max_input_bytes(kind)
     if st.st_size > cap:
-        raise InputError(str(path), "", f"file is {st.st_size / 2 ** 20:.1f} MB, above the "
-                         f"{cap / 2 ** 20:.0f} MB limit for {kind} files (lift with --max-mb)")
+        raise InputError(str(path), "", f"file is {st.st_size / 2 ** 20:.4g} MB, above the "
+                         f"{cap / 2 ** 20:.4g} MB limit for {kind} files (lift with --max-mb)")
     return int(st.st_size)
 
 
@@ -257,7 +263,7 @@ def read_bytes(path: str | os.PathLike, kind: str = "text") -> bytes:
     except OSError as exc:
         raise InputError(str(path), "", f"cannot read file ({exc.strerror or exc.__class__.__name__})") from None
     if len(data) > cap:
-        raise InputError(str(path), "", f"file grew beyond the {cap / 2 ** 20:.0f} MB limit while "
+        raise InputError(str(path), "", f"file grew beyond the {cap / 2 ** 20:.4g} MB limit while "
                          "read (lift with --max-mb)")
     return data
 
@@ -418,7 +424,7 @@ class _CappedReader(io.RawIOBase):
         n = self.raw.readinto(b)
         self.done += n or 0
         if self.done > self.cap:
-            raise InputError(str(self.path), "", f"file grew beyond the {self.cap / 2 ** 20:.0f} MB "
+            raise InputError(str(self.path), "", f"file grew beyond the {self.cap / 2 ** 20:.4g} MB "
                              "limit while read (lift with --max-mb)")
         return n
 
@@ -428,7 +434,7 @@ def _csv_header(path: Path, row: list[str]) -> list[str]:
     seen: set[str] = set()
     for h in header:
         if h in seen:
-            raise InputError(str(path), excerpt(h), "duplicate column in the header")
+            raise InputError(str(path), short_field(h), "duplicate column in the header")
         seen.add(h)
     return header
 
@@ -538,7 +544,8 @@ def check_tube_columns(path: str | os.PathLike, header: Sequence[str], robot: An
     for h in header:
         m = _TUBE_COLUMN.match(h)
         if m and not 1 <= int(m.group(2)) <= robot.n:
-            raise InputError(str(path), excerpt(h), f"is a column for tube {excerpt(m.group(2))} but "
+            k = m.group(2) if len(m.group(2)) <= 6 else excerpt(m.group(2), 6)
+            raise InputError(str(path), short_field(h), f"is a column for tube {k} but "
                              f"robot {robot.name!r} has {robot.n} tube{'s' if robot.n != 1 else ''}")
 
 
