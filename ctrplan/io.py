@@ -212,9 +212,9 @@ def max_input_bytes(kind: str = "text") -> int:
 def excerpt(value: Any, n: int = 40) -> str:
     """``repr`` of a (possibly huge) bad value, cut to its first ``n`` characters plus
     ``...`` and its length: error messages quote a bad value, never all of it."""
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 200:
+        return f"<an integer of about {int(value.bit_length() * 0.30103) + 1} digits>"
     text = value if isinstance(value, str) else str(value) if isinstance(value, (int, float)) else repr(value)
-    if isinstance(value, int) and not isinstance(value, bool):
-        text = f"<integer of {len(str(abs(value)))} digits>" if abs(value) >= 10 ** 60 else text
     if len(text) <= n:
         return repr(text) if isinstance(value, str) else text
     cut = repr(text[:n])[:-1] + f"...' ({len(text)} characters)"
