@@ -491,6 +491,16 @@ def read_csv_table(path: str | os.PathLike, kind: str = "csv") -> tuple[list[str
     return header, body
 
 
+def strict_float(text: Any) -> float:
+    """``float(text)`` without what a number in a file or option should not be: digit
+    separators (``1_0``) and non-ASCII digits raise ValueError (``nan``/``inf`` are returned
+    for the caller's finiteness check)."""
+    t = str(text)
+    if "_" in t or not t.isascii():
+        raise ValueError(f"not a number: {excerpt(t)}")
+    return float(t)
+
+
 def _not_strict(cells: list[str]) -> int | None:
     """Index of the first cell ``float`` would read but a strict number parser must refuse
     (underscores as in ``1_0``, non-ASCII digits), else None. Checked on the joined chunk

@@ -130,3 +130,27 @@ def test_excerpt():
     e = excerpt("y" * 1000)
     assert e.startswith("'" + "y" * 40 + "...") and "(1000 characters)" in e and len(e) < 80
     assert "digits" in excerpt(10 ** 5000)
+
+
+def test_numbers_inside_string_options_are_strict(capsys):
+    """Options that carry numbers in text (--margin, --target, --start, --effect, design's
+    MIN,MAX pairs) read them strictly too, and quote an excerpt of a bad value."""
+    from ctrplan.commands.design import _pair
+    from ctrplan.commands.plan import parse_margin
+    from ctrplan.errors import InputError
+    from ctrplan.shape.effects import parse_effect_arg
+
+    assert parse_margin("0.5") == 0.5 and parse_margin("auto") is None
+    assert parse_effect_arg("clearance:length=8")[1] == {"length": 8.0}
+    for call in (lambda: parse_margin("1_0"), lambda: parse_margin("\u0661"),
+                 lambda: parse_effect_arg("clearance:length=1_0"),
+                 lambda: _pair("0_1,0.2", "--curvature", (0.0, 0.08))):
+        with pytest.raises(InputError):
+            call()
+    with pytest.raises(InputError) as exc:
+        parse_margin("m" * 100_000)
+    assert len(str(exc.value)) < 200
+    rc = cli.main(["-q", "simulate", "--robot", "seed1", "--n", "5", "--effect", "clearance:length=1_0",
+                   "--out", "m.csv"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "not a number: '1_0'" in err, err

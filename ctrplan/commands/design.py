@@ -46,13 +46,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _pair(text: str | None, field: str, default: tuple[float, float]) -> tuple[float, float]:
     from ctrplan.errors import InputError
+    from ctrplan.io import excerpt, strict_float
 
     if text is None:
         return default
     try:
-        lo, hi = (float(v) for v in text.split(","))
+        lo, hi = (strict_float(v) for v in text.split(","))
     except ValueError:
-        raise InputError(field, "", f"must be MIN,MAX, got {text!r}") from None
+        raise InputError(field, "", f"must be MIN,MAX, got {excerpt(text)}") from None
     return lo, hi
 
 

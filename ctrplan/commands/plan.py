@@ -9,6 +9,7 @@ import re
 
 from ctrplan.commands._common import POSITIVE, SEED, add_model_arg, output_path
 from ctrplan.errors import InputError
+from ctrplan.io import excerpt, strict_float
 
 log = logging.getLogger("ctrplan")
 
@@ -35,11 +36,11 @@ def parse_margin(text) -> float | None:
     if text is None or str(text).strip().lower() == "auto":
         return None
     try:
-        v = float(text)
+        v = strict_float(text)
     except ValueError:
-        raise InputError("--margin", "", f"must be a number (mm) or auto, got {text!r}") from None
+        raise InputError("--margin", "", f"must be a number (mm) or auto, got {excerpt(text)}") from None
     if not (math.isfinite(v) and v >= 0):
-        raise InputError("--margin", "", f"must be a number >= 0 (mm) or auto, got {text!r}")
+        raise InputError("--margin", "", f"must be a number >= 0 (mm) or auto, got {excerpt(text)}")
     return v
 
 
@@ -126,13 +127,13 @@ def _numbers(tokens, field: str, count: int | None = None) -> list[float] | None
     parts = [s.strip() for tok in ([tokens] if isinstance(tokens, str) else tokens)
              for s in str(tok).split(",") if s.strip()]
     try:
-        vals = [float(s) for s in parts]
+        vals = [strict_float(s) for s in parts]
     except ValueError:
         return None
     if count is not None and len(vals) != count:
         return None
     if not all(math.isfinite(v) for v in vals):
-        raise InputError(field, "", f"must be finite numbers, got {' '.join(map(str, tokens))!r}")
+        raise InputError(field, "", f"must be finite numbers, got {excerpt(' '.join(map(str, tokens)))}")
     return vals
 
 
@@ -144,7 +145,7 @@ def parse_start(tokens, robot) -> object:
     vals = _numbers(tokens, "--start")
     if vals is None or len(vals) != robot.dof:
         raise InputError("--start", "", f"must be 'retracted' or {robot.dof} numbers alpha1..alpha{robot.n} "
-                         f"(rad), beta1..beta{robot.n} (mm), got {' '.join(tokens)!r}")
+                         f"(rad), beta1..beta{robot.n} (mm), got {excerpt(' '.join(tokens))}")
     return vals
 
 
@@ -155,11 +156,11 @@ def parse_target(text: str, scene) -> tuple[list[float], str]:
     parts = [s.strip() for tok in tokens for s in str(tok).split(",") if s.strip()]
     if len(parts) == 3:
         try:
-            xyz = [float(s) for s in parts]
+            xyz = [strict_float(s) for s in parts]
         except ValueError:
-            raise InputError("--target", "", f"must be X,Y,Z in mm or a target name, got {text!r}") from None
+            raise InputError("--target", "", f"must be X,Y,Z in mm or a target name, got {excerpt(text)}") from None
         if not all(math.isfinite(v) for v in xyz):
-            raise InputError("--target", "", f"must be finite numbers (mm), got {text!r}")
+            raise InputError("--target", "", f"must be finite numbers (mm), got {excerpt(text)}")
         return xyz, ""
     names = {t.name: t for t in scene.targets}
     if text in names:

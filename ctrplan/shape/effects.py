@@ -261,9 +261,13 @@ def parse_effect_arg(text: str, source: str = "--effect") -> tuple[str, dict[str
         if not eq:
             raise InputError(source, f"{name}.{item}", "expected PARAM=VALUE")
         try:
-            vals[k.strip()] = float(v)
+            from ctrplan.io import strict_float
+
+            vals[k.strip()] = strict_float(v)
         except ValueError:
-            raise InputError(source, f"{name}.{k.strip()}", f"not a number: {v!r}") from None
+            from ctrplan.io import excerpt
+
+            raise InputError(source, f"{name}.{k.strip()}", f"not a number: {excerpt(v)}") from None
     return name, vals
 
 
