@@ -698,6 +698,8 @@ def is_effect_model_file(path: str | os.PathLike) -> bool:
     p = str(path)
     if not p.lower().endswith((".yaml", ".yml")):
         return False
+    if not os.path.isfile(p):      # a pipe or device would block open() or never end
+        return False
     try:
         with open(p, encoding="utf-8") as fh:
             return MODEL_KIND in fh.read(4096)
