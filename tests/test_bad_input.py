@@ -248,8 +248,10 @@ MAKERS = {
                                        "--out", str(o / "m.csv")],
     "yaml-huge-integer": lambda i, o: _robot(i, o, _one_tube().replace("youngs_modulus: 60000",
                                                                        "youngs_modulus: " + "7" * 100_000)),
-    "json-huge-integer": lambda i, o: ["view", str(_w(i / "plan.json", '{"scene": "airway", "seed": '
-                                                      + "7" * 100_000 + "}")), "--out", str(o / "v.html")],
+    "json-huge-integer": lambda i, o: [
+        "scene", "from-labels", str(_nifti(i / "seg.nii.gz", _box_labels())), "--wall", "lumen",
+        "--entry=10,10,6", "--toward=10,10,12", "--label-table",
+        str(_w(i / "t.json", '{"lumen": ' + "7" * 100_000 + "}")), "--out", str(o / "scene")],
     "cost-rows": lambda i, o: ["simulate", "--robot", "seed1", "--n", "100000000", "--out", str(o / "m.csv")],
     "cost-step": lambda i, o: ["simulate", "--robot", "seed1", "--step", "1e-9", "--out", str(o / "m.csv")],
 }
