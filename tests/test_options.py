@@ -154,3 +154,21 @@ def test_numbers_inside_string_options_are_strict(capsys):
                    "--out", "m.csv"])
     err = capsys.readouterr().err
     assert rc == 2 and "not a number: '1_0'" in err, err
+
+
+def test_every_error_message_quotes_an_excerpt(tmp_path, capsys):
+    """InputError itself cuts any over-long run of characters (a 100,000-character key or value
+    from a file), so no reader can echo a huge value whole; file paths stay whole."""
+    from ctrplan.errors import InputError
+
+    e = InputError("r.yaml", "k" * 1000, "unknown key " + "v" * 100_000)
+    assert len(str(e)) < 250 and "(1000 characters)" in str(e) and "(100000 characters)" in str(e)
+    path = "/tmp/" + "d" * 300 + "/x.csv"
+    assert path in str(InputError(path, "", f"cannot write {path}"))
+    robot = tmp_path / "r.yaml"
+    robot.write_text("name: r\ntubes:\n  - {od: " + "z" * 100_000 + ", id: 0.8, straight_length: 100, "
+                     "curved_length: 50, curvature: 0.01, youngs_modulus: 60000, poisson_ratio: 0.3}\n")
+    rc = cli.main(["-q", "shape", "--robot", str(robot), "--configs", str(tmp_path / "c.csv"),
+                   "--out", str(tmp_path / "s.npz")])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(err) < 300 + len(str(robot)) and "characters)" in err, err[:400]
