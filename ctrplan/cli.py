@@ -26,7 +26,9 @@ log = logging.getLogger("ctrplan")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    from ctrplan.commands._common import OneLineParser, add_max_mb_everywhere
+
+    parser = OneLineParser(
         prog="ctrplan",
         description="Motion planning for concentric tube robots inside anatomy.",
     )
@@ -40,6 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
         if importlib.util.find_spec(modname) is None:
             continue
         importlib.import_module(modname).register(sub)
+    add_max_mb_everywhere(parser)
     return parser
 
 
@@ -53,7 +56,10 @@ def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:   # --help, --version, or a bad option (one line, see OneLineParser)
+        return exc.code if isinstance(exc.code, int) else 0 if exc.code is None else 2
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
@@ -88,8 +94,12 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def check_common_args(args: argparse.Namespace) -> None:
-    """Checks every command shares, before any work: ``--seed`` >= 0 (numpy's generators take
+    """Checks every command shares, before any work: ``--max-mb`` (the input size cap) set;
+    ``--seed`` >= 0 (numpy's generators take
     no negative seeds); ``--out`` writable (a file when it has a suffix, else a folder)."""
+    from ctrplan.io import set_max_input_mb
+
+    set_max_input_mb(getattr(args, "max_mb", None))
     seed = getattr(args, "seed", None)
     if isinstance(seed, int) and seed < 0:
         raise InputError("--seed", "", f"must be >= 0, got {seed}")

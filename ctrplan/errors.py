@@ -6,6 +6,19 @@ and the field that is wrong. The command line turns it into a one-line message a
 
 from __future__ import annotations
 
+import re
+
+#: Longest run of non-blank characters an error message quotes whole (file paths fit); longer
+#: runs (a 100,000-character bad value) are cut to their first 40 characters and their length.
+MAX_TOKEN = 400
+_LONG = re.compile(r"\S{" + str(MAX_TOKEN + 1) + ",}")
+
+
+def shorten(text: str) -> str:
+    """``text`` on one line with every over-long run of non-blank characters cut to an excerpt."""
+    return " ".join(_LONG.sub(lambda m: f"{m.group(0)[:40]}... ({len(m.group(0))} characters)",
+                              str(text)).split())
+
 
 class CtrplanError(Exception):
     """Base class for errors raised by ctrplan."""
@@ -26,7 +39,7 @@ class InputError(CtrplanError, ValueError):
 
     def __init__(self, source: str, field: str, message: str):
         self.source = str(source)
-        self.field = str(field)
-        self.message = " ".join(str(message).split())
+        self.field = shorten(field)
+        self.message = shorten(message)
         where = self.source if not self.field else f"{self.source}: {self.field}"
         super().__init__(f"{where}: {self.message}")

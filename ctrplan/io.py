@@ -91,6 +91,31 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         interrupt.pending_removed(str(tmp_path))
 
 
+@contextlib.contextmanager
+def scratch_files(beside: str | os.PathLike, count: int) -> Iterator[list[Path]]:
+    """Yield ``count`` empty scratch files in the folder of ``beside`` (an output being built
+    in parts); all are removed on exit, and by the Ctrl-C watchdog if it must kill us."""
+    from ctrplan import interrupt
+
+    folder = Path(beside).parent
+    paths: list[Path] = []
+    try:
+        for _ in range(count):
+            try:
+                fd, tmp = tempfile.mkstemp(prefix=f".{Path(beside).name}.part.", dir=folder)
+            except OSError as exc:
+                raise _os_error(Path(beside), exc) from None
+            os.close(fd)
+            paths.append(Path(tmp))
+            interrupt.pending_added(tmp)
+        yield paths
+    finally:
+        for p in paths:
+            with contextlib.suppress(OSError):
+                p.unlink()
+            interrupt.pending_removed(str(p))
+
+
 def save_figure(fig: Any, path: str | os.PathLike, dpi: int | None = None) -> None:
     """Write a matplotlib figure to ``path`` as PNG atomically and close it."""
     import matplotlib.pyplot as plt
@@ -157,15 +182,121 @@ def _fmt(v: Any) -> Any:
     return v
 
 
-def read_text(path: str | os.PathLike) -> str:
-    """A UTF-8 text file's contents (a leading byte-order mark is dropped; CRLF and CR line
-    ends read as LF); a missing or unreadable file is an InputError naming it."""
+# ---------------------------------------------------------------------------- bounded reading
+#: Default size caps (MB) of input files, by kind, checked (``os.stat``) before anything is
+#: read. ``--max-mb`` (every command) lifts them all: see :func:`set_max_input_mb`.
+MAX_INPUT_MB: dict[str, float] = {
+    "configs": 2048.0,   # configuration CSVs streamed in chunks (shape, check): memory stays flat
+    "csv": 256.0,        # CSVs read whole (measured data, target lists): ~10x their size in memory
+    "text": 64.0,        # YAML, JSON, plan.json, job and label tables
+    "model": 512.0,      # trained model files
+    "mesh": 1024.0,      # scene meshes
+}
+_override_mb: float | None = None
+
+
+def set_max_input_mb(mb: float | None) -> None:
+    """Set (``None``: reset to the defaults) the size cap of every input file, in MB."""
+    global _override_mb
+    if mb is not None and not (math.isfinite(mb) and mb > 0):
+        raise InputError("--max-mb", "", f"must be a finite number > 0, got {excerpt(mb)}")
+    _override_mb = None if mb is None else float(mb)
+
+
+def max_input_bytes(kind: str = "text") -> int:
+    """The size cap in bytes of an input file of ``kind`` (see :data:`MAX_INPUT_MB`)."""
+    mb = _override_mb if _override_mb is not None else MAX_INPUT_MB.get(kind, MAX_INPUT_MB["text"])
+    return int(min(mb, 2.0 ** 40) * 2 ** 20)
+
+
+def excerpt(value: Any, n: int = 40) -> str:
+    """``repr`` of a (possibly huge) bad value, cut to its first ``n`` characters plus
+    ``...`` and its length: error messages quote a bad value, never all of it."""
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 200:
+        return f"<an integer of about {int(value.bit_length() * 0.30103) + 1} digits>"
+    text = value if isinstance(value, str) else str(value) if isinstance(value, (int, float)) else repr(value)
+    if len(text) <= n:
+        return repr(text) if isinstance(value, str) else text
+    cut = repr(text[:n])[:-1] + f"...' ({len(text)} characters)"
+    return cut
+
+
+def short_field(name: str, n: int = 40) -> str:
+    """A field name (a CSV column, a key) as shown in an error: as it is when short, else an
+    :func:`excerpt`."""
+    return name if len(name) <= n else excerpt(name, n)
+
+
+def check_input_file(path: str | os.PathLike, kind: str = "text") -> int:
+    """Before reading: ``path`` must be a regular file (not a device such as /dev/zero, a
+    pipe or a folder) no larger than the cap for ``kind``; returns its size in bytes.
+    Raises InputError naming the file (and how to lift the cap)."""
+    p = Path(path)
     try:
-        return Path(path).read_text(encoding="utf-8-sig")
+        st = p.stat()
     except FileNotFoundError:
         raise InputError(str(path), "", "file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except (OSError, ValueError) as exc:
         raise InputError(str(path), "", f"cannot read file ({exc.__class__.__name__})") from None
+    import stat as _stat
+
+    if _stat.S_ISDIR(st.st_mode):
+        raise InputError(str(path), "", "is a folder, expected a file")
+    if not _stat.S_ISREG(st.st_mode):
+        raise InputError(str(path), "", "not a regular file (a device, pipe or socket has no "
+                         "end to read to)")
+    cap = max_input_bytes(kind)
+    if st.st_size > cap:
+        raise InputError(str(path), "", f"file is {st.st_size / 2 ** 20:.4g} MB, above the "
+                         f"{cap / 2 ** 20:.4g} MB limit for {kind} files (lift with --max-mb)")
+    return int(st.st_size)
+
+
+def read_bytes(path: str | os.PathLike, kind: str = "text") -> bytes:
+    """A file's bytes after :func:`check_input_file`; reads at most the cap (a file that grows
+    while read is refused, not followed)."""
+    check_input_file(path, kind)
+    cap = max_input_bytes(kind)
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read(cap + 1)
+    except OSError as exc:
+        raise InputError(str(path), "", f"cannot read file ({exc.strerror or exc.__class__.__name__})") from None
+    if len(data) > cap:
+        raise InputError(str(path), "", f"file grew beyond the {cap / 2 ** 20:.4g} MB limit while "
+                         "read (lift with --max-mb)")
+    return data
+
+
+def read_text(path: str | os.PathLike, kind: str = "text") -> str:
+    """A UTF-8 text file's contents (a leading byte-order mark is dropped; CRLF and CR line
+    ends read as LF); a missing, unreadable, non-regular or over-cap file is an InputError
+    naming it."""
+    data = read_bytes(path, kind)
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(str(path), "", f"cannot read file ({exc.__class__.__name__})") from None
+    return text.replace("\r\n", "\n").replace("\r", "\n")
+
+
+def parse_json(text: str, source: str = "<string>") -> Any:
+    """Parse JSON text; malformed JSON, huge integers and deep nesting are InputErrors naming
+    ``source`` (never a traceback)."""
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise InputError(source, "", "malformed JSON: nested too deeply") from None
+    except ValueError as exc:   # JSONDecodeError, and integers beyond Python's digit limit
+        msg = str(exc)
+        if "digits" in msg or "integer string conversion" in msg:
+            msg = "a number with too many digits"
+        raise InputError(source, "", f"malformed JSON: {msg[:120]}") from None
+
+
+def load_json(path: str | os.PathLike, kind: str = "text") -> Any:
+    """Read a JSON file (size-capped, see :func:`check_input_file`); errors name the file."""
+    return parse_json(read_text(path, kind), str(path))
 
 
 #: Limits applied while a YAML document is composed, before anything is expanded: a robot or
@@ -260,6 +391,11 @@ def parse_yaml(text: str, source: str = "<string>") -> Any:
         raise InputError(source, where, f"malformed YAML: {problem}") from None
     except RecursionError:
         raise InputError(source, "", f"malformed YAML: nested deeper than {YAML_MAX_DEPTH} levels") from None
+    except ValueError as exc:   # an integer beyond Python's digit limit, a bad timestamp, ...
+        msg = str(exc)
+        if "digits" in msg or "integer string conversion" in msg:
+            msg = "a number with too many digits"
+        raise InputError(source, "", f"malformed YAML: {msg[:120]}") from None
 
 
 def load_yaml(path: str | os.PathLike) -> Any:
@@ -269,48 +405,195 @@ def load_yaml(path: str | os.PathLike) -> Any:
     return parse_yaml(read_text(path), str(path))
 
 
-def read_csv_table(path: str | os.PathLike) -> tuple[list[str], list[list[str]]]:
-    """Read a CSV file into (header, rows of strings). Errors name the file."""
-    path = Path(path)
-    text = read_text(path)
-    try:
-        reader = csv.reader(io.StringIO(text))
-        rows = [r for r in reader if r and any(c.strip() for c in r)]
-    except csv.Error as exc:
-        raise InputError(str(path), "", f"malformed CSV: {exc}") from None
-    if not rows:
-        raise InputError(str(path), "header", "empty file (expected a header row)")
-    header = [h.strip() for h in rows[0]]
+#: Rows per chunk when configuration files are streamed (memory per chunk: a few MB).
+CHUNK_ROWS = 50_000
+
+_TUBE_COLUMN = re.compile(r"^(alpha|beta)([0-9]+)$")
+
+
+class _CappedReader(io.RawIOBase):
+    """A raw reader that refuses to read past ``cap`` bytes (a file that grows while read)."""
+
+    def __init__(self, raw: Any, cap: int, path: Path):
+        self.raw, self.cap, self.path, self.done = raw, cap, path, 0
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, b: Any) -> int:
+        n = self.raw.readinto(b)
+        self.done += n or 0
+        if self.done > self.cap:
+            raise InputError(str(self.path), "", f"file grew beyond the {self.cap / 2 ** 20:.4g} MB "
+                             "limit while read (lift with --max-mb)")
+        return n
+
+
+def _csv_header(path: Path, row: list[str]) -> list[str]:
+    header = [h.strip() for h in row]
     seen: set[str] = set()
     for h in header:
         if h in seen:
-            raise InputError(str(path), h, "duplicate column in the header")
+            raise InputError(str(path), short_field(h), "duplicate column in the header")
         seen.add(h)
-    body = rows[1:]
-    for k, r in enumerate(body):
-        if len(r) != len(header):
-            raise InputError(
-                str(path), f"row {k + 2}", f"has {len(r)} values but the header has {len(header)} columns"
-            )
+    return header
+
+
+def iter_csv_rows(path: str | os.PathLike, kind: str = "csv",
+                  chunk_rows: int = CHUNK_ROWS) -> Iterator[tuple[list[str], int, list[list[str]]]]:
+    """Stream a CSV file (size-capped, see :func:`check_input_file`) as chunks
+    ``(header, first_row, rows)`` of at most ``chunk_rows`` rows of strings; ``first_row`` is
+    the row number error messages use for the chunk's first row (the header is row 1; blank
+    lines are skipped). Malformed CSV, a duplicate column and a row of the wrong length are
+    InputErrors naming the file. Memory is bounded by the chunk, whatever the file's size."""
+    path = Path(path)
+    check_input_file(path, kind)
+    cap = max_input_bytes(kind)
+    header: list[str] | None = None
+    rows: list[list[str]] = []
+    first = 2
+    try:
+        with open(path, "rb") as raw, io.TextIOWrapper(
+                io.BufferedReader(_CappedReader(raw, cap, path)), encoding="utf-8-sig", newline="") as fh:
+            for r in csv.reader(fh):
+                if not r or not any(c.strip() for c in r):
+                    continue
+                if header is None:
+                    header = _csv_header(path, r)
+                    continue
+                if len(r) != len(header):
+                    raise InputError(str(path), f"row {first + len(rows)}",
+                                     f"has {len(r)} values but the header has {len(header)} columns")
+                rows.append(r)
+                if len(rows) >= chunk_rows:
+                    yield header, first, rows
+                    first += len(rows)
+                    rows = []
+    except csv.Error as exc:
+        raise InputError(str(path), "", f"malformed CSV: {str(exc)[:120]}") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(str(path), "", f"cannot read file ({exc.__class__.__name__})") from None
+    except OSError as exc:
+        raise InputError(str(path), "", f"cannot read file ({exc.strerror or exc.__class__.__name__})") from None
+    if header is None:
+        raise InputError(str(path), "header", "empty file (expected a header row)")
+    if rows or first == 2:
+        yield header, first, rows
+
+
+def read_csv_table(path: str | os.PathLike, kind: str = "csv") -> tuple[list[str], list[list[str]]]:
+    """Read a CSV file (size-capped) into (header, rows of strings). Errors name the file."""
+    header: list[str] = []
+    body: list[list[str]] = []
+    for head, _, rows in iter_csv_rows(path, kind):
+        header = head
+        body.extend(rows)
     return header, body
 
 
+def strict_float(text: Any) -> float:
+    """``float(text)`` without what a number in a file or option should not be: digit
+    separators (``1_0``) and non-ASCII digits raise ValueError (``nan``/``inf`` are returned
+    for the caller's finiteness check)."""
+    t = str(text)
+    if "_" in t or not t.isascii():
+        raise ValueError(f"not a number: {excerpt(t)}")
+    return float(t)
+
+
+def _not_strict(cells: list[str]) -> int | None:
+    """Index of the first cell ``float`` would read but a strict number parser must refuse
+    (underscores as in ``1_0``, non-ASCII digits), else None. Checked on the joined chunk
+    first, so clean chunks cost one scan."""
+    joined = "\x1f".join(cells)
+    if "_" not in joined and joined.isascii():
+        return None
+    for k, c in enumerate(cells):
+        if "_" in c or not c.isascii():
+            return k
+    return None
+
+
 def parse_float_columns(
-    path: str | os.PathLike, header: list[str], body: list[list[str]], columns: Sequence[str]
+    path: str | os.PathLike, header: list[str], body: list[list[str]], columns: Sequence[str],
+    first_row: int = 2,
 ) -> np.ndarray:
-    """Parse the named columns as finite floats, ``(rows, len(columns))``."""
+    """Parse the named columns as finite floats, ``(rows, len(columns))``. Numbers are read
+    strictly: decimal ASCII (``1.5``, ``-2e3``), no digit separators (``1_0``) and no
+    non-ASCII digits; ``first_row`` numbers the first row in error messages."""
     index = {h: i for i, h in enumerate(header)}
     out = np.empty((len(body), len(columns)), dtype=float)
     for j, col in enumerate(columns):
         if col not in index:
             raise InputError(str(path), col, "missing column")
         ci = index[col]
-        for k, r in enumerate(body):
-            try:
-                v = float(r[ci])
-            except ValueError:
-                raise InputError(str(path), f"{col} (row {k + 2})", f"not a number: {r[ci]!r}") from None
-            if not np.isfinite(v):
-                raise InputError(str(path), f"{col} (row {k + 2})", f"not finite: {r[ci]!r}")
-            out[k, j] = v
+        cells = [r[ci] for r in body]
+        bad = _not_strict(cells)
+        if bad is not None:
+            raise InputError(str(path), f"{col} (row {bad + first_row})",
+                             f"not a number: {excerpt(cells[bad])}")
+        try:
+            out[:, j] = list(map(float, cells))
+        except ValueError:
+            for k, c in enumerate(cells):
+                try:
+                    float(c)
+                except ValueError:
+                    raise InputError(str(path), f"{col} (row {k + first_row})",
+                                     f"not a number: {excerpt(c)}") from None
+        fin = np.isfinite(out[:, j])
+        if not fin.all():
+            k = int(np.argmin(fin))
+            raise InputError(str(path), f"{col} (row {k + first_row})", f"not finite: {excerpt(cells[k])}")
     return out
+
+
+def check_tube_columns(path: str | os.PathLike, header: Sequence[str], robot: Any) -> None:
+    """A configuration file's tube columns must match the robot: ``alphaK``/``betaK`` with K
+    outside 1..n (tube-3 columns for a two-tube robot, say) are refused, not ignored."""
+    for h in header:
+        m = _TUBE_COLUMN.match(h)
+        if m and not 1 <= int(m.group(2)) <= robot.n:
+            k = m.group(2) if len(m.group(2)) <= 6 else excerpt(m.group(2), 6)
+            raise InputError(str(path), short_field(h), f"is a column for tube {k} but "
+                             f"robot {robot.name!r} has {robot.n} tube{'s' if robot.n != 1 else ''}")
+
+
+def iter_configs(path: str | os.PathLike, robot: Any, check: bool = True, kind: str = "configs",
+                 chunk_rows: int = CHUNK_ROWS, extra: Sequence[str] = ("sweep",),
+                 ) -> Iterator[tuple[np.ndarray, dict[str, list[str]]]]:
+    """Stream a configuration CSV (header ``alpha1..alphaN,beta1..betaN``, extra columns
+    allowed) as chunks ``(q (k, 2n), {name: cells})`` for the ``extra`` columns present.
+
+    Memory is bounded by the chunk whatever the file's size. With ``check`` every row must
+    satisfy the robot's joint constraints. Errors name the file, column and row; a file
+    without rows is refused. Between chunks a pending Ctrl-C is honoured (Python code runs)."""
+    seen = False
+    for header, first, rows in iter_csv_rows(path, kind, chunk_rows):
+        if first == 2:
+            check_tube_columns(path, header, robot)
+        if not rows:
+            break
+        seen = True
+        q = parse_float_columns(path, header, rows, robot.column_names, first_row=first)
+        from ctrplan.robot import check_config_plausible
+
+        check_config_plausible(q, robot, str(path), row_offset=first)
+        if check:
+            ok = robot.is_valid(q)
+            if not ok.all():
+                k = int(np.argmin(ok))
+                viol = robot.constraint_violations(q[k:k + 1])[0]
+                raise InputError(
+                    str(path), f"row {k + first}",
+                    f"violates the joint constraints of robot {robot.name!r} "
+                    f"(worst constraint off by {-viol.min():.6g} mm)",
+                )
+        cols = {}
+        for name in extra:
+            if name in header:
+                ci = header.index(name)
+                cols[name] = [r[ci].strip() for r in rows]
+        yield q, cols
+    if not seen:
+        raise InputError(str(path), "rows", "no configurations (only a header)")

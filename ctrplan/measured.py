@@ -15,7 +15,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from ctrplan.errors import InputError
-from ctrplan.io import parse_float_columns, read_csv_table, write_csv_atomic
+from ctrplan.io import (
+    CHUNK_ROWS,
+    check_tube_columns,
+    iter_csv_rows,
+    parse_float_columns,
+    write_csv_atomic,
+)
 from ctrplan.robot import Robot
 
 _POINT_RE = re.compile(r"^p(\d+)_([xyz])$")
@@ -53,36 +59,56 @@ class MeasuredData:
         return self.sweep
 
 
-def read_measured(path: str | os.PathLike, robot: Robot) -> MeasuredData:
-    """Read a measured-data CSV; errors name the file and the column/row."""
-    header, body = read_csv_table(path)
-    if not body:
+def read_measured(path: str | os.PathLike, robot: Robot, chunk_rows: int = CHUNK_ROWS) -> MeasuredData:
+    """Read a measured-data CSV; errors name the file and the column/row. Parsed in chunks
+    (:func:`ctrplan.io.iter_csv_rows`): only the numbers are held, never all rows as text;
+    the file's size is capped before reading (see :func:`ctrplan.io.check_input_file`)."""
+    parts: dict[str, list[np.ndarray]] = {"q": [], "tip": [], "time": [], "sweep": [], "points": []}
+    header: list[str] = []
+    m = 0
+    for header, first, body in iter_csv_rows(path, chunk_rows=chunk_rows):
+        if first == 2:
+            check_tube_columns(path, header, robot)
+            m = _point_count(path, header)
+        if not body:
+            break
+        parts["q"].append(parse_float_columns(path, header, body, robot.column_names, first))
+        parts["tip"].append(parse_float_columns(path, header, body, ["tip_x", "tip_y", "tip_z"], first))
+        if "time" in header:
+            parts["time"].append(parse_float_columns(path, header, body, ["time"], first)[:, 0])
+        if "sweep" in header:
+            ci = header.index("sweep")
+            parts["sweep"].append(np.array([r[ci].strip() for r in body], dtype=object))
+        if m:
+            cols = [f"p{k}_{c}" for k in range(1, m + 1) for c in "xyz"]
+            parts["points"].append(parse_float_columns(path, header, body, cols, first).reshape(len(body), m, 3))
+    if not parts["q"]:
         raise InputError(str(path), "rows", "no data rows (only a header)")
-    q = parse_float_columns(path, header, body, robot.column_names)
-    tip = parse_float_columns(path, header, body, ["tip_x", "tip_y", "tip_z"])
-    time = None
-    if "time" in header:
-        time = parse_float_columns(path, header, body, ["time"])[:, 0]
-    sweep = None
-    if "sweep" in header:
-        ci = header.index("sweep")
-        sweep = np.array([r[ci].strip() for r in body], dtype=object)
-    pcols = {}
+
+    def cat(name: str) -> np.ndarray | None:
+        return np.concatenate(parts[name]) if parts[name] else None
+
+    return MeasuredData(q=cat("q"), tip=cat("tip"), time=cat("time"), sweep=cat("sweep"),
+                        points=cat("points"))
+
+
+def _point_count(path: str | os.PathLike, header: list[str]) -> int:
+    """M for backbone point columns ``p1_x..pM_z`` (0 when there are none); incomplete sets
+    are refused."""
+    pcols: dict[int, set[str]] = {}
     for h in header:
         mt = _POINT_RE.match(h)
         if mt:
             pcols.setdefault(int(mt.group(1)), set()).add(mt.group(2))
-    points = None
-    if pcols:
-        m = max(pcols)
-        for k in range(1, m + 1):
-            if pcols.get(k) != {"x", "y", "z"}:
-                raise InputError(str(path), f"p{k}_x/y/z", "backbone point columns must be complete p1..pM")
-        if m < 2:
-            raise InputError(str(path), "p1_x", "need at least 2 backbone points")
-        cols = [f"p{k}_{c}" for k in range(1, m + 1) for c in "xyz"]
-        points = parse_float_columns(path, header, body, cols).reshape(len(body), m, 3)
-    return MeasuredData(q=q, tip=tip, time=time, sweep=sweep, points=points)
+    if not pcols:
+        return 0
+    m = max(pcols)
+    for k in range(1, m + 1):
+        if pcols.get(k) != {"x", "y", "z"}:
+            raise InputError(str(path), f"p{k}_x/y/z", "backbone point columns must be complete p1..pM")
+    if m < 2:
+        raise InputError(str(path), "p1_x", "need at least 2 backbone points")
+    return m
 
 
 def write_measured(path: str | os.PathLike, robot: Robot, data: MeasuredData) -> None:

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from ctrplan.errors import InputError
-from ctrplan.io import load_yaml, parse_float_columns, read_csv_table, write_csv_atomic
+from ctrplan.io import load_yaml, write_csv_atomic
 
 #: Slack (mm) allowed on the joint constraints, for round-off in files and interpolation.
 CONSTRAINT_TOL_MM = 1e-9
@@ -234,10 +234,12 @@ class Robot:
         have = 0
         drawn = 0
         while have < n:
-            if have == 0 and drawn >= 1_000_000:
-                # e.g. two tubes of equal length force beta_i = beta_(i+1): a set of zero volume
+            if drawn >= max(1_000_000, 1000 * n):
+                # e.g. two tubes of equal length force beta_i = beta_(i+1): a set of zero volume;
+                # a budget of draws, so a sliver of valid volume cannot run for ever either
                 raise InputError(self.source, "tubes", "the joint constraints leave (almost) no "
-                                 "volume to sample from: no valid configuration in 1e6 draws")
+                                 f"volume to sample from: {have} valid configurations in "
+                                 f"{drawn} draws")
             m = max(4096, 2 * (n - have))
             drawn += m
             beta = rng.uniform(lo, hi, size=(m, self.n))
@@ -472,25 +474,13 @@ def check_regular_file(path: str | os.PathLike, suffixes: tuple[str, ...], what:
 def read_configs(path: str | os.PathLike, robot: Robot, check: bool = True) -> np.ndarray:
     """Read a configuration CSV (header ``alpha1..alphaN,beta1..betaN``) as ``(B, 2n)``.
 
-    Extra columns are allowed (measured data carries tip columns). With ``check`` every row
-    must satisfy the joint constraints.
+    Extra columns are allowed (measured data carries tip columns), but not tube columns the
+    robot does not have. With ``check`` every row must satisfy the joint constraints. Parsed
+    in chunks (:func:`ctrplan.io.iter_configs`); commands over many rows stream instead.
     """
-    header, body = read_csv_table(path)
-    if not body:
-        raise InputError(str(path), "rows", "no configurations (only a header)")
-    q = parse_float_columns(path, header, body, robot.column_names)
-    check_config_plausible(q, robot, str(path))
-    if check:
-        ok = robot.is_valid(q)
-        if not ok.all():
-            k = int(np.argmin(ok))
-            viol = robot.constraint_violations(q[k:k + 1])[0]
-            raise InputError(
-                str(path), f"row {k + 2}",
-                f"violates the joint constraints of robot {robot.name!r} "
-                f"(worst constraint off by {-viol.min():.6g} mm)",
-            )
-    return q
+    from ctrplan.io import iter_configs
+
+    return np.concatenate([q for q, _ in iter_configs(path, robot, check, kind="csv")])
 
 
 def check_config_plausible(q: np.ndarray, robot: Robot, source: str, row_offset: int = 2,

@@ -253,6 +253,28 @@ MAKERS = {
     "view-target-malformed": lambda i, o: _view(i, o, target=[1.0, 2.0]),
     "scene-mesh-symlink": lambda i, o: _symlinked_mesh_scene(i, o),
     "batch-job-edited": lambda i, o: _edited_job(i, o),
+    # branch bound: bounded resources, strict numbers, options
+    "input-not-regular": lambda i, o: ["shape", "--robot", "seed1", "--configs", "/dev/zero",
+                                       "--out", str(o / "s.npz")],
+    "input-too-large": lambda i, o: _shape(i, o, f"{HEADER}\n" + f"{GOOD}\n" * 100, "--max-mb", "0.001"),
+    "csv-tube-columns": lambda i, o: ["shape", "--robot", "two_tube_nylon", "--configs", str(_w(
+        i / "c.csv", f"{HEADER}\n0,0,0,-10,-5,0\n")), "--out", str(o / "s.npz")],
+    "csv-digit-separator": lambda i, o: _shape(i, o, f"{HEADER}\n0.1,0.2,0.3,-1_50,-100,-50\n"),
+    "option-not-finite": lambda i, o: ["diagnose", "--robot", "seed1", "--data", str(i / "m.csv"),
+                                       "--bic-threshold", "nan", "--out", str(o / "rep")],
+    "option-out-of-range": lambda i, o: ["train", "--robot", "seed1", "--sim", "20", "--points", "1",
+                                         "--out", str(o / "m.pt")],
+    "option-not-strict": lambda i, o: ["simulate", "--robot", "seed1", "--n", "1_0", "--out", str(o / "m.csv")],
+    "option-long-value": lambda i, o: ["simulate", "--robot", "seed1", "--n", "9" * 100_000,
+                                       "--out", str(o / "m.csv")],
+    "yaml-huge-integer": lambda i, o: _robot(i, o, _one_tube().replace("youngs_modulus: 60000",
+                                                                       "youngs_modulus: " + "7" * 100_000)),
+    "json-huge-integer": lambda i, o: [
+        "scene", "from-labels", str(_nifti(i / "seg.nii.gz", _box_labels())), "--wall", "lumen",
+        "--entry=10,10,6", "--toward=10,10,12", "--label-table",
+        str(_w(i / "t.json", '{"lumen": ' + "7" * 100_000 + "}")), "--out", str(o / "scene")],
+    "cost-rows": lambda i, o: ["simulate", "--robot", "seed1", "--n", "100000000", "--out", str(o / "m.csv")],
+    "cost-step": lambda i, o: ["simulate", "--robot", "seed1", "--step", "1e-9", "--out", str(o / "m.csv")],
 }
 
 

@@ -113,11 +113,16 @@ def sample_reach(robot, n: int, max_reach_mm: float, seed: int) -> np.ndarray:
     """``n`` valid configurations whose tip arc length is at most ``max_reach_mm``."""
     rng = np.random.default_rng(seed)
     out, have = [], 0
-    while have < n:
+    for _ in range(1000):           # a budget: a reach no configuration meets cannot loop for ever
+        if have >= n:
+            break
         q = robot.sample(4 * n, seed=rng)
         q = q[robot.tip_length(q) <= max_reach_mm]
         out.append(q)
         have += len(q)
+    if have < n:
+        raise RuntimeError(f"only {have} of {n} configurations reach at most {max_reach_mm} mm "
+                           f"in {4000 * n} draws")
     return np.concatenate(out)[:n]
 
 

@@ -238,6 +238,9 @@ def load_mesh(path: str | os.PathLike):
     path = Path(path)
     if not path.is_file():
         raise InputError(str(path), "", "mesh file not found")
+    from ctrplan.io import check_input_file
+
+    check_input_file(path, "mesh")
     try:
         mesh = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for unreadable files

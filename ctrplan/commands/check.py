@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import itertools
 import logging
 
-from ctrplan.commands._common import add_model_arg, add_robot_arg, output_path
+from ctrplan.commands._common import POINTS, add_model_arg, add_robot_arg, output_path
 from ctrplan.commands._vocab import DEFAULT_OUT
 from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
+
+#: Configurations per chunk: memory is bounded by one chunk whatever the file's size.
+CHUNK = 20_000
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -28,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_robot_arg(p)
     p.add_argument("--configs", required=True, help="configuration CSV (alpha1..alphaN,beta1..betaN)")
     add_model_arg(p)
-    p.add_argument("--points", type=int, default=21, help="backbone points (capsules + 1, default 21)")
+    p.add_argument("--points", type=POINTS, default=21, help="backbone points (capsules + 1, default 21)")
     p.add_argument("--margin", default="auto", metavar="MM|auto",
                    help="safety margin added to the tube radii, mm; 'auto' (default) = the "
                         "model's error bound: the p99 of its held-out deviation at each "
@@ -45,20 +49,20 @@ def run(args: argparse.Namespace) -> int:
     from ctrplan.collision.capsules import curvature_bound
     from ctrplan.collision.world import CollisionWorld
     from ctrplan.commands.plan import parse_margin
-    from ctrplan.io import write_csv_atomic
+    from ctrplan.io import iter_configs, write_csv_atomic
     from ctrplan.planning.plan import planning_model_of
     from ctrplan.planning.validator import BatchValidator
     from ctrplan.progress import bar
-    from ctrplan.robot import load_robot, read_configs
+    from ctrplan.robot import load_robot
     from ctrplan.shape.error_bounds import auto_margin, is_calibrated, margin_peak
     from ctrplan.shape.models import load_model
 
     out = output_path(args.out, (".csv",))
-    if args.points < 2:
-        raise InputError("--points", "", f"must be >= 2, got {args.points}")
     margin = parse_margin(args.margin)
     robot = load_robot(args.robot)
-    q = read_configs(args.configs, robot)
+    # the file's header and first rows are checked before the scene is prepared
+    configs = iter_configs(args.configs, robot, chunk_rows=CHUNK)
+    first = next(configs)
     model = planning_model_of(load_model(args.model, robot))
     auto = margin is None
     if auto:
@@ -71,23 +75,24 @@ def run(args: argparse.Namespace) -> int:
     # Rows are independent configurations: a direction-aware model gets both directions
     # (worst case), so every verdict is a pure function of its row.
     validator = BatchValidator(robot, model, world)
-    # in chunks: a progress bar on a terminal, Ctrl-C between chunks, bounded memory
-    chunk = 20_000
-    collides = np.zeros(len(q), dtype=bool)
-    clearance = np.zeros(len(q))
-    contact = np.empty(len(q), dtype=object)
-    with bar(total=len(q), desc="check", unit="config") as pbar:
-        for k in range(0, len(q), chunk):
-            c, d, n = validator.check_states(q[k:k + chunk], points=args.points, exact=args.exact,
-                                             joints=False)
-            collides[k:k + chunk], clearance[k:k + chunk], contact[k:k + chunk] = c, d, n
-            pbar.update(len(c))
-    rows = ([int(c), round(float(d), 4), str(n)] for c, d, n in zip(collides, clearance, contact))
-    write_csv_atomic(out, ["collides", "clearance_mm", "contact"], rows)
+    # streamed in chunks: bounded memory whatever the file's size, a progress bar on a
+    # terminal, Ctrl-C between chunks; the output is written atomically at the end
+    counts = [0, 0]
+
+    def rows():
+        with bar(total=None, desc="check", unit="config") as pbar:
+            for q, _ in itertools.chain([first], configs):
+                c, d, n = validator.check_states(q, points=args.points, exact=args.exact, joints=False)
+                counts[0] += len(c)
+                counts[1] += int(np.sum(c))
+                pbar.update(len(c))
+                yield from ([int(ci), round(float(di), 4), str(ni)] for ci, di, ni in zip(c, d, n))
+
+    write_csv_atomic(out, ["collides", "clearance_mm", "contact"], rows())
     log.info("checked %d configurations in %s (margin %s, curvature bound %.4g 1/mm): "
-             "%d collide; wrote %s", len(q), world.scene.name,
+             "%d collide; wrote %s", counts[0], world.scene.name,
              (f"up to {margin_peak(margin):.3g} mm along the shaft" if world.margin_profile is not None
-              else f"{margin_peak(margin):.3g} mm"), world.curvature_per_mm, int(collides.sum()), out)
+              else f"{margin_peak(margin):.3g} mm"), world.curvature_per_mm, counts[1], out)
     if auto and not is_calibrated(model):
         log.info("the model carries no error bound (uncalibrated): verdicts are relative to the "
                  "nominal model; calibrate with `ctrplan diagnose` for a margin")

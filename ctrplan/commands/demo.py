@@ -11,6 +11,7 @@ import logging
 import time
 from pathlib import Path
 
+from ctrplan.commands._common import POSITIVE, SEED
 from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
@@ -28,8 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot (default {DEFAULT_ROBOT})")
     p.add_argument("--target", default=None, help="target in the scene: anatomical name or id t01.. (default: the first one)")
     p.add_argument("--model", default="physics", help="shape model (default physics: margin 0; the learned model plans with its error bound as margin)")
-    p.add_argument("--time", type=float, default=5.0, help="planning time limit, s (default 5)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--time", type=POSITIVE, default=5.0, help="planning time limit, s (default 5)")
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
     p.set_defaults(func=run)
 

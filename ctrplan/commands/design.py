@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from ctrplan.commands._common import NONNEGATIVE, POSITIVE, SEED, WORKERS, float_arg, int_arg
 from ctrplan.commands._vocab import DEFAULT_OUT
 
 
@@ -24,24 +25,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", required=True, help="shipped scene name (or design_bend) or scene folder")
     p.add_argument("--targets", required=True,
                    help="comma-separated names of the scene's targets, or a CSV (x,y,z[,name], mm, scene frame)")
-    p.add_argument("--tubes", type=int, default=2, help="largest number of tubes, 1-3 (default 2)")
+    p.add_argument("--tubes", type=int_arg(1, 3), default=2, help="largest number of tubes, 1-3 (default 2)")
     p.add_argument("--from", dest="start_from", default=None, metavar="ROBOT",
                    help="keep this robot's tubes (outermost) and design tubes inside them")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--budget", type=int, default=400,
+    p.add_argument("--seed", type=SEED, default=0, help="random seed (default 0)")
+    p.add_argument("--budget", type=int_arg(1, 10_000_000), default=400,
                    help="designs screened (default 400; at most 24 of them are planned in full)")
-    p.add_argument("--time", type=float, default=1200.0, help="wall-clock cap, s (default 1200)")
+    p.add_argument("--time", type=POSITIVE, default=1200.0, help="wall-clock cap, s (default 1200)")
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
+    where.add_argument("--workers", type=WORKERS, default=1, help="local worker processes (default 1)")
     where.add_argument("--ray", default=None, metavar="ADDRESS",
                        help="evaluate on a Ray cluster at ADDRESS ('local' starts one here with every "
                             "core); the same code path as plan-batch --ray, the same design as --workers 1. "
                             "Needs pip install 'ctrplan[ray]'")
-    p.add_argument("--strain-limit", type=float, default=None,
+    p.add_argument("--strain-limit", type=float_arg(0.0, 1.0, lo_open=True, hi_open=True), default=None,
                    help="recoverable strain of the tube material (default 0.06, nitinol)")
-    p.add_argument("--min-gap", type=float, default=None, help="minimum radial gap between tubes, mm (default 0.05)")
-    p.add_argument("--max-length", type=float, default=None, help="longest tube, mm (default 400)")
-    p.add_argument("--max-stroke", type=float, default=None, help="longest translation stroke, mm (default 250)")
+    p.add_argument("--min-gap", type=NONNEGATIVE, default=None, help="minimum radial gap between tubes, mm (default 0.05)")
+    p.add_argument("--max-length", type=POSITIVE, default=None, help="longest tube, mm (default 400)")
+    p.add_argument("--max-stroke", type=POSITIVE, default=None, help="longest translation stroke, mm (default 250)")
     p.add_argument("--curvature", default=None, metavar="MIN,MAX", help="curvature bounds, 1/mm (default 0,0.08)")
     p.add_argument("--curved-length", default=None, metavar="MIN,MAX", help="curved length bounds, mm (default 5,150)")
     p.add_argument("--straight-length", default=None, metavar="MIN,MAX",
@@ -53,13 +54,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _pair(text: str | None, field: str, default: tuple[float, float]) -> tuple[float, float]:
     from ctrplan.errors import InputError
+    from ctrplan.io import excerpt, strict_float
 
     if text is None:
         return default
     try:
-        lo, hi = (float(v) for v in text.split(","))
+        lo, hi = (strict_float(v) for v in text.split(","))
     except ValueError:
-        raise InputError(field, "", f"must be MIN,MAX, got {text!r}") from None
+        raise InputError(field, "", f"must be MIN,MAX, got {excerpt(text)}") from None
     return lo, hi
 
 

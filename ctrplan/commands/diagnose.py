@@ -6,7 +6,7 @@ import argparse
 import json
 import logging
 
-from ctrplan.commands._common import add_robot_arg
+from ctrplan.commands._common import FRACTION, NONNEGATIVE, SEED, add_robot_arg, float_arg
 from ctrplan.commands._vocab import DEFAULT_OUT, add_mechanics_model_arg, base_of
 from ctrplan.errors import InputError
 
@@ -28,15 +28,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_mechanics_model_arg(p, "rigid", "mechanics model the effects are added to")
     p.add_argument("--effects", default=None,
                    help="comma-separated candidate effects (default: all)")
-    p.add_argument("--holdout", type=float, default=0.25,
+    p.add_argument("--holdout", type=FRACTION, default=0.25,
                    help="fraction of sweeps held out for test, and as many for validation "
                         "(default 0.25; fewer than 8 sweeps: blocks of every sweep)")
-    p.add_argument("--bic-threshold", type=float, default=10.0,
+    p.add_argument("--bic-threshold", type=NONNEGATIVE, default=10.0,
                    help="a named effect must lower BIC by more than this (default 10)")
-    p.add_argument("--min-gain", type=float, default=0.05,
+    p.add_argument("--min-gain", type=float_arg(0.0, 1.0, hi_open=True), default=0.05,
                    help="and cut the validation mean tip error by at least this fraction "
                         "(default 0.05)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the sweep split (default 0)")
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the sweep split (default 0)")
     p.add_argument("--best", action="store_true",
                    help="also build the best model of the robot: hold out test sweeps (or blocks) "
                         "first, run the diagnosis on the rest, fit a learned residual over the "
@@ -46,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "as best_model.yaml or best_model.pt (with its test error_quantiles and, "
                         "where shapes are measured, error_profile; use with --model) and the "
                         "comparison as best_model.json / best_model.md")
-    p.add_argument("--test-fraction", type=float, default=0.2,
+    p.add_argument("--test-fraction", type=FRACTION, default=0.2,
                    help="with --best: fraction of the sweeps held out for the comparison (default 0.2)")
     p.add_argument("--out", default=DEFAULT_OUT["diagnose"], help=f"output folder (default {DEFAULT_OUT['diagnose']})")
     p.set_defaults(func=run)

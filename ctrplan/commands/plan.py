@@ -7,9 +7,10 @@ import logging
 import math
 import re
 
-from ctrplan.commands._common import add_model_arg, output_path
+from ctrplan.commands._common import POSITIVE, SEED, add_model_arg, output_path
 from ctrplan.commands._vocab import DEFAULT_OUT
 from ctrplan.errors import InputError
+from ctrplan.io import excerpt, strict_float
 
 log = logging.getLogger("ctrplan")
 
@@ -36,11 +37,11 @@ def parse_margin(text) -> float | None:
     if text is None or str(text).strip().lower() == "auto":
         return None
     try:
-        v = float(text)
+        v = strict_float(text)
     except ValueError:
-        raise InputError("--margin", "", f"must be a number (mm) or auto, got {text!r}") from None
+        raise InputError("--margin", "", f"must be a number (mm) or auto, got {excerpt(text)}") from None
     if not (math.isfinite(v) and v >= 0):
-        raise InputError("--margin", "", f"must be a number >= 0 (mm) or auto, got {text!r}")
+        raise InputError("--margin", "", f"must be a number >= 0 (mm) or auto, got {excerpt(text)}")
     return v
 
 
@@ -51,8 +52,8 @@ def add_planning_args(p: argparse.ArgumentParser) -> None:
     add_model_arg(p, default="physics")
     p.add_argument("--planner", default="rrtconnect",
                    help="rrtconnect (default), rrt, rrtstar, bitstar, kpiece, bkpiece, lbkpiece (prm is refused: it deadlocks with Python validity checkers)")
-    p.add_argument("--time", type=float, default=5.0, help="time limit per plan, s (default 5)")
-    p.add_argument("--tolerance", type=float, default=1.0,
+    p.add_argument("--time", type=POSITIVE, default=5.0, help="time limit per plan, s (default 5)")
+    p.add_argument("--tolerance", type=POSITIVE, default=1.0,
                    help="accepted tip-to-target distance, mm (default 1)")
     add_margin_arg(p, "while planning")
     p.add_argument("--objective", default="clearance", metavar="clearance|length|first",
@@ -117,7 +118,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "changed only if it collides) or 2n values alpha1..alphaN (rad), "
                         "beta1..betaN (mm), comma- or space-separated")
     add_planning_args(p)
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=SEED, default=0, help="random seed (default 0)")
     p.add_argument("--out", default=DEFAULT_OUT["plan"], help=f"output plan .json (default {DEFAULT_OUT['plan']})")
     allow_negative_values(p)
     p.set_defaults(func=run)
@@ -128,13 +129,13 @@ def _numbers(tokens, field: str, count: int | None = None) -> list[float] | None
     parts = [s.strip() for tok in ([tokens] if isinstance(tokens, str) else tokens)
              for s in str(tok).split(",") if s.strip()]
     try:
-        vals = [float(s) for s in parts]
+        vals = [strict_float(s) for s in parts]
     except ValueError:
         return None
     if count is not None and len(vals) != count:
         return None
     if not all(math.isfinite(v) for v in vals):
-        raise InputError(field, "", f"must be finite numbers, got {' '.join(map(str, tokens))!r}")
+        raise InputError(field, "", f"must be finite numbers, got {excerpt(' '.join(map(str, tokens)))}")
     return vals
 
 
@@ -146,7 +147,7 @@ def parse_start(tokens, robot) -> object:
     vals = _numbers(tokens, "--start")
     if vals is None or len(vals) != robot.dof:
         raise InputError("--start", "", f"must be 'retracted' or {robot.dof} numbers alpha1..alpha{robot.n} "
-                         f"(rad), beta1..beta{robot.n} (mm), got {' '.join(tokens)[:80]!r}")
+                         f"(rad), beta1..beta{robot.n} (mm), got {excerpt(' '.join(tokens))}")
     from ctrplan.robot import check_config_plausible
 
     check_config_plausible([vals], robot, "--start", row_offset=1, row_word="configuration")
@@ -160,17 +161,17 @@ def parse_target(text: str, scene) -> tuple[list[float], str]:
     parts = [s.strip() for tok in tokens for s in str(tok).split(",") if s.strip()]
     if len(parts) == 3:
         try:
-            xyz = [float(s) for s in parts]
+            xyz = [strict_float(s) for s in parts]
         except ValueError:
-            raise InputError("--target", "", f"must be X,Y,Z in mm or a target name, got {text!r}") from None
+            raise InputError("--target", "", f"must be X,Y,Z in mm or a target name, got {excerpt(text)}") from None
         if not all(math.isfinite(v) for v in xyz):
-            raise InputError("--target", "", f"must be finite numbers (mm), got {text!r}")
+            raise InputError("--target", "", f"must be finite numbers (mm), got {excerpt(text)}")
         return xyz, ""
     t = scene.find_target(text)
     if t is not None:
         return [float(v) for v in t.position], t.name
     raise InputError("--target", "", f"must be X,Y,Z in mm or a target name of scene {scene.name!r} "
-                                     f"({scene.target_names()}), got {text!r}")
+                                     f"({scene.target_names()}), got {excerpt(text)}")
 
 
 def one_thread() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 
+from ctrplan.commands._common import WORKERS, int_arg
 from ctrplan.commands._vocab import DEFAULT_OUT
 from ctrplan.commands.plan import add_planning_args, one_thread
 from ctrplan.errors import InputError
@@ -27,9 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="scenes: restrict the targets to these, or the scene(s) of a CSV without "
                         "a scene column")
     add_planning_args(p)
-    p.add_argument("--seeds", type=int, default=1, help="seeds per target: 0..K-1 (default 1)")
+    p.add_argument("--seeds", type=int_arg(1, 100_000), default=1, help="seeds per target: 0..K-1 (default 1)")
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
+    where.add_argument("--workers", type=WORKERS, default=1, help="local worker processes (default 1)")
     where.add_argument("--ray", default=None, metavar="ADDRESS",
                        help="run on a Ray cluster at ADDRESS ('local' starts one here)")
     p.add_argument("--out", default=DEFAULT_OUT["plan-batch"], help=f"output folder (default {DEFAULT_OUT['plan-batch']})")

@@ -7,7 +7,7 @@ import logging
 
 import numpy as np
 
-from ctrplan.commands._common import add_model_arg, output_path
+from ctrplan.commands._common import MAX_MB, NONNEGATIVE, add_model_arg, output_path
 from ctrplan.commands._vocab import DEFAULT_OUT
 
 log = logging.getLogger("ctrplan")
@@ -56,10 +56,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                          "its centroid); three comma-separated numbers are a point")
     fl.add_argument("--name", default=None, help="scene name (default: the image's name)")
     fl.add_argument("--label-table", default=None, help="label table (default: beside the image)")
-    fl.add_argument("--max-shift", type=float, default=None, metavar="MM",
+    fl.add_argument("--max-shift", type=NONNEGATIVE, default=None, metavar="MM",
                     help="how far a surface may move from the voxel surface (default: half the "
                          "smallest voxel size)")
-    fl.add_argument("--max-mb", type=float, default=None, metavar="MB",
+    fl.add_argument("--max-mb", type=MAX_MB, default=None, metavar="MB",
                     help="memory budget for the volume (default 2048)")
     fl.add_argument("--licence", default=None, help="licence of the image, written into scene.yaml")
     fl.add_argument("--out", default=DEFAULT_OUT["scene from-labels"], help=f"scene folder to write (default {DEFAULT_OUT['scene from-labels']})")

@@ -7,7 +7,15 @@ import dataclasses
 import logging
 import time
 
-from ctrplan.commands._common import add_robot_arg, output_path
+from ctrplan.commands._common import (
+    POINTS,
+    SEED,
+    WORKERS,
+    add_robot_arg,
+    float_arg,
+    int_arg,
+    output_path,
+)
 from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
@@ -41,7 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "architectures, evaluated on held-out whole sweeps, and write tables "
                     "(results.md, results.json) and plots (PNG) to the --out folder.")
     add_robot_arg(p)
-    p.add_argument("--sim", type=int, default=None,
+    p.add_argument("--sim", type=int_arg(0, 100_000_000), default=None,
                    help="simulated configurations for pre-training (default 100000; 0 = none)")
     p.add_argument("--real", default=None,
                    help="measured CSV with backbone points to fine-tune on (with --sweep: the "
@@ -49,24 +57,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--init", default=None,
                    help="start from a trained model instead of pre-training: 'learned' (the "
                         "shipped default of the robot) or a model file; --sim then defaults to 0")
-    p.add_argument("--real-sim", type=int, default=3000,
+    p.add_argument("--real-sim", type=int_arg(1, 100_000_000), default=3000,
                    help="--sweep without --real: rows of simulated 'real' data with hidden "
                         "effects (default 3000)")
-    p.add_argument("--width", type=int, default=30, help="neurons per hidden layer (default 30)")
-    p.add_argument("--depth", type=int, default=3, help="hidden layers (default 3)")
-    p.add_argument("--terms", type=int, default=None, help="basis terms K per coordinate (default 7)")
+    p.add_argument("--width", type=int_arg(1, 4096), default=30, help="neurons per hidden layer (default 30)")
+    p.add_argument("--depth", type=int_arg(1, 64), default=3, help="hidden layers (default 3)")
+    p.add_argument("--terms", type=int_arg(1, 1000), default=None, help="basis terms K per coordinate (default 7)")
     p.add_argument("--frame", choices=("outer", "base"), default="outer",
                    help="outer: angles relative to the outermost tube, output turned with it "
                         "(default); base: absolute angles as in the literature")
-    p.add_argument("--epochs", type=int, default=150, help="maximum pre-training epochs (default 150)")
-    p.add_argument("--fine-epochs", type=int, default=300, help="maximum fine-tuning epochs (default 300)")
-    p.add_argument("--patience", type=int, default=20, help="early-stopping patience in epochs (default 20)")
-    p.add_argument("--lr", type=float, default=2e-3, help="Adam learning rate of pre-training (default 2e-3)")
-    p.add_argument("--batch-size", type=int, default=512, help="mini-batch size (default 512)")
-    p.add_argument("--points", type=int, default=20, help="points per simulated backbone (default 20)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (data, splits, weights)")
-    p.add_argument("--workers", type=int, default=None, help="processes for simulation (default: all cores)")
-    p.add_argument("--threads", type=int, default=1,
+    p.add_argument("--epochs", type=int_arg(1, 1_000_000), default=150, help="maximum pre-training epochs (default 150)")
+    p.add_argument("--fine-epochs", type=int_arg(0, 1_000_000), default=300, help="maximum fine-tuning epochs (default 300)")
+    p.add_argument("--patience", type=int_arg(1, 1_000_000), default=20, help="early-stopping patience in epochs (default 20)")
+    p.add_argument("--lr", type=float_arg(0.0, 10.0, lo_open=True), default=2e-3, help="Adam learning rate of pre-training (default 2e-3)")
+    p.add_argument("--batch-size", type=int_arg(1, 10_000_000), default=512, help="mini-batch size (default 512)")
+    p.add_argument("--points", type=POINTS, default=20, help="points per simulated backbone (default 20)")
+    p.add_argument("--seed", type=SEED, default=0, help="random seed (data, splits, weights)")
+    p.add_argument("--workers", type=WORKERS, default=None, help="processes for simulation (default: all cores)")
+    p.add_argument("--threads", type=int_arg(1, 1024), default=1,
                    help="torch threads for training (default 1: the fastest for these small networks)")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
     p.add_argument("--direction", action="store_true",

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ctrplan.commands._common import output_path
+from ctrplan.commands._common import POINTS, output_path
 from ctrplan.commands._vocab import DEFAULT_OUT
 from ctrplan.errors import InputError
 
@@ -26,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "self-contained (works offline).")
     p.add_argument("plan", help="plan.json written by 'ctrplan plan'")
     p.add_argument("--out", default=DEFAULT_OUT["view"], help=f"output .html or .png (default {DEFAULT_OUT['view']})")
-    p.add_argument("--points", type=int, default=40, help="points per drawn backbone (default 40)")
+    p.add_argument("--points", type=POINTS, default=40, help="points per drawn backbone (default 40)")
     p.set_defaults(func=run)
 
 

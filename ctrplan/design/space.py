@@ -54,10 +54,9 @@ def load_stock(path: str | Path | None = None) -> tuple[tuple[float, float], ...
         src = "nitinol_tubes.csv"
     else:
         src = str(path)
-        try:
-            text = Path(path).read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise InputError(src, "", f"cannot read file ({exc.__class__.__name__})") from None
+        from ctrplan.io import read_text
+
+        text = read_text(path, "csv")   # size-capped, regular files only
     rows = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if not rows or [c.strip() for c in rows[0].split(",")] != ["od_mm", "id_mm"]:
         raise InputError(src, "header", "must be od_mm,id_mm")

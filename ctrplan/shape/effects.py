@@ -261,9 +261,13 @@ def parse_effect_arg(text: str, source: str = "--effect") -> tuple[str, dict[str
         if not eq:
             raise InputError(source, f"{name}.{item}", "expected PARAM=VALUE")
         try:
-            vals[k.strip()] = float(v)
+            from ctrplan.io import strict_float
+
+            vals[k.strip()] = strict_float(v)
         except ValueError:
-            raise InputError(source, f"{name}.{k.strip()}", f"not a number: {v!r}") from None
+            from ctrplan.io import excerpt
+
+            raise InputError(source, f"{name}.{k.strip()}", f"not a number: {excerpt(v)}") from None
     return name, vals
 
 
@@ -697,6 +701,8 @@ def is_effect_model_file(path: str | os.PathLike) -> bool:
     """True when ``path`` is a YAML file written by :meth:`EffectModel.save`."""
     p = str(path)
     if not p.lower().endswith((".yaml", ".yml")):
+        return False
+    if not os.path.isfile(p):      # a pipe or device would block open() or never end
         return False
     try:
         with open(p, encoding="utf-8") as fh:

@@ -751,6 +751,9 @@ class LearnedModel:
         p = Path(path)
         if not p.is_file():
             raise InputError(src, "", "model file not found")
+        from ctrplan.io import check_input_file
+
+        check_input_file(p, "model")
         try:
             obj = torch.load(p, map_location="cpu", weights_only=True)
         except Exception as exc:  # corrupt, truncated, or not a torch file
