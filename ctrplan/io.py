@@ -576,9 +576,7 @@ def iter_configs(path: str | os.PathLike, robot: Any, check: bool = True, kind: 
             break
         seen = True
         q = parse_float_columns(path, header, rows, robot.column_names, first_row=first)
-        from ctrplan.robot import check_config_plausible
-
-        check_config_plausible(q, robot, str(path), row_offset=first)
+        robot.check_plausible(q, str(path), row_offset=first)
         if check:
             ok = robot.is_valid(q)
             if not ok.all():

@@ -206,6 +206,11 @@ class Robot:
         cols.append(beta[:, -1:] + L[-1])                   # outermost tube leaves the plane
         return np.concatenate(cols, axis=1)
 
+    def check_plausible(self, q: np.ndarray, source: str, row_offset: int = 2) -> None:
+        """Refuse rotations or translations outside :data:`PLAUSIBLE` (InputError naming the
+        row and column); see :func:`check_config_plausible`."""
+        check_config_plausible(q, self, source, row_offset=row_offset)
+
     def is_valid(self, q: np.ndarray) -> np.ndarray:
         """``(B,)`` bool: finite and inside the joint constraints. q : (B, 2n)."""
         q = np.atleast_2d(np.asarray(q, dtype=float))
