@@ -218,6 +218,7 @@ def ignore_in_child() -> None:
     parent (Linux ``PR_SET_PDEATHSIG``) so that no worker outlives a parent killed with SIGKILL."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, SIGNALS)   # blocked while the parent spawned us
     if sys.platform.startswith("linux"):
         import ctypes
 
