@@ -71,6 +71,11 @@ def main(argv: list[str] | None = None) -> int:
     code = _exit_code(code)
     if argv is not None:
         interrupt.reset()
+    # A KeyboardInterrupt that escaped a string exec() (dataclasses build methods that way
+    # while a module is imported) leaves CPython's "unhandled KeyboardInterrupt" flag set, and
+    # the interpreter would then end itself with SIGINT (status -2) instead of exiting with
+    # ``code``. Each string exec() resets that flag first; this one is the last.
+    exec("pass", {})
     return code
 
 

@@ -30,6 +30,7 @@ creates them) and ends the command with SIGKILL. The tests check that no command
 
 from __future__ import annotations
 
+import builtins
 import contextlib
 import os
 import signal
@@ -157,10 +158,11 @@ def describe() -> str:
 
 
 def check() -> None:
-    """Raise KeyboardInterrupt if a signal arrived and has not been raised yet. Long loops
-    call it between chunks of compiled work."""
+    """Raise KeyboardInterrupt if a signal arrived. Long loops call it between chunks of
+    compiled work; it raises again on every call, so an interruption that a library swallowed
+    (a bare ``except:``) still stops the command at the next check."""
     global _raised
-    if _signal and not _raised:
+    if _signal:
         _raised = True
         raise KeyboardInterrupt
 
@@ -177,6 +179,19 @@ def deferred() -> Iterator[None]:
     finally:
         _defer -= 1
     check()
+
+
+def _checked_import(*args, **kwargs):
+    """``__import__`` that stops after an import a signal came during: some libraries import
+    their optional parts inside ``except BaseException`` (trimesh does), which swallows the
+    KeyboardInterrupt; the check when the import returns raises it again."""
+    module = _import(*args, **kwargs)
+    if _signal and _defer == 0:
+        check()
+    return module
+
+
+_import = builtins.__import__
 
 
 def _on_signal(signum, frame) -> None:
@@ -287,6 +302,8 @@ def guard(grace: float = GRACE_S) -> Iterator[None]:
     old_handlers = {s: signal.signal(s, _on_signal) for s in SIGNALS}
     old_hook = sys.unraisablehook
     sys.unraisablehook = _quiet_unraisable(old_hook)
+    old_import = builtins.__import__
+    builtins.__import__ = _checked_import
     _active = True
     try:
         check()      # a signal that came before (recorded by record_signals) stops it here
@@ -296,6 +313,7 @@ def guard(grace: float = GRACE_S) -> Iterator[None]:
         _pipe = None
         for s, h in old_handlers.items():
             signal.signal(s, h)
+        builtins.__import__ = old_import
         sys.unraisablehook = old_hook
         if old is not None:
             signal.set_wakeup_fd(old)
