@@ -59,9 +59,10 @@ def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line. ``argv`` None: a process's own arguments (the ``ctrplan`` command;
-    SIGINT / SIGTERM stay recorded, never raised, until the process ends); a list: an
-    in-process call, whose signal handlers are restored afterwards."""
+    """Run the command line. ``argv`` None: the process's own arguments (the ``ctrplan``
+    command): SIGINT / SIGTERM stay recorded, never raised, until the process ends, and the
+    process ends here (:func:`_finish`); a list: an in-process call, which returns the exit code
+    and restores the signal handlers."""
     old = interrupt.record_signals()
     try:
         code = _main(argv)
@@ -76,7 +77,29 @@ def main(argv: list[str] | None = None) -> int:
     # the interpreter would then end itself with SIGINT (status -2) instead of exiting with
     # ``code``. Each string exec() resets that flag first; this one is the last.
     exec("pass", {})
+    if argv is None:
+        _finish(code)
     return code
+
+
+def _finish(code: int) -> None:
+    """End the process with ``code``: the exit handlers run here, while SIGINT / SIGTERM are
+    still only recorded, then ``os._exit``. (Interpreter finalisation puts the default signal
+    handlers back, and a signal arriving then would end the process with -2 / -15 instead.)"""
+    import atexit
+    import os
+
+    try:
+        atexit._run_exitfuncs()
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        if interrupt.signalled() and code not in (130, 143):
+            code = interrupt.exit_code()
+        os._exit(code)
 
 
 def _exit_code(code: int) -> int:

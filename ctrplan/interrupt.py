@@ -245,6 +245,19 @@ def ignore_in_child() -> None:
             os._exit(1)
 
 
+def stop_executor(ex) -> None:
+    """Stop a ``concurrent.futures.ProcessPoolExecutor`` now: kill its workers (a task in
+    progress is not waited for), cancel what is queued, and reap them."""
+    procs = list((getattr(ex, "_processes", None) or {}).values())   # no public way to do this
+    for proc in procs:
+        with contextlib.suppress(Exception):
+            proc.kill()
+    ex.shutdown(wait=False, cancel_futures=True)
+    for proc in procs:
+        with contextlib.suppress(Exception):
+            proc.join(5)
+
+
 @contextlib.contextmanager
 def blocked() -> Iterator[None]:
     """Block SIGINT and SIGTERM in this thread for the body (processes started inside inherit

@@ -75,6 +75,9 @@ class Runner:
 def _worker_init() -> None:
     import os
 
+    from ctrplan import interrupt
+
+    interrupt.ignore_in_child()   # Ctrl-C reaches the whole process group: the parent stops us
     # one intra-op thread per worker (before torch is imported): the pool is the parallelism
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
