@@ -233,7 +233,6 @@ def ignore_in_child() -> None:
     parent (Linux ``PR_SET_PDEATHSIG``) so that no worker outlives a parent killed with SIGKILL."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, SIGNALS)   # blocked while the parent spawned us
     if sys.platform.startswith("linux"):
         import ctypes
 
@@ -259,18 +258,20 @@ def stop_executor(ex) -> None:
 
 
 @contextlib.contextmanager
-def blocked() -> Iterator[None]:
-    """Block SIGINT and SIGTERM in this thread for the body (processes started inside inherit
-    the mask, so a Ctrl-C while a worker starts up cannot reach its interpreter before it
-    installs its own handlers); pending signals are delivered on leaving."""
-    if os.name != "posix":
+def spawning() -> Iterator[None]:
+    """Start worker processes in the body: SIGINT is ignored meanwhile, and an ignored signal
+    is the one disposition a child keeps across ``exec``, so a terminal's Ctrl-C (sent to the
+    whole process group) cannot reach a worker's interpreter while it starts up (it would print
+    a traceback) before its initializer ignores SIGINT for good (:func:`ignore_in_child`).
+    The parent stops its workers itself. A Ctrl-C in this short window (milliseconds) is lost."""
+    if threading.current_thread() is not threading.main_thread() or os.name != "posix":
         yield
         return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        signal.signal(signal.SIGINT, old)
 
 
 def reset() -> None:
@@ -291,12 +292,11 @@ def guard(grace: float = GRACE_S) -> Iterator[None]:
     path_r, path_w = os.pipe()
     os.set_blocking(wake_w, False)
     try:
-        with blocked():
-            proc = subprocess.Popen(
-                [sys.executable, "-S", "-c", _WATCHDOG, str(os.getpid()), str(grace), str(path_r)],
-                stdin=wake_r, pass_fds=(path_r,), stdout=subprocess.DEVNULL,
-                start_new_session=True, close_fds=True,
-            )
+        proc = subprocess.Popen(     # its own session: a terminal's Ctrl-C does not reach it
+            [sys.executable, "-S", "-c", _WATCHDOG, str(os.getpid()), str(grace), str(path_r)],
+            stdin=wake_r, pass_fds=(path_r,), stdout=subprocess.DEVNULL,
+            start_new_session=True, close_fds=True,
+        )
     except OSError:
         for fd in (wake_r, wake_w, path_r, path_w):
             os.close(fd)

@@ -69,7 +69,11 @@ class Runner:
             return []
         if self._ex is None:
             return [evaluate_job(j) for j in jobs]
-        return list(self._ex.map(evaluate_job, jobs))
+        from ctrplan import interrupt
+
+        with interrupt.spawning():   # workers start on demand, SIGINT ignored (Ctrl-C: parent stops them)
+            results = self._ex.map(evaluate_job, jobs)
+        return list(results)
 
 
 def _worker_init() -> None:

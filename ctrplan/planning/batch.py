@@ -356,9 +356,9 @@ def _run_pool(todo: Sequence[Job], workers: int, record) -> None:
 
     from ctrplan import interrupt
 
-    # spawn, not fork: torch, numba and OMPL threads do not survive a fork reliably. Signals
-    # are blocked while the workers start (they inherit the mask and unblock it themselves).
-    with interrupt.blocked():
+    # spawn, not fork: torch, numba and OMPL threads do not survive a fork reliably. The
+    # workers start with SIGINT ignored (interrupt.spawning).
+    with interrupt.spawning():
         pool = mp.get_context("spawn").Pool(processes=max(1, min(workers, len(todo))),
                                             initializer=_worker_init)
     finished = False

@@ -107,11 +107,12 @@ def simulate_shapes(model: Any, q: np.ndarray, points: int = 20, workers: int | 
             ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
             from ctrplan import interrupt
 
-            with interrupt.blocked():
-                ex = ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=ctx,
-                                         initializer=_init_worker, initargs=(model,))
+            ex = ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=ctx,
+                                     initializer=_init_worker, initargs=(model,))
             try:
-                for k, res in ex.map(_solve_chunk, tasks):
+                with interrupt.spawning():    # the workers start in map(), SIGINT ignored
+                    results = ex.map(_solve_chunk, tasks)
+                for k, res in results:
                     parts[k] = res
                     pb.update(len(res[0]))
             except BaseException:
