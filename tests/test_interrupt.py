@@ -21,7 +21,10 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-TIMING_KEYS = {"planning_time_s", "timings"}
+# Fields that are not part of a plan's result: timings, and the work counters, which include
+# the work of per-process caches (the retracted start is computed by the first job a process
+# runs and reused by the next), so they depend on which process ran a job after which.
+TIMING_KEYS = {"planning_time_s", "timings", "counts"}
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -332,7 +335,7 @@ def test_signals_at_random_moments(tmp_path, configs_200k, name):
         assert_stopped(rc, err, sig)
         assert latency < 10.0, (name, delay, latency)
         _assert_no_partial_output(name, out, reference)
-        if name == "plan-batch":
+        if name == "plan-batch" and stopped == 1:
             # resumes: the rerun finishes every job, keeping the complete ones
             done = set(job_files_complete(out / "batch" / "jobs"))
             r = subprocess.run(cli(*build(inputs, out)), cwd=tmp_path, capture_output=True,
