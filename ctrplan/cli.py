@@ -170,6 +170,11 @@ def _stop_children() -> None:
     for child in multiprocessing.active_children():
         child.kill()
         child.join(timeout=5)
+    physics = sys.modules.get("ctrplan.shape.physics")     # demo's background numba compile
+    warmup = getattr(physics, "_warmup", None)
+    if warmup is not None and warmup.poll() is None:
+        warmup.kill()
+        warmup.wait(timeout=5)
 
 
 def check_common_args(args: argparse.Namespace) -> None:

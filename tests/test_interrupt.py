@@ -228,10 +228,10 @@ def _setup_inputs(tmp: Path, configs_200k: Path) -> dict[str, Path]:
             if k > 20_000:
                 break
             dst.write(line)
-    q300 = tmp / "q300.csv"
-    q300.write_text("".join(open(q20k).readlines()[:301]))
+    q1000 = tmp / "q1000.csv"
+    q1000.write_text("".join(open(q20k).readlines()[:1001]))
     meas = tmp / "measured.csv"
-    assert main(["-q", "simulate", "--robot", "seed1", "--configs", str(q300), "--effect", "torsion",
+    assert main(["-q", "simulate", "--robot", "seed1", "--configs", str(q1000), "--effect", "torsion",
                  "--noise", "0.1", "--out", str(meas)]) == 0
     return {"q200k": configs_200k, "q20k": q20k, "measured": meas}
 
@@ -239,17 +239,17 @@ def _setup_inputs(tmp: Path, configs_200k: Path) -> dict[str, Path]:
 COMMANDS = {
     # name: (argv builder (inputs, out folder), longest delay s (a lower bound of the run time))
     "shape": (lambda i, o: ["shape", "--robot", "seed1", "--configs", str(i["q200k"]),
-                            "--out", str(o / "s.npz")], 6.0),
+                            "--out", str(o / "s.npz")], 5.0),
     "check": (lambda i, o: ["check", "--scene", "airway", "--robot", "seed1", "--configs",
-                            str(i["q20k"]), "--out", str(o / "v.csv")], 6.0),
+                            str(i["q20k"]), "--out", str(o / "v.csv")], 4.0),
     "plan": (lambda i, o: ["plan", "--scene", "airway", "--target", "t02", "--out",
-                           str(o / "plan.json")], 5.0),
+                           str(o / "plan.json")], 3.0),
     "plan-batch": (lambda i, o: ["plan-batch", "--targets", "examples", "--scene", "airway",
-                                 "--workers", "2", "--out", str(o / "batch")], 12.0),
+                                 "--workers", "2", "--out", str(o / "batch")], 10.0),
     "diagnose": (lambda i, o: ["diagnose", "--robot", "seed1", "--data", str(i["measured"]),
-                               "--out", str(o / "report")], 9.0),
-    "train": (lambda i, o: ["train", "--robot", "seed1", "--sim", "2000", "--workers", "2",
-                            "--out", str(o / "m.pt")], 9.0),
+                               "--out", str(o / "report")], 4.0),
+    "train": (lambda i, o: ["train", "--robot", "seed1", "--sim", "8000", "--workers", "2",
+                            "--out", str(o / "m.pt")], 4.0),
 }
 
 
