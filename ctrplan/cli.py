@@ -175,6 +175,8 @@ def _stop_children() -> None:
     if warmup is not None and warmup.poll() is None:
         warmup.kill()
         warmup.wait(timeout=5)
+    if interrupt.signalled():
+        interrupt.kill_descendants()    # anything else a library started and left (Ray)
 
 
 def check_common_args(args: argparse.Namespace) -> None:

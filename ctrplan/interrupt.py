@@ -244,6 +244,43 @@ def ignore_in_child() -> None:
             os._exit(1)
 
 
+def descendants(pid: int | None = None) -> list[int]:
+    """Process ids of every live descendant of ``pid`` (default: this process), from /proc
+    (Linux; elsewhere an empty list)."""
+    root = os.getpid() if pid is None else int(pid)
+    children: dict[int, list[int]] = {}
+    try:
+        entries = os.listdir("/proc")
+    except OSError:
+        return []
+    for d in entries:
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat", "rb") as fh:
+                stat = fh.read().decode(errors="replace")
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()
+        if fields[0] in ("Z", "X"):
+            continue
+        children.setdefault(int(fields[1]), []).append(int(d))
+    out, todo = [], [root]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.append(c)
+            todo.append(c)
+    return out
+
+
+def kill_descendants() -> None:
+    """SIGKILL every process this one started, directly or not, that is still running (the
+    processes a Ray instance starts, say, when an interruption cut its start short)."""
+    for pid in descendants():
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGKILL)
+
+
 def stop_executor(ex) -> None:
     """Stop a ``concurrent.futures.ProcessPoolExecutor`` now: kill its workers (a task in
     progress is not waited for), cancel what is queued, and reap them."""

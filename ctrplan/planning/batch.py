@@ -21,6 +21,7 @@ import logging
 import math
 import os
 import re
+import threading
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -388,29 +389,49 @@ def _run_ray(todo: Sequence[Job], address: str, workers: int, record) -> None:
         import ray
     except ImportError:
         raise InputError("--ray", "", "ray is not installed (pip install 'ctrplan[ray]')") from None
+    import signal
+
+    from ctrplan import interrupt
+
+    # ray.init installs its own SIGTERM handling (a C++ handler that prints a stack and exits
+    # 1; Python's default on shutdown): ours is put back after init and after shutdown, so
+    # SIGINT / SIGTERM still end the command with one line and 130 / 143.
+    ours = {s: signal.getsignal(s) for s in interrupt.SIGNALS}
+
+    def restore() -> None:
+        if threading.current_thread() is threading.main_thread():
+            for s, h in ours.items():
+                if h is not None:
+                    signal.signal(s, h)
+
     started = False
-    if not ray.is_initialized():
-        env = {"env_vars": {"OMP_NUM_THREADS": "1"}}
-        if address == "local":
-            ray.init(num_cpus=max(1, workers), include_dashboard=False, log_to_driver=False,
-                     configure_logging=False, runtime_env=env)
-        else:
-            try:
-                ray.init(address=address, log_to_driver=False, configure_logging=False,
-                         runtime_env=env)
-            except Exception as exc:  # ray raises ConnectionError, RuntimeError, ValueError...
-                raise InputError("--ray", "", f"cannot connect to Ray at {address!r}: {exc}") from None
-        started = True
     try:
+        if not ray.is_initialized():
+            env = {"env_vars": {"OMP_NUM_THREADS": "1"}}
+            started = True     # from here on, shut down whatever init started
+            if address == "local":
+                ray.init(num_cpus=max(1, workers), include_dashboard=False, log_to_driver=False,
+                         configure_logging=False, runtime_env=env)
+            else:
+                try:
+                    ray.init(address=address, log_to_driver=False, configure_logging=False,
+                             runtime_env=env)
+                except Exception as exc:  # ray raises ConnectionError, RuntimeError, ValueError...
+                    raise InputError("--ray", "", f"cannot connect to Ray at {address!r}: {exc}") from None
+            restore()
+            interrupt.check()
         remote = ray.remote(num_cpus=1)(_run_job_json)
         pending = [remote.remote(asdict(job)) for job in todo]
         while pending:
-            done, pending = ray.wait(pending, num_returns=1)
+            done, pending = ray.wait(pending, num_returns=1, timeout=0.5)
+            interrupt.check()
             for ref in done:
                 record(ray.get(ref))
     finally:
         if started:
-            ray.shutdown()
+            with contextlib.suppress(Exception):
+                ray.shutdown()     # stops the local instance and its workers
+        restore()
 
 
 # ---------------------------------------------------------------------- tables
