@@ -90,7 +90,15 @@ def _finish(code: int) -> None:
     import os
 
     try:
-        atexit._run_exitfuncs()
+        if interrupt.signalled():
+            # after a signal no exit handler may keep the process alive: 5 s at most
+            import threading
+
+            t = threading.Thread(target=atexit._run_exitfuncs, daemon=True)
+            t.start()
+            t.join(5)
+        else:
+            atexit._run_exitfuncs()
     finally:
         for stream in (sys.stdout, sys.stderr):
             try:

@@ -275,8 +275,16 @@ def descendants(pid: int | None = None) -> list[int]:
 
 def kill_descendants() -> None:
     """SIGKILL every process this one started, directly or not, that is still running (the
-    processes a Ray instance starts, say, when an interruption cut its start short)."""
+    processes a Ray instance starts, say, when an interruption cut its start short). The
+    multiprocessing resource tracker is spared: it still has semaphores to unregister, and it
+    ends by itself when this process exits."""
+    keep = set()
+    tracker = sys.modules.get("multiprocessing.resource_tracker")
+    if tracker is not None:
+        keep.add(getattr(getattr(tracker, "_resource_tracker", None), "_pid", None))
     for pid in descendants():
+        if pid in keep:
+            continue
         with contextlib.suppress(OSError):
             os.kill(pid, signal.SIGKILL)
 
@@ -288,7 +296,12 @@ def stop_executor(ex) -> None:
     for proc in procs:
         with contextlib.suppress(Exception):
             proc.kill()
-    ex.shutdown(wait=False, cancel_futures=True)
+    # shutdown takes the executor's lock, which an interruption inside submit() may have left
+    # in an odd state: never wait for it more than a few seconds
+    t = threading.Thread(target=ex.shutdown, kwargs={"wait": False, "cancel_futures": True},
+                         daemon=True)
+    t.start()
+    t.join(5)
     for proc in procs:
         with contextlib.suppress(Exception):
             proc.join(5)
