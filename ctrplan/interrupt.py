@@ -1,19 +1,36 @@
-"""Ctrl-C stops every command within seconds, even inside compiled code.
+"""SIGINT (Ctrl-C) and SIGTERM stop every command promptly, with one line and exit 130 / 143.
 
-Python turns SIGINT into KeyboardInterrupt only when the main thread runs Python bytecode; a
-long numba kernel, an FCL or scipy call, or numba compiling holds the interpreter for as long
-as it runs, so Ctrl-C alone could wait minutes. The command line therefore starts a tiny
-watchdog process (:func:`guard`): Python's C-level signal handler writes the signal number to a
-wake-up pipe at once, whatever the main thread is doing; the watchdog reads it, gives the
-command ``grace`` seconds to stop by itself (KeyboardInterrupt: temporary files removed, exit
-130), and otherwise removes the temporary files of atomic writes in progress
-(:func:`ctrplan.io.atomic_path` sends their names as it creates them) and ends the command with SIGKILL.
-Either way nothing half-written is left behind and the shell gets control back within
-``grace`` + ~0.1 s.
+How a command stops
+-------------------
+Inside :func:`guard` (the command line runs every command in it) SIGINT and SIGTERM get one
+Python handler. The first signal is recorded (:func:`signalled`) and, unless the code is in a
+:func:`deferred` region, raised as :class:`KeyboardInterrupt` at once. The exception unwinds
+the command: atomic writes remove their temporary files (:func:`ctrplan.io.atomic_path`), a
+process pool kills its workers (:mod:`ctrplan.planning.batch`), and :func:`ctrplan.cli.main`
+prints one line and returns ``128 + signal`` (130 for SIGINT, 143 for SIGTERM). A second signal
+while the command unwinds is recorded but not raised, so the clean-up itself is never cut short.
+
+Python runs a signal handler only between bytecodes of the main thread, so compiled code must
+come back to Python often: the long kernels run in chunks (the mechanics kernel on a few
+thousand configurations at a time, :data:`CHUNK`) and call :func:`check` in between, so a
+signal is acted on within a fraction of a second. Code that hands Python callbacks to C++ (the
+OMPL planners) runs in a :func:`deferred` region: the callbacks and the planner's termination
+condition poll :func:`requested` and the interruption is raised once control is back in Python
+(an exception thrown through C++ frames is never relied on).
+
+Last resort
+-----------
+A C call that never returns (a library hanging in native code) cannot be stopped from Python.
+For that case only, :func:`guard` starts a tiny watchdog process: Python's C-level signal
+handler writes the signal number to a wake-up pipe at once, whatever the main thread is doing;
+if the command has not ended :data:`GRACE_S` seconds later, the watchdog removes the temporary
+files of atomic writes in progress (:func:`ctrplan.io.atomic_path` sends their names as it
+creates them) and ends the command with SIGKILL. The tests check that no command needs it.
 """
 
 from __future__ import annotations
 
+import builtins
 import contextlib
 import os
 import signal
@@ -22,12 +39,22 @@ import sys
 import threading
 from collections.abc import Iterator
 
-#: Seconds a command gets to stop by itself after Ctrl-C before the watchdog ends it.
-GRACE_S = 1.5
+#: Seconds a command gets to stop by itself after a signal before the last-resort watchdog ends
+#: it (no command needs it: the tests measure stops well under a second or two).
+GRACE_S = 20.0
+
+#: Rows per call of a long compiled kernel: small enough that a kernel call returns within a
+#: fraction of a second (the signal is acted on in between), large enough that the Python
+#: overhead per call is negligible.
+CHUNK = 4096
+
+#: The signals a command stops on, and their exit codes (128 + signal number).
+SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 _WATCHDOG = r"""
 import os, select, signal, sys, time
 signal.signal(signal.SIGINT, signal.SIG_IGN)
+signal.signal(signal.SIGTERM, signal.SIG_IGN)
 pid, grace, paths = int(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3])
 wake = 0
 pending, buf = set(), b""
@@ -55,7 +82,7 @@ while True:
         data = os.read(wake, 64)
         if not data:
             sys.exit(0)
-        if signal.SIGINT not in data:
+        if signal.SIGINT not in data and signal.SIGTERM not in data:
             continue
         deadline = time.monotonic() + grace
         alive = True
@@ -76,12 +103,13 @@ while True:
             except OSError:
                 pass
         try:
-            os.write(2, b"ctrplan: interrupted (stopped after %.0f s in compiled code)\n" % grace)
+            os.write(2, b"ctrplan: interrupted (killed after %.0f s in native code)\n" % grace)
             os.kill(pid, signal.SIGKILL)
         except OSError:
             pass
         sys.exit(0)
 """
+
 
 
 class _PathPipe:
@@ -96,49 +124,217 @@ class _PathPipe:
 
 
 _pipe: _PathPipe | None = None
+_signal = 0        # the first signal received inside guard(), 0 for none
+_raised = False    # whether it has been raised as KeyboardInterrupt yet
+_defer = 0         # depth of deferred() regions
+_active = False    # inside guard()
 
 
-_interrupted = False
+def signalled() -> int:
+    """The first signal (SIGINT or SIGTERM) received inside :func:`guard`, or 0."""
+    return _signal
 
 
 def interrupted() -> bool:
-    """True once Ctrl-C (SIGINT) reached this process inside :func:`guard`. Code interrupted
+    """True once SIGINT or SIGTERM reached this process inside :func:`guard`. Code interrupted
     in a library (numba compiling, say) may surface as another exception; the command line
     reports it as an interruption, not as a failure."""
-    return _interrupted
+    return _signal != 0
 
 
-def _on_sigint(signum, frame) -> None:
-    global _interrupted
-    _interrupted = True
-    raise KeyboardInterrupt
+def requested() -> bool:
+    """Whether the command should stop (cheap; for callbacks inside :func:`deferred` regions)."""
+    return _signal != 0
+
+
+def exit_code() -> int:
+    """``128 + signal`` once a signal was received (130 SIGINT, 143 SIGTERM), else 0."""
+    return 128 + int(_signal) if _signal else 0
+
+
+def describe() -> str:
+    """A few words for the one-line message: ``interrupted`` or ``terminated (SIGTERM)``."""
+    return "terminated (SIGTERM)" if _signal == signal.SIGTERM else "interrupted"
+
+
+def check() -> None:
+    """Raise KeyboardInterrupt if a signal arrived. Long loops call it between chunks of
+    compiled work; it raises again on every call, so an interruption that a library swallowed
+    (a bare ``except:``) still stops the command at the next check."""
+    global _raised
+    if _signal:
+        _raised = True
+        raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def deferred() -> Iterator[None]:
+    """A region where a signal is only recorded, never raised (code that runs Python callbacks
+    from C++); the caller's callbacks poll :func:`requested`. Leaving the region raises a
+    pending interruption."""
+    global _defer
+    _defer += 1
+    try:
+        yield
+    finally:
+        _defer -= 1
+    check()
+
+
+def _checked_import(*args, **kwargs):
+    """``__import__`` that stops after an import a signal came during: some libraries import
+    their optional parts inside ``except BaseException`` (trimesh does), which swallows the
+    KeyboardInterrupt; the check when the import returns raises it again."""
+    module = _import(*args, **kwargs)
+    if _signal and _defer == 0:
+        check()
+    return module
+
+
+_import = builtins.__import__
+
+
+def _on_signal(signum, frame) -> None:
+    global _signal, _raised
+    if _signal:
+        return          # already stopping: a second signal does not cut the clean-up short
+    _signal = signum
+    if _defer == 0:
+        _raised = True
+        raise KeyboardInterrupt
 
 
 def _quiet_unraisable(hook):
-    """An unraisable-exception hook that stays silent after Ctrl-C: a KeyboardInterrupt raised
-    inside a C callback (llvmlite's object cache while numba compiles, say) is reported through
-    this hook with a traceback, which a user who pressed Ctrl-C must not see."""
+    """An unraisable-exception hook that stays silent after a signal: a KeyboardInterrupt
+    raised inside a C callback (llvmlite's object cache while numba compiles, say) is reported
+    through this hook with a traceback, which a user who pressed Ctrl-C must not see."""
     def quiet(unraisable) -> None:
-        if _interrupted or isinstance(unraisable.exc_value, KeyboardInterrupt):
+        if _signal or isinstance(unraisable.exc_value, KeyboardInterrupt):
             return
         hook(unraisable)
     return quiet
 
 
 def pending_added(path: str) -> None:
+    """Tell the last-resort watchdog about a temporary file being written."""
     if _pipe is not None:
         _pipe.send("+" + path)
 
 
 def pending_removed(path: str) -> None:
+    """Tell the last-resort watchdog that a temporary file is gone (renamed or removed)."""
     if _pipe is not None:
         _pipe.send("-" + path)
 
 
+def ignore_in_child() -> None:
+    """For worker processes: ignore SIGINT (a terminal's Ctrl-C reaches the whole process
+    group; the parent stops its workers itself), restore SIGTERM's default, and die with the
+    parent (Linux ``PR_SET_PDEATHSIG``) so that no worker outlives a parent killed with SIGKILL."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        parent = os.getppid()
+        with contextlib.suppress(OSError, AttributeError):
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)   # PR_SET_PDEATHSIG
+        if os.getppid() != parent:     # the parent died before prctl took effect
+            os._exit(1)
+
+
+def descendants(pid: int | None = None) -> list[int]:
+    """Process ids of every live descendant of ``pid`` (default: this process), from /proc
+    (Linux; elsewhere an empty list)."""
+    root = os.getpid() if pid is None else int(pid)
+    children: dict[int, list[int]] = {}
+    try:
+        entries = os.listdir("/proc")
+    except OSError:
+        return []
+    for d in entries:
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat", "rb") as fh:
+                stat = fh.read().decode(errors="replace")
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()
+        if fields[0] in ("Z", "X"):
+            continue
+        children.setdefault(int(fields[1]), []).append(int(d))
+    out, todo = [], [root]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.append(c)
+            todo.append(c)
+    return out
+
+
+def kill_descendants() -> None:
+    """SIGKILL every process this one started, directly or not, that is still running (the
+    processes a Ray instance starts, say, when an interruption cut its start short). The
+    multiprocessing resource tracker is spared: it still has semaphores to unregister, and it
+    ends by itself when this process exits."""
+    keep = set()
+    tracker = sys.modules.get("multiprocessing.resource_tracker")
+    if tracker is not None:
+        keep.add(getattr(getattr(tracker, "_resource_tracker", None), "_pid", None))
+    for pid in descendants():
+        if pid in keep:
+            continue
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGKILL)
+
+
+def stop_executor(ex) -> None:
+    """Stop a ``concurrent.futures.ProcessPoolExecutor`` now: kill its workers (a task in
+    progress is not waited for), cancel what is queued, and reap them."""
+    procs = list((getattr(ex, "_processes", None) or {}).values())   # no public way to do this
+    for proc in procs:
+        with contextlib.suppress(Exception):
+            proc.kill()
+    # shutdown takes the executor's lock, which an interruption inside submit() may have left
+    # in an odd state: never wait for it more than a few seconds
+    t = threading.Thread(target=ex.shutdown, kwargs={"wait": False, "cancel_futures": True},
+                         daemon=True)
+    t.start()
+    t.join(5)
+    for proc in procs:
+        with contextlib.suppress(Exception):
+            proc.join(5)
+
+
+@contextlib.contextmanager
+def spawning() -> Iterator[None]:
+    """Start worker processes in the body: SIGINT is ignored meanwhile, and an ignored signal
+    is the one disposition a child keeps across ``exec``, so a terminal's Ctrl-C (sent to the
+    whole process group) cannot reach a worker's interpreter while it starts up (it would print
+    a traceback) before its initializer ignores SIGINT for good (:func:`ignore_in_child`).
+    The parent stops its workers itself. A Ctrl-C in this short window (milliseconds) is lost."""
+    if threading.current_thread() is not threading.main_thread() or os.name != "posix":
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def reset() -> None:
+    """Forget a recorded signal (tests that run several commands in one process)."""
+    global _signal, _raised
+    _signal, _raised = 0, False
+
+
 @contextlib.contextmanager
 def guard(grace: float = GRACE_S) -> Iterator[None]:
-    """Run the body with the Ctrl-C watchdog (main thread only; elsewhere a no-op)."""
-    global _pipe
+    """Run the body with the SIGINT/SIGTERM handler and the last-resort watchdog (main thread
+    only; elsewhere a no-op)."""
+    global _pipe, _active
     if threading.current_thread() is not threading.main_thread() or os.name != "posix":
         yield
         return
@@ -146,7 +342,7 @@ def guard(grace: float = GRACE_S) -> Iterator[None]:
     path_r, path_w = os.pipe()
     os.set_blocking(wake_w, False)
     try:
-        proc = subprocess.Popen(
+        proc = subprocess.Popen(     # its own session: a terminal's Ctrl-C does not reach it
             [sys.executable, "-S", "-c", _WATCHDOG, str(os.getpid()), str(grace), str(path_r)],
             stdin=wake_r, pass_fds=(path_r,), stdout=subprocess.DEVNULL,
             start_new_session=True, close_fds=True,
@@ -154,27 +350,61 @@ def guard(grace: float = GRACE_S) -> Iterator[None]:
     except OSError:
         for fd in (wake_r, wake_w, path_r, path_w):
             os.close(fd)
-        yield
-        return
-    os.close(wake_r)
-    os.close(path_r)
-    try:
-        old = signal.set_wakeup_fd(wake_w, warn_on_full_buffer=False)
-    except ValueError:
-        old = None
-    _pipe = _PathPipe(path_w)
-    old_handler = signal.signal(signal.SIGINT, _on_sigint)
+        proc = None
+        wake_w = path_w = -1
+    else:
+        os.close(wake_r)
+        os.close(path_r)
+    old = None
+    if wake_w >= 0:
+        try:
+            old = signal.set_wakeup_fd(wake_w, warn_on_full_buffer=False)
+        except ValueError:
+            old = None
+        _pipe = _PathPipe(path_w)
+    old_handlers = {s: signal.signal(s, _on_signal) for s in SIGNALS}
     old_hook = sys.unraisablehook
     sys.unraisablehook = _quiet_unraisable(old_hook)
+    old_import = builtins.__import__
+    builtins.__import__ = _checked_import
+    _active = True
     try:
+        check()      # a signal that came before (recorded by record_signals) stops it here
         yield
     finally:
+        _active = False
         _pipe = None
-        signal.signal(signal.SIGINT, old_handler)
+        for s, h in old_handlers.items():
+            signal.signal(s, h)
+        builtins.__import__ = old_import
         sys.unraisablehook = old_hook
         if old is not None:
             signal.set_wakeup_fd(old)
-        os.close(wake_w)
-        os.close(path_w)
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            proc.wait(timeout=5)
+        for fd in (wake_w, path_w):
+            if fd >= 0:
+                os.close(fd)
+        if proc is not None:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(timeout=5)
+
+
+def _record_only(signum, frame) -> None:
+    global _signal
+    if not _signal:
+        _signal = signum
+
+
+def record_signals() -> dict:
+    """Outside :func:`guard` (before and after the command proper), record SIGINT and SIGTERM
+    instead of raising: the command line starts and ends without a traceback whenever the
+    signal comes, and still exits 130 / 143. Returns the previous handlers (main thread only;
+    elsewhere nothing changes)."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {s: signal.signal(s, _record_only) for s in SIGNALS}
+
+
+def restore_signals(old: dict) -> None:
+    """Put back handlers returned by :func:`record_signals`."""
+    for s, h in old.items():
+        signal.signal(s, h)

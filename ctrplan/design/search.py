@@ -86,12 +86,19 @@ class Runner:
             return ray_map(evaluate_job, jobs)
         if self._ex is None:
             return [evaluate_job(j) for j in jobs]
-        return list(self._ex.map(evaluate_job, jobs))
+        from ctrplan import interrupt
+
+        with interrupt.spawning():   # workers start on demand, SIGINT ignored (Ctrl-C: parent stops them)
+            results = self._ex.map(evaluate_job, jobs)
+        return list(results)
 
 
 def _worker_init() -> None:
     import os
 
+    from ctrplan import interrupt
+
+    interrupt.ignore_in_child()   # Ctrl-C reaches the whole process group: the parent stops us
     # one intra-op thread per worker (before torch is imported): the pool is the parallelism
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 

@@ -228,68 +228,159 @@ def _done(path: Path, job: Job) -> dict | None:
 
 def run_batch(jobs: Sequence[Job], out: str | os.PathLike, workers: int = 1,
               ray_address: str | None = None) -> BatchSummary:
-    """Run the jobs not finished yet, write one JSON per job, jobs.csv and summary.csv."""
+    """Run the jobs not finished yet, write one JSON per job, jobs.csv and summary.csv.
+
+    Crash-safe: each job's JSON is written to a temporary file, flushed to disk (fsync) and
+    renamed into place, so a job file is either complete or absent whenever the run is killed
+    (SIGKILL, power loss); a rerun skips the complete ones and redoes the rest (their
+    temporary files are removed). ``jobs.csv`` and ``summary.csv`` describe the whole job list
+    and exist only after a run that finished it. One run at a time per folder (a lock file).
+    """
     from ctrplan import progress
-    from ctrplan.io import write_json_atomic
 
     out = Path(out)
     jobs_dir = out / "jobs"
     jobs_dir.mkdir(parents=True, exist_ok=True)
-    results: dict[str, dict] = {}
-    todo: list[Job] = []
-    seen: set[str] = set()
-    for job in jobs:
-        if job.id in seen:
-            continue
-        seen.add(job.id)
-        data = _done(jobs_dir / f"{job.id}.json", job)
-        if data is not None:
-            results[job.id] = data
-        else:
-            todo.append(job)
-    skipped = len(results)
-    if skipped:
-        log.info("plan-batch: %d of %d jobs already done in %s, running %d", skipped, len(seen), out, len(todo))
+    with _folder_lock(out):
+        for stale in jobs_dir.glob(".*"):      # temporaries of a run that was killed
+            if stale.is_file():
+                stale.unlink()
+        results: dict[str, dict] = {}
+        todo: list[Job] = []
+        seen: set[str] = set()
+        for job in jobs:
+            if job.id in seen:
+                continue
+            seen.add(job.id)
+            data = _done(jobs_dir / f"{job.id}.json", job)
+            if data is not None:
+                results[job.id] = data
+            else:
+                todo.append(job)
+        skipped = len(results)
+        if skipped:
+            log.info("plan-batch: %d of %d jobs already done in %s, running %d", skipped, len(seen),
+                     out, len(todo))
+        if todo:   # the tables of an earlier run no longer describe the job list
+            for name in ("jobs.csv", "summary.csv"):
+                (out / name).unlink(missing_ok=True)
 
-    bar = progress.bar(total=len(todo), desc="plan-batch", unit="job")
+        bar = progress.bar(total=len(todo), desc="plan-batch", unit="job")
 
-    def record(res: dict) -> None:
-        write_json_atomic(jobs_dir / f"{res['job_id']}.json", res)
-        results[res["job_id"]] = res
-        bar.update(1)
-        bar.set_postfix_str(f"{res.get('status', '')}")
+        def record(res: dict) -> None:
+            if res["job_id"] in results:     # never twice
+                return
+            write_job_file(jobs_dir / f"{res['job_id']}.json", res)
+            results[res["job_id"]] = res
+            bar.update(1)
+            bar.set_postfix_str(f"{res.get('status', '')}")
 
-    try:
-        if not todo:
-            pass
-        elif ray_address:
-            _run_ray(todo, ray_address, workers, record)
-        elif workers <= 1:
-            for job in todo:
-                record(run_job(job).to_json())
-        else:
-            _run_pool(todo, workers, record)
-    finally:
-        bar.close()
-    ordered = [results[j] for j in dict.fromkeys(job.id for job in jobs) if j in results]
-    rows = summarize(ordered)
-    write_tables(out, ordered, rows)
+        try:
+            if not todo:
+                pass
+            elif ray_address:
+                _run_ray(todo, ray_address, workers, record)
+            elif workers <= 1:
+                from ctrplan import interrupt
+
+                for job in todo:
+                    record(run_job(job).to_json())
+                    interrupt.check()
+            else:
+                _run_pool(todo, workers, record)
+        finally:
+            bar.close()
+        ordered = [results[j] for j in dict.fromkeys(job.id for job in jobs) if j in results]
+        rows = summarize(ordered)
+        write_tables(out, ordered, rows)
     return BatchSummary(total=len(seen), skipped=skipped, ran=len(todo), rows=rows, out=out)
 
 
-def _run_pool(todo: Sequence[Job], workers: int, record) -> None:
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+def write_job_file(path: Path, res: dict) -> None:
+    """Write one job's JSON durably: temporary file, fsync, rename, fsync of the folder."""
+    import tempfile
 
-    # spawn, not fork: torch, numba and OMPL threads do not survive a fork reliably.
-    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                             initializer=_worker_init) as ex:
-        futures = [ex.submit(_run_job_json, asdict(job)) for job in todo]
-        for fut in as_completed(futures):
-            record(fut.result())
+    from ctrplan import interrupt
+
+    text = json.dumps(res, indent=2, allow_nan=False) + "\n"
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    interrupt.pending_added(tmp)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    finally:
+        interrupt.pending_removed(tmp)
+    dfd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dfd)
+    finally:
+        os.close(dfd)
+
+
+@contextlib.contextmanager
+def _folder_lock(out: Path):
+    """An exclusive lock on ``out/.lock`` for the run (released by the OS if the process dies)."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    fd = os.open(out / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise InputError("--out", "", f"another plan-batch is writing to {str(out)!r} "
+                                          f"(wait for it, or use another folder)") from None
+        yield
+    finally:
+        os.close(fd)
+
+
+def _run_pool(todo: Sequence[Job], workers: int, record) -> None:
+    """Run the jobs in a pool of spawned worker processes, recording each result as it comes.
+
+    On SIGINT / SIGTERM (KeyboardInterrupt here) or any error the workers are killed at once
+    (``Pool.terminate``: a job in the middle of planning is not waited for) and joined, so no
+    worker outlives the command; workers ignore Ctrl-C themselves and die with the parent if
+    it is killed (:func:`ctrplan.interrupt.ignore_in_child`)."""
+    import multiprocessing as mp
+
+    from ctrplan import interrupt
+
+    # spawn, not fork: torch, numba and OMPL threads do not survive a fork reliably. The
+    # workers start with SIGINT ignored (interrupt.spawning).
+    with interrupt.spawning():
+        pool = mp.get_context("spawn").Pool(processes=max(1, min(workers, len(todo))),
+                                            initializer=_worker_init)
+    finished = False
+    try:
+        for res in pool.imap_unordered(_run_job_json, [asdict(job) for job in todo]):
+            record(res)
+            interrupt.check()
+        finished = True
+    finally:
+        if finished:
+            pool.close()
+        else:
+            pool.terminate()
+        pool.join()
 
 
 def _worker_init() -> None:
+    from ctrplan import interrupt
+
+    interrupt.ignore_in_child()
     # One intra-op thread per worker (before torch is imported): the pool is the parallelism.
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 

@@ -40,24 +40,44 @@ def ray_session(address: str, num_cpus: int | None = None) -> Iterator[Any]:
     ``"local"`` (``num_cpus`` CPUs; None: every core Ray detects). A session this call started
     is shut down at exit (its workers end with it); an already initialised Ray is used as it is."""
     ray = require_ray()
+    import signal
+    import threading
+
+    from ctrplan import interrupt
+
+    # ray.init installs its own SIGTERM handling (a C++ handler that prints a stack and exits
+    # 1; Python's default on shutdown): ours is put back after init and after shutdown, so
+    # SIGINT / SIGTERM still end the command with one line and 130 / 143.
+    ours = {s: signal.getsignal(s) for s in interrupt.SIGNALS}
+
+    def restore() -> None:
+        if threading.current_thread() is threading.main_thread():
+            for s, h in ours.items():
+                if h is not None:
+                    signal.signal(s, h)
+
     started = False
-    if not ray.is_initialized():
-        env = {"env_vars": {"OMP_NUM_THREADS": "1"}}
-        if address == LOCAL:
-            ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False,
-                     configure_logging=False, runtime_env=env)
-        else:
-            try:
-                ray.init(address=address, log_to_driver=False, configure_logging=False,
-                         runtime_env=env)
-            except Exception as exc:  # ray raises ConnectionError, RuntimeError, ValueError...
-                raise InputError("--ray", "", f"cannot connect to Ray at {address!r}: {exc}") from None
-        started = True
     try:
+        if not ray.is_initialized():
+            env = {"env_vars": {"OMP_NUM_THREADS": "1"}}
+            started = True     # from here on, shut down whatever init started
+            if address == LOCAL:
+                ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False,
+                         configure_logging=False, runtime_env=env)
+            else:
+                try:
+                    ray.init(address=address, log_to_driver=False, configure_logging=False,
+                             runtime_env=env)
+                except Exception as exc:  # ray raises ConnectionError, RuntimeError, ValueError...
+                    raise InputError("--ray", "", f"cannot connect to Ray at {address!r}: {exc}") from None
+            restore()
+            interrupt.check()
         yield ray
     finally:
         if started:
-            ray.shutdown()
+            with contextlib.suppress(Exception):
+                ray.shutdown()     # stops the local instance and its workers
+        restore()
 
 
 def ray_as_completed(fn: Callable[[Any], Any], args: Sequence[Any]) -> Iterator[tuple[int, Any]]:
@@ -65,13 +85,16 @@ def ray_as_completed(fn: Callable[[Any], Any], args: Sequence[Any]) -> Iterator[
     yield ``(index into args, result)`` as each finishes. Closing the iterator early (an
     error, Ctrl-C) cancels the tasks still pending."""
     ray = require_ray()
+    from ctrplan import interrupt
+
     remote = ray.remote(num_cpus=1)(fn)
     refs = [remote.remote(a) for a in args]
     index = {ref: i for i, ref in enumerate(refs)}
     pending = list(refs)
     try:
         while pending:
-            done, pending = ray.wait(pending, num_returns=1)
+            done, pending = ray.wait(pending, num_returns=1, timeout=0.5)
+            interrupt.check()    # a pending Ctrl-C / SIGTERM ends the wait
             for ref in done:
                 yield index[ref], ray.get(ref)
     finally:

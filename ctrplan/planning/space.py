@@ -32,6 +32,7 @@ import ompl.base as ob
 import ompl.geometric as og
 import ompl.util as ou
 
+from ctrplan import interrupt
 from ctrplan.errors import InputError
 from ctrplan.robot import Robot
 
@@ -179,7 +180,7 @@ class _MotionValidator(ob.MotionValidator):
 
     def checkMotion(self, s1, s2):  # noqa: N802 - OMPL's name
         link = self.link
-        if link.exc is not None or link.checker is None:
+        if link.exc is not None or link.checker is None or interrupt.requested():
             return False
         try:
             return bool(link.checker.edge_valid(link.js.to_q(s1), link.js.to_q(s2)))
@@ -197,7 +198,7 @@ class _StateChecker(ob.StateValidityChecker):
 
     def isValid(self, s):  # noqa: N802 - OMPL's name
         link = self.link
-        if link.exc is not None or link.checker is None:
+        if link.exc is not None or link.checker is None or interrupt.requested():
             return False
         try:
             return bool(link.checker.state_valid(link.js.to_q(s)))
@@ -219,7 +220,7 @@ class _BatchSampler(ob.ValidStateSampler):
 
     def sample(self, s):
         link = self.link
-        if link.exc is not None or link.checker is None:
+        if link.exc is not None or link.checker is None or interrupt.requested():
             return False
         try:
             tries = 0
@@ -236,7 +237,7 @@ class _BatchSampler(ob.ValidStateSampler):
 
     def sampleNear(self, s, near, distance):  # noqa: N802 - OMPL's name
         link = self.link
-        if link.exc is not None or link.checker is None:
+        if link.exc is not None or link.checker is None or interrupt.requested():
             return False
         try:
             q = link.checker.sample_valid_near(link.js.to_q(near), float(distance), 16, self.rng)
@@ -325,8 +326,12 @@ def solve(
     js = JointSpace(robot, alpha_weight_mm)
     link = _Link(js, checker, seed)
     try:
-        return _solve(js, link, start, goals, planner, time_limit, range_mm, more_goals, slices,
-                      simplify, simplify_rounds, optimize, max_states)
+        # Python callbacks run inside OMPL's C++ code: a SIGINT / SIGTERM is only recorded
+        # there (the callbacks then answer "invalid" and the planner stops at once) and
+        # raised when control is back here
+        with interrupt.deferred():
+            return _solve(js, link, start, goals, planner, time_limit, range_mm, more_goals,
+                          slices, simplify, simplify_rounds, optimize, max_states)
     finally:
         link.detach()
         js.si.clearValidStateSamplerAllocator()
@@ -396,9 +401,11 @@ def _solve(js: JointSpace, link: _Link, start, goals, planner, time_limit, range
             ptc = ob.timedPlannerTerminationCondition(budget)
         if not optimize:
             ptc = ob.plannerOrTerminationCondition(ptc, ob.exactSolnPlannerTerminationCondition(pdef))
+        ptc = ob.plannerOrTerminationCondition(ptc, ob.PlannerTerminationCondition(interrupt.requested))
         status = pl.solve(ptc)
         if link.exc is not None:
             raise link.exc
+        interrupt.check()
         if pdef.hasExactSolution():
             break
         if max_states is not None and time.perf_counter() >= deadline:
@@ -433,6 +440,7 @@ def _solve(js: JointSpace, link: _Link, start, goals, planner, time_limit, range
             changed |= ps.collapseCloseVertices(path)
             if link.exc is not None:
                 raise link.exc
+            interrupt.check()
             if not changed:
                 break
     simplification_s = time.perf_counter() - t1

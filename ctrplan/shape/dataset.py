@@ -21,6 +21,9 @@ _WORKER_MODEL: Any = None
 
 def _init_worker(model: Any) -> None:
     global _WORKER_MODEL
+    from ctrplan import interrupt
+
+    interrupt.ignore_in_child()   # the parent stops the pool on Ctrl-C / SIGTERM
     _WORKER_MODEL = model
     try:  # keep each worker single-threaded: the pool already uses every core
         import torch
@@ -102,9 +105,18 @@ def simulate_shapes(model: Any, q: np.ndarray, points: int = 20, workers: int | 
         else:
             # fork: workers inherit the compiled kernels and scripts need no __main__ guard
             ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
-            with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=ctx,
-                                     initializer=_init_worker, initargs=(model,)) as ex:
-                for k, res in ex.map(_solve_chunk, tasks):
+            from ctrplan import interrupt
+
+            ex = ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=ctx,
+                                     initializer=_init_worker, initargs=(model,))
+            try:
+                with interrupt.spawning():    # the workers start in map(), SIGINT ignored
+                    results = ex.map(_solve_chunk, tasks)
+                for k, res in results:
                     parts[k] = res
                     pb.update(len(res[0]))
+            except BaseException:
+                interrupt.stop_executor(ex)   # Ctrl-C or an error: no worker finishes its chunk
+                raise
+            ex.shutdown()
     return _concat(parts)  # type: ignore[arg-type]

@@ -306,19 +306,39 @@ class PhysicsModel:
         _wait_for_warmup()
 
         def unloaded(rows, m):
-            # the unloaded kernels, on all rows or (index array) a subset
-            if rows is None:
+            # the unloaded kernels, on all rows or (index array) a subset, a chunk at a time:
+            # the kernel returns to Python every few thousand rows, where a pending SIGINT /
+            # SIGTERM is acted on (ctrplan.interrupt)
+            from ctrplan import interrupt
+
+            if rows is None and B <= interrupt.CHUNK:
                 return _shooting.solve_batch(
                     alpha, beta, self._lengths, self._straight, kappa, EI, ratio, kink,
                     self.torsion, m, float(self.config.step_mm), float(self.config.tol),
                     int(self.config.max_iter), x0, bool(self.config.stability),
                     bool(self.config.probe_bistable))
+            rows = np.arange(B) if rows is None else np.asarray(rows)
             c = np.ascontiguousarray
-            return _shooting.solve_batch(
-                c(alpha[rows]), c(beta[rows]), self._lengths, self._straight, c(kappa[rows]),
-                c(EI[rows]), c(ratio[rows]), c(kink[rows]), self.torsion, m,
-                float(self.config.step_mm), float(self.config.tol), int(self.config.max_iter),
-                c(x0[rows]), bool(self.config.stability), bool(self.config.probe_bistable))
+            parts = []
+            for k in range(0, len(rows), interrupt.CHUNK):
+                interrupt.check()
+                r_ = rows[k:k + interrupt.CHUNK]
+                parts.append(_shooting.solve_batch(
+                    c(alpha[r_]), c(beta[r_]), self._lengths, self._straight, c(kappa[r_]),
+                    c(EI[r_]), c(ratio[r_]), c(kink[r_]), self.torsion, m,
+                    float(self.config.step_mm), float(self.config.tol), int(self.config.max_iter),
+                    c(x0[r_]), bool(self.config.stability), bool(self.config.probe_bistable)))
+            interrupt.check()
+            if len(parts) == 1:
+                return parts[0]
+            if not parts:
+                parts.append(_shooting.solve_batch(
+                    c(alpha[:0]), c(beta[:0]), self._lengths, self._straight, c(kappa[:0]),
+                    c(EI[:0]), c(ratio[:0]), c(kink[:0]), self.torsion, m,
+                    float(self.config.step_mm), float(self.config.tol), int(self.config.max_iter),
+                    c(x0[:0]), bool(self.config.stability), bool(self.config.probe_bistable)))
+                return parts[0]
+            return tuple(np.concatenate(z, axis=0) for z in zip(*parts))
 
         moment0 = None
         if not loaded.any():
