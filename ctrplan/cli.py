@@ -25,8 +25,18 @@ COMMANDS = (
 log = logging.getLogger("ctrplan")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser whose error line quotes a bad value as a short excerpt, never whole
+    (sub-command parsers are of the same class)."""
+
+    def error(self, message: str):  # type: ignore[override]
+        from ctrplan.errors import excerpt
+
+        super().error(excerpt(" ".join(message.split())))
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="ctrplan",
         description="Motion planning for concentric tube robots inside anatomy.",
     )

@@ -7,6 +7,19 @@ and the field that is wrong. The command line turns it into a one-line message a
 from __future__ import annotations
 
 
+#: longest message kept whole; longer ones (a bad value quoted whole) keep their start and end
+MAX_MESSAGE = 300
+
+
+def excerpt(text: str, limit: int = MAX_MESSAGE) -> str:
+    """``text`` cut to at most ``limit`` characters, the middle replaced by `` ... ``."""
+    if len(text) <= limit:
+        return text
+    head = limit * 3 // 4
+    tail = limit - head - 5
+    return f"{text[:head]} ... {text[-tail:]}"
+
+
 class CtrplanError(Exception):
     """Base class for errors raised by ctrplan."""
 
@@ -27,6 +40,6 @@ class InputError(CtrplanError, ValueError):
     def __init__(self, source: str, field: str, message: str):
         self.source = str(source)
         self.field = str(field)
-        self.message = " ".join(str(message).split())
+        self.message = excerpt(" ".join(str(message).split()))
         where = self.source if not self.field else f"{self.source}: {self.field}"
         super().__init__(f"{where}: {self.message}")

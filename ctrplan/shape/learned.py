@@ -776,7 +776,7 @@ class LearnedModel:
 
                 profile = profile_from_dict(profile).to_dict()
             domain = _check_domain(meta.get("domain"))
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise InputError(src, "meta_json", f"missing or malformed metadata ({exc})") from None
         try:
             stored = robot_from_dict(meta.get("robot"), source=f"{src} (robot)")
