@@ -6,7 +6,6 @@ and the field that is wrong. The command line turns it into a one-line message a
 
 from __future__ import annotations
 
-
 #: longest message kept whole; longer ones (a bad value quoted whole) keep their start and end
 MAX_MESSAGE = 300
 
@@ -38,8 +37,8 @@ class InputError(CtrplanError, ValueError):
     """
 
     def __init__(self, source: str, field: str, message: str):
-        self.source = str(source)
-        self.field = str(field)
+        self.source = excerpt(str(source).replace("\r", "\\r").replace("\n", "\\n"), 200)
+        self.field = excerpt(" ".join(str(field).split()), 120)
         self.message = excerpt(" ".join(str(message).split()))
         where = self.source if not self.field else f"{self.source}: {self.field}"
         super().__init__(f"{where}: {self.message}")

@@ -604,22 +604,24 @@ MISSING = "{out}/missing/ctrplan-fuzz"
 COMMANDS = [
     (["shape", "--robot", "seed1", "--configs", f"{MISSING}.csv", "--out", "{out}/s.csv"], ["--points"]),
     (["check", "--robot", "seed1", "--scene", "airway", "--configs", f"{MISSING}.csv",
-      "--out", "{out}/c.csv"], ["--points"]),
+      "--out", "{out}/c.csv"], ["--points", "--margin"]),
     (["simulate", "--robot", f"{MISSING}.yaml", "--out", "{out}/m.csv"],
      ["--n", "--sweeps", "--noise", "--points", "--step", "--seed"]),
     (["train", "--robot", f"{MISSING}.yaml", "--out", "{out}/m.pt"],
      ["--sim", "--real-sim", "--width", "--depth", "--terms", "--epochs", "--fine-epochs",
       "--patience", "--lr", "--batch-size", "--points", "--seed", "--workers", "--threads"]),
     (["plan", "--robot", f"{MISSING}.yaml", "--scene", "airway", "--target", "1,2,3",
-      "--out", "{out}/p.json"], ["--time", "--tolerance", "--seed"]),
+      "--out", "{out}/p.json"], ["--time", "--tolerance", "--seed", "--margin"]),
     (["plan-batch", "--robot", f"{MISSING}.yaml", "--targets", f"{MISSING}.csv", "--out", "{out}/b"],
-     ["--seeds", "--workers"]),
-    (["view", "--plan", f"{MISSING}.json", "--out", "{out}/v.html"], ["--points"]),
+     ["--seeds", "--workers", "--time", "--tolerance", "--margin"]),
+    (["view", f"{MISSING}.json", "--out", "{out}/v.html"], ["--points"]),
     (["diagnose", "--robot", f"{MISSING}.yaml", "--data", f"{MISSING}.csv", "--out", "{out}/d"],
      ["--holdout", "--bic-threshold", "--min-gain", "--seed", "--test-fraction"]),
-    (["design", "--scene", f"{MISSING}", "--out", "{out}/g"],
+    (["design", "--scene", f"{MISSING}", "--targets", "t01", "--out", "{out}/g"],
      ["--tubes", "--seed", "--budget", "--time", "--workers", "--strain-limit", "--min-gap",
       "--max-length", "--max-stroke"]),
+    (["scene", "from-labels", f"{MISSING}.nii.gz", "--wall", "1", "--entry", "0,0,0",
+      "--toward", "0,0,1", "--out", "{out}/sc"], ["--max-shift", "--max-mb"]),
     (["demo", "--out", "{out}/afile/demo"], ["--time", "--seed"]),   # afile: a file
 ]
 
@@ -652,4 +654,5 @@ def test_fuzz_cli_numeric_options(files, capsys, case, value, equals):
     lines = [ln for ln in err.splitlines() if ln.strip()]
     errors = [ln for ln in lines if "error:" in ln]
     assert len(errors) == 1, f"expected one error line for {opt} {value[:80]!r}: {err[-600:]!r}"
+    assert "unrecognized arguments" not in err and "arguments are required" not in err, err[-300:]
     assert len(errors[0]) <= MAX_MESSAGE, f"error line of {len(errors[0])} characters for {opt}"

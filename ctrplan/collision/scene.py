@@ -204,7 +204,11 @@ def load_mesh(path: str | os.PathLike):
     import trimesh
 
     path = Path(path)
-    if not path.is_file():
+    try:
+        found = path.is_file()
+    except OSError:     # a name too long for the file system
+        found = False
+    if not found:
         raise InputError(str(path), "", "mesh file not found")
     try:
         mesh = trimesh.load(path, force="mesh", process=False)

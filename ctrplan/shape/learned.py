@@ -47,6 +47,7 @@ Options recorded in the model file:
 from __future__ import annotations
 
 import json
+import math
 import os
 from importlib import resources
 from pathlib import Path
@@ -815,7 +816,8 @@ class LearnedModel:
         for t in list(model.net.state_dict().values()) + [model.coef_mean, model.coef_std, model.beta_span]:
             if not torch.all(torch.isfinite(t)):
                 raise InputError(src, "state", "contains non-finite weights")
-        if domain is not None and (len(domain["beta_min_mm"]) != robot.n or len(domain["alpha_arcs_rad"]) != robot.n):
+        if domain is not None and any(len(domain[k]) != robot.n for k in
+                                      ("beta_min_mm", "beta_max_mm", "alpha_arcs_rad")):
             raise InputError(src, "domain", f"expects {robot.n} tubes")
         model.error_quantiles = eq
         model.error_profile = profile
@@ -957,9 +959,16 @@ def _check_domain(dom: Any) -> dict[str, Any] | None:
     for k in ("beta_min_mm", "beta_max_mm", "alpha_arcs_rad"):
         if not isinstance(dom.get(k), list):
             raise ValueError(f"domain.{k} missing")
-    np.asarray(dom["beta_min_mm"], dtype=float), np.asarray(dom["beta_max_mm"], dtype=float)
+    for k in ("beta_min_mm", "beta_max_mm"):
+        v = np.asarray(dom[k], dtype=float)
+        if v.ndim != 1 or not np.all(np.isfinite(v)):
+            raise ValueError(f"domain.{k} must be a list of finite numbers")
+    tol = float(dom.get("tolerance", 0.0))
+    if not (math.isfinite(tol) and tol >= 0):
+        raise ValueError("domain.tolerance must be a finite number >= 0")
     for arc in dom["alpha_arcs_rad"]:
-        if arc is not None and (not isinstance(arc, list) or len(arc) != 2):
+        if arc is not None and (not isinstance(arc, list) or len(arc) != 2
+                                or not np.all(np.isfinite(np.asarray(arc, dtype=float)))):
             raise ValueError("domain.alpha_arcs_rad entries must be [centre, half-width] or null")
     return dom
 
