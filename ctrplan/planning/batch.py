@@ -132,7 +132,7 @@ def read_targets(path: str, scenes: Sequence[str] = ()) -> list[tuple[str, str, 
             try:
                 check_scene_spec(s)
             except InputError as exc:
-                raise InputError(path, f"{where}: scene", exc.message) from None
+                raise InputError(path, f"{where}: scene", f"{s!r}: {exc.message}") from None
             out.append((s, name, xyz))
         else:
             out.extend((s, name, xyz) for s in scenes)
