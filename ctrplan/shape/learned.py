@@ -811,7 +811,7 @@ class LearnedModel:
                 if v.shape != (robot.n,):
                     raise ValueError(f"{name}_mm has shape {tuple(v.shape)}, expected ({robot.n},)")
                 setattr(model, name, v)
-        except (RuntimeError, KeyError, TypeError, ValueError) as exc:
+        except (RuntimeError, KeyError, TypeError, ValueError, AttributeError) as exc:
             raise InputError(src, "state", f"weights do not match the stored architecture ({exc})".replace("\n", " ")[:400]) from None
         for t in list(model.net.state_dict().values()) + [model.coef_mean, model.coef_std, model.beta_span]:
             if not torch.all(torch.isfinite(t)):
