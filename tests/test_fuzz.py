@@ -630,9 +630,24 @@ def _option_cases():
     return st.sampled_from([(argv, opt) for argv, opts in COMMANDS for opt in opts])
 
 
+@pytest.fixture(scope="module")
+def fast_cli():
+    """main() as the command line runs it, less two fixed costs per call that have nothing to
+    do with the options: the parser is built once, and the interrupt guard (signal handlers and
+    a watchdog process) is left out."""
+    parser = cli.build_parser()
+    mp = pytest.MonkeyPatch()
+    mp.setattr(cli, "build_parser", lambda: parser)
+    from ctrplan import interrupt
+
+    mp.setattr(interrupt, "guard", contextlib.nullcontext)
+    yield
+    mp.undo()
+
+
 @FUZZ
 @given(case=_option_cases(), value=numberish(), equals=st.booleans())
-def test_fuzz_cli_numeric_options(files, capsys, case, value, equals):
+def test_fuzz_cli_numeric_options(files, capsys, fast_cli, case, value, equals):
     """Every numeric option, any value: exit 2 with one bounded error line, never a traceback
     (the inputs named are missing, so a value that is accepted ends at the missing file)."""
     argv, opt = case
