@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import functools
 import io
 import json
 import math
@@ -135,6 +136,7 @@ def mutated(draw, seeds: list[bytes]) -> bytes:
     return bytes(b)
 
 
+@functools.cache   # a strategy is built (and validated) once
 def numberish() -> st.SearchStrategy:
     """Text that is, or is close to, a number."""
     return st.one_of(
@@ -147,6 +149,7 @@ def numberish() -> st.SearchStrategy:
     )
 
 
+@functools.cache   # a strategy is built (and validated) once
 def scalars() -> st.SearchStrategy:
     """YAML/JSON leaf values: huge ints, non-finite floats, unicode, booleans, null."""
     return st.one_of(
@@ -156,6 +159,7 @@ def scalars() -> st.SearchStrategy:
     )
 
 
+@functools.cache   # a strategy is built (and validated) once
 def trees(leaves: st.SearchStrategy | None = None) -> st.SearchStrategy:
     """Nested lists and mappings (depth up to ~40, beyond the YAML reader's limit of 32)."""
     leaves = scalars() if leaves is None else leaves
@@ -476,7 +480,7 @@ def learned_objects(draw) -> dict:
             obj[draw(st.sampled_from(["format", "version", "meta_json", "state", "base", "x"]))] = draw(
                 st.one_of(scalars(), trees(), _tensor_like()))
         elif op == "state" and isinstance(obj.get("state"), dict) and obj["state"]:
-            k = draw(st.sampled_from(sorted(obj["state"])))
+            k = draw(st.sampled_from(sorted(obj["state"], key=str)))
             obj["state"][k] = draw(_tensor_like())
         elif op == "drop":
             obj.pop(draw(st.sampled_from(sorted(obj, key=str))), None)

@@ -754,9 +754,10 @@ class LearnedModel:
 
     @classmethod
     def _from_object(cls, obj: Any, src: str, robot: Robot | str | None, depth_left: int = 4) -> LearnedModel:
-        if not isinstance(obj, dict) or obj.get("format") != FORMAT:
+        if not isinstance(obj, dict) or not isinstance(obj.get("format"), str) \
+                or obj.get("format") != FORMAT:
             raise InputError(src, "format", f"not a {FORMAT} file")
-        if obj.get("version") not in READ_VERSIONS:
+        if not isinstance(obj.get("version"), int) or obj.get("version") not in READ_VERSIONS:
             raise InputError(src, "version", f"unsupported version {obj.get('version')!r} "
                                              f"(reads {', '.join(map(str, READ_VERSIONS))})")
         try:
