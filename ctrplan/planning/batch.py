@@ -223,6 +223,12 @@ def _done(path: Path, job: Job) -> dict | None:
         return None
     if not isinstance(data, dict) or data.get("job_id") != job.id or "status" not in data:
         return None
+    t = data.get("planning_time_s")
+    if not isinstance(data["status"], str) or not isinstance(data.get("scene", ""), str) or (
+            t is not None and (isinstance(t, bool) or not isinstance(t, (int, float))
+                               or not math.isfinite(t) or t < 0)) \
+            or not isinstance(data.get("target", []), list):
+        return None     # an edited or damaged result: run the job again
     return data
 
 
