@@ -11,7 +11,7 @@ TORCH_INDEX ?=
 TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
 PYTEST_ARGS ?=
 
-.PHONY: demo test test-stat install lint bench wheel clean
+.PHONY: demo test test-stat fuzz-ci fuzz install lint bench wheel clean
 
 # The package and its run-time dependencies (all `make demo` needs) ...
 $(VENV)/.base: pyproject.toml
@@ -45,6 +45,15 @@ STAT_WORKERS ?= 2
 test-stat: install
 	OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 \
 	  $(PY) -m pytest -q -m statistical -n $(STAT_WORKERS) --dist loadfile $(PYTEST_ARGS)
+
+# Hypothesis over every reader and the numeric options (tests/test_fuzz.py), seeded: `make test`
+# runs it with a few dozen examples per reader, `fuzz-ci` (run by .ci/run) with 10,000 per reader,
+# `fuzz` with 100,000 per reader (hours; run it before a release or after changing a reader).
+fuzz-ci: install
+	CTRPLAN_FUZZ=ci OMP_NUM_THREADS=1 $(PY) -m pytest -q -n $(STAT_WORKERS) tests/test_fuzz.py $(PYTEST_ARGS)
+
+fuzz: install
+	CTRPLAN_FUZZ=long $(PY) -m pytest -q tests/test_fuzz.py $(PYTEST_ARGS)
 
 lint: install
 	$(VENV)/bin/ruff check ctrplan tests benchmarks examples

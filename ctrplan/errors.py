@@ -20,6 +20,19 @@ def shorten(text: str) -> str:
                               str(text)).split())
 
 
+#: longest message kept whole; longer ones (a bad value quoted whole) keep their start and end
+MAX_MESSAGE = 300
+
+
+def excerpt(text: str, limit: int = MAX_MESSAGE) -> str:
+    """``text`` cut to at most ``limit`` characters, the middle replaced by `` ... ``."""
+    if len(text) <= limit:
+        return text
+    head = limit * 3 // 4
+    tail = limit - head - 5
+    return f"{text[:head]} ... {text[-tail:]}"
+
+
 class CtrplanError(Exception):
     """Base class for errors raised by ctrplan."""
 
@@ -38,8 +51,8 @@ class InputError(CtrplanError, ValueError):
     """
 
     def __init__(self, source: str, field: str, message: str):
-        self.source = str(source)
-        self.field = shorten(field)
-        self.message = shorten(message)
+        self.source = excerpt(str(source).replace("\r", "\\r").replace("\n", "\\n"), 200)
+        self.field = excerpt(shorten(field), 120)
+        self.message = excerpt(shorten(message))
         where = self.source if not self.field else f"{self.source}: {self.field}"
         super().__init__(f"{where}: {self.message}")

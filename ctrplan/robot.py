@@ -389,7 +389,7 @@ def robot_from_dict(data: Any, source: str = "<memory>") -> Robot:
         raise InputError(source, "", "expected a mapping with 'name' and 'tubes'")
     unknown = set(data) - {"name", "tubes", "beta_min", "units", "notes", "source"}
     if unknown:
-        raise InputError(source, sorted(unknown)[0], "unknown key")
+        raise InputError(source, sorted(unknown, key=str)[0], "unknown key")
     name = data.get("name", Path(source).stem)
     if not isinstance(name, str) or not name:
         raise InputError(source, "name", "must be a non-empty string")
@@ -402,7 +402,7 @@ def robot_from_dict(data: Any, source: str = "<memory>") -> Robot:
             raise InputError(source, f"tubes[{i}]", "must be a mapping")
         unknown = set(t) - set(_TUBE_FIELDS) - {"density"}
         if unknown:
-            raise InputError(source, f"tubes[{i}].{sorted(unknown)[0]}", "unknown key")
+            raise InputError(source, f"tubes[{i}].{sorted(unknown, key=str)[0]}", "unknown key")
         missing = [k for k in _TUBE_FIELDS if k not in t]
         if missing:
             raise InputError(source, f"tubes[{i}].{missing[0]}", "missing")

@@ -166,7 +166,7 @@ def scene_from_dict(data: object, yml: Path) -> Scene:
     src = str(yml)
     if not isinstance(data, dict):
         raise InputError(src, "", "expected a mapping at the top level")
-    unknown = sorted(set(data) - _SCENE_KEYS)
+    unknown = sorted(set(data) - _SCENE_KEYS, key=str)
     if unknown:
         raise InputError(src, unknown[0], f"unknown key (allowed: {', '.join(sorted(_SCENE_KEYS))})")
     name = str(data.get("name") or yml.parent.name)
@@ -182,7 +182,7 @@ def scene_from_dict(data: object, yml: Path) -> Scene:
         where = f"meshes[{k}]"
         if not isinstance(entry, dict):
             raise InputError(src, where, "expected a mapping with name, file, role")
-        bad = sorted(set(entry) - _MESH_KEYS)
+        bad = sorted(set(entry) - _MESH_KEYS, key=str)
         if bad:
             raise InputError(src, f"{where}.{bad[0]}", "unknown key")
         for key in ("name", "file", "role"):
@@ -236,7 +236,11 @@ def load_mesh(path: str | os.PathLike):
     import trimesh
 
     path = Path(path)
-    if not path.is_file():
+    try:
+        found = path.is_file()
+    except OSError:     # a name too long for the file system
+        found = False
+    if not found:
         raise InputError(str(path), "", "mesh file not found")
     from ctrplan.io import check_input_file
 
@@ -278,7 +282,7 @@ def validate_mesh(mesh, source: str) -> None:
 def _parse_pose(raw: object, src: str) -> np.ndarray:
     if not isinstance(raw, dict) or "position" not in raw or "quaternion" not in raw:
         raise InputError(src, "base_pose", "needs position [x, y, z] and quaternion [w, x, y, z]")
-    bad = sorted(set(raw) - {"position", "quaternion"})
+    bad = sorted(set(raw) - {"position", "quaternion"}, key=str)
     if bad:
         raise InputError(src, f"base_pose.{bad[0]}", "unknown key")
     pos = _vector(raw["position"], 3, src, "base_pose.position")
@@ -299,7 +303,7 @@ def _parse_targets(raw: object, src: str) -> tuple[Target, ...]:
     for k, t in enumerate(raw):
         if not isinstance(t, dict) or "position" not in t:
             raise InputError(src, f"targets[{k}]", "expected {name, position: [x, y, z]}")
-        bad = sorted(set(t) - {"name", "position", "config"})
+        bad = sorted(set(t) - {"name", "position", "config"}, key=str)
         if bad:
             raise InputError(src, f"targets[{k}].{bad[0]}", "unknown key")
         config = None

@@ -113,7 +113,10 @@ class OneLineParser(argparse.ArgumentParser):
     usage block) and quote at most a short excerpt of an over-long value."""
 
     def error(self, message: str) -> NoReturn:
-        print(f"{self.prog}: error: {_short(message)} (see {self.prog} --help)", file=sys.stderr)
+        from ctrplan.errors import excerpt
+
+        print(f"{self.prog}: error: {excerpt(_short(message))} (see {self.prog} --help)",
+              file=sys.stderr)
         raise SystemExit(2)
 
 

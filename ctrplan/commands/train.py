@@ -107,6 +107,8 @@ def _check(args: argparse.Namespace) -> None:
         v = getattr(args, name)
         if v < 1:
             raise InputError(f"--{name.replace('_', '-')}", "", f"must be >= 1, got {v}")
+    if args.threads > 256:    # torch.set_num_threads overflows on huge values
+        raise InputError("--threads", "", f"must be <= 256, got {args.threads}")
     if args.fine_epochs < 0 or args.patience < 1:
         raise InputError("--patience" if args.patience < 1 else "--fine-epochs", "", "out of range")
     if args.sim is not None and args.sim < 0:

@@ -130,7 +130,10 @@ def read_targets(path: str, scenes: Sequence[str] = ()) -> list[tuple[str, str, 
                 raise InputError(path, f"{where}: scene", "empty")
             if scenes and s not in scenes:
                 continue
-            check_scene_spec(s)
+            try:
+                check_scene_spec(s)
+            except InputError as exc:
+                raise InputError(path, f"{where}: scene", f"{s!r}: {exc.message}") from None
             out.append((s, name, xyz))
         else:
             out.extend((s, name, xyz) for s in scenes)

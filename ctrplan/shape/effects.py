@@ -650,7 +650,7 @@ class EffectModel:
         unknown = set(data) - {"kind", "base", "robot", "effects", "units", "notes",
                                "error_quantiles", "error_profile"}
         if unknown:
-            raise InputError(source, sorted(unknown)[0], "unknown key")
+            raise InputError(source, sorted(unknown, key=str)[0], "unknown key")
         robot = robot_from_dict(data.get("robot"), source=source)
         effects = data.get("effects") or {}
         if not isinstance(effects, dict):
@@ -705,8 +705,8 @@ def is_effect_model_file(path: str | os.PathLike) -> bool:
     if not os.path.isfile(p):      # a pipe or device would block open() or never end
         return False
     try:
-        with open(p, encoding="utf-8") as fh:
-            return MODEL_KIND in fh.read(4096)
+        with open(p, "rb") as fh:    # bytes: a file that is not UTF-8 is reported by load_yaml
+            return MODEL_KIND.encode() in fh.read(4096)
     except OSError:
         return False
 

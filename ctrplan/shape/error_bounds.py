@@ -112,7 +112,7 @@ def profile_from_dict(data: Any, source: str = "error_profile") -> ErrorProfile:
         raise ValueError(f"{source}: must be a mapping with fractions, {', '.join(QUANTILES)}")
     unknown = set(data) - {"fractions", *QUANTILES}
     if unknown:
-        raise ValueError(f"{source}.{sorted(unknown)[0]}: unknown key")
+        raise ValueError(f"{source}.{sorted(unknown, key=str)[0]}: unknown key")
     arrays = {}
     for k in ("fractions", *QUANTILES):
         if k not in data:

@@ -763,9 +763,10 @@ class LearnedModel:
 
     @classmethod
     def _from_object(cls, obj: Any, src: str, robot: Robot | str | None, depth_left: int = 4) -> LearnedModel:
-        if not isinstance(obj, dict) or obj.get("format") != FORMAT:
+        if not isinstance(obj, dict) or not isinstance(obj.get("format"), str) \
+                or obj.get("format") != FORMAT:
             raise InputError(src, "format", f"not a {FORMAT} file")
-        if obj.get("version") not in READ_VERSIONS:
+        if not isinstance(obj.get("version"), int) or obj.get("version") not in READ_VERSIONS:
             raise InputError(src, "version", f"unsupported version {obj.get('version')!r} "
                                              f"(reads {', '.join(map(str, READ_VERSIONS))})")
         try:
@@ -786,7 +787,7 @@ class LearnedModel:
 
                 profile = profile_from_dict(profile).to_dict()
             domain = _check_domain(meta.get("domain"))
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise InputError(src, "meta_json", f"missing or malformed metadata ({exc})") from None
         try:
             stored = robot_from_dict(meta.get("robot"), source=f"{src} (robot)")
@@ -820,13 +821,14 @@ class LearnedModel:
                 if v.shape != (robot.n,):
                     raise ValueError(f"{name}_mm has shape {tuple(v.shape)}, expected ({robot.n},)")
                 setattr(model, name, v)
-        except (RuntimeError, KeyError, TypeError, ValueError) as exc:
+        except (RuntimeError, KeyError, TypeError, ValueError, AttributeError) as exc:
             raise InputError(src, "state", f"weights do not match the stored architecture ({exc})".replace("\n", " ")[:400]) from None
         for t in list(model.net.state_dict().values()) + [model.coef_mean, model.coef_std, model.beta_span]:
             if not torch.all(torch.isfinite(t)):
                 raise InputError(src, "state", "contains non-finite weights")
         _check_normalisation(model, src)
-        if domain is not None and (len(domain["beta_min_mm"]) != robot.n or len(domain["alpha_arcs_rad"]) != robot.n):
+        if domain is not None and any(len(domain[k]) != robot.n for k in
+                                      ("beta_min_mm", "beta_max_mm", "alpha_arcs_rad")):
             raise InputError(src, "domain", f"expects {robot.n} tubes")
         model.error_quantiles = eq
         model.error_profile = profile
@@ -987,12 +989,16 @@ def _check_domain(dom: Any) -> dict[str, Any] | None:
     for k in ("beta_min_mm", "beta_max_mm", "alpha_arcs_rad"):
         if not isinstance(dom.get(k), list):
             raise ValueError(f"domain.{k} missing")
+    for k in ("beta_min_mm", "beta_max_mm"):
+        v = np.asarray(dom[k], dtype=float)
+        if v.ndim != 1 or not np.all(np.isfinite(v)):
+            raise ValueError(f"domain.{k} must be a list of finite numbers")
     lo, hi = np.asarray(dom["beta_min_mm"], dtype=float), np.asarray(dom["beta_max_mm"], dtype=float)
-    if lo.shape != hi.shape or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))) \
-            or np.any(lo > hi):
+    if lo.shape != hi.shape or np.any(lo > hi):
         raise ValueError("domain.beta_min_mm / beta_max_mm must be finite with min <= max")
     for arc in dom["alpha_arcs_rad"]:
-        if arc is not None and (not isinstance(arc, list) or len(arc) != 2):
+        if arc is not None and (not isinstance(arc, list) or len(arc) != 2
+                                or not np.all(np.isfinite(np.asarray(arc, dtype=float)))):
             raise ValueError("domain.alpha_arcs_rad entries must be [centre, half-width] or null")
         if arc is not None:
             c, h = float(arc[0]), float(arc[1])
