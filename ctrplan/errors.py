@@ -51,7 +51,7 @@ class InputError(CtrplanError, ValueError):
     """
 
     def __init__(self, source: str, field: str, message: str):
-        self.source = excerpt(str(source).replace("\r", "\\r").replace("\n", "\\n"), 200)
+        self.source = excerpt(str(source).replace("\r", "\\r").replace("\n", "\\n"), MAX_TOKEN)
         self.field = excerpt(shorten(field), 120)
         self.message = excerpt(shorten(message))
         where = self.source if not self.field else f"{self.source}: {self.field}"

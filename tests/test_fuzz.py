@@ -58,7 +58,7 @@ if os.environ.get("CTRPLAN_FUZZ_EXAMPLES"):     # measuring: another count, same
 #: seconds one example may take before it counts as a hang
 HANG_S = 10.0
 #: longest error message accepted (the bad value is quoted as an excerpt, never whole)
-MAX_MESSAGE = 600
+MAX_MESSAGE = 1000   # source (paths whole up to 400) + field + message (300)
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO / "ctrplan" / "data"

@@ -338,15 +338,26 @@ def _folder_lock(out: Path):
     except ImportError:  # pragma: no cover - not POSIX
         yield
         return
-    fd = os.open(out / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
-    try:
+    path = out / ".lock"
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
+            os.close(fd)
             raise InputError("--out", "", f"another plan-batch is writing to {str(out)!r} "
                                           f"(wait for it, or use another folder)") from None
+        try:   # the file may have been removed by the run that held it: lock the one there now
+            if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                break
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+    try:
         yield
     finally:
+        with contextlib.suppress(OSError):
+            os.unlink(path)      # removed while still held: the folder keeps only results
         os.close(fd)
 
 
