@@ -146,11 +146,17 @@ def load_scene(name_or_path: str | os.PathLike | Scene) -> Scene:
         return name_or_path
     s = str(name_or_path)
     p = Path(s)
-    if p.is_file() and p.name.endswith((".yaml", ".yml")):
+    try:   # a name the file system cannot hold (too long, NUL) names no scene either
+        kind = ("file" if p.is_file() and p.name.endswith((".yaml", ".yml")) else "dir" if p.is_dir()
+                else "shipped" if os.sep not in s and "/" not in s
+                and (anatomy_dir() / s / "scene.yaml").is_file() else "")
+    except (OSError, ValueError):
+        kind = ""
+    if kind == "file":
         folder, yml = p.parent, p
-    elif p.is_dir():
+    elif kind == "dir":
         folder, yml = p, p / "scene.yaml"
-    elif os.sep not in s and "/" not in s and (anatomy_dir() / s / "scene.yaml").is_file():
+    elif kind == "shipped":
         folder = anatomy_dir() / s
         yml = folder / "scene.yaml"
     else:

@@ -72,12 +72,15 @@ def check_scene_spec(spec: str) -> str:
     from ctrplan.collision.scene import anatomy_dir, list_scenes
 
     p = Path(spec)
-    if p.is_file() and p.name.endswith((".yaml", ".yml")):
-        return spec
-    if p.is_dir() and (p / "scene.yaml").is_file():
-        return spec
-    if "/" not in spec and os.sep not in spec and (anatomy_dir() / spec / "scene.yaml").is_file():
-        return spec
+    try:   # a name the file system cannot hold (too long, NUL) names no scene either
+        if p.is_file() and p.name.endswith((".yaml", ".yml")):
+            return spec
+        if p.is_dir() and (p / "scene.yaml").is_file():
+            return spec
+        if "/" not in spec and os.sep not in spec and (anatomy_dir() / spec / "scene.yaml").is_file():
+            return spec
+    except (OSError, ValueError):
+        pass
     raise InputError(spec, "", f"no such scene folder, and not a shipped scene "
                                f"({', '.join(list_scenes()) or 'none found'})")
 

@@ -59,7 +59,7 @@ def validate_job_file(path: str | Path, data: Any, job: Any) -> dict:
                            f"{str(want)[:60]!r})")
     statuses = {s.value for s in PlanStatus}
     status = data.get("status")
-    if status not in statuses:
+    if not isinstance(status, str) or status not in statuses:
         raise bad("status", f"must be one of {', '.join(sorted(statuses))}, got {str(status)[:40]!r}")
     if not isinstance(data.get("success"), bool) or data["success"] != (status == "SUCCESS"):
         raise bad("success", f"must be {str(status == 'SUCCESS').lower()} for status {status}")
