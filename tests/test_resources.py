@@ -258,8 +258,17 @@ def test_bad_row_in_a_later_chunk_leaves_nothing(tmp_path, capsys, monkeypatch):
         assert sorted(p.name for p in tmp_path.iterdir()) == ["c.csv"]
 
 
+# Peak memory of the command's own process: VmHWM (the high-water mark of this address space,
+# which starts afresh at exec). getrusage's ru_maxrss is not used: Linux carries the forking
+# parent's high-water mark into it across fork + exec, so a child of a large pytest worker
+# reported the worker's 2.3 GB instead of its own ~210 MB.
 _PEAK = ("import resource, sys\nfrom ctrplan import cli\nrc = cli.main(sys.argv[1:])\n"
-         "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024, rc)\n")
+         "try:\n"
+         "    hwm = [ln for ln in open('/proc/self/status') if ln.startswith('VmHWM:')]\n"
+         "    mb = int(hwm[0].split()[1]) // 1024\n"
+         "except (OSError, IndexError):\n"
+         "    mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024\n"
+         "print(mb, rc)\n")
 
 
 def _peak_mb(argv: list[str]) -> int:
