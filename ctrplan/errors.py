@@ -14,10 +14,12 @@ MAX_TOKEN = 400
 _LONG = re.compile(r"\S{" + str(MAX_TOKEN + 1) + ",}")
 
 
-def shorten(text: str) -> str:
-    """``text`` on one line with every over-long run of non-blank characters cut to an excerpt."""
-    return " ".join(_LONG.sub(lambda m: f"{m.group(0)[:40]}... ({len(m.group(0))} characters)",
-                              str(text)).split())
+def shorten(text: str, max_token: int = MAX_TOKEN) -> str:
+    """``text`` on one line with every run of non-blank characters longer than ``max_token``
+    cut to its first 40 characters and its length."""
+    long = _LONG if max_token == MAX_TOKEN else re.compile(r"\S{" + str(max_token + 1) + ",}")
+    return " ".join(long.sub(lambda m: f"{m.group(0)[:40]}... ({len(m.group(0))} characters)",
+                             str(text)).split())
 
 
 #: longest message kept whole; longer ones (a bad value quoted whole) keep their start and end

@@ -100,12 +100,8 @@ NONNEGATIVE = float_arg(0.0)
 FRACTION = float_arg(0.0, 1.0, lo_open=True, hi_open=True)
 MAX_MB = float_arg(0.0, 2.0 ** 40, lo_open=True)
 
-_LONG_TOKEN = re.compile(r"\S{61,}")
-
-
-def _short(message: str) -> str:
-    return " ".join(_LONG_TOKEN.sub(lambda m: m.group(0)[:40] + f"... ({len(m.group(0))} characters)",
-                                    message).split())
+#: an option's value is quoted whole up to this many characters (then 40 and its length)
+OPTION_TOKEN = 60
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -113,9 +109,9 @@ class OneLineParser(argparse.ArgumentParser):
     usage block) and quote at most a short excerpt of an over-long value."""
 
     def error(self, message: str) -> NoReturn:
-        from ctrplan.errors import excerpt
+        from ctrplan.errors import excerpt, shorten
 
-        print(f"{self.prog}: error: {excerpt(_short(message))} (see {self.prog} --help)",
+        print(f"{self.prog}: error: {excerpt(shorten(message, OPTION_TOKEN))} (see {self.prog} --help)",
               file=sys.stderr)
         raise SystemExit(2)
 
