@@ -181,18 +181,21 @@ def test_cli_bad_objective_exits_2_with_one_line(tmp_path, capsys):
 
 @pytest.mark.statistical
 def test_hard_set_clearance_objective_triples_the_median_clearance(tmp_path):
-    """RRTConnect, physics, the hard set's first 2 problems per scene, both objectives in the
-    same run: the clearance objective solves >= 95 % and the median over plans of each plan's
-    minimum clearance (the independent re-check's exact FCL distance) is >= 1.5x the first
-    solutions' (issue 18 asks 3x: a measured shortfall); every successful path is free in the re-check. About 1-2 min on 2 cores."""
+    """RRTConnect, physics, the whole hard set (17 problems), both objectives in the same run
+    (same seeds: the plans are the same on any machine): the clearance objective solves >= 95 %;
+    the median over plans of each plan's minimum clearance on the planning model is >= 3x the
+    first solutions' (issue 18's bar; the committed benchmark: 0.50 vs 0.11 mm); in the
+    independent re-check (foreign mechanics, exact FCL cylinders, 8x the edge resolution) it is
+    >= 1.5x (measured 0.80 vs 0.38 mm, 2.1x: the re-check's robot is not the planning model,
+    so neither objective's plans keep the planned distance exactly); every successful path is
+    free in the re-check. Planning time is compared in the benchmark (same run), not here.
+    About 3-4 min on 2 cores."""
     from bench_hard import run
 
-    res = run(["physics"], ["rrtconnect"], 1, 10.0, 2, tmp_path, objectives=("clearance", "first"))
+    res = run(["physics"], ["rrtconnect"], 1, 10.0, None, tmp_path, objectives=("clearance", "first"))
     rows = {r["objective"]: r for r in res["table"]}
-    assert rows["clearance"]["success_rate"] >= 0.95, rows
-    # KNOWN SHORTFALL: issue 18 asks 3x; with the independent re-check (exact FCL, foreign
-    # mechanics) the clearance objective measured about 2x on these problems (2026-11-25: e.g.
-    # bronchial_tree_h02 1.92 vs 0.15 mm, neuro_h02 1.25 vs 1.25 mm: the target itself limits it)
+    assert rows["clearance"]["plans"] == 17 and rows["clearance"]["success_rate"] >= 0.95, rows
+    assert rows["clearance"]["clearance_median_mm"] >= 3.0 * rows["first"]["clearance_median_mm"], rows
     assert rows["clearance"]["recheck_clearance_median_mm"] >= \
         1.5 * rows["first"]["recheck_clearance_median_mm"], rows
     assert all(r["recheck_free"] for r in res["records"] if r["success"])

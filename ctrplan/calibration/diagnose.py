@@ -38,13 +38,15 @@ decisions:
    candidate effect is fitted alone on top of the current model (robust soft-L1 loss, see :meth:`Problem.fit`); the leading ones are
    refitted jointly with the effects already in. A candidate enters the model when it lowers the
    BIC and the validation error by ``keep_gain``; it is *named* only when ``dBIC <
-   -bic_threshold``, the validation error drops by ``min_gain`` and by ``MIN_SHARE`` of the base
-   model's validation error.
+   -bic_threshold``, the validation error drops by ``min_gain``, by ``MIN_SHARE`` of the base
+   model's validation error and, after a first named effect, by ``FOLLOWER_SHARE`` of the
+   largest drop a named effect made (a smaller drop may be the first effect's form misfit).
 5. Joint model (:func:`ctrplan.calibration.select.joint`): when step 4 leaves more than ``JOINT_TRIGGER`` times the noise,
    every effect that lowered the BIC in the first screen is fitted jointly (registration,
    precurvature, stiffness, friction and clearance are often uncertain all at once on a real
    robot; one at a time none of them helps), then each is dropped in turn: the drop decides
-   whether it stays and whether it is named. The joint model replaces step 4's when it is
+   whether it stays and whether it is named (the same three shares, the last of the largest
+   drop). The joint model replaces step 4's when it is
    better on validation.
 6. The chosen model is refitted on fit + validation rows and written as ``calibrated.yaml``
    whether or not its effects are named (unnamed ones are listed as ``partial``).
@@ -82,7 +84,7 @@ from ctrplan.calibration.lsq import Problem
 from ctrplan.calibration.nuisance import NUISANCES, Nuisances
 from ctrplan.calibration.nuisance import screen as screen_nuisances
 from ctrplan.calibration.result import Candidate, DiagnoseReport, DiagnoseStatus, Step, headline
-from ctrplan.calibration.select import JOINT_TRIGGER, MIN_SHARE, SelectConfig, Selection, select
+from ctrplan.calibration.select import FOLLOWER_SHARE, JOINT_TRIGGER, MIN_SHARE, SelectConfig, Selection, select
 from ctrplan.calibration.verdict import Verdict, conclude, errors
 from ctrplan.measured import MeasuredData
 from ctrplan.robot import Robot
@@ -90,7 +92,7 @@ from ctrplan.shape.effects import EffectModel
 
 __all__ = ["diagnose", "DiagnoseReport", "DiagnoseStatus", "Step", "Candidate", "split_sweeps",
            "split_three", "row_ranges", "headline", "NUISANCES", "CHI3_MEAN", "MIN_SWEEPS_WHOLE",
-           "JOINT_TRIGGER", "MIN_SHARE"]
+           "JOINT_TRIGGER", "MIN_SHARE", "FOLLOWER_SHARE"]
 
 
 def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: str = "rigid",

@@ -95,7 +95,9 @@ def conclude(robot: Robot, base: str, sel: Selection, nuis: Nuisances, fit: Fina
         warnings.append("parameters at a bound that is not their off value (the effect may be "
                         "larger than its form allows, or another effect is being absorbed): "
                         + ", ".join(bounds))
-        if effects:
+        # only a named effect at a bound makes the diagnosis unsupported: an unnamed refinement
+        # at its bound is absorbing what the named effects' forms miss (it stays partial)
+        if effects and any(b.split(".", 1)[0] in effects for b in bounds):
             effects = []
             insufficient = ([f"fitted parameters at their bounds ({', '.join(bounds)})"],
                             ["check the set-up for an effect beyond its physical range (e.g. a "

@@ -310,6 +310,22 @@ def _m_hard_rrtconnect_success(res: Path) -> str | None:
             "(`hard/summary.json`)")
 
 
+def _m_hard_clearance_ratio(res: Path) -> str | None:
+    d = _load(res / "hard" / "summary.json")
+    if not d:
+        return None
+    rows = {r["objective"]: r for r in d["table"]
+            if r["model"] == "physics" and r["planner"] == "rrtconnect"}
+    c, f = rows.get("clearance"), rows.get("first")
+    if not c or not f or not f.get("clearance_median_mm") or not f.get("recheck_clearance_median_mm"):
+        return None
+    return (f"{c['clearance_median_mm']:.2f} vs {f['clearance_median_mm']:.2f} mm "
+            f"({c['clearance_median_mm'] / f['clearance_median_mm']:.1f}x); re-check "
+            f"{c['recheck_clearance_median_mm']:.2f} vs {f['recheck_clearance_median_mm']:.2f} mm "
+            f"({c['recheck_clearance_median_mm'] / f['recheck_clearance_median_mm']:.1f}x); "
+            f"{c['success']}/{c['plans']} (`hard/summary.json`)")
+
+
 def _m_real_robot(flow: str):
     def f(res: Path) -> str | None:
         d = _load(res / "real_robot.json")
@@ -330,6 +346,7 @@ MEASURED = {
     "learned_foreign_best_gain": _m_learned_foreign_best_gain,
     "learned_foreign_auto_ratio": _m_learned_foreign_auto_ratio,
     "hard_rrtconnect_success": _m_hard_rrtconnect_success,
+    "hard_clearance_ratio": _m_hard_clearance_ratio,
     "real_robot_calibrated": _m_real_robot("calibrated"),
     "real_robot_default": _m_real_robot("default"),
 }
