@@ -180,22 +180,40 @@ def test_cli_bad_objective_exits_2_with_one_line(tmp_path, capsys):
 
 
 @pytest.mark.statistical
-def test_hard_set_clearance_objective_triples_the_median_clearance(tmp_path):
-    """RRTConnect, physics, the whole hard set (17 problems), both objectives in the same run
-    (same seeds: the plans are the same on any machine): the clearance objective solves >= 95 %;
-    the median over plans of each plan's minimum clearance on the planning model is >= 3x the
-    first solutions' (issue 18's bar; the committed benchmark: 0.50 vs 0.11 mm); in the
-    independent re-check (foreign mechanics, exact FCL cylinders, 8x the edge resolution) it is
-    >= 1.5x (measured 0.80 vs 0.38 mm, 2.1x: the re-check's robot is not the planning model,
-    so neither objective's plans keep the planned distance exactly); every successful path is
-    free in the re-check. Planning time is compared in the benchmark (same run), not here.
-    About 3-4 min on 2 cores."""
+def test_hard_set_clearance_objective_triples_the_median_clearance():
+    """RRTConnect, physics, the whole hard set (17 problems), both objectives, same seeds (the
+    plans are the same on any machine): the clearance objective solves >= 95 % and the median
+    over plans of each plan's minimum clearance on the planning model is >= 3x the first
+    solutions' (issue 18's bar; the committed benchmark, `make bench`: 0.50 vs 0.11 mm). The
+    independent re-check of the same objectives is the next test (it costs minutes per
+    problem). Planning time is compared in the benchmark (same run), not here. About 1 min."""
+    from bench_hard import run_one, scenes
+
+    med = {}
+    for objective in ("clearance", "first"):
+        recs = [run_one(p, "physics", "rrtconnect", 0, 10.0, objective=objective, recheck=False)
+                for s in scenes() for p in load_problems(s)]
+        ok = [r["clearance"] for r in recs if r["success"]]
+        assert len(recs) == 17
+        if objective == "clearance":
+            assert len(ok) >= 0.95 * len(recs), recs
+        med[objective] = float(np.median(ok))
+    assert med["clearance"] >= 3.0 * med["first"], med
+
+
+@pytest.mark.statistical
+def test_hard_set_clearance_objective_keeps_farther_in_the_independent_recheck(tmp_path):
+    """The first 2 hard problems per scene, both objectives in the same run, every plan
+    re-checked independently (foreign mechanics, exact FCL cylinders, 8x the edge resolution):
+    the median of each plan's minimum clearance is >= 1.5x the first solutions' (the committed
+    benchmark's 17 problems: 2.1x; the re-check's robot is not the planning model, so neither
+    objective's plans keep the planned distance exactly) and every successful path is free in
+    the re-check. About 2-4 min on 2 cores."""
     from bench_hard import run
 
-    res = run(["physics"], ["rrtconnect"], 1, 10.0, None, tmp_path, objectives=("clearance", "first"))
+    res = run(["physics"], ["rrtconnect"], 1, 10.0, 2, tmp_path, objectives=("clearance", "first"))
     rows = {r["objective"]: r for r in res["table"]}
-    assert rows["clearance"]["plans"] == 17 and rows["clearance"]["success_rate"] >= 0.95, rows
-    assert rows["clearance"]["clearance_median_mm"] >= 3.0 * rows["first"]["clearance_median_mm"], rows
+    assert rows["clearance"]["success_rate"] >= 0.95, rows
     assert rows["clearance"]["recheck_clearance_median_mm"] >= \
         1.5 * rows["first"]["recheck_clearance_median_mm"], rows
     assert all(r["recheck_free"] for r in res["records"] if r["success"])

@@ -84,7 +84,8 @@ from ctrplan.calibration.lsq import Problem
 from ctrplan.calibration.nuisance import NUISANCES, Nuisances
 from ctrplan.calibration.nuisance import screen as screen_nuisances
 from ctrplan.calibration.result import Candidate, DiagnoseReport, DiagnoseStatus, Step, headline
-from ctrplan.calibration.select import FOLLOWER_SHARE, JOINT_TRIGGER, MIN_SHARE, SelectConfig, Selection, select
+from ctrplan.calibration.select import (FOLLOWER_SHARE, JOINT_TRIGGER, MIN_SHARE, SelectConfig,
+                                         Selection, drop_partials_at_bounds, select)
 from ctrplan.calibration.verdict import Verdict, conclude, errors
 from ctrplan.measured import MeasuredData
 from ctrplan.robot import Robot
@@ -131,6 +132,10 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     else:
         sel = select(prob, robot, inp.base, evd.candidates, cfg, evd.e_noise, base_score)
     fit = final_fit(prob, split.train, split.test, sel.effects, sel.free, fit_iter, base_pred)
+    trimmed = drop_partials_at_bounds(prob, robot, inp.base, sel, fit.effects, cfg)
+    if trimmed is not None:
+        sel = trimmed
+        fit = final_fit(prob, split.train, split.test, sel.effects, sel.free, fit_iter, base_pred)
     ev_after = ev.collect(robot, data.q, fit.pred[:, -1], data.tip, split.sweeps, data.time,
                           split.ordered, noise=evd.before["noise"]) if fit.effects else evd.before
     if nuisances and not evd.insufficient:

@@ -16,9 +16,8 @@ from ctrplan.calibration.evidence import CHI3_MEAN
 from ctrplan.calibration.fit import FinalFit
 from ctrplan.calibration.nuisance import NUISANCES, Nuisances
 from ctrplan.calibration.result import DiagnoseStatus
-from ctrplan.calibration.select import Selection, labels
+from ctrplan.calibration.select import Selection, at_bounds, labels
 from ctrplan.robot import Robot
-from ctrplan.shape.effects import effect_params
 
 
 @dataclass(frozen=True)
@@ -90,7 +89,7 @@ def conclude(robot: Robot, base: str, sel: Selection, nuis: Nuisances, fit: Fina
                         "named (the fits stay in the calibrated model)")
         effects = []
     data_insufficient = insufficient
-    bounds = _at_bounds(fit.effects, robot, base) if fit.effects else []
+    bounds = at_bounds(fit.effects, robot, base) if fit.effects else []
     if bounds:
         warnings.append("parameters at a bound that is not their off value (the effect may be "
                         "larger than its form allows, or another effect is being absorbed): "
@@ -180,20 +179,6 @@ def _status(sel: Selection, effects: list[str], forms: dict[str, str], unexplain
                 "unexplained: no effect of the vocabulary explains the data"
                 + _corr_text(unexplained))
     return DiagnoseStatus.NO_MISSING_EFFECT, "no missing effect"
-
-
-def _at_bounds(effects: dict, robot: Robot, base: str) -> list[str]:
-    out = []
-    for e, vals in effects.items():
-        for p in effect_params(e, robot, base):
-            if not p.fit or p.name not in vals:
-                continue
-            v = vals[p.name]
-            tol = 1e-3 * (p.hi - p.lo)
-            for b in (p.lo, p.hi):
-                if abs(v - b) <= tol and abs(b - p.off) > tol:
-                    out.append(f"{e}.{p.name} = {v:.4g} {p.unit} (bound {b:g})")
-    return out
 
 
 def _unexplained(evd: dict, after: float, e_noise: float, excess: float, remainder: float) -> dict:
