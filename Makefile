@@ -39,12 +39,13 @@ test: install
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 # The seeded statistical suites whose numbers the README quotes (run by .ci/run after `make test`).
-# Two worker processes, one file per worker at a time, one thread each (the CI machine has 2 cores;
-# every test seeds its own randomness and counts budgets, so results do not depend on the split).
+# Two worker processes, one thread each (the CI machine has 2 cores); tests spread one by one,
+# except files with module fixtures (one xdist_group each: computed once, on one worker); every
+# test seeds its own randomness and counts budgets, so results do not depend on the split.
 STAT_WORKERS ?= 2
 test-stat: install
 	OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 \
-	  $(PY) -m pytest -q -m statistical -n $(STAT_WORKERS) --dist loadfile $(PYTEST_ARGS)
+	  $(PY) -m pytest -q -m statistical -n $(STAT_WORKERS) --dist loadgroup $(PYTEST_ARGS)
 
 # Hypothesis over every reader and the numeric options (tests/test_fuzz.py), seeded: `make test`
 # runs it with a few dozen examples per reader, `fuzz-ci` (run by .ci/run) with 10,000 per reader,

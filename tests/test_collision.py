@@ -17,6 +17,10 @@ from ctrplan.shape.base import Shape
 from ctrplan.shape.physics import PhysicsModel
 from tests.test_capsules import shape_from_points
 
+# one worker runs this file (`make test-stat` distributes by xdist group): its module fixtures
+# are computed once
+pytestmark = pytest.mark.xdist_group("collision")
+
 
 def write_scene(folder, meshes, position=(0.0, 0.0, 0.0), quaternion=(1.0, 0.0, 0.0, 0.0), **extra):
     """A scene folder from [(name, role, trimesh)]; returns the folder."""

@@ -29,6 +29,11 @@ from ctrplan import PhysicsConfig, PhysicsModel, load_robot, plan_to_target
 from ctrplan.design import Bounds, DesignConfig, design, resolve_scene
 from ctrplan.planning import PlanConfig
 
+# one worker runs this file (`make test-stat` distributes by xdist group): its module fixtures
+# are computed once
+pytestmark = pytest.mark.xdist_group("design")
+
+
 # the scene's construction, restated here (anatomy: a 90 degree bend of radius 30 mm, lumen
 # radius 3 mm, swept 0..30 mm along +z; targets at the bend's end)
 R, LUMEN, SWEEP, END = 30.0, 3.0, 30.0, math.radians(102.0)

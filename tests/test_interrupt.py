@@ -20,6 +20,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# one worker runs this file (`make test-stat` distributes by xdist group): its module fixtures
+# are computed once
+pytestmark = pytest.mark.xdist_group("interrupt")
+
+
 ROOT = Path(__file__).resolve().parents[1]
 # Fields that are not part of a plan's result: timings, and the work counters, which include
 # the work of per-process caches (the retracted start is computed by the first job a process

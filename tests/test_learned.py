@@ -22,6 +22,10 @@ from ctrplan.shape.learned import (
 )
 from ctrplan.shape.physics import PhysicsModel
 
+# one worker runs this file (`make test-stat` distributes by xdist group): its module fixtures
+# are computed once
+pytestmark = pytest.mark.xdist_group("learned")
+
 
 @pytest.fixture(scope="module")
 def physics():

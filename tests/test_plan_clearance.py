@@ -84,6 +84,10 @@ from ctrplan.planning import PlanConfig  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from hard_problems import load_problems, verify_path  # noqa: E402
 
+# one worker runs this file (`make test-stat` distributes by xdist group): its module fixtures
+# are computed once
+pytestmark = pytest.mark.xdist_group("plan_clearance")
+
 
 @pytest.fixture(scope="module")
 def skull_plans():

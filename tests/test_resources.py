@@ -18,6 +18,11 @@ import pytest
 from ctrplan import cli
 from ctrplan.robot import load_robot, write_configs
 
+# one worker runs this file (`make test-stat` distributes by xdist group): its module fixtures
+# are computed once
+pytestmark = pytest.mark.xdist_group("resources")
+
+
 ROOT = Path(__file__).resolve().parents[1]
 PY = sys.executable
 
