@@ -201,3 +201,68 @@ def test_best_report_and_comparison_are_one_set(run, tmp_path):
                    diagnose_kwargs=dict(candidates=["registration"], nuisances=False))
     assert _snapshot(out) == before
     assert os.listdir(tmp_path) == ["best"]
+
+
+#: SIGKILL at the i-th rename of the swap: moving the previous set out (1st, 4th of 8) or the
+#: new set in (9th: first new file, 12th, 16th: the last)
+@pytest.mark.parametrize("kill_at", [1, 4, 9, 12, 16])
+def test_sigkill_during_the_swap_is_recovered_on_the_next_write(run, tmp_path, kill_at):
+    """A real SIGKILL (no finally block runs) part-way through the swap leaves the previous set
+    split between `out` and the hidden backup folder; the next write into `out` (here: its
+    recovery step alone, then a whole write) puts the previous set back, complete and byte for
+    byte, removes the hidden folders, and then writes the new set."""
+    import signal
+
+    out = tmp_path / "report"
+    _write(run, out)
+    (out / "notes.txt").write_text("the user's own file")
+    before = _snapshot(out)
+    pid = os.fork()
+    if pid == 0:                                   # the run that is killed
+        try:
+            real, n = os.replace, [0]
+
+            def replace(src, dst):
+                d, s = Path(dst).parent, Path(src).parent
+                if ".previous-" in d.name or (d == out and ".diagnose-" in s.name):
+                    n[0] += 1
+                    if n[0] == kill_at:
+                        os.kill(os.getpid(), signal.SIGKILL)
+                return real(src, dst)
+
+            os.replace = replace
+            _write(_other_report(run), out)
+        finally:
+            os._exit(3)                            # not reached when killed
+    import time
+
+    deadline = time.monotonic() + 120.0            # a child stuck after fork fails, never hangs
+    while True:
+        done_pid, status = os.waitpid(pid, os.WNOHANG)
+        if done_pid or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    if not done_pid:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        pytest.fail("the forked writer did not finish within 120 s")
+    assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGKILL
+    assert len(os.listdir(tmp_path)) >= 2          # the hidden folders the killed run left
+    done = report_mod.recover(out, REPORT_FILES)
+    assert len(done) == 1 and "restored the previous report set" in done[0]
+    assert _snapshot(out) == before                # the previous set, complete, unchanged
+    assert os.listdir(tmp_path) == ["report"]
+    _write(_other_report(run), out)                # and the next write goes through
+    assert "a different conclusion" in (out / "report.md").read_text()
+    assert os.listdir(tmp_path) == ["report"]
+
+
+def test_recovery_leaves_a_live_runs_folders_alone(tmp_path):
+    """Hidden folders whose pid runs now belong to a diagnose still writing: left alone."""
+    out = tmp_path / "report"
+    out.mkdir()
+    live = tmp_path / f".report.previous-{os.getppid()}-abc"
+    live.mkdir()
+    (live / "report.json").write_text("{}")
+    assert report_mod.recover(out, REPORT_FILES) == []
+    assert (live / "report.json").exists() and not (out / "report.json").exists()

@@ -376,7 +376,7 @@ def test_faults_table_is_walked():
     block = text[text.index("### Faults and sizes"):]
     block = block[:block.index("\n\n", block.index("| id |"))]
     rows = re.findall(r"^\| ([a-z0-9-]+) \|.*\| (test_[a-z0-9_]+) \|$", block, flags=re.M)
-    assert len(rows) == 9
+    assert len(rows) == 10
     for row, test in rows:
         assert any(callable(getattr(m, test, None)) for m in (sys.modules[__name__], atomic, validate)), (row, test)
 

@@ -84,8 +84,15 @@ from ctrplan.calibration.lsq import Problem
 from ctrplan.calibration.nuisance import NUISANCES, Nuisances
 from ctrplan.calibration.nuisance import screen as screen_nuisances
 from ctrplan.calibration.result import Candidate, DiagnoseReport, DiagnoseStatus, Step, headline
-from ctrplan.calibration.select import (FOLLOWER_SHARE, JOINT_TRIGGER, MIN_SHARE, SelectConfig,
-                                         Selection, drop_partials_at_bounds, select)
+from ctrplan.calibration.select import (
+    FOLLOWER_SHARE,
+    JOINT_TRIGGER,
+    MIN_SHARE,
+    SelectConfig,
+    Selection,
+    drop_partials_at_bounds,
+    select,
+)
 from ctrplan.calibration.verdict import Verdict, conclude, errors
 from ctrplan.measured import MeasuredData
 from ctrplan.robot import Robot

@@ -285,8 +285,10 @@ def output_set(out: str | os.PathLike, names: Sequence[str]) -> Iterator[Path]:
         raise InputError("--out", "", f"{str(out)!r} exists and is not a folder")
     made = _first_missing(out.parent)
     try:
+        if made is None:
+            recover(out, names)
         out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.diagnose-", dir=out.parent))
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.diagnose-{os.getpid()}-", dir=out.parent))
     except OSError as exc:
         raise _out_error(out, exc) from None
     ok = False
@@ -329,7 +331,7 @@ def _swap_in(tmp: Path, out: Path, names: Sequence[str]) -> None:
     if not out.exists():
         os.rename(tmp, out)
         return
-    backup = Path(tempfile.mkdtemp(prefix=f".{out.name}.previous-", dir=out.parent))
+    backup = Path(tempfile.mkdtemp(prefix=f".{out.name}.previous-{os.getpid()}-", dir=out.parent))
     moved_old: list[str] = []
     moved_new: list[str] = []
     try:
@@ -337,6 +339,8 @@ def _swap_in(tmp: Path, out: Path, names: Sequence[str]) -> None:
             if (out / name).exists():
                 os.replace(out / name, backup / name)
                 moved_old.append(name)
+        # from here on every entry of the previous set is in the backup (see recover)
+        (backup / _PHASE2).touch()
         for f in sorted(tmp.iterdir()):
             os.replace(f, out / f.name)
             moved_new.append(f.name)
@@ -350,6 +354,60 @@ def _swap_in(tmp: Path, out: Path, names: Sequence[str]) -> None:
         raise
     finally:
         shutil.rmtree(backup, ignore_errors=True)
+
+
+#: marker in a swap's backup folder: every entry of the previous set has been moved there
+_PHASE2 = ".all-previous-entries-here"
+
+
+def recover(out: Path, names: Sequence[str]) -> list[str]:
+    """Put back the previous report set of ``out`` where a swap (:func:`_swap_in`) was killed
+    part-way (SIGKILL, power loss), and remove the temporary folders such a run left beside
+    ``out``; folders of a run that is still alive (its pid is in their name) are left alone.
+    Returns what was done, one line per folder. Before its marker file, a backup holds some
+    entries of the previous set and ``out`` the rest (they go back); after it, the backup holds
+    all of them and ``out`` may hold some new entries (they are removed, the old ones go back)."""
+    done: list[str] = []
+    parent = out.parent
+    if not parent.is_dir():
+        return done
+    for kind in ("previous", "diagnose"):
+        for folder in sorted(parent.glob(f".{glob_escape(out.name)}.{kind}-*")):
+            pid = folder.name[len(out.name) + len(kind) + 3:].split("-", 1)[0]
+            if not folder.is_dir() or folder.is_symlink() or _alive(pid):
+                continue
+            if kind == "previous":
+                complete = (folder / _PHASE2).exists()
+                for name in names:
+                    old = folder / name
+                    if old.exists() or old.is_symlink():
+                        if (out / name).exists() or (out / name).is_symlink():
+                            _remove(out / name)
+                        os.replace(old, out / name)
+                    elif complete and ((out / name).exists() or (out / name).is_symlink()):
+                        _remove(out / name)     # an entry the interrupted new set brought
+                done.append(f"restored the previous report set of {str(out)!r} (a write was "
+                            "interrupted)")
+            shutil.rmtree(folder, ignore_errors=True)
+    return done
+
+
+def glob_escape(name: str) -> str:
+    """``name`` with glob metacharacters escaped."""
+    return "".join(f"[{c}]" if c in "*?[" else c for c in name)
+
+
+def _alive(pid: str) -> bool:
+    """Whether another process of this pid runs now (a name that is not a pid: not alive)."""
+    if not pid.isdigit():
+        return False
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return int(pid) != os.getpid()
 
 
 def _remove(path: Path) -> None:
