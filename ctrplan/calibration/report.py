@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import logging
 import math
 import os
 import shutil
@@ -40,6 +41,8 @@ from ctrplan.errors import InputError
 from ctrplan.io import jsonable, save_figure, write_json_atomic, write_text_atomic
 from ctrplan.measured import MeasuredData
 from ctrplan.robot import Robot, wrap_angle
+
+log = logging.getLogger("ctrplan")
 
 
 def folded_robot(robot: Robot, effects: dict[str, dict[str, float]]) -> Robot:
@@ -286,7 +289,8 @@ def output_set(out: str | os.PathLike, names: Sequence[str]) -> Iterator[Path]:
     made = _first_missing(out.parent)
     try:
         if made is None:
-            recover(out, names)
+            for line in recover(out, names):
+                log.warning(line)
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.diagnose-{os.getpid()}-", dir=out.parent))
     except OSError as exc:
