@@ -62,3 +62,13 @@ def overlap_pair() -> Robot:
         nitinol(1.0, 0.6, 100.0, 100.0, 0.015),
         nitinol(1.6, 1.2, 100.0, 100.0, 0.010),
     ))
+
+
+#: the longest statistical work units (one xdist group each, several minutes on one worker):
+#: collected first, so `make test-stat`'s two workers do not end with one of them alone
+_LONG_FIRST = ("tests/test_resources.py", "tests/test_real_robot.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Move the long work units (``_LONG_FIRST``) to the front; the rest keep their order."""
+    items.sort(key=lambda it: 0 if it.nodeid.startswith(_LONG_FIRST) else 1)
