@@ -192,7 +192,6 @@ def at_bounds(effects: dict, robot: Robot, base: str) -> list[str]:
     return out
 
 
-
 def forward(prob: Problem, robot: Robot, base: str, cands: Sequence[str], current: Effects,
             cur: FitResult, steps: list[Step], cfg: SelectConfig
             ) -> tuple[Effects, FitResult, dict[str, list[str]]]:
