@@ -380,7 +380,7 @@ def recover(out: Path, names: Sequence[str]) -> list[str]:
             pid = folder.name[len(out.name) + len(kind) + 3:].split("-", 1)[0]
             if not folder.is_dir() or folder.is_symlink() or _alive(pid):
                 continue
-            if kind == "previous":
+            if kind == "previous" and out.is_dir():     # (a deleted --out is not brought back)
                 complete = (folder / _PHASE2).exists()
                 for name in names:
                     old = folder / name
