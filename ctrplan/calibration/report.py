@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import logging
 import math
 import os
@@ -376,7 +377,7 @@ def recover(out: Path, names: Sequence[str]) -> list[str]:
     if not parent.is_dir():
         return done
     for kind in ("previous", "diagnose"):
-        for folder in sorted(parent.glob(f".{glob_escape(out.name)}.{kind}-*")):
+        for folder in sorted(parent.glob(f".{glob.escape(out.name)}.{kind}-*")):
             pid = folder.name[len(out.name) + len(kind) + 3:].split("-", 1)[0]
             if not folder.is_dir() or folder.is_symlink() or _alive(pid):
                 continue
@@ -394,11 +395,6 @@ def recover(out: Path, names: Sequence[str]) -> list[str]:
                             "interrupted)")
             shutil.rmtree(folder, ignore_errors=True)
     return done
-
-
-def glob_escape(name: str) -> str:
-    """``name`` with glob metacharacters escaped."""
-    return "".join(f"[{c}]" if c in "*?[" else c for c in name)
 
 
 def _alive(pid: str) -> bool:

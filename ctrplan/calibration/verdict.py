@@ -94,9 +94,9 @@ def conclude(robot: Robot, base: str, sel: Selection, nuis: Nuisances, fit: Fina
         warnings.append("parameters at a bound that is not their off value (the effect may be "
                         "larger than its form allows, or another effect is being absorbed): "
                         + ", ".join(bounds))
-        # only a named effect at a bound makes the diagnosis unsupported: an unnamed refinement
-        # at its bound is absorbing what the named effects' forms miss (it stays partial)
-        if effects and any(b.split(".", 1)[0] in effects for b in bounds):
+        # only a named effect at a bound makes the diagnosis unsupported (unnamed effects at a
+        # bound left the model before the final fit: select.drop_partials_at_bounds)
+        if at_bounds({e: fit.effects[e] for e in effects if e in fit.effects}, robot, base):
             effects = []
             insufficient = ([f"fitted parameters at their bounds ({', '.join(bounds)})"],
                             ["check the set-up for an effect beyond its physical range (e.g. a "
