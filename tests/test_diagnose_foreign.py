@@ -71,20 +71,16 @@ def run(effects, seed):
 SINGLE = [e for e in foreign.VOCAB_EFFECTS] + ["friction:coulomb_lag", "friction:presliding"]
 
 
-#: The issue's threshold is 9 of 10 for every case. KNOWN SHORTFALL (measured 2026-11-26 on the
-#: rewritten generator, forms outside ctrplan's families, with the follower-share rule of
-#: ctrplan.calibration.select and the windup / contact friction lags): the cases below are
-#: asserted at what was measured, not at 9, until the calibration reaches it. Never lower a
-#: number here without measuring it.
+#: The issue's threshold is 9 of 10 for every case. KNOWN SHORTFALL (measured 2026-11-25 on the
+#: rewritten generator, forms outside ctrplan's families, after the follower-share rule of
+#: ctrplan.calibration.select): the cases below are asserted at what was measured, not at 9,
+#: until the calibration reaches it. Never lower a number here without measuring it.
 #: precurvature 7 (a second effect named in 2 seeds: the ramp's misfit is 25-30 % of the scale's
-#: drop; 1 seed cut 46 %), load 7 (gravity at its +-30 m/s^2 bound in some seeds, the tether and
-#: filled lumen outside the form), drift 8 (registration named in 2). Friction as a Coulomb lag
-#: 8 and as presliding 4: named in 10/10 (presliding: 9/10), the test-sweep error cut 39-50 %
-#: in the others; the generator's lags now also follow the relative rotation with two harmonics
-#: (before ctrplan's windup + contact variants, 6 and 6 on lags that grew with retraction alone,
-#: which those variants fit to within 0.04 mm: inside the family, so the generator changed).
+#: drop; 1 seed cut 46 %), load 7 (3 seeds: gravity at its +-30 m/s^2 bound, the tether and filled
+#: lumen outside the form), friction as a Coulomb lag / presliding 6 each (named in 10/10, the
+#: test-sweep error cut 35-49 % in 4 seeds), drift 8 (registration or precurvature named in 2).
 MEASURED_MIN: dict[str, int] = {"precurvature": 7, "load": 7,
-                               "friction:coulomb_lag": 8, "friction:presliding": 4, "drift": 8}
+                               "friction:coulomb_lag": 6, "friction:presliding": 6, "drift": 8}
 #: study seeds (of 3) with exactly clearance, friction and torsion named (issue: 3; measured 2)
 STUDY_NAMED_MIN = 2
 

@@ -231,45 +231,6 @@ def test_friction_with_direction_is_a_pure_function_of_q_and_direction():
     assert not needs_direction(EffectModel(r, "rigid", {"friction": {}}))
 
 
-def test_friction_windup_and_contact_scale_the_lag():
-    """windup: the lag is lost (-beta / L) (a Coulomb torque over the transmission length);
-    contact: times the pre-curvature mismatch of the tube and its neighbour (next outer tube,
-    the outermost's next inner one). Oracle: the closed forms, the mismatch from complex
-    curvature vectors."""
-    r = load_robot("seed1")
-    q = _q(r, 30, seed=6)
-    rng = np.random.default_rng(1)
-    D = rng.choice([-1, 1], size=q.shape).astype(np.int8)
-    lost = np.array([0.1, 0.05, 0.02])
-    wind = np.array([0.04, 0.0, 0.03])
-    fr = {f"lost{i + 1}": v for i, v in enumerate(lost)} | {f"wind{i + 1}": v for i, v in enumerate(wind)}
-    phys = PhysicsModel(r, torsion=False)
-    frac = np.clip(-q[:, 3:] / r.lengths, 0, 1)
-    z = r.array("curvature") * np.exp(1j * q[:, :3])               # curvature vectors
-    nb = [1, 2, 1]
-    mis = np.abs(z - z[:, nb]) / (np.abs(r.array("curvature")) + np.abs(r.array("curvature")[nb]))
-    for extra, lag in (({"windup": 1.0}, lost + wind * frac),
-                       ({"windup": 1.0, "contact": 1.0}, (lost + wind * frac) * mis),
-                       ({"contact": 1.0}, lost * mis), ({}, lost + 0 * frac)):
-        m = EffectModel(r, "rigid", {"friction": {**fr, "form": 1.0, **extra}})
-        qa = q.copy()
-        qa[:, :3] -= D[:, :3] * lag
-        np.testing.assert_allclose(m.shape(q, 2, direction=D).tip, phys.shape(qa, 2).tip,
-                                   atol=1e-12, err_msg=str(extra))
-    assert 0.0 <= mis.min() and mis.max() <= 1.0 + 1e-12 and np.ptp(mis) > 0.3
-    # presliding with windup: a long monotone rotation at fixed beta develops
-    # lost + wind (-beta / L)
-    q2 = np.zeros((40, 6))
-    q2[:, 0] = np.linspace(0, 2.0, 40)
-    q2[:, 3:] = [-150.0, -100.0, -50.0]
-    from ctrplan.shape.effects import prepare
-
-    eff = complete_effects({"friction": {**fr, "presliding": 0.1, "windup": 1.0}}, r, "rigid")
-    lag = q2[:, 0] - prepare(r, "rigid", eff, q2).q[:, 0]
-    assert lag[0] == 0.0 and 0.0 < lag[1] < lag[-1]
-    assert lag[-1] == pytest.approx(0.1 + 0.04 * 150.0 / r.lengths[0], rel=1e-6)
-
-
 def test_planning_model_drops_registration_and_is_pure():
     r = load_robot("seed1")
     q = _q(r, 12)

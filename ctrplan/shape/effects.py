@@ -29,14 +29,7 @@ The vocabulary (docs/conventions.md):
     study's concentrated end moment: where outer tube o ends a torque ``mu |M|`` (``|M|`` its
     bending moment there) twists tube o by ``+T l_o / GJ_o`` and tube o-1 by ``-T l / GJ``
     (l: each tube's length from its base to that point), its sign following the direction of
-    relative rotation (the study's ``dtheta``); ``mu`` fitted. Two scalings of the lags (form
-    parameters, not fitted; diagnose screens ``lag`` and ``presliding`` with them): ``windup``
-    1: friction in the guide behind the base plane winds each tube up over its transmission,
-    so the lag grows with the retracted length, ``lost<i> + wind<i> (-beta_i / L_i)`` (both
-    fitted);
-    ``contact`` 1: the friction torque follows the contact force of the tube on its neighbour
-    (the next outer tube; the outermost's the next inner one), their pre-curvature mismatch
-    ``|k_i u(alpha_i) - k_j u(alpha_j)| / (|k_i| + |k_j|)`` (:func:`contact_factor`). The direction of motion: given as
+    relative rotation (the study's ``dtheta``); ``mu`` fitted. The direction of motion: given as
     ``direction`` (B, 2n) in {-1, 0, +1} every row is a pure function of (q, direction) (the
     settled lag); without it, rows are taken in order as one continuous motion per sweep (the
     ``time``/row order of measured data), each sweep starting settled.
@@ -149,16 +142,6 @@ def effect_params(name: str, robot: Robot, base: str = "rigid") -> tuple[Param, 
                   "(end_moment form)", fit=False, typical=0.01),
             Param("presliding", 0.0, 0.0, 1.0, "rad", "rotation over which the lag builds up "
                   "(0 = ideal backlash; dead_band form)", fit=False),
-) + tuple(Param(f"wind{i + 1}", 0.0, 0.0, 1.0, "rad",
-                           f"lag of tube {i + 1} added per retracted fraction -beta{i + 1} / L{i + 1} "
-                           "(windup of its transmission; lag/presliding windup forms)", fit=False)
-                     for i in range(n)) + (
-            Param("windup", 0.0, 0.0, 1.0, "1", "1: the lags grow with the retracted length, "
-                  "lost<i> + wind<i> (-beta<i>) / L<i>; 0: constant lags", fit=False),
-            Param("contact", 0.0, 0.0, 1.0, "1", "1: each lag also scales with the contact force "
-                  "of the tube on its neighbour (their curvature mismatch, "
-                  "|k<i> - k<j>| / (|k<i>| + |k<j>|) of the rotated pre-curvatures); 0: not",
-                  fit=False),
             Param("form", 0.0, 0.0, float(len(FRICTION_FORMS) - 1), "1",
                   "friction form: " + ", ".join(f"{k} {f}" for k, f in enumerate(FRICTION_FORMS)),
                   fit=False))
@@ -204,20 +187,12 @@ def effect_variants(name: str, robot: Robot, base: str = "rigid") -> list[tuple[
     n = robot.n
     if name == "friction":
         lost = [f"lost{i + 1}" for i in range(n)]
-        wind = [f"wind{i + 1}" for i in range(n)]
         return [("dead_band", {"form": 0.0, "presliding": 0.0}, lost),
                 ("presliding", {"form": 0.0}, [*lost, "presliding"]),
                 ("lag", {"form": 1.0, "presliding": 0.0}, lost),
                 ("relative", {"form": 2.0, "presliding": 0.0}, lost),
                 ("end_moment", {"form": 3.0, "presliding": 0.0}, ["mu"]),
-                ("end_moment+lag", {"form": 3.0, "presliding": 0.0}, ["mu", *lost]),
-                ("lag/windup", {"form": 1.0, "presliding": 0.0, "windup": 1.0}, [*lost, *wind]),
-                ("presliding/windup", {"form": 0.0, "windup": 1.0},
-                 [*lost, *wind, "presliding"]),
-                ("lag/windup+contact", {"form": 1.0, "presliding": 0.0, "windup": 1.0,
-                                        "contact": 1.0}, [*lost, *wind]),
-                ("presliding/windup+contact", {"form": 0.0, "windup": 1.0, "contact": 1.0},
-                 [*lost, *wind, "presliding"])]
+                ("end_moment+lag", {"form": 3.0, "presliding": 0.0}, ["mu", *lost])]
     if name == "clearance":
         harm = [h for h, _ in CLEARANCE_HARMONICS]
         return [("harmonic", {"length": 0.0, "limit": 0.0}, harm[:3]),
@@ -231,9 +206,8 @@ def effect_form(name: str, values: Mapping[str, float]) -> str:
     if name == "friction":
         f = FRICTION_FORMS[int(round(values.get("form", 0.0)))]
         if f == "dead_band" and values.get("presliding", 0.0) > 0:
-            f = "presliding"
-        scaled = [k for k in ("windup", "contact") if values.get(k, 0.0) > 0]
-        return f + "/" + "+".join(scaled) if scaled else f
+            return "presliding"
+        return f
     if name == "clearance":
         harm = any(values.get(h, 0.0) != 0.0 for h, _ in CLEARANCE_HARMONICS)
         gap = values.get("length", 0.0) != 0.0
@@ -300,14 +274,14 @@ def parse_effect_arg(text: str, source: str = "--effect") -> tuple[str, dict[str
 # ---------------------------------------------------------------------------- stage functions
 @njit(cache=True)
 def _backlash(x, start, lost, presliding):
-    """Actual angles (B, n) from commanded ``x`` (B, n) in row order, ``lost`` (B, n) the lag of
-    each row; a new sweep starts where ``start`` is True (settled, actual = commanded)."""
+    """Actual angles (B, n) from commanded ``x`` (B, n) in row order; a new sweep starts where
+    ``start`` is True (settled, actual = commanded)."""
     B, n = x.shape
     y = np.empty_like(x)
     for i in range(n):
+        d = lost[i]
         e = 0.0  # lag: commanded - actual
         for k in range(B):
-            d = lost[k, i]
             if start[k]:
                 e = 0.0
             else:
@@ -451,50 +425,24 @@ def friction_angles(robot: Robot, fr: Mapping[str, float], alpha: np.ndarray,
     lost = np.array([fr[f"lost{i + 1}"] for i in range(n)])
     mu = float(fr.get("mu", 0.0))
     form = FRICTION_FORMS[int(round(fr.get("form", 0.0)))]
-    windup = fr.get("windup", 0.0) > 0.0 and any(fr.get(f"wind{i + 1}", 0.0) > 0.0
-                                                 for i in range(n))
-    if not (np.any(lost > 0.0) or windup or (mu > 0.0 and form == "end_moment")):
+    if not (np.any(lost > 0.0) or (mu > 0.0 and form == "end_moment")):
         return alpha
     if direction is None and pure:
         return alpha
-    if windup:
-        if beta is None:
-            raise ValueError("the windup friction lag needs beta")
-        wind = np.array([fr.get(f"wind{i + 1}", 0.0) for i in range(n)])
-        lost = lost[None, :] + wind[None, :] * np.clip(-beta / robot.lengths[None, :], 0.0, 1.0)
-    else:
-        lost = np.broadcast_to(lost[None, :], (B, n))
-    if fr.get("contact", 0.0) > 0.0 and n > 1:
-        lost = lost * contact_factor(robot, alpha)
     if direction is None and form == "dead_band":
-        return _backlash(np.ascontiguousarray(alpha), sweep_starts(B, sweep),
-                         np.ascontiguousarray(lost), float(fr["presliding"]))
+        return _backlash(np.ascontiguousarray(alpha), sweep_starts(B, sweep), lost,
+                         float(fr["presliding"]))
     dj = (np.asarray(direction, dtype=float)[:, :n] if direction is not None
           else _row_directions(alpha, sweep))
     if form in ("dead_band", "lag"):
-        return alpha - dj * lost
+        return alpha - dj * lost[None, :]
     pair = np.sign(dj[:, :-1] - dj[:, 1:])                    # inner minus outer, (B, n-1)
-    out = alpha - relative_direction(robot, pair) * lost
+    out = alpha - relative_direction(robot, pair) * lost[None, :]
     if form == "end_moment" and mu > 0.0 and n > 1:
         if beta is None:
             raise ValueError("the end-moment friction form needs beta")
         out = out + mu * end_moment_twist(robot, alpha, beta, pair)
     return out
-
-
-def contact_factor(robot: Robot, alpha: np.ndarray) -> np.ndarray:
-    """(B, n) contact force of each tube on its neighbour (the next outer tube; the outermost's
-    is the next inner one) relative to its largest value: the magnitude of their pre-curvature
-    mismatch ``|k_i u(alpha_i) - k_j u(alpha_j)| / (|k_i| + |k_j|)`` (u the unit bending
-    direction), 1 where both are straight."""
-    n = robot.n
-    k = robot.array("curvature")
-    nb = np.r_[np.arange(1, n), n - 2]
-    phi = alpha - alpha[:, nb]
-    ki, kj = k[None, :], k[None, nb]
-    mis = np.sqrt(np.maximum(ki ** 2 + kj ** 2 - 2.0 * ki * kj * np.cos(phi), 0.0))
-    tot = np.abs(ki) + np.abs(kj)
-    return np.where(tot > 0, mis / np.where(tot > 0, tot, 1.0), 1.0)
 
 
 def end_moment_twist(robot: Robot, alpha: np.ndarray, beta: np.ndarray,
@@ -635,9 +583,6 @@ class EffectModel:
         """True when friction is on: shapes depend on the direction of the last motion."""
         fr = self.effects.get("friction")
         return bool(fr) and (any(v > 0.0 for k, v in fr.items() if k.startswith("lost"))
-                             or (fr.get("windup", 0.0) > 0.0
-                                 and any(v > 0.0 for k, v in fr.items() if k.startswith("wind")
-                                         and k != "windup"))
                              or (fr.get("mu", 0.0) > 0.0 and round(fr.get("form", 0.0)) == 3))
 
     def __repr__(self) -> str:

@@ -86,13 +86,6 @@ def _retracted(spec: Spec, q: np.ndarray) -> np.ndarray:
     return np.clip(-q[:, n:] / spec.L[None, :], 0.0, 1.0)
 
 
-def _neighbour_rotation(alpha: np.ndarray) -> np.ndarray:
-    """(N, n) rotation of each tube relative to its neighbour: the next outer tube, for the
-    outermost the next inner one (n >= 2)."""
-    nb = np.r_[np.arange(1, alpha.shape[1]), alpha.shape[1] - 2]
-    return alpha - alpha[:, nb]
-
-
 def _alpha_lag(eff, q, n, direction, sweep, spec=None):
     """Friction lag forms acting on the transmitted joint values: returns q_eff."""
     q = q.copy()
@@ -106,10 +99,6 @@ def _alpha_lag(eff, q, n, direction, sweep, spec=None):
         c = lag[None, :] * (1.0 + growth[None, :] * (_retracted(spec, q) - 0.5))
     else:
         c = np.broadcast_to(lag[None, :], (q.shape[0], n))
-    moment, second = float(fr.get("moment", 0.0)), float(fr.get("second", 0.0))
-    if (moment or second) and n > 1:
-        phi = _neighbour_rotation(q[:, :n])
-        c = c * (1.0 - moment * np.cos(phi) + second * np.cos(2.0 * phi))
     if fr["form"] == "coulomb_lag":
         q[:, :n] -= c * d[:, :n]
         q[:, n:] -= E._per_tube(fr.get("beta_lag", 0.0), n, "beta_lag") * d[:, n:]

@@ -48,28 +48,16 @@ friction      {"form": "end_moment" | "coulomb_lag" | "presliding", ...}
               coulomb_lag: each tube's transmitted rotation lags its command in the direction of
               its last motion by an angle that grows with the length of tube retracted behind
               the plane (inside the guide and the outer tubes: more friction, more wind-up):
-              alpha_eff = alpha - d lag (1 + growth (r - 1/2)) (1 - moment cos phi + second
-              cos 2 phi), r = -beta / L in [0, 1], phi the tube's rotation relative to its
-              neighbour (the next outer tube; for the outermost the next inner one): the
-              contact force, and with it the friction, is largest where the pre-curvatures
-              oppose (phi = pi), with a second harmonic (contact in the radial gap moves between
-              two lines; the real robot's residual of issue 19 has both harmonics).
-              {"lag": rad (scalar or per tube), "growth": 1.8, "moment": 0.5, "second": 0.3,
-              "beta_lag": mm (default 0)}
-              Why not ctrplan's: its lags are constant per tube or, in its windup variant,
-              lost (-beta / L) (proportional to the retracted length: no lag at full extension,
-              where this one keeps 0.1 lag), and in its contact variant times the curvature
-              mismatch |k_i u_i - k_j u_j| / (|k_i| + |k_j|) (a square root of a - b cos phi:
-              no second harmonic, zero for equal curvatures aligned). Its best fit leaves 21 % of
-              this effect (tests/test_foreign_generator.py).
+              alpha_eff = alpha - d lag (1 + growth (r - 1/2)), r = -beta / L in [0, 1].
+              {"lag": rad (scalar or per tube), "growth": 1.2, "beta_lag": mm (default 0)}
+              Why not ctrplan's: its lag / relative / dead_band lags are constant per tube.
               presliding: the lag builds up over a rotation after each reversal with a Dahl
               exponent 2 (hyperbolic, not exponential): w = 1 - z d / c, w <- w / (1 + w
-              |dalpha| / angle), z = c d (1 - w), c the lag of coulomb_lag above;
+              |dalpha| / angle), z = c d (1 - w), c = lag (1 + growth (r - 1/2)) as above;
               alpha_eff = alpha - z. Without row history (``backbones(direction=...)``) the fully
-              developed lag c d. {"lag": rad, "angle": rad, "growth": 1.8, "moment": 0.5,
-              "second": 0.3}
+              developed lag c d. {"lag": rad, "angle": rad, "growth": 1.2}
               Why not ctrplan's: its presliding recursion is the exponential one
-              (w <- w exp(-|dalpha| / angle)), its lags as for coulomb_lag.
+              (w <- w exp(-|dalpha| / angle)) with a constant lag.
 precurvature  {"scale": [per tube], "ramp": [per tube]}
               kappa_i(s) = scale_i kappa_i (1 + ramp_i (s_c - 1/2)), s_c in [0, 1] along the
               curved section from its proximal start (held constant over equal
@@ -195,9 +183,9 @@ def friction_defaults(form: str) -> dict:
     if form == "end_moment":
         return {"form": form, "mu": 0.03, "contact": 12.0}
     if form == "coulomb_lag":
-        return {"form": form, "lag": 0.06, "beta_lag": 0.0, "growth": 1.8, "moment": 0.5, "second": 0.3}
+        return {"form": form, "lag": 0.06, "beta_lag": 0.0, "growth": 1.8}
     if form == "presliding":
-        return {"form": form, "lag": 0.08, "angle": 0.25, "growth": 1.8, "moment": 0.5, "second": 0.3}
+        return {"form": form, "lag": 0.08, "angle": 0.25, "growth": 1.8}
     raise ValueError(f"unknown friction form {form!r}; known: {FRICTION_FORMS}")
 
 

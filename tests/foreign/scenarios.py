@@ -149,8 +149,7 @@ def real_robot(seed: int = 0, robot="seed1", noise_mm: float = 0.08, registratio
                       "harmonics": [0.5, 0.32, 0.18], "lean": float(_jitter(rng, 0.004)),
                       "jump": "gap"},
         "friction": {"form": "presliding", "lag": _jitter(rng, outer_last(0.07, 0.015, 0.01)),
-                     "angle": float(_jitter(rng, 0.2)), "growth": 1.0,
-                     "moment": 0.0},
+                     "angle": float(_jitter(rng, 0.2)), "growth": 1.0},
         "torsion": {"gj_scale": 1.0, "coupling": _jitter(rng, outer_last(40.0, 25.0, 20.0))},
     }
     if registration:
