@@ -107,3 +107,21 @@ def test_headline_never_calls_a_worse_max_improved():
                  "max 14.700 -> 14.900 mm (worse)")
     assert "(unchanged)" in headline(1.0, 1.0, 2.0, 2.0)
     assert headline(2.0, 2.5, 3.0, 2.0).count("worse") == 1
+
+
+@pytest.mark.parametrize("noise_mm", [0.0, 0.001])
+def test_data_the_nominal_model_already_fits_has_no_missing_effect(noise_mm):
+    """Noiseless (or 1 um noise) data of the nominal robot, made by the independent generator
+    (tests.foreign, its own mechanics): the answer is "no missing effect", not an unexplained
+    remainder of a numerically zero residual (a nuisance's relative gain on 1e-14 mm is no
+    evidence)."""
+    from tests import foreign
+
+    d = foreign.generate(robot=ROBOT, design="sweeps", n=240, effects={}, noise_mm=noise_mm,
+                         seed=3, sweeps=8)
+    data = MeasuredData(q=np.asarray(d.q, float), tip=np.asarray(d.tip, float),
+                        time=np.asarray(d.time, float), sweep=np.asarray(d.sweep, dtype=object))
+    rep = diagnose(load_robot(ROBOT), data, seed=3)
+    assert rep.status is DiagnoseStatus.NO_MISSING_EFFECT, rep.conclusion
+    assert rep.effects == [] and rep.unexplained is None
+    assert rep.error_after_mm < 0.01

@@ -67,6 +67,10 @@ NUISANCES = {"~drift": "a drift of the sensor in time", "~field": "a distortion 
              "field (a smooth function of the measured position)"}
 DISTINGUISH = 0.9
 FIELD_LIKE = 0.8
+#: A nuisance must lower the mean tip error by at least this much (mm; 1 um, below any
+#: tracker's resolution) to be claimed: relative gains on a numerically zero residual (noiseless
+#: data the model already fits) are no evidence.
+RESOLUTION_MM = 1e-3
 RIDGE = 1e-2
 
 
@@ -168,8 +172,10 @@ def _nuisances(robot, prob, data, final_pred, fit_rows, val, train, test, min_ga
         e_model, e_nuis, e_conf = _distinguish(F, G, rm, fit_rows, val)
         b_model, b_nuis, b_conf = _distinguish(F, G, r0, fit_rows, val)
         gain = _gain(e_model, e_nuis)
-        on_model = bool(gain >= 2 * min_gain and e_nuis <= DISTINGUISH * e_conf)
-        on_base = bool(_gain(b_model, b_nuis) >= 2 * min_gain and b_nuis <= DISTINGUISH * b_conf)
+        on_model = bool(gain >= 2 * min_gain and e_nuis <= DISTINGUISH * e_conf
+                        and e_model - e_nuis >= RESOLUTION_MM)
+        on_base = bool(_gain(b_model, b_nuis) >= 2 * min_gain and b_nuis <= DISTINGUISH * b_conf
+                       and b_model - b_nuis >= RESOLUTION_MM)
         claimed = on_model or on_base
         corr = _ridge(F, r, train)                 # fitted on fit + validation rows
         left = r - corr

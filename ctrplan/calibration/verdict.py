@@ -20,6 +20,13 @@ from ctrplan.calibration.select import Selection, at_bounds, labels
 from ctrplan.robot import Robot
 
 
+#: Mean tip error (mm) above the noise floor that is no evidence of a remainder on its own: the
+#: tolerance of the noise-floor check, and the least initial excess for which "the calibrated
+#: model left too much of it" means anything (a nominal model that already fits the data leaves
+#: all of a zero excess).
+TOLERANCE_MM = 0.05
+
+
 @dataclass(frozen=True)
 class Errors:
     """Validation and test (held-out) tip errors (mm) of the base and the calibrated model, the
@@ -136,8 +143,9 @@ def _remainder(ev_after: dict, err: Errors, nuis: Nuisances, max_remainder: floa
     claimed nuisances as what it follows outside the vocabulary."""
     unexplained = None
     excess = max(err.test_after - err.e_noise, 0.0)
-    if not data_insufficient and (err.val_after > 1.5 * err.e_noise + 0.05
-                                  or err.remainder > max_remainder) and err.excess0 > 0:
+    if not data_insufficient and (err.val_after > 1.5 * err.e_noise + TOLERANCE_MM
+                                  or (err.remainder > max_remainder
+                                      and err.excess0 > TOLERANCE_MM)) and err.excess0 > 0:
         unexplained = _unexplained(ev_after, err.test_after, err.e_noise, excess, err.remainder)
     if not nuis.claimed:
         return unexplained
