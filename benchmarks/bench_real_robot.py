@@ -164,7 +164,8 @@ def plan_flow(flow: str, model, margin, targets: int, time_limit: float, effects
                    "status": r.status.value, "planning_time_s": r.planning_time_s,
                    "time_cap_hit": bool(r.time_cap_hit), "margin_mm": r.margin_mm,
                    "min_clearance_planning_mm": r.min_clearance_mm if r.success else None,
-                   "goal_shift_mm": float(r.goal_shift_mm)}
+                   "goal_shift_mm": float(r.goal_shift_mm),
+                   "outside_measured_states": r.outside_measured_states}
             if r.success:
                 row.update(replay(s, r.path, np.asarray(t.position, float), effects))
             rows.append(row)

@@ -125,3 +125,8 @@ def test_data_the_nominal_model_already_fits_has_no_missing_effect(noise_mm):
     assert rep.status is DiagnoseStatus.NO_MISSING_EFFECT, rep.conclusion
     assert rep.effects == [] and rep.unexplained is None
     assert rep.error_after_mm < 0.01
+    # the calibrated model records the insertions its error bound was measured on
+    b = np.asarray(d.q, float)[:, 3:]
+    rng = rep.model().measured_insertion
+    assert rng == {"min": b.min(axis=0).tolist(), "max": b.max(axis=0).tolist()}
+    assert rep.to_dict()["measured_insertion"] == rng

@@ -125,3 +125,54 @@ def test_calibrated_model_without_a_bound_gets_the_physics_recheck(seed1, tmp_pa
                       error_profile=prof)
     r = plan_to_target(seed1, "airway", far, model=cal)
     assert r.reference_model != "physics" and r.margin_mm == pytest.approx(0.6) and r.margin_auto
+
+
+def test_plan_counts_states_beyond_the_measured_insertions(seed1, tmp_path):
+    """A calibrated model's error bound holds where it was measured: plan.json counts the path
+    states that insert a tube beyond the measured insertions (oracle: a brute-force count over
+    the path's rows), the file round-trips ``measured_insertion``, and bad ranges are refused
+    naming the field."""
+    import json
+
+    import yaml
+
+    from ctrplan.cli import main
+    from ctrplan.errors import InputError
+    from ctrplan.planning.plan import plan_to_target, scene_by_name
+
+    sc = scene_by_name("airway")
+    eq = {"p50": 0.05, "p95": 0.1, "p99": 0.1, "max": 0.15}
+    n = seed1.n
+    narrow = {"min": [-200.0, -150.0, -80.0], "max": [-190.0, -140.0, -70.0]}
+    cal = EffectModel(seed1, "rigid", {}, error_quantiles=eq, measured_insertion=narrow)
+    r = plan_to_target(seed1, sc, sc.targets[0].position, model=cal, seed=0, time_limit=30)
+    assert r.success, r.message
+    b = np.asarray(r.path)[:, n:]
+    brute = sum(any(not (lo - 1.0 <= x <= hi + 1.0) for x, lo, hi in
+                    zip(row, narrow["min"], narrow["max"])) for row in b.tolist())
+    assert r.outside_measured_states == brute > 0
+    assert r.to_json()["outside_measured_states"] == brute
+    wide = {"min": [-400.0] * n, "max": [0.0] * n}
+    r2 = plan_to_target(seed1, sc, sc.targets[0].position,
+                        model=EffectModel(seed1, "rigid", {}, error_quantiles=eq,
+                                          measured_insertion=wide), seed=0, time_limit=30)
+    assert r2.success and r2.outside_measured_states == 0
+    r3 = plan_to_target(seed1, sc, sc.targets[0].position, seed=0, time_limit=30)   # physics
+    assert r3.outside_measured_states is None
+    # the file: round trip, then hostile values refused with the field named
+    path = tmp_path / "calibrated.yaml"
+    cal.save(path)
+    assert EffectModel.load(path).measured_insertion == narrow
+    good = yaml.safe_load(path.read_text())
+    for bad, field in (({"min": [0.0] * n, "max": [-1.0] * n}, "measured_insertion"),
+                       ({"min": [0.0] * (n - 1), "max": [0.0] * n}, "measured_insertion.min"),
+                       ({"min": [0.0] * n, "max": ["x"] * n}, "measured_insertion.max"),
+                       ([1, 2], "measured_insertion")):
+        with pytest.raises(InputError) as ei:
+            EffectModel.from_dict({**good, "measured_insertion": bad}, source="c.yaml")
+        assert ei.value.field == field, (bad, ei.value)
+    # the command line says it in its summary
+    out = tmp_path / "plan.json"
+    rc = main(["--quiet", "plan", "--robot", "seed1", "--scene", "airway", "--target", "t01",
+               "--model", str(path), "--margin", "auto", "--out", str(out)])
+    assert rc == 0 and json.loads(out.read_text())["outside_measured_states"] == brute

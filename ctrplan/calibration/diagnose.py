@@ -214,4 +214,16 @@ def _report(inp: Inputs, split: Split, evd: ev.Evidence, sel: Selection, fit: Fi
         learned_residual=learned, partial_values=verdict.partial_values,
         outliers=verdict.outliers,
         nuisance_tests=[{k: v for k, v in o.items() if k != "features"} for o in nuis.tests],
+        measured_insertion=measured_insertion(robot, data),
     )
+
+
+def measured_insertion(robot: Robot, data: MeasuredData) -> dict | None:
+    """The insertions (beta, mm per tube) the measured rows span: where the calibrated model's
+    error bound was measured (rows whose tip is not finite left out)."""
+    q = np.asarray(data.q, dtype=float)
+    ok = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(np.asarray(data.tip, float)), axis=1)
+    if not ok.any():
+        return None
+    b = q[ok, robot.n:]
+    return {"min": [float(v) for v in b.min(axis=0)], "max": [float(v) for v in b.max(axis=0)]}

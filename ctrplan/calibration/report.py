@@ -88,6 +88,12 @@ def markdown(rep: DiagnoseReport) -> str:
     for o in getattr(rep, "nuisance_tests", []) or []:
         lines += [f"Nuisance test {o['kind'].lstrip('~')} (after the robot fit): "
                   + ("claimed" if o["claimed"] else "not claimed") + f" ({o['why']}).", ""]
+    rng = getattr(rep, "measured_insertion", None)
+    if rng:
+        lines += ["Measured insertions (where the error bound holds; plans beyond them are "
+                  "extrapolated): " + ", ".join(
+                      f"beta{i + 1} {a:.1f} to {b:.1f} mm"
+                      for i, (a, b) in enumerate(zip(rng["min"], rng["max"]))) + ".", ""]
     lines += _learned_md(rep)
     for k, s in enumerate(rep.steps, 1):
         lines += _step_md(k, s)

@@ -104,6 +104,9 @@ class DiagnoseReport:
     partial_values: dict = field(default_factory=dict)
     outliers: dict = field(default_factory=dict)
     nuisance_tests: list = field(default_factory=list)
+    #: {"min": [n], "max": [n]} mm: the insertions of the measured rows (where the error bound
+    #: was measured), or None
+    measured_insertion: dict | None = None
 
     def model(self) -> EffectModel:
         """The calibrated shape model with its held-out error quantiles (tip error on the test
@@ -114,7 +117,8 @@ class DiagnoseReport:
 
         prof = extend_tip_bound(self.error_quantiles).to_dict() if self.error_quantiles else None
         return EffectModel(self.robot, self.base, self.model_effects,
-                           error_quantiles=self.error_quantiles, error_profile=prof)
+                           error_quantiles=self.error_quantiles, error_profile=prof,
+                           measured_insertion=self.measured_insertion)
 
     def headline(self) -> str:
         """One line: held-out mean AND max tip error before -> after, each judged honestly."""
@@ -133,6 +137,7 @@ class DiagnoseReport:
             "steps": steps, "error_before_mm": self.error_before_mm,
             "error_after_mm": self.error_after_mm, "max_before_mm": self.max_before_mm,
             "max_after_mm": self.max_after_mm, "error_quantiles": self.error_quantiles,
+            "measured_insertion": self.measured_insertion,
             "unexplained": self.unexplained, "warnings": list(self.warnings),
             "experiment": list(self.experiment), "partial": list(self.partial),
             "partial_fits": list(self.partial),

@@ -19,7 +19,6 @@ from ctrplan.calibration.result import DiagnoseStatus
 from ctrplan.calibration.select import Selection, at_bounds, labels
 from ctrplan.robot import Robot
 
-
 #: Mean tip error (mm) above the noise floor that is no evidence of a remainder on its own: the
 #: tolerance of the noise-floor check, and the least initial excess for which "the calibrated
 #: model left too much of it" means anything (a nominal model that already fits the data leaves

@@ -82,9 +82,12 @@ def summary_line(plan: dict, model: str, robot: str) -> str:
             f"(objective {plan.get('objective', '?')})")
     margin = float(plan.get("margin_mm") or 0.0)
     if plan.get("calibrated"):
+        out = plan.get("outside_measured_states")
+        beyond = (f"; {out} of {len(plan.get('path') or [])} states insert a tube beyond the "
+                  "measured insertions (the error bound is extrapolated there)" if out else "")
         return text + (f"; relative to the calibrated model {model!r}, with its error bound as a "
                        f"{margin:.2f} mm margin" if plan.get("margin_auto") else
-                       f"; relative to the calibrated model {model!r}, margin {margin:g} mm")
+                       f"; relative to the calibrated model {model!r}, margin {margin:g} mm") + beyond
     stated = f", plus the stated margin of {margin:g} mm" if margin > 0 else ""
     return (text + f"; relative to the nominal model{stated} (uncalibrated: the real robot "
             f"differs from it by an unknown amount). To calibrate: `ctrplan diagnose --robot "

@@ -38,6 +38,7 @@ import math
 import os
 import time
 import weakref
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Any
@@ -197,6 +198,10 @@ class PlanResult:
     calibrated : whether the planning model carries an error bound measured on the robot
         (``error_quantiles`` / ``error_profile``); if not, clearances are relative to the
         nominal model only.
+    measured_insertion, outside_measured_states : the calibrated model's measured insertions
+        ({"min": [n], "max": [n]} mm, where its error bound was measured) and the number of
+        ``path`` states inserting a tube beyond them by more than :data:`MEASURED_SLACK_MM`
+        (the margin is extrapolated there); None for a model without them.
     goal_shift_mm, goal : where the tip was planned to when a target nearer the anatomy than
         the tip's radius + margin was approached (:attr:`PlanConfig.approach`): the goal
         (scene frame, mm) and its distance from ``target`` (0.0 and None otherwise).
@@ -238,6 +243,8 @@ class PlanResult:
     goal_shift_mm: float = 0.0
     goal: list | None = None
     robot_spec: dict | None = None
+    measured_insertion: dict | None = None
+    outside_measured_states: int | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The plan.json fields of docs/conventions.md (plus diagnostics), JSON-ready (no NaN: null instead)."""
@@ -266,6 +273,8 @@ class PlanResult:
             "calibrated": bool(self.calibrated),
             "goal_shift_mm": float(self.goal_shift_mm),
             "goal": None if self.goal is None else [float(v) for v in self.goal],
+            "measured_insertion": self.measured_insertion,
+            "outside_measured_states": self.outside_measured_states,
             "seed": int(self.seed),
             "robot": self.robot,
             # the robot itself (tube values + digest): view and re-checks use it, never a look-up
@@ -361,6 +370,7 @@ class _RowwiseModel:
         self.effects = getattr(inner, "effects", None)
         self.error_quantiles = getattr(inner, "error_quantiles", None)
         self.error_profile = getattr(inner, "error_profile", None)
+        self.measured_insertion = getattr(inner, "measured_insertion", None)
 
     def shape(self, q, points: int = 20):
         q = np.atleast_2d(np.asarray(q, dtype=float))
@@ -491,11 +501,38 @@ class _Run:
                        tip_path=np.zeros((0, 3)), tip_error_mm=math.nan,
                        tip_error_physics_mm=math.nan, min_clearance_mm=math.nan)
         fields_.update(kw)
+        rng = self.meta.get("measured_insertion")
+        if rng is not None and len(fields_["path"]):
+            out = outside_measured(fields_["path"], rng, n)
+            fields_["outside_measured_states"] = out
+            if out:
+                log.warning("%d of %d path states insert a tube beyond the insertions the model's "
+                            "error bound was measured on (%s): the margin is extrapolated there; "
+                            "measure the robot over those insertions", out,
+                            len(fields_["path"]), _range_text(rng))
         log.debug("plan: %s (%s) in %.3f s", status.value, message, self.timings["total"])
         return PlanResult(success=status is PlanStatus.SUCCESS, status=status, message=message,
                           planning_time_s=self.timings["total"] - self.timings["setup"],
                           timings=dict(self.timings), counts=dict(self.counts),
                           time_cap_hit=self.time_cap_hit, **fields_, **self.meta)
+
+
+#: insertions within this distance (mm) of the measured range count as measured
+MEASURED_SLACK_MM = 1.0
+
+
+def outside_measured(path: np.ndarray, measured: Mapping[str, Any], n: int) -> int:
+    """Number of path states (rows of ``path``, (K, 2n)) with a tube's insertion beta more than
+    :data:`MEASURED_SLACK_MM` outside ``measured`` ({"min": [n], "max": [n]} mm)."""
+    b = np.asarray(path, dtype=float)[:, n:]
+    lo = np.asarray(measured["min"], dtype=float) - MEASURED_SLACK_MM
+    hi = np.asarray(measured["max"], dtype=float) + MEASURED_SLACK_MM
+    return int(np.sum(np.any((b < lo) | (b > hi), axis=1)))
+
+
+def _range_text(measured: Mapping[str, Any]) -> str:
+    return ", ".join(f"beta{i + 1} {a:.1f}..{b:.1f} mm"
+                     for i, (a, b) in enumerate(zip(measured["min"], measured["max"])))
 
 
 class _Stop(Exception):
@@ -620,7 +657,9 @@ def _prepare(robot, scene, target, model, planner, time_limit, seed, tolerance_m
                 scene=_scene_label(scene_spec, scene), tolerance_mm=float(tolerance_mm),
                 time_limit_s=float(time_limit), margin_mm=margin_peak(margin), margin_auto=auto,
                 curvature_bound_per_mm=float(curvature), reference_model=ref_label,
-                objective=cfg.objective, calibrated=is_calibrated(given) or is_calibrated(pmodel))
+                objective=cfg.objective, calibrated=is_calibrated(given) or is_calibrated(pmodel),
+                measured_insertion=(getattr(given, "measured_insertion", None)
+                                    or getattr(pmodel, "measured_insertion", None)))
     run = _Run(robot=robot, scene=scene, target=target, target_base=scene.to_base(target[None])[0],
                model=pmodel, reference=reference, world=world,
                validator=BatchValidator(robot, pmodel, world, cfg.validator), cfg=cfg,

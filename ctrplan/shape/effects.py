@@ -561,7 +561,8 @@ class EffectModel:
                  effects: Mapping[str, Mapping[str, float]] | None = None,
                  config: PhysicsConfig | None = None,
                  error_quantiles: Mapping[str, float] | None = None, pure: bool = False,
-                 error_profile: Mapping[str, Any] | None = None):
+                 error_profile: Mapping[str, Any] | None = None,
+                 measured_insertion: Mapping[str, Any] | None = None):
         self.robot = load_robot(robot)
         self.base = base
         self.effects = complete_effects(effects, self.robot, base)
@@ -574,6 +575,10 @@ class EffectModel:
         #: held-out deviation quantiles along the shaft (``error_profile`` mapping of
         #: :mod:`ctrplan.shape.error_bounds`), or None
         self.error_profile = dict(error_profile) if error_profile else None
+        #: {"min": [n], "max": [n]} mm: the insertions (beta) of the rows the error bound was
+        #: measured on, or None; outside them the bound is extrapolated
+        self.measured_insertion = ({k: [float(v) for v in measured_insertion[k]]
+                                    for k in ("min", "max")} if measured_insertion else None)
         #: True: friction is a pure function of (q, direction) even without direction
         #: (no direction known = no lag); False: direction=None takes rows in order
         self.pure = bool(pure)
@@ -597,7 +602,8 @@ class EffectModel:
         frame) and friction a pure function of (q, direction) (no lag where none is given)."""
         eff = {k: v for k, v in self.effects.items() if k != "registration"}
         return EffectModel(self.robot, self.base, eff, self.config, self.error_quantiles,
-                           pure=True, error_profile=self.error_profile)
+                           pure=True, error_profile=self.error_profile,
+                           measured_insertion=self.measured_insertion)
 
     def shape(self, q: np.ndarray, points: int = 20, sweep: np.ndarray | None = None,
               direction: np.ndarray | None = None) -> Shape:
@@ -629,6 +635,8 @@ class EffectModel:
             from ctrplan.shape.error_bounds import profile_from_dict
 
             d["error_profile"] = profile_from_dict(self.error_profile).to_dict()
+        if self.measured_insertion:
+            d["measured_insertion"] = dict(self.measured_insertion)
         return d
 
     def save(self, path: str | os.PathLike) -> None:
@@ -648,7 +656,7 @@ class EffectModel:
         if not isinstance(data, dict) or data.get("kind") != MODEL_KIND:
             raise InputError(source, "kind", f"not a {MODEL_KIND} file")
         unknown = set(data) - {"kind", "base", "robot", "effects", "units", "notes",
-                               "error_quantiles", "error_profile"}
+                               "error_quantiles", "error_profile", "measured_insertion"}
         if unknown:
             raise InputError(source, sorted(unknown, key=str)[0], "unknown key")
         robot = robot_from_dict(data.get("robot"), source=source)
@@ -676,7 +684,9 @@ class EffectModel:
                 raise InputError(source, field_, msg) from None
         return cls(robot, str(data.get("base", "rigid")),
                    complete_effects(effects, robot, str(data.get("base", "rigid")), source),
-                   error_quantiles=eq, error_profile=prof)
+                   error_quantiles=eq, error_profile=prof,
+                   measured_insertion=_measured_insertion(data.get("measured_insertion"),
+                                                          robot.n, source))
 
     @classmethod
     def load(cls, path: str | os.PathLike, robot: Robot | str | None = None) -> EffectModel:
@@ -695,6 +705,27 @@ class EffectModel:
                                  f"({model.robot.n} tubes), whose tubes (lengths, diameters) "
                                  f"differ from {r.name!r} ({r.n} tubes)")
         return model
+
+
+def _measured_insertion(value: Any, n: int, source: str) -> dict | None:
+    """Check a file's ``measured_insertion`` ({"min": [n], "max": [n]} mm, min <= max)."""
+    if value is None:
+        return None
+    if not isinstance(value, dict) or set(value) != {"min", "max"}:
+        raise InputError(source, "measured_insertion", "must be a mapping with keys min, max "
+                         "(mm per tube)")
+    out = {}
+    for k in ("min", "max"):
+        v = value[k]
+        if not isinstance(v, list) or len(v) != n or any(
+                isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x)
+                for x in v):
+            raise InputError(source, f"measured_insertion.{k}",
+                             f"must be a list of {n} finite numbers (mm)")
+        out[k] = [float(x) for x in v]
+    if any(a > b for a, b in zip(out["min"], out["max"])):
+        raise InputError(source, "measured_insertion", "min must not exceed max")
+    return out
 
 
 def is_effect_model_file(path: str | os.PathLike) -> bool:
