@@ -194,7 +194,8 @@ def _report(inp: Inputs, split: Split, evd: ev.Evidence, sel: Selection, fit: Fi
     robot, data, err = inp.robot, inp.data, verdict.errors
     ins = evd.insufficient
     warnings = (list(ins[0]) if ins else []) + [
-        *split.warnings, *evd.warnings, *sel.warnings, *nuis.warnings, *verdict.warnings]
+        *split.warnings, *evd.warnings, *sel.warnings, *nuis.warnings, *verdict.warnings,
+        *coverage_warnings(robot, measured_insertion(robot, data))]
     experiment = (list(ins[1]) if ins else []) + [
         *split.experiment, *evd.experiment, *verdict.experiment]
     info = {**split.info, "validation_error_before_mm": err.val_before,
@@ -216,6 +217,28 @@ def _report(inp: Inputs, split: Split, evd: ev.Evidence, sel: Selection, fit: Fi
         nuisance_tests=[{k: v for k, v in o.items() if k != "features"} for o in nuis.tests],
         measured_insertion=measured_insertion(robot, data),
     )
+
+
+#: a tube whose measured insertions span less than this fraction of its insertion range gets a
+#: warning: the error bound is extrapolated over most of where plans may go
+COVERAGE_MIN = 0.5
+
+
+def coverage_warnings(robot: Robot, measured: dict | None) -> list[str]:
+    """Warnings for tubes whose measured insertions span less than :data:`COVERAGE_MIN` of the
+    robot's insertion range (:meth:`Robot.beta_bounds`)."""
+    if not measured:
+        return []
+    lo, hi = robot.beta_bounds()
+    out = []
+    for i, (a, b) in enumerate(zip(measured["min"], measured["max"])):
+        span = float(hi[i] - lo[i])
+        if span > 0 and (b - a) < COVERAGE_MIN * span:
+            out.append(f"the rows insert tube {i + 1} over {a:.1f} to {b:.1f} mm only, "
+                       f"{100 * (b - a) / span:.0f} % of its range {lo[i]:.1f} to {hi[i]:.1f} mm: "
+                       "the calibrated model and its error bound are extrapolated beyond; "
+                       "measure over the insertions you will plan in")
+    return out
 
 
 def measured_insertion(robot: Robot, data: MeasuredData) -> dict | None:
