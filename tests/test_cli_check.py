@@ -82,3 +82,28 @@ def test_scene_list_and_show(tmp_path, configs, capsys):
     text = html.read_text()
     assert "plotly" in text.lower() and "<script src=\"http" not in text
     assert main(["scene", "show", "airway", "--out", str(tmp_path / "s.gif")]) == 2
+
+
+def test_check_counts_configurations_beyond_the_measured_insertions(tmp_path, configs, seed1,
+                                                                     capsys):
+    """With a calibrated model that records its measured insertions, check warns how many
+    configurations insert a tube beyond them (oracle: a count here)."""
+    from ctrplan.shape.effects import EffectModel
+
+    path, q = configs
+    b = q[:, seed1.n:]
+    rng = {"min": np.median(b, axis=0).tolist(), "max": b.max(axis=0).tolist()}
+    eq = {"p50": 0.05, "p95": 0.1, "p99": 0.1, "max": 0.15}
+    model = tmp_path / "calibrated.yaml"
+    EffectModel(seed1, "rigid", {}, error_quantiles=eq, measured_insertion=rng).save(model)
+    expect = int(np.sum(np.any(b < np.asarray(rng["min"]) - 1.0, axis=1)))
+    assert 0 < expect < len(q)
+    capsys.readouterr()
+    assert main(["-q", "check", "--scene", "skull_base", "--robot", "seed1", "--configs", str(path),
+                 "--model", str(model), "--out", str(tmp_path / "v.csv")]) == 0
+    err = capsys.readouterr().err
+    assert f"{expect} of {len(q)} configurations insert a tube beyond" in err, err
+    # physics carries no measured insertions: no count
+    assert main(["-q", "check", "--scene", "skull_base", "--robot", "seed1", "--configs", str(path),
+                 "--out", str(tmp_path / "w.csv")]) == 0
+    assert "beyond" not in capsys.readouterr().err

@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     from ctrplan.collision.world import CollisionWorld
     from ctrplan.commands.plan import parse_margin
     from ctrplan.io import iter_configs, write_csv_atomic
-    from ctrplan.planning.plan import planning_model_of
+    from ctrplan.planning.plan import outside_measured, planning_model_of
     from ctrplan.planning.validator import BatchValidator
     from ctrplan.progress import bar
     from ctrplan.robot import load_robot
@@ -77,7 +77,8 @@ def run(args: argparse.Namespace) -> int:
     validator = BatchValidator(robot, model, world)
     # streamed in chunks: bounded memory whatever the file's size, a progress bar on a
     # terminal, Ctrl-C between chunks; the output is written atomically at the end
-    counts = [0, 0]
+    counts = [0, 0, 0]
+    measured = getattr(model, "measured_insertion", None)
 
     def rows():
         with bar(total=None, desc="check", unit="config") as pbar:
@@ -85,6 +86,8 @@ def run(args: argparse.Namespace) -> int:
                 c, d, n = validator.check_states(q, points=args.points, exact=args.exact, joints=False)
                 counts[0] += len(c)
                 counts[1] += int(np.sum(c))
+                if measured is not None:
+                    counts[2] += outside_measured(q, measured, robot.n)
                 pbar.update(len(c))
                 yield from ([int(ci), round(float(di), 4), str(ni)] for ci, di, ni in zip(c, d, n))
 
@@ -93,6 +96,10 @@ def run(args: argparse.Namespace) -> int:
              "%d collide; wrote %s", counts[0], world.scene.name,
              (f"up to {margin_peak(margin):.3g} mm along the shaft" if world.margin_profile is not None
               else f"{margin_peak(margin):.3g} mm"), world.curvature_per_mm, counts[1], out)
+    if counts[2]:
+        log.warning("%d of %d configurations insert a tube beyond the insertions the model's "
+                    "error bound was measured on (more than 1 mm): the model and its bound are "
+                    "extrapolated there", counts[2], counts[0])
     if auto and not is_calibrated(model):
         log.info("the model carries no error bound (uncalibrated): verdicts are relative to the "
                  "nominal model; calibrate with `ctrplan diagnose` for a margin")
