@@ -192,10 +192,11 @@ def _report(inp: Inputs, split: Split, evd: ev.Evidence, sel: Selection, fit: Fi
             settings: dict, learned: dict | None) -> DiagnoseReport:
     """Assemble the :class:`DiagnoseReport` from the stages' results."""
     robot, data, err = inp.robot, inp.data, verdict.errors
+    measured = measured_insertion(robot, data)
     ins = evd.insufficient
     warnings = (list(ins[0]) if ins else []) + [
         *split.warnings, *evd.warnings, *sel.warnings, *nuis.warnings, *verdict.warnings,
-        *coverage_warnings(robot, measured_insertion(robot, data))]
+        *coverage_warnings(robot, measured)]
     experiment = (list(ins[1]) if ins else []) + [
         *split.experiment, *evd.experiment, *verdict.experiment]
     info = {**split.info, "validation_error_before_mm": err.val_before,
@@ -215,7 +216,7 @@ def _report(inp: Inputs, split: Split, evd: ev.Evidence, sel: Selection, fit: Fi
         learned_residual=learned, partial_values=verdict.partial_values,
         outliers=verdict.outliers,
         nuisance_tests=[{k: v for k, v in o.items() if k != "features"} for o in nuis.tests],
-        measured_insertion=measured_insertion(robot, data),
+        measured_insertion=measured,
     )
 
 

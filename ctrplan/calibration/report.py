@@ -90,10 +90,10 @@ def markdown(rep: DiagnoseReport) -> str:
                   + ("claimed" if o["claimed"] else "not claimed") + f" ({o['why']}).", ""]
     rng = getattr(rep, "measured_insertion", None)
     if rng:
+        from ctrplan.shape.error_bounds import measured_text
+
         lines += ["Measured insertions (where the error bound holds; plans beyond them are "
-                  "extrapolated): " + ", ".join(
-                      f"beta{i + 1} {a:.1f} to {b:.1f} mm"
-                      for i, (a, b) in enumerate(zip(rng["min"], rng["max"]))) + ".", ""]
+                  f"extrapolated): {measured_text(rng)}.", ""]
     lines += _learned_md(rep)
     for k, s in enumerate(rep.steps, 1):
         lines += _step_md(k, s)

@@ -50,11 +50,17 @@ def run(args: argparse.Namespace) -> int:
     from ctrplan.collision.world import CollisionWorld
     from ctrplan.commands.plan import parse_margin
     from ctrplan.io import iter_configs, write_csv_atomic
-    from ctrplan.planning.plan import outside_measured, planning_model_of
+    from ctrplan.planning.plan import planning_model_of
     from ctrplan.planning.validator import BatchValidator
     from ctrplan.progress import bar
     from ctrplan.robot import load_robot
-    from ctrplan.shape.error_bounds import auto_margin, is_calibrated, margin_peak
+    from ctrplan.shape.error_bounds import (
+        MEASURED_SLACK_MM,
+        auto_margin,
+        is_calibrated,
+        margin_peak,
+        outside_measured,
+    )
     from ctrplan.shape.models import load_model
 
     out = output_path(args.out, (".csv",))
@@ -98,8 +104,8 @@ def run(args: argparse.Namespace) -> int:
               else f"{margin_peak(margin):.3g} mm"), world.curvature_per_mm, counts[1], out)
     if counts[2]:
         log.warning("%d of %d configurations insert a tube beyond the insertions the model's "
-                    "error bound was measured on (more than 1 mm): the model and its bound are "
-                    "extrapolated there", counts[2], counts[0])
+                    "error bound was measured on (more than %g mm): the model and its bound are "
+                    "extrapolated there", counts[2], counts[0], MEASURED_SLACK_MM)
     if auto and not is_calibrated(model):
         log.info("the model carries no error bound (uncalibrated): verdicts are relative to the "
                  "nominal model; calibrate with `ctrplan diagnose` for a margin")

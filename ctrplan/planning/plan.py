@@ -38,7 +38,6 @@ import math
 import os
 import time
 import weakref
-from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Any
@@ -200,7 +199,8 @@ class PlanResult:
         nominal model only.
     measured_insertion, outside_measured_states : the calibrated model's measured insertions
         ({"min": [n], "max": [n]} mm, where its error bound was measured) and the number of
-        ``path`` states inserting a tube beyond them by more than :data:`MEASURED_SLACK_MM`
+        ``path`` states inserting a tube beyond them by more than
+        :data:`~ctrplan.shape.error_bounds.MEASURED_SLACK_MM`
         (the margin is extrapolated there); None for a model without them.
     goal_shift_mm, goal : where the tip was planned to when a target nearer the anatomy than
         the tip's radius + margin was approached (:attr:`PlanConfig.approach`): the goal
@@ -503,36 +503,20 @@ class _Run:
         fields_.update(kw)
         rng = self.meta.get("measured_insertion")
         if rng is not None and len(fields_["path"]):
+            from ctrplan.shape.error_bounds import measured_text, outside_measured
+
             out = outside_measured(fields_["path"], rng, n)
             fields_["outside_measured_states"] = out
             if out:
                 log.warning("%d of %d path states insert a tube beyond the insertions the model's "
                             "error bound was measured on (%s): the margin is extrapolated there; "
                             "measure the robot over those insertions", out,
-                            len(fields_["path"]), _range_text(rng))
+                            len(fields_["path"]), measured_text(rng))
         log.debug("plan: %s (%s) in %.3f s", status.value, message, self.timings["total"])
         return PlanResult(success=status is PlanStatus.SUCCESS, status=status, message=message,
                           planning_time_s=self.timings["total"] - self.timings["setup"],
                           timings=dict(self.timings), counts=dict(self.counts),
                           time_cap_hit=self.time_cap_hit, **fields_, **self.meta)
-
-
-#: insertions within this distance (mm) of the measured range count as measured
-MEASURED_SLACK_MM = 1.0
-
-
-def outside_measured(path: np.ndarray, measured: Mapping[str, Any], n: int) -> int:
-    """Number of path states (rows of ``path``, (K, 2n)) with a tube's insertion beta more than
-    :data:`MEASURED_SLACK_MM` outside ``measured`` ({"min": [n], "max": [n]} mm)."""
-    b = np.asarray(path, dtype=float)[:, n:]
-    lo = np.asarray(measured["min"], dtype=float) - MEASURED_SLACK_MM
-    hi = np.asarray(measured["max"], dtype=float) + MEASURED_SLACK_MM
-    return int(np.sum(np.any((b < lo) | (b > hi), axis=1)))
-
-
-def _range_text(measured: Mapping[str, Any]) -> str:
-    return ", ".join(f"beta{i + 1} {a:.1f}..{b:.1f} mm"
-                     for i, (a, b) in enumerate(zip(measured["min"], measured["max"])))
 
 
 class _Stop(Exception):

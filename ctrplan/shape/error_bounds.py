@@ -241,3 +241,22 @@ def margin_key(margin: float | ErrorProfile | None) -> Any:
     if isinstance(margin, ErrorProfile):
         return margin.key()
     return float(margin or 0.0)
+
+
+#: insertions within this distance (mm) of the measured range count as measured
+MEASURED_SLACK_MM = 1.0
+
+
+def outside_measured(path: np.ndarray, measured: Mapping[str, Any], n: int) -> int:
+    """Number of path states (rows of ``path``, (K, 2n)) with a tube's insertion beta more than
+    :data:`MEASURED_SLACK_MM` outside ``measured`` ({"min": [n], "max": [n]} mm)."""
+    b = np.asarray(path, dtype=float)[:, n:]
+    lo = np.asarray(measured["min"], dtype=float) - MEASURED_SLACK_MM
+    hi = np.asarray(measured["max"], dtype=float) + MEASURED_SLACK_MM
+    return int(np.sum(np.any((b < lo) | (b > hi), axis=1)))
+
+
+def measured_text(measured: Mapping[str, Any]) -> str:
+    """``measured`` ({"min": [n], "max": [n]} mm) as text, one range per tube."""
+    return ", ".join(f"beta{i + 1} {a:.1f} to {b:.1f} mm"
+                     for i, (a, b) in enumerate(zip(measured["min"], measured["max"])))
