@@ -82,6 +82,9 @@ class Run:
             return False, None
         except subprocess.TimeoutExpired:
             pass
+        if _exited(self.proc.pid):  # ended just after the wait timed out: not signalled
+            self.proc.wait()
+            return False, None
         t0 = time.monotonic()
         (os.killpg if group else os.kill)(self.proc.pid, sig)
         self.proc.wait(timeout=120)
@@ -90,6 +93,16 @@ class Run:
     def finish(self) -> tuple[int, str]:
         _, err = self.proc.communicate(timeout=600)
         return self.proc.returncode, err.decode(errors="replace")
+
+
+def _exited(pid: int) -> bool:
+    """True when the child has exited but is not reaped yet (a zombie): a signal sent now is
+    lost and its exit status is the command's own."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except (OSError, IndexError):
+        return False
 
 
 def _env() -> dict:
