@@ -59,8 +59,9 @@ def screen(robot: Robot, prob: Problem, data: MeasuredData, split: Split, final_
 #: penalised). One is claimed only where the data tell it apart from the robot: on the
 #: validation rows, the nuisance's features must explain the robot model's residual clearly
 #: better (by ``DISTINGUISH``) than smooth features of the configuration
-#: (harmonics of the relative rotations, insertions, direction of motion) - a field gives the
-#: same correction wherever the tip is, however it got there; a robot effect does not. The
+#: (harmonics of the relative and absolute rotations, insertions, direction of motion) - a field
+#: gives the same correction wherever the tip is, however it got there; a robot effect does
+#: not. On the base model's residual it must also beat the calibrated robot model. The
 #: calibrated model never contains a nuisance; a named effect whose change to the tips is itself
 #: mostly (``FIELD_LIKE``) such a function of the claimed nuisance is no longer named.
 NUISANCES = {"~drift": "a drift of the sensor in time", "~field": "a distortion of the tracker "
@@ -109,6 +110,9 @@ def _config_features(robot: Robot, data: MeasuredData, sw: np.ndarray, ordered: 
     for i in range(n - 1):
         phi = q[:, i] - q[:, i + 1]
         cols += [np.cos(phi), np.sin(phi), np.cos(2 * phi), np.sin(2 * phi)]
+    for i in range(n):
+        # absolute rotations: what acts in the base frame (gravity, a tip load) turns with them
+        cols += [np.cos(q[:, i]), np.sin(q[:, i])]
     b = q[:, n:]
     b = (b - b[rows].mean(0)) / np.maximum(np.ptp(b[rows], axis=0), 1e-9)
     cols += list(b.T)
@@ -174,7 +178,12 @@ def _nuisances(robot, prob, data, final_pred, fit_rows, val, train, test, min_ga
         gain = _gain(e_model, e_nuis)
         on_model = bool(gain >= 2 * min_gain and e_nuis <= DISTINGUISH * e_conf
                         and e_model - e_nuis >= RESOLUTION_MM)
-        on_base = bool(_gain(b_model, b_nuis) >= 2 * min_gain and b_nuis <= DISTINGUISH * b_conf
+        # on the base model's residual the nuisance must also beat the calibrated robot model
+        # (its residual e_model): the robot's effects are a configuration-dependent
+        # explanation too, and where they explain the base model's error better than the
+        # nuisance does, a nuisance that explains part of it is only correlated with them
+        on_base = bool(_gain(b_model, b_nuis) >= 2 * min_gain
+                       and b_nuis <= DISTINGUISH * min(b_conf, e_model)
                        and b_model - b_nuis >= RESOLUTION_MM)
         claimed = on_model or on_base
         corr = _ridge(F, r, train)                 # fitted on fit + validation rows
