@@ -176,3 +176,29 @@ def test_plan_counts_states_beyond_the_measured_insertions(seed1, tmp_path):
     rc = main(["--quiet", "plan", "--robot", "seed1", "--scene", "airway", "--target", "t01",
                "--model", str(path), "--margin", "auto", "--out", str(out)])
     assert rc == 0 and json.loads(out.read_text())["outside_measured_states"] == brute
+    # plan-batch: each job's count (brute force over the job's own path) in jobs.csv, their sum
+    # in summary.csv; a physics job has none (empty cells, not 0)
+    import csv
+
+    from ctrplan.planning.batch import make_jobs, run_batch
+
+    t = sc.targets[0]
+    jobs = make_jobs([("airway", t.name, tuple(t.position))], seeds=[0, 1], model=str(path),
+                     time_limit=10.0)
+    jobs += make_jobs([("airway", t.name, tuple(t.position))], seeds=[0], time_limit=10.0)
+    run_batch(jobs, tmp_path / "batch")
+    counts = {}
+    for f in (tmp_path / "batch" / "jobs").glob("*.json"):
+        d = json.loads(f.read_text())
+        b = np.asarray(d["path"])[:, n:]
+        counts[d["job_id"]] = None if d["model"] == "physics" else sum(
+            any(not (lo - 1.0 <= x <= hi + 1.0) for x, lo, hi in
+                zip(row, narrow["min"], narrow["max"])) for row in b.tolist())
+    with open(tmp_path / "batch" / "jobs.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert {r["job_id"]: r["outside_measured_states"] for r in rows} == {
+        k: "" if v is None else str(v) for k, v in counts.items()}
+    with open(tmp_path / "batch" / "summary.csv") as fh:
+        summary = list(csv.DictReader(fh))
+    want = sum(v for v in counts.values() if v is not None)
+    assert want > 0 and summary[0]["outside_measured_states"] == str(want)

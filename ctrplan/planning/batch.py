@@ -416,12 +416,13 @@ def _run_ray(todo: Sequence[Job], address: str, workers: int, record) -> None:
 JOB_COLUMNS = ("job_id", "scene", "target_name", "x", "y", "z", "seed", "robot", "model", "planner",
                "status", "success", "planning_time_s", "tip_error_mm", "min_clearance_mm", "min_clearance_exact",
                "min_clearance_reference_mm", "margin_mm", "objective", "objective_value", "calibrated",
-               "message")
+               "outside_measured_states", "message")
 
 
 def summarize(results: Sequence[dict]) -> list[dict]:
     """Per-scene rows (then ``all``): jobs, successes, success rate, time median/p90/max,
-    and the count of each status."""
+    the count of each status, and the path states beyond the calibrated model's measured
+    insertions summed over the jobs (empty when no job's model records them)."""
     by_scene: dict[str, list[dict]] = {}
     for r in results:
         by_scene.setdefault(str(r.get("scene")), []).append(r)
@@ -444,8 +445,15 @@ def summarize(results: Sequence[dict]) -> list[dict]:
             "time_p90_s": float(np.percentile(t, 90)) if len(t) else float("nan"),
             "time_max_s": float(np.max(t)) if len(t) else float("nan"),
             "statuses": ";".join(f"{k}:{v}" for k, v in sorted(statuses.items())),
+            "outside_measured_states": _sum_counts(r.get("outside_measured_states") for r in rs),
         })
     return rows
+
+
+def _sum_counts(counts) -> int | str:
+    """Sum of the counts that are recorded; "" when none is (a model without a measured range)."""
+    known = [int(c) for c in counts if c is not None]
+    return sum(known) if known else ""
 
 
 def write_tables(out: Path, results: Sequence[dict], rows: Sequence[dict]) -> None:
