@@ -72,6 +72,10 @@ def validate_job_file(path: str | Path, data: Any, job: Any) -> dict:
         v = data.get(key)
         if v is not None and not (_is_number(v) and math.isfinite(float(v))):
             raise bad(key, f"must be a finite number or null, got {str(v)[:40]!r}")
+    c = data.get("outside_measured_states")
+    if c is not None and not (isinstance(c, int) and not isinstance(c, bool) and c >= 0):
+        raise bad("outside_measured_states", f"must be a count (an integer >= 0) or null, got "
+                                             f"{str(c)[:40]!r}")
     t = data.get("planning_time_s")
     if t is not None and float(t) < 0:
         raise bad("planning_time_s", f"must be >= 0, got {t!r}")
