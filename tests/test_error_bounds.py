@@ -147,9 +147,14 @@ def test_plan_counts_states_beyond_the_measured_insertions(seed1, tmp_path):
     cal = EffectModel(seed1, "rigid", {}, error_quantiles=eq, measured_insertion=narrow)
     r = plan_to_target(seed1, sc, sc.targets[0].position, model=cal, seed=0, time_limit=30)
     assert r.success, r.message
-    b = np.asarray(r.path)[:, n:]
-    brute = sum(any(not (lo - 1.0 <= x <= hi + 1.0) for x, lo, hi in
-                    zip(row, narrow["min"], narrow["max"])) for row in b.tolist())
+
+    def beyond(path) -> int:
+        """Brute force: path states with a tube inserted more than 1 mm outside ``narrow``."""
+        return sum(any(not (lo - 1.0 <= x <= hi + 1.0) for x, lo, hi in
+                       zip(row, narrow["min"], narrow["max"]))
+                   for row in np.asarray(path)[:, n:].tolist())
+
+    brute = beyond(r.path)
     assert r.outside_measured_states == brute > 0
     assert r.to_json()["outside_measured_states"] == brute
     wide = {"min": [-400.0] * n, "max": [0.0] * n}
@@ -190,10 +195,7 @@ def test_plan_counts_states_beyond_the_measured_insertions(seed1, tmp_path):
     counts = {}
     for f in (tmp_path / "batch" / "jobs").glob("*.json"):
         d = json.loads(f.read_text())
-        b = np.asarray(d["path"])[:, n:]
-        counts[d["job_id"]] = None if d["model"] == "physics" else sum(
-            any(not (lo - 1.0 <= x <= hi + 1.0) for x, lo, hi in
-                zip(row, narrow["min"], narrow["max"])) for row in b.tolist())
+        counts[d["job_id"]] = None if d["model"] == "physics" else beyond(d["path"])
     with open(tmp_path / "batch" / "jobs.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert {r["job_id"]: r["outside_measured_states"] for r in rows} == {
