@@ -59,7 +59,7 @@ THRESHOLDS = {"calibrated_success_min": 0.75, "depth_mm": 0.05, "calibrated_pene
               "default_reduction_min": 0.9}
 #: re-check density for this bench: >= 10 states per edge, at most 0.5 mm apart (metric mm)
 STEP_MM = 0.5
-#: FCL distances of free states (the truth clearance; about 3x the re-check's time)
+#: FCL distances of free states (the truth clearance; the smallest per path is exact)
 DISTANCES = True
 
 #: the truth used while tests.foreign has no real_robot scenario: the issue's robot (middle

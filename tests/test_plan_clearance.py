@@ -189,8 +189,7 @@ def test_hard_set_clearance_objective_triples_the_median_clearance():
     plans are the same on any machine): the clearance objective solves >= 95 % and the median
     over plans of each plan's minimum clearance on the planning model is >= 3x the first
     solutions' (issue 18's bar; the committed benchmark, `make bench`: 0.50 vs 0.11 mm). The
-    independent re-check of the same objectives is the next test (it costs minutes per
-    problem). Planning time is compared in the benchmark (same run), not here. About 1 min."""
+    independent re-check of the same objectives is the next test (about 10 s per plan). Planning time is compared in the benchmark (same run), not here. About 1 min."""
     from bench_hard import run_one, scenes
 
     med = {}
@@ -212,7 +211,7 @@ def test_hard_set_clearance_objective_keeps_farther_in_the_independent_recheck(t
     the median of each plan's minimum clearance is >= 1.5x the first solutions' (the committed
     benchmark's 17 problems: 2.1x; the re-check's robot is not the planning model, so neither
     objective's plans keep the planned distance exactly) and every successful path is free in
-    the re-check. About 2-4 min on 2 cores."""
+    the re-check. About 3 min on one core."""
     from bench_hard import run
 
     res = run(["physics"], ["rrtconnect"], 1, 10.0, 2, tmp_path, objectives=("clearance", "first"))

@@ -21,6 +21,13 @@ What a plan's "collision-free" is checked against here, built from nothing ctrpl
   when the tube with every radius shrunk by ``d`` still touches a surface; 0.002 mm
   resolution); where even the centreline touches a surface the centreline crosses it
   (``crosses``) and the depth is at least that segment's radius;
+* **clearance of a path**: the smallest distance over its states is exact; the work is cut by
+  bounds that are proven, not estimated: every STRIDE-th free state asks FCL for each group of
+  GROUP segments it must (coarse capsule, then the fine cylinders), and any other state starts
+  from its neighbouring anchors' group distances less how far that group's geometry can have
+  moved (vertex displacement, segment tilt, radius growth: :func:`_shift_bounds`), asking FCL
+  only for groups that could still go below the smallest distance found. Every state's verdict
+  is FCL's ``collide``;
 * **states**: a dense linear interpolation of the path in the plan.json convention (rotations
   unwrapped: the straight line between consecutive configurations is the motion), at least
   ``per_edge`` (default 10) interpolated states per edge and at most ``step_mm`` (default
@@ -56,6 +63,8 @@ NOMINAL = {"torsion": {"gj_scale": 1.0, "coupling": 0.0}}
 DEPTH_TOL_MM = 0.002
 #: backbone segments per coarse capsule
 GROUP = 24
+#: free states between two anchors of the clearance pass (check_states)
+STRIDE = 12
 
 
 # ----------------------------------------------------------------------------- scene
@@ -297,25 +306,61 @@ class _Scene:
                 return nm
         return None
 
-    def distance(self, P, radius) -> float:
-        """FCL distance from a free tube to the nearest mesh: coarse lower bounds per group,
-        fine distances in order of them until no coarse bound is below the best."""
+    def distance(self, P, radius, lower=None, best: float = np.inf):
+        """FCL distance from a free tube to the nearest mesh, asked group by group in order of
+        the group's lower bound: ``lower`` (G,) known lower bounds per coarse group (default 0:
+        the tube is free), then the group's coarse capsule, then its fine cylinders, until no
+        group's bound is below the smallest distance found (or ``best``, a clearance already
+        found elsewhere on the path). Returns (the state's distance: exact where below ``best``,
+        else a lower bound >= ``best``; per-group lower bounds, exact where the fine geometry
+        was asked)."""
         caps, parts = _coarse(P, radius)
-        lb = np.array([self._dist_objs([c]) for c in caps])
-        best = np.inf
-        for g in np.argsort(lb, kind="stable"):
-            if lb[g] >= best:
+        val = np.zeros(len(caps)) if lower is None else np.maximum(lower, 0.0)
+        stage = np.zeros(len(caps), int)                  # 0: bound, 1: coarse, 2: fine (exact)
+        own = np.inf
+        while True:
+            g = int(np.argmin(np.where(stage < 2, val, np.inf)))
+            if stage[g] == 2 or val[g] >= min(best, own):
                 break
-            best = min(best, self._dist_objs(_tube_objects(P, radius, 0.0, parts[g])))
-        return best
+            if stage[g] == 0:
+                c = np.inf if caps[g] is None else self._dist_objs([caps[g]])
+                val[g] = max(val[g], c)
+            else:
+                val[g] = self._dist_objs(_tube_objects(P, radius, 0.0, parts[g]))
+                own = min(own, val[g])
+            stage[g] += 1
+        return float(min(own, val.min())), val
+
+
+def _shift_bounds(Pj: np.ndarray, rj: np.ndarray, Pi: np.ndarray, ri: np.ndarray,
+                  group: int = GROUP) -> np.ndarray:
+    """Per coarse group: how much closer to any surface state j's geometry of that group can be
+    than state i's (same number of backbone points); every point of it lies within the bound
+    of a point of i's same group, so its distance_j >= distance_i - bound. A point c_j(t) + u
+    of segment s (u normal to it, |u| <= r_j) maps to c_i(t) + R u (R: the smallest rotation
+    between the two segment directions, u cut to r_i), moved by at most
+    max(|dP_s|, |dP_s+1|) + r_j 2 sin(theta / 2) + max(r_j - r_i, 0); a joint sphere (joint s+1
+    belongs to segment s) by |dP| + the radius growth. inf where i lacks a segment j has."""
+    dv = np.linalg.norm(Pj - Pi, axis=1)
+    vj, vi = np.diff(Pj, axis=0), np.diff(Pi, axis=0)
+    hj, hi = np.linalg.norm(vj, axis=1), np.linalg.norm(vi, axis=1)
+    has = (hj > 1e-9) & (rj > 0)                              # j's cylinders (_tube_objects)
+    cos = np.einsum("ij,ij->i", vj, vi) / np.maximum(hj * hi, 1e-300)
+    tilt = np.sqrt(np.clip(2.0 - 2.0 * cos, 0.0, 4.0))         # 2 sin(theta / 2)
+    grow = np.maximum(rj - ri, 0.0)
+    seg = np.where(has, np.maximum(dv[:-1], dv[1:]) + rj * tilt + grow, 0.0)
+    seg[has & ((hi <= 1e-9) | (ri <= 0))] = np.inf
+    seg[:-1] = np.maximum(seg[:-1], dv[1:-1] + np.maximum(grow[:-1], grow[1:]))
+    return np.maximum.reduceat(seg, np.arange(0, len(seg), group))
 
 
 # ----------------------------------------------------------------------------- report
 @dataclass
 class RecheckReport:
     """Per state: ``states`` (N, 2n), ``edge`` (N,), ``clearance_mm`` (N,) signed: the FCL
-    distance from the tube to the nearest mesh where free, minus the penetration depth where in
-    contact; ``depth_mm`` (N,) penetration depth (0 where free; a lower bound where
+    distance from the tube to the nearest mesh where free (where a state cannot be the smallest
+    over the states, a proven lower bound of it: the minimum over the states is exact), minus the penetration depth where in contact;
+    ``depth_mm`` (N,) penetration depth (0 where free; a lower bound where
     ``crosses``); ``contact`` (N,) mesh name or "" ("model" where the mechanics failed or the
     state breaks the joint constraints); ``crosses`` (N,) the centreline itself touches a
     surface; ``tip`` (N, 3) scene frame."""
@@ -369,6 +414,29 @@ def check_states(robot, scene, q, effects=None, direction=None, points: int = 60
     crosses = np.zeros(N, bool)
     tip = np.full((N, 3), np.nan)
     world = _Scene(sc)
+
+    def full(i, Ps, rad, dist):
+        """Contact (and depth) or clearance of one state, FCL asked directly."""
+        hit = world.hit(Ps, rad)
+        if hit is None:
+            clear[i] = world.distance(Ps, rad)[0] if dist else np.nan
+            return
+        contact[i] = hit
+        if not depths:
+            depth[i] = clear[i] = np.nan
+            return
+        if world.hit(Ps, np.full(len(rad), 1e-5)) is not None:
+            crosses[i] = True
+        lo_d, hi_d = 0.0, float(rad.max())
+        while hi_d - lo_d > DEPTH_TOL_MM:
+            mid = 0.5 * (lo_d + hi_d)
+            if world.hit(Ps, rad, shrink=mid) is not None:
+                lo_d = mid
+            else:
+                hi_d = mid
+        depth[i] = hi_d
+        clear[i] = -hi_d
+
     # friction history runs along the rows: then one batch
     step = N if sweep is not None else 256
     for lo in range(0, N, max(step, 1)):
@@ -376,34 +444,44 @@ def check_states(robot, scene, q, effects=None, direction=None, points: int = 60
         dirs = None if direction is None else np.asarray(direction)[idx]
         sw = None if sweep is None else np.asarray(sweep)[idx]
         P, rad, ok = backbone(spec, q[idx], effects, dirs, points, sweep=sw)
+        Ps = np.full_like(P, np.nan)
         for k, i in enumerate(idx):
-            if stop_at_first and np.any(contact[:i] != ""):
-                contact[i] = "unchecked"
-                continue
-            if not ok[k]:
+            if ok[k]:
+                Ps[k] = sc.to_scene(P[k])
+                tip[i] = Ps[k, -1]
+            else:
                 contact[i], clear[i], depth[i] = "model", -np.inf, np.inf
+        if not distances or stop_at_first:
+            for k, i in enumerate(idx):
+                if stop_at_first and np.any(contact[:i] != ""):
+                    contact[i] = "unchecked"
+                elif ok[k]:
+                    full(i, Ps[k], rad[k], distances)
+            continue
+        # every state's verdict (FCL collide), and the exact smallest clearance over the states:
+        # every STRIDE-th free state (an anchor) asks FCL for every group it must; any other free
+        # state starts from its nearest anchors' per-group distances less how far the group can
+        # have moved (_shift_bounds) and asks FCL only for groups that could still go below the
+        # smallest clearance found
+        for k, i in enumerate(idx):
+            if ok[k]:
+                full(i, Ps[k], rad[k], False)
+        free = [k for k in range(len(idx)) if ok[k] and contact[idx[k]] == ""]
+        anchors = free[::STRIDE] + free[-1:]
+        vals = {}
+        for k in anchors:
+            clear[idx[k]], vals[k] = world.distance(Ps[k], rad[k])
+        best = float(np.nanmin(clear[idx], initial=np.inf))
+        pos = np.array(anchors)
+        for k in free:
+            if k in vals:
                 continue
-            Ps = sc.to_scene(P[k])
-            tip[i] = Ps[-1]
-            hit = world.hit(Ps, rad[k])
-            if hit is None:
-                clear[i] = world.distance(Ps, rad[k]) if distances else np.nan
-                continue
-            contact[i] = hit
-            if not depths:
-                depth[i] = clear[i] = np.nan
-                continue
-            if world.hit(Ps, np.full(len(rad[k]), 1e-5)) is not None:
-                crosses[i] = True
-            lo_d, hi_d = 0.0, float(rad[k].max())
-            while hi_d - lo_d > DEPTH_TOL_MM:
-                mid = 0.5 * (lo_d + hi_d)
-                if world.hit(Ps, rad[k], shrink=mid) is not None:
-                    lo_d = mid
-                else:
-                    hi_d = mid
-            depth[i] = hi_d
-            clear[i] = -hi_d
+            j = np.searchsorted(pos, k)
+            lower = np.zeros(len(vals[anchors[0]]))
+            for a in pos[max(j - 1, 0):j + 1]:
+                lower = np.maximum(lower, vals[a] - _shift_bounds(Ps[k], rad[k], Ps[a], rad[a]))
+            clear[idx[k]], _ = world.distance(Ps[k], rad[k], lower, best)
+            best = min(best, clear[idx[k]])
     return RecheckReport(q, np.zeros(N, int), clear, depth, contact, crosses, tip)
 
 
