@@ -189,7 +189,8 @@ def test_hard_set_clearance_objective_triples_the_median_clearance():
     plans are the same on any machine): the clearance objective solves >= 95 % and the median
     over plans of each plan's minimum clearance on the planning model is >= 3x the first
     solutions' (issue 18's bar; the committed benchmark, `make bench`: 0.50 vs 0.11 mm). The
-    independent re-check of the same objectives is the next test (about 10 s per plan). Planning time is compared in the benchmark (same run), not here. About 1 min."""
+    independent re-check of the same objectives is the next test (about 10 s per plan).
+    Planning time is compared in the benchmark (same run), not here. About 1 min."""
     from bench_hard import run_one, scenes
 
     med = {}

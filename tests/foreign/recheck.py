@@ -359,11 +359,11 @@ def _shift_bounds(Pj: np.ndarray, rj: np.ndarray, Pi: np.ndarray, ri: np.ndarray
 class RecheckReport:
     """Per state: ``states`` (N, 2n), ``edge`` (N,), ``clearance_mm`` (N,) signed: the FCL
     distance from the tube to the nearest mesh where free (where a state cannot be the smallest
-    over the states, a proven lower bound of it: the minimum over the states is exact), minus the penetration depth where in contact;
-    ``depth_mm`` (N,) penetration depth (0 where free; a lower bound where
-    ``crosses``); ``contact`` (N,) mesh name or "" ("model" where the mechanics failed or the
-    state breaks the joint constraints); ``crosses`` (N,) the centreline itself touches a
-    surface; ``tip`` (N, 3) scene frame."""
+    over the states, a proven lower bound of it: the minimum over the states is exact), minus
+    the penetration depth where in contact; ``depth_mm`` (N,) penetration depth (0 where free;
+    a lower bound where ``crosses``); ``contact`` (N,) mesh name or "" ("model" where the
+    mechanics failed or the state breaks the joint constraints); ``crosses`` (N,) the
+    centreline itself touches a surface; ``tip`` (N, 3) scene frame."""
 
     states: np.ndarray
     edge: np.ndarray
@@ -467,7 +467,7 @@ def check_states(robot, scene, q, effects=None, direction=None, points: int = 60
             if ok[k]:
                 full(i, Ps[k], rad[k], False)
         free = [k for k in range(len(idx)) if ok[k] and contact[idx[k]] == ""]
-        anchors = free[::STRIDE] + free[-1:]
+        anchors = sorted(set(free[::STRIDE] + free[-1:]))        # the last one asked once
         vals = {}
         for k in anchors:
             clear[idx[k]], vals[k] = world.distance(Ps[k], rad[k])
