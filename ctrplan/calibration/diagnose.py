@@ -91,11 +91,13 @@ from ctrplan.calibration.select import (
     SelectConfig,
     Selection,
     drop_partials_at_bounds,
+    name_by_signature,
     select,
 )
 from ctrplan.calibration.verdict import Verdict, conclude, errors
 from ctrplan.measured import MeasuredData
 from ctrplan.robot import Robot
+from ctrplan.shape.base import direction_from_rows
 from ctrplan.shape.effects import EffectModel
 
 __all__ = ["diagnose", "DiagnoseReport", "DiagnoseStatus", "Step", "Candidate", "split_sweeps",
@@ -138,6 +140,9 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
         sel = Selection({}, base_score, {}, [], {})
     else:
         sel = select(prob, robot, inp.base, evd.candidates, cfg, evd.e_noise, base_score)
+        if split.ordered:
+            sel = name_by_signature(prob, sel, split.train,
+                                    direction_from_rows(data.q, split.sweeps), evd.noise_sd, cfg)
     fit = final_fit(prob, split.train, split.test, sel.effects, sel.free, fit_iter, base_pred)
     trimmed = drop_partials_at_bounds(prob, robot, inp.base, sel, fit.effects, cfg)
     if trimmed is not None:

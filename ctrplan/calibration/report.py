@@ -113,7 +113,10 @@ def _rule_md(rep: DiagnoseReport) -> list[str]:
             f"change is below -{st['bic_threshold']:g} AND it lowers the validation error by "
             f"at least {100 * st['min_heldout_gain']:.0f} %, and the named effects leave at "
             f"most {100 * st.get('max_remainder', 0.5):.0f} % of the validation error above "
-            "the noise floor. The chosen model is refitted on fit + validation rows; the errors "
+            "the noise floor. Friction, the one effect whose shapes depend on the direction of "
+            "motion, is also named when the residual without it shows significant hysteresis "
+            "on the fit and validation rows and it removes at least half of the gap. The "
+            "chosen model is refitted on fit + validation rows; the errors "
             f"above are on the test rows, which chose nothing: {', '.join(rep.test_sweeps)} "
             f"({rep.split.get('method', 'whole sweeps')}). Step tables show validation "
             "errors.", ""]
@@ -175,6 +178,8 @@ def _step_md(k: int, s) -> list[str]:
         lines = [f"## Step {k}: {s.effect}" + (f" (form: {s.form})" if s.form else "")
                  + ("" if getattr(s, "named", True) else
                     " (kept in the model; evidence too weak to name it)"), ""]
+        if getattr(s, "named_by", ""):
+            lines += [f"Named by its signature (its drop is below the shares): {s.named_by}.", ""]
     else:
         lines = [f"## Step {k}: nothing more justified", ""]
     if s.accepted and s.effect not in NUISANCES:

@@ -57,6 +57,8 @@ class Step:
     screened: list[Candidate] = field(default_factory=list)
     form: str = ""
     named: bool = True
+    #: why an effect that failed the shares is named (its signature in the data), else ""
+    named_by: str = ""
 
 
 @dataclass
