@@ -50,18 +50,14 @@ friction      {"form": "end_moment" | "coulomb_lag" | "presliding", ...}
               the plane (inside the guide and the outer tubes: more friction, more wind-up):
               alpha_eff = alpha - d lag (1 + growth (r - 1/2)), r = -beta / L in [0, 1].
               {"lag": rad (scalar or per tube), "growth": 1.2, "beta_lag": mm (default 0)}
-              (A Coulomb torque at the plane twisting the retracted length: linear in r.)
-              Why not ctrplan's: its lag / relative / dead_band lags are constant per tube, or
-              grow with the square of r (its windup: friction spread along the retracted
-              length); lost + wind r^2 is never a line in r: the best such fit over r in
-              [0, 1] leaves 25 % (rms) of the growth term, 19 % of its range at most.
+              Why not ctrplan's: its lag / relative / dead_band lags are constant per tube.
               presliding: the lag builds up over a rotation after each reversal with a Dahl
               exponent 2 (hyperbolic, not exponential): w = 1 - z d / c, w <- w / (1 + w
               |dalpha| / angle), z = c d (1 - w), c = lag (1 + growth (r - 1/2)) as above;
               alpha_eff = alpha - z. Without row history (``backbones(direction=...)``) the fully
               developed lag c d. {"lag": rad, "angle": rad, "growth": 1.2}
               Why not ctrplan's: its presliding recursion is the exponential one
-              (w <- w exp(-|dalpha| / angle)) with a constant lag or one growing with r^2.
+              (w <- w exp(-|dalpha| / angle)) with a constant lag.
 precurvature  {"scale": [per tube], "ramp": [per tube]}
               kappa_i(s) = scale_i kappa_i (1 + ramp_i (s_c - 1/2)), s_c in [0, 1] along the
               curved section from its proximal start (held constant over equal
