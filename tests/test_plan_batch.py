@@ -98,6 +98,12 @@ def test_batch_writes_one_json_per_job_and_resumes(tmp_path, airway_targets):
     files[0].unlink()
     third = run_batch(jobs, out)
     assert (third.skipped, third.ran) == (1, 1)
+    # a truncated job file (not JSON) is not a result: that job runs again, overwriting it
+    text = files[1].read_text()
+    files[1].write_text(text[: len(text) // 2])
+    fourth = run_batch(jobs, out)
+    assert (fourth.skipped, fourth.ran) == (1, 1)
+    assert json.loads(files[1].read_text())["status"] == "SUCCESS"
 
 
 def test_bad_job_is_recorded_not_fatal(tmp_path):

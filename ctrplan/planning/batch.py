@@ -221,6 +221,11 @@ class BatchSummary:
 
 
 def _done(path: Path, job: Job) -> dict | None:
+    """The finished result of ``job`` in its job file, or None when the job must run: no file,
+    not JSON (a truncated file: job files are written atomically, so only damage from outside
+    truncates one) or not a result of this job (another id, no status); the rerun overwrites
+    it. A result of this job with a field that fails :func:`validate_job_file` is refused
+    (InputError naming the file and field): it may have been edited, and is never trusted."""
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):

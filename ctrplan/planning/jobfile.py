@@ -1,13 +1,14 @@
 """Validation of a ``plan-batch`` job file read back on resume.
 
 A job file (``<out>/jobs/<id>.json``) is an output of an earlier run, but on resume it is input:
-it may have been edited, truncated or replaced. Before its result is counted as done, every field
-the batch uses is checked here: the job's own settings must equal the job being resumed (so an
-edited robot, model, scene or target is never trusted), the status must be one of the plan
-statuses and agree with ``success``, numbers must be finite numbers or null, the path must be
-configurations of the recorded robot within the plausible ranges, and a recorded robot must match
-its digest. Anything else is an :class:`~ctrplan.errors.InputError` naming the file and the
-field, with how to recover (delete the file and the job runs again).
+it may have been edited, truncated or replaced. A file that is not JSON (truncated) or not a
+result of the job is not counted: the job runs again. Before a result is counted as done, every
+field the batch uses is checked here: the job's own settings must equal the job being resumed
+(so an edited robot, model, scene or target is never trusted), the status must be one of the
+plan statuses and agree with ``success``, numbers must be finite numbers or null, the path must
+be configurations of the recorded robot within the plausible ranges, and a recorded robot must
+match its digest. Anything else is an :class:`~ctrplan.errors.InputError` naming the file and
+the field, with how to recover (delete the file and the job runs again).
 """
 
 from __future__ import annotations
