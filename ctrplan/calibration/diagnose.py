@@ -47,7 +47,8 @@ decisions:
    robot; one at a time none of them helps), then each is dropped in turn: the drop decides
    whether it stays and whether it is named (the same three shares, the last of the largest
    drop). The joint model replaces step 4's when it is
-   better on validation.
+   better on validation. Friction kept below the shares is named by its signature
+   (:func:`ctrplan.calibration.select.name_by_signature`: the hysteresis it removes).
 6. The chosen model is refitted on fit + validation rows and written as ``calibrated.yaml``
    whether or not its effects are named (unnamed ones are listed as ``partial``).
 7. Nuisances (:mod:`ctrplan.calibration.nuisance`), only after the robot: a drift in time and a tracker-field

@@ -12,6 +12,10 @@ noise, every effect that lowered the BIC in the first screen is fitted jointly, 
 dropped in turn: the drop decides whether it stays and whether it is named. The joint model
 replaces the forward one when it is better on validation (:func:`select`).
 
+Signature (:func:`name_by_signature`): friction kept in the model below the shares is named
+when the residual without it shows significant hysteresis that it removes (the one effect
+whose shapes depend on the direction of motion).
+
 Parameters are fitted on the fit rows (``prob.train``), effects and forms chosen on the
 validation rows (``prob.test``).
 """
