@@ -21,6 +21,9 @@ measured shortfall (marked KNOWN SHORTFALL):
 - no effect: nothing named in >= 19 of 20 seeds;
 - each effect outside the vocabulary (tracker distortion, sensor drift): no vocabulary effect
   named and ``unexplained`` reported in >= 9 of 10 seeds;
+- a real-robot-like recording (the real-robot scenario, one continuous trajectory of 1,300
+  rows, tracker registration; 2 % glitched rows): held-out mean below 1 % of the robot's
+  length in 4 of 4 seeds; without glitches, a lower held-out maximum in 2 of 2 seeds;
 - the three-effect study (seeds 0, 1, 2): exactly clearance, friction and torsion named, and the
   calibrated model leaves <= 30 % of the traditional model's mean tip error on a fresh study run
   (another seed) over all three experiments, <= 20 % in each experiment, and a lower maximum in
@@ -149,3 +152,41 @@ def test_three_effect_study():
             assert row["improved_mean_mm"] <= 0.2 * row["traditional_mean_mm"], row
             assert row["improved_max_mm"] < row["traditional_max_mm"], row
     assert len(named_all) >= STUDY_NAMED_MIN, named_all
+
+
+#: the real-data proxy: one continuous trajectory of this many rows (the issue's real data set:
+#: 1,307 samples of one trajectory), the real-robot scenario's truth (``tests.foreign.scenarios``)
+PROXY_ROWS = 1300
+
+
+def _proxy(seed: int, outliers: float):
+    from tests.foreign.scenarios import real_robot
+
+    rr = real_robot(seed=seed, registration=True, outliers=outliers)
+    d = rr.measure(n=PROXY_ROWS, sweeps=1, seed=seed)
+    return diagnose(load_robot(ROBOT), measured(d), seed=seed)
+
+
+def test_real_robot_like_recording_is_calibrated_below_one_percent_of_its_length():
+    """The issue's real-data check, on the closest data made outside ctrplan: the real-robot
+    scenario (curvature ramps, curved-section stiffness, clearance lean and jump, presliding
+    hysteresis growing with the retracted length, compliant drive couplings; a tracker
+    registration of ~2 deg, a few mm and 0.5 % scale), one continuous trajectory. With 2 % of
+    rows glitched by 3-15 mm: the held-out mean tip error is below 1 % of the robot's length
+    (its longest tube) in 4 of 4 seeds. Without glitches (a glitch of up to 15 mm sets the
+    maximum of either model): the held-out maximum improves in 2 of 2 seeds."""
+    length = float(np.max(load_robot(ROBOT).lengths))
+    lines = []
+    for seed in range(4):
+        rep = _proxy(seed, 0.02)
+        lines.append(f"seed {seed} (glitches): {rep.conclusion}; mean {rep.error_before_mm:.2f} "
+                     f"-> {rep.error_after_mm:.2f} mm, max {rep.max_before_mm:.2f} -> "
+                     f"{rep.max_after_mm:.2f} mm")
+        assert rep.error_after_mm < 0.01 * length, "\n".join(lines)
+    for seed in range(2):
+        rep = _proxy(seed, 0.0)
+        lines.append(f"seed {seed}: {rep.conclusion}; mean {rep.error_before_mm:.2f} -> "
+                     f"{rep.error_after_mm:.2f} mm, max {rep.max_before_mm:.2f} -> "
+                     f"{rep.max_after_mm:.2f} mm")
+        assert rep.max_after_mm < rep.max_before_mm, "\n".join(lines)
+    print("\nSTAT real-robot proxy:\n" + "\n".join(lines))
