@@ -67,3 +67,20 @@ def test_bench_in_process_leaves_numba_usable(tmp_path):
         assert fresh(1) == 2                                                 # a new compile
     finally:
         numba.set_num_threads(threads)
+
+
+def test_a_suite_that_measures_nan_still_writes_strict_json(tmp_path, monkeypatch):
+    """A value a suite could not measure (NaN) is written as null; the run's results are not
+    lost to a traceback (strict JSON has no NaN)."""
+    import json
+    import types
+
+    from ctrplan.commands import bench
+
+    fake = types.SimpleNamespace(run=lambda quick=False: {
+        "table": [{"case": "x", "ratio": float("nan"), "ok": 1.5}], "extra": [float("inf")]})
+    monkeypatch.setattr(bench, "load_suite", lambda name: fake)
+    assert cli.main(["-q", "bench", "shape", "--quick", "--out", str(tmp_path)]) == 0
+    data = json.loads((tmp_path / "bench.json").read_text())
+    suite = data["suites"]["shape"]
+    assert suite["table"] == [{"case": "x", "ratio": None, "ok": 1.5}] and suite["extra"] == [None]

@@ -6,6 +6,7 @@ import argparse
 import importlib.util
 import json
 import logging
+import math
 import platform
 import time
 from pathlib import Path
@@ -98,6 +99,18 @@ def to_markdown(results: dict) -> str:
             lines.append("| " + " | ".join(_cell(r.get(c)) for c in cols) + " |")
         lines.append("")
     return "\n".join(lines)
+
+
+def _json_ready(obj):
+    """``obj`` with every non-finite float (a value a suite could not measure) as None: strict
+    JSON has no NaN, and a suite's NaN must not lose the whole run's results."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_ready(v) for v in obj]
+    return obj
 
 
 def _cell(v) -> str:
@@ -483,7 +496,7 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         res = load_suite(name).run(quick=args.quick)
         res["wall_s"] = time.perf_counter() - t0
-        results["suites"][name] = res
+        results["suites"][name] = _json_ready(res)
     out = Path(args.out)
     write_json_atomic(out / "bench.json", results)
     md = to_markdown(results)
