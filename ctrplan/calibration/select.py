@@ -472,9 +472,8 @@ def name_by_signature(prob: Problem, sel: Selection, rows: np.ndarray, direction
     off = {e: v for e, v in sel.effects.items() if e != "friction"}
     on_pts, off_pts = prob.predict_many([sel.effects, off])
     q = prob.data.q[rows]
-    tests = [hysteresis(q, (p[:, -1] - prob.tip)[rows], direction[rows], noise_sd)
-             for p in (off_pts, on_pts)]
-    without, with_ = tests
+    without, with_ = (hysteresis(q, (p[:, -1] - prob.tip)[rows], direction[rows], noise_sd)
+                      for p in (off_pts, on_pts))
     if not (without.get("significant") and with_.get("tested")):
         return sel
     if with_["median_gap_mm"] > SIGNATURE_CUT * without["median_gap_mm"]:

@@ -6,7 +6,6 @@ import argparse
 import importlib.util
 import json
 import logging
-import math
 import platform
 import time
 from pathlib import Path
@@ -99,18 +98,6 @@ def to_markdown(results: dict) -> str:
             lines.append("| " + " | ".join(_cell(r.get(c)) for c in cols) + " |")
         lines.append("")
     return "\n".join(lines)
-
-
-def _json_ready(obj):
-    """``obj`` with every non-finite float (a value a suite could not measure) as None: strict
-    JSON has no NaN, and a suite's NaN must not lose the whole run's results."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _json_ready(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_ready(v) for v in obj]
-    return obj
 
 
 def _cell(v) -> str:
@@ -469,7 +456,7 @@ def refresh_docs(readme: Path, results: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ctrplan.io import write_json_atomic, write_text_atomic
+    from ctrplan.io import jsonable, write_json_atomic, write_text_atomic
 
     unknown = [s for s in args.suites if s not in SUITES]
     if unknown:
@@ -496,7 +483,7 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         res = load_suite(name).run(quick=args.quick)
         res["wall_s"] = time.perf_counter() - t0
-        results["suites"][name] = _json_ready(res)
+        results["suites"][name] = jsonable(res)   # a NaN a suite measured: null
     out = Path(args.out)
     write_json_atomic(out / "bench.json", results)
     md = to_markdown(results)

@@ -8,26 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ctrplan.io import write_json_atomic, write_text_atomic
+from ctrplan.io import jsonable, write_json_atomic, write_text_atomic
 from ctrplan.robot import robot_record
 
 
 def _num(v) -> float | None:
     return None if v is None or not math.isfinite(float(v)) else float(v)
-
-
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        return _num(obj)
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
 
 
 def design_json(result) -> dict:
@@ -50,7 +36,7 @@ def design_json(result) -> dict:
                       "clearance_mm": e["clearance_mm"],
                       "score": list(score_of(e)) if e["planned"] else None,
                       "binding": e["binding"]})
-    return _jsonable({
+    return jsonable({
         "success": result.success, "status": result.status.value, "message": result.message,
         "scene": result.scene, "seed": result.seed,
         "robot": result.robot.to_dict() if result.robot is not None else None,
@@ -98,7 +84,7 @@ def write_outputs(result, out: str | Path) -> list[Path]:
             doc["target_name"] = t.name
             doc["stable"] = bool(t.reached) if t.status != "UNSTABLE" else False
             (out / "paths").mkdir(exist_ok=True)
-            write_json_atomic(out / "paths" / f"{t.name}.json", _jsonable(doc))
+            write_json_atomic(out / "paths" / f"{t.name}.json", jsonable(doc))
             written.append(out / "paths" / f"{t.name}.json")
     png = out / "coverage.png"
     _plot(result, png)
