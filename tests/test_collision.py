@@ -182,6 +182,26 @@ def test_prefilter_never_calls_a_colliding_state_free_large(name, seed1, physics
     _prefilter_against_fcl(name, seed1, physics, 10000, margins=(0.0, 0.5, 2.0))
 
 
+def test_a_sub_batch_keeps_its_verdicts_and_capsules(seed1, physics):
+    """A configuration's verdict does not depend on the batch it is checked in: selecting a
+    sub-batch of a Shape keeps the model's pad (dropping it shrank the capsules, and the
+    collision benchmark compared FCL on the smaller capsules with the prefilter on the full
+    ones)."""
+    world = CollisionWorld("airway")
+    q = sample_reach(seed1, 300, 160.0, seed=3)
+    shape = physics.shape(q, points=21)
+    assert shape.pad is not None and shape.pad.max() > 0
+    full = world.collides(shape)
+    assert full.any() and not full[7::3].all()              # both verdicts in the sub-batch
+    idx = np.arange(7, 300, 3)
+    for sub in (shape[7:300:3], shape[idx], shape[np.isin(np.arange(300), idx)]):
+        assert len(sub) == len(idx) and np.array_equal(sub.pad, shape.pad[idx])
+        np.testing.assert_array_equal(world.collides(sub), full[idx])
+        np.testing.assert_array_equal(world.check_exact(sub).collides, full[idx])
+    one = shape[-1]
+    assert len(one) == 1 and np.array_equal(one.points[0], shape.points[-1])
+
+
 def test_prefilter_with_margin(seed1, physics):
     _prefilter_against_fcl("skull_base", seed1, physics, 600, margins=(0.5,))
 

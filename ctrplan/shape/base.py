@@ -58,6 +58,15 @@ class Shape:
     def __len__(self) -> int:
         return int(self.points.shape[0])
 
+    def __getitem__(self, index) -> Shape:
+        """The configurations ``index`` selects (a slice, integer array or boolean mask), every
+        per-configuration field included (the pad too: a sub-batch keeps its capsules)."""
+        if isinstance(index, (int, np.integer)):
+            index = slice(int(index), int(index) + 1 or None)
+        return Shape(points=self.points[index], s=self.s[index], radius=self.radius[index],
+                     ok=np.asarray(self.ok)[index],
+                     pad=None if self.pad is None else self.pad[index])
+
 
 @runtime_checkable
 class ShapeModel(Protocol):
