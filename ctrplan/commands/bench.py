@@ -183,9 +183,17 @@ def summary_block(bench: dict, gpu: dict | None) -> str:
                                 ("near_targets", "the same near the targets (tight lumens)", "–")):
             rs = [r for r in co["table"] if r["configs"] == kind and r["model"] == "learned"]
             if rs:
+                if tgt != "–":
+                    short = [f"{r['scene']} {r['prefilter_fcl_per_s'] / 1000:.0f}k/s, "
+                             f"{r['speedup']:.0f}x" for r in rs
+                             if r["prefilter_fcl_per_s"] < 50_000 or r["speedup"] < 20]
+                    tgt += " — met" if not short else f" — **not met**: {'; '.join(short)}"
+                cs = [r["collision_speedup"] for r in rs if "collision_speedup" in r]
+                alone = f" (collision alone {_rng(cs, '.0f')}x)" if cs else ""
                 rows.append(f"| {what} | {_rng([r['prefilter_fcl_per_s'] / 1000 for r in rs], '.0f')}k "
                             f"configurations/s per scene; {_rng([r['speedup'] for r in rs], '.0f')}x "
-                            f"FCL alone; {_rng([100 * r['to_fcl_fraction'] for r in rs], '.1f')} % of "
+                            f"shape + FCL alone{alone}; "
+                            f"{_rng([100 * r['to_fcl_fraction'] for r in rs], '.1f')} % of "
                             f"states need FCL | {tgt} |")
     pl = su.get("planning")
     if pl:
@@ -206,8 +214,12 @@ def summary_block(bench: dict, gpu: dict | None) -> str:
             parts.append(f"{100 * by[('all', 'physics')]['direct_fraction']:.0f} % of the physics "
                          "plans are a single direct joint-space edge")
         n_t = len({p["target"] for p in pl["plans"]})
+        short = [f"{m} {100 * r['success_rate']:.0f} %, median {r['median_s']:.2f} s "
+                 f"({r['statuses']})" for (sc, m), r in sorted(by.items())
+                 if sc == "all" and (r["success_rate"] < 0.95 or r["median_s"] >= 1.0)]
+        met = "met" if not short else f"**not met**: {'; '.join(short)}"
         rows.append(f"| planning, {len(pl['scenes'])} scenes x {n_t} targets x {len(pl['seeds'])} seeds "
-                    f"(`bench_planning.py`) | {'; '.join(parts)} | ≥ 95 %, median < 1 s |")
+                    f"(`bench_planning.py`) | {'; '.join(parts)} | ≥ 95 %, median < 1 s — {met} |")
     dg = su.get("diagnose")
     if dg:
         r = next((r for r in dg["table"] if r["hidden"] != "none"), None)
