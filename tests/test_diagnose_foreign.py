@@ -79,10 +79,10 @@ SINGLE = [e for e in foreign.VOCAB_EFFECTS] + ["friction:coulomb_lag", "friction
 #: ctrplan.calibration.select): the cases below are asserted at what was measured, not at 9,
 #: until the calibration reaches it. Never lower a number here without measuring it.
 #: load 8 (2 seeds: gravity at its +-30 m/s^2 bound, the tether and filled lumen outside the
-#: form; measured 2026-11-26), friction as a Coulomb lag / presliding 6 each (named in 10/10,
-#: the test-sweep error cut 35-50 % in 4 seeds), drift 8 (registration named in 2).
-MEASURED_MIN: dict[str, int] = {"load": 8, "friction:coulomb_lag": 6, "friction:presliding": 6,
-                               "drift": 8}
+#: form; measured 2026-11-26), drift 8 (registration named in 2). Friction as a Coulomb lag
+#: and as presliding (lags growing with the contact of the held curved sections) reach 10 of 10
+#: with ctrplan's windup lag, test-sweep cuts 51-70 % (measured 2026-11-26).
+MEASURED_MIN: dict[str, int] = {"load": 8, "drift": 8}
 #: study seeds (of 3) with exactly clearance, friction and torsion named (the issue's 3 of 3;
 #: seed 1's friction, 12 % of the base error, is named by its hysteresis signature)
 STUDY_NAMED_MIN = 3

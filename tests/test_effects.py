@@ -231,6 +231,40 @@ def test_friction_with_direction_is_a_pure_function_of_q_and_direction():
     assert not needs_direction(EffectModel(r, "rigid", {"friction": {}}))
 
 
+def test_friction_windup_grows_the_lag_with_the_square_of_the_retracted_length():
+    """windup: the lag is lost + wind (-beta / L)^2 (friction spread along the retracted
+    length twists it by tau l^2 / 2 GJ). Oracle: the closed form applied to the joint values
+    of the plain mechanics; a presliding build-up develops the same lag."""
+    r = load_robot("seed1")
+    q = _q(r, 30, seed=6)
+    rng = np.random.default_rng(1)
+    D = rng.choice([-1, 1], size=q.shape).astype(np.int8)
+    lost = np.array([0.1, 0.05, 0.02])
+    wind = np.array([0.04, 0.0, 0.03])
+    fr = {f"lost{i + 1}": v for i, v in enumerate(lost)} | {f"wind{i + 1}": v
+                                                           for i, v in enumerate(wind)}
+    phys = PhysicsModel(r, torsion=False)
+    frac = np.clip(-q[:, 3:] / r.lengths, 0, 1)
+    assert np.ptp(frac) > 0.3
+    for extra, lag in (({"windup": 1.0}, lost + wind * frac ** 2), ({}, lost + 0 * frac)):
+        m = EffectModel(r, "rigid", {"friction": {**fr, "form": 1.0, **extra}})
+        qa = q.copy()
+        qa[:, :3] -= D[:, :3] * lag
+        np.testing.assert_allclose(m.shape(q, 2, direction=D).tip, phys.shape(qa, 2).tip,
+                                   atol=1e-12, err_msg=str(extra))
+    # presliding with windup: a long monotone rotation at fixed beta develops
+    # lost + wind (-beta / L)^2
+    q2 = np.zeros((40, 6))
+    q2[:, 0] = np.linspace(0, 2.0, 40)
+    q2[:, 3:] = [-150.0, -100.0, -50.0]
+    from ctrplan.shape.effects import prepare
+
+    eff = complete_effects({"friction": {**fr, "presliding": 0.1, "windup": 1.0}}, r, "rigid")
+    lag = q2[:, 0] - prepare(r, "rigid", eff, q2).q[:, 0]
+    assert lag[0] == 0.0 and 0.0 < lag[1] < lag[-1]
+    assert lag[-1] == pytest.approx(0.1 + 0.04 * (150.0 / r.lengths[0]) ** 2, rel=1e-6)
+
+
 def test_planning_model_drops_registration_and_is_pure():
     r = load_robot("seed1")
     q = _q(r, 12)

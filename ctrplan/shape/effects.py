@@ -29,7 +29,13 @@ The vocabulary (docs/conventions.md):
     study's concentrated end moment: where outer tube o ends a torque ``mu |M|`` (``|M|`` its
     bending moment there) twists tube o by ``+T l_o / GJ_o`` and tube o-1 by ``-T l / GJ``
     (l: each tube's length from its base to that point), its sign following the direction of
-    relative rotation (the study's ``dtheta``); ``mu`` fitted. The direction of motion: given as
+    relative rotation (the study's ``dtheta``); ``mu`` fitted. ``windup`` 1 (a form
+    parameter, not fitted; diagnose screens ``lag`` and ``presliding`` with it): friction
+    distributed along the part of each tube behind the base plane (its guide or support tube)
+    winds the tube up over that length: a torque ``tau`` per unit length over the retracted
+    length ``l`` twists the tube by ``tau l^2 / (2 GJ)``, so the lag is
+    ``lost<i> + wind<i> (-beta_i / L_i)^2`` (both fitted; the retracted fraction is clipped to
+    [0, 1]). The direction of motion: given as
     ``direction`` (B, 2n) in {-1, 0, +1} every row is a pure function of (q, direction) (the
     settled lag); without it, rows are taken in order as one continuous motion per sweep (the
     ``time``/row order of measured data), each sweep starting settled.
@@ -142,6 +148,12 @@ def effect_params(name: str, robot: Robot, base: str = "rigid") -> tuple[Param, 
                   "(end_moment form)", fit=False, typical=0.01),
             Param("presliding", 0.0, 0.0, 1.0, "rad", "rotation over which the lag builds up "
                   "(0 = ideal backlash; dead_band form)", fit=False),
+) + tuple(Param(f"wind{i + 1}", 0.0, 0.0, 1.0, "rad",
+                        f"lag of tube {i + 1} at full retraction, times (-beta{i + 1} / "
+                        f"L{i + 1})^2 (windup forms)", fit=False) for i in range(n)) + (
+            Param("windup", 0.0, 0.0, 1.0, "1", "1: the lags grow with the square of the "
+                  "retracted length, lost<i> + wind<i> (-beta<i> / L<i>)^2; 0: constant lags",
+                  fit=False),
             Param("form", 0.0, 0.0, float(len(FRICTION_FORMS) - 1), "1",
                   "friction form: " + ", ".join(f"{k} {f}" for k, f in enumerate(FRICTION_FORMS)),
                   fit=False))
@@ -187,12 +199,17 @@ def effect_variants(name: str, robot: Robot, base: str = "rigid") -> list[tuple[
     n = robot.n
     if name == "friction":
         lost = [f"lost{i + 1}" for i in range(n)]
+        wind = [f"wind{i + 1}" for i in range(n)]
         return [("dead_band", {"form": 0.0, "presliding": 0.0}, lost),
                 ("presliding", {"form": 0.0}, [*lost, "presliding"]),
                 ("lag", {"form": 1.0, "presliding": 0.0}, lost),
                 ("relative", {"form": 2.0, "presliding": 0.0}, lost),
                 ("end_moment", {"form": 3.0, "presliding": 0.0}, ["mu"]),
-                ("end_moment+lag", {"form": 3.0, "presliding": 0.0}, ["mu", *lost])]
+                ("end_moment+lag", {"form": 3.0, "presliding": 0.0}, ["mu", *lost]),
+                ("lag/windup", {"form": 1.0, "presliding": 0.0, "windup": 1.0}, [*lost, *wind]),
+                ("presliding/windup", {"form": 0.0, "windup": 1.0},
+                 [*lost, *wind, "presliding"]),
+]
     if name == "clearance":
         harm = [h for h, _ in CLEARANCE_HARMONICS]
         return [("harmonic", {"length": 0.0, "limit": 0.0}, harm[:3]),
@@ -206,8 +223,8 @@ def effect_form(name: str, values: Mapping[str, float]) -> str:
     if name == "friction":
         f = FRICTION_FORMS[int(round(values.get("form", 0.0)))]
         if f == "dead_band" and values.get("presliding", 0.0) > 0:
-            return "presliding"
-        return f
+            f = "presliding"
+        return f + "/windup" if values.get("windup", 0.0) > 0 else f
     if name == "clearance":
         harm = any(values.get(h, 0.0) != 0.0 for h, _ in CLEARANCE_HARMONICS)
         gap = values.get("length", 0.0) != 0.0
@@ -274,14 +291,14 @@ def parse_effect_arg(text: str, source: str = "--effect") -> tuple[str, dict[str
 # ---------------------------------------------------------------------------- stage functions
 @njit(cache=True)
 def _backlash(x, start, lost, presliding):
-    """Actual angles (B, n) from commanded ``x`` (B, n) in row order; a new sweep starts where
-    ``start`` is True (settled, actual = commanded)."""
+    """Actual angles (B, n) from commanded ``x`` (B, n) in row order, ``lost`` (B, n) the lag of
+    each row; a new sweep starts where ``start`` is True (settled, actual = commanded)."""
     B, n = x.shape
     y = np.empty_like(x)
     for i in range(n):
-        d = lost[i]
         e = 0.0  # lag: commanded - actual
         for k in range(B):
+            d = lost[k, i]
             if start[k]:
                 e = 0.0
             else:
@@ -425,19 +442,29 @@ def friction_angles(robot: Robot, fr: Mapping[str, float], alpha: np.ndarray,
     lost = np.array([fr[f"lost{i + 1}"] for i in range(n)])
     mu = float(fr.get("mu", 0.0))
     form = FRICTION_FORMS[int(round(fr.get("form", 0.0)))]
-    if not (np.any(lost > 0.0) or (mu > 0.0 and form == "end_moment")):
+    windup = fr.get("windup", 0.0) > 0.0 and any(fr.get(f"wind{i + 1}", 0.0) > 0.0
+                                                 for i in range(n))
+    if not (np.any(lost > 0.0) or windup or (mu > 0.0 and form == "end_moment")):
         return alpha
     if direction is None and pure:
         return alpha
+    if windup:
+        if beta is None:
+            raise ValueError("the windup friction lag needs beta")
+        wind = np.array([fr.get(f"wind{i + 1}", 0.0) for i in range(n)])
+        lost = lost[None, :] + wind[None, :] * np.clip(-beta / robot.lengths[None, :], 0.0,
+                                                       1.0) ** 2
+    else:
+        lost = np.broadcast_to(lost[None, :], (B, n))
     if direction is None and form == "dead_band":
-        return _backlash(np.ascontiguousarray(alpha), sweep_starts(B, sweep), lost,
-                         float(fr["presliding"]))
+        return _backlash(np.ascontiguousarray(alpha), sweep_starts(B, sweep),
+                         np.ascontiguousarray(lost), float(fr["presliding"]))
     dj = (np.asarray(direction, dtype=float)[:, :n] if direction is not None
           else _row_directions(alpha, sweep))
     if form in ("dead_band", "lag"):
-        return alpha - dj * lost[None, :]
+        return alpha - dj * lost
     pair = np.sign(dj[:, :-1] - dj[:, 1:])                    # inner minus outer, (B, n-1)
-    out = alpha - relative_direction(robot, pair) * lost[None, :]
+    out = alpha - relative_direction(robot, pair) * lost
     if form == "end_moment" and mu > 0.0 and n > 1:
         if beta is None:
             raise ValueError("the end-moment friction form needs beta")
@@ -588,6 +615,9 @@ class EffectModel:
         """True when friction is on: shapes depend on the direction of the last motion."""
         fr = self.effects.get("friction")
         return bool(fr) and (any(v > 0.0 for k, v in fr.items() if k.startswith("lost"))
+                             or (fr.get("windup", 0.0) > 0.0
+                                 and any(v > 0.0 for k, v in fr.items() if k.startswith("wind")
+                                         and k != "windup"))
                              or (fr.get("mu", 0.0) > 0.0 and round(fr.get("form", 0.0)) == 3))
 
     def __repr__(self) -> str:

@@ -80,10 +80,17 @@ def read_csv(path) -> dict:
 
 
 # ----------------------------------------------------------------------------- the truth
-def _retracted(spec: Spec, q: np.ndarray) -> np.ndarray:
-    """(N, n) fraction of each tube retracted behind the plane, -beta / L in [0, 1]."""
+def _held_curved(spec: Spec, q: np.ndarray) -> np.ndarray:
+    """(N, n) fraction of each tube's curved section held inside the tubes around it: proximal
+    of the distal end of the next outer tube (of the base plane, for the outermost tube), where
+    the pre-curved section is pressed against the wall around it (the contact that makes the
+    friction torque). Innermost tube first."""
     n = spec.n
-    return np.clip(-q[:, n:] / spec.L[None, :], 0.0, 1.0)
+    beta = q[:, n:]
+    held_to = np.concatenate([np.maximum(beta[:, 1:] + spec.L[None, 1:], 0.0),
+                              np.zeros((len(q), 1))], axis=1)
+    start = beta + spec.straight[None, :]                   # proximal end of the curved section
+    return np.clip(held_to - start, 0.0, spec.curved[None, :]) / spec.curved[None, :]
 
 
 def _alpha_lag(eff, q, n, direction, sweep, spec=None):
@@ -96,7 +103,7 @@ def _alpha_lag(eff, q, n, direction, sweep, spec=None):
     lag = E._per_tube(fr["lag"], n, "lag")
     growth = E._per_tube(fr.get("growth", 0.0), n, "growth")
     if spec is not None:
-        c = lag[None, :] * (1.0 + growth[None, :] * (_retracted(spec, q) - 0.5))
+        c = lag[None, :] * (1.0 + growth[None, :] * _held_curved(spec, q))
     else:
         c = np.broadcast_to(lag[None, :], (q.shape[0], n))
     if fr["form"] == "coulomb_lag":
