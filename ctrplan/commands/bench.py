@@ -219,7 +219,8 @@ def summary_block(bench: dict, gpu: dict | None) -> str:
                  if sc == "all" and (r["success_rate"] < 0.95 or r["median_s"] >= 1.0)]
         met = "met" if not short else f"**not met**: {'; '.join(short)}"
         rows.append(f"| planning, {len(pl['scenes'])} scenes x {n_t} targets x {len(pl['seeds'])} seeds "
-                    f"(`bench_planning.py`) | {'; '.join(parts)} | ≥ 95 %, median < 1 s — {met} |")
+                    f"(`bench_planning.py`) | {'; '.join(parts)} | "
+                    f"≥ 95 %, median < 1 s — {met} |")
     dg = su.get("diagnose")
     if dg:
         r = next((r for r in dg["table"] if r["hidden"] != "none"), None)
