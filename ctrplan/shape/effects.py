@@ -147,10 +147,10 @@ def effect_params(name: str, robot: Robot, base: str = "rigid") -> tuple[Param, 
                   "outer tube ends (|M| its bending moment there) twists both tubes of the pair "
                   "(end_moment form)", fit=False, typical=0.01),
             Param("presliding", 0.0, 0.0, 1.0, "rad", "rotation over which the lag builds up "
-                  "(0 = ideal backlash; dead_band form)", fit=False),
-) + tuple(Param(f"wind{i + 1}", 0.0, 0.0, 1.0, "rad",
-                        f"lag of tube {i + 1} at full retraction, times (-beta{i + 1} / "
-                        f"L{i + 1})^2 (windup forms)", fit=False) for i in range(n)) + (
+                  "(0 = ideal backlash; dead_band form)", fit=False)) + tuple(
+            Param(f"wind{i + 1}", 0.0, 0.0, 1.0, "rad", f"lag of tube {i + 1} at full "
+                  f"retraction, times (-beta{i + 1} / L{i + 1})^2 (windup forms)", fit=False)
+            for i in range(n)) + (
             Param("windup", 0.0, 0.0, 1.0, "1", "1: the lags grow with the square of the "
                   "retracted length, lost<i> + wind<i> (-beta<i> / L<i>)^2; 0: constant lags",
                   fit=False),
@@ -208,8 +208,7 @@ def effect_variants(name: str, robot: Robot, base: str = "rigid") -> list[tuple[
                 ("end_moment+lag", {"form": 3.0, "presliding": 0.0}, ["mu", *lost]),
                 ("lag/windup", {"form": 1.0, "presliding": 0.0, "windup": 1.0}, [*lost, *wind]),
                 ("presliding/windup", {"form": 0.0, "windup": 1.0},
-                 [*lost, *wind, "presliding"]),
-]
+                 [*lost, *wind, "presliding"])]
     if name == "clearance":
         harm = [h for h, _ in CLEARANCE_HARMONICS]
         return [("harmonic", {"length": 0.0, "limit": 0.0}, harm[:3]),
@@ -426,6 +425,17 @@ def _row_directions(angles: np.ndarray, sweep: np.ndarray | None) -> np.ndarray:
     return direction_from_rows(padded, sweep)[:, :k].astype(float)
 
 
+def friction_on(fr: Mapping[str, float]) -> bool:
+    """True when friction parameters ``fr`` change any shape: a lag (``lost<i>``), a windup lag
+    (``wind<i>`` with ``windup``) or the end-moment form's torque (``mu``)."""
+    lags = any(v > 0.0 for k, v in fr.items() if k.startswith("lost"))
+    wound = fr.get("windup", 0.0) > 0.0 and any(
+        v > 0.0 for k, v in fr.items() if k.startswith("wind") and k != "windup")
+    end_moment = (fr.get("mu", 0.0) > 0.0
+                  and round(fr.get("form", 0.0)) == FRICTION_FORMS.index("end_moment"))
+    return lags or wound or end_moment
+
+
 def friction_angles(robot: Robot, fr: Mapping[str, float], alpha: np.ndarray,
                     sweep: np.ndarray | None = None, direction: np.ndarray | None = None,
                     pure: bool = False, beta: np.ndarray | None = None) -> np.ndarray:
@@ -435,23 +445,19 @@ def friction_angles(robot: Robot, fr: Mapping[str, float], alpha: np.ndarray,
     (the settled state after moving that way: a lag of ``lost``); without it the rows are one
     motion in order per sweep (``dead_band`` is then a backlash with its transients). ``pure``
     without ``direction``: no direction known, no lag. ``beta`` (B, n) is needed by the
-    end-moment form.
+    end-moment and windup forms.
     """
     n = robot.n
     B = len(alpha)
+    if not friction_on(fr) or (direction is None and pure):
+        return alpha
     lost = np.array([fr[f"lost{i + 1}"] for i in range(n)])
     mu = float(fr.get("mu", 0.0))
     form = FRICTION_FORMS[int(round(fr.get("form", 0.0)))]
-    windup = fr.get("windup", 0.0) > 0.0 and any(fr.get(f"wind{i + 1}", 0.0) > 0.0
-                                                 for i in range(n))
-    if not (np.any(lost > 0.0) or windup or (mu > 0.0 and form == "end_moment")):
-        return alpha
-    if direction is None and pure:
-        return alpha
-    if windup:
+    wind = np.array([fr.get(f"wind{i + 1}", 0.0) for i in range(n)])
+    if fr.get("windup", 0.0) > 0.0 and np.any(wind > 0.0):
         if beta is None:
             raise ValueError("the windup friction lag needs beta")
-        wind = np.array([fr.get(f"wind{i + 1}", 0.0) for i in range(n)])
         lost = lost[None, :] + wind[None, :] * np.clip(-beta / robot.lengths[None, :], 0.0,
                                                        1.0) ** 2
     else:
@@ -614,11 +620,7 @@ class EffectModel:
     def needs_direction(self) -> bool:
         """True when friction is on: shapes depend on the direction of the last motion."""
         fr = self.effects.get("friction")
-        return bool(fr) and (any(v > 0.0 for k, v in fr.items() if k.startswith("lost"))
-                             or (fr.get("windup", 0.0) > 0.0
-                                 and any(v > 0.0 for k, v in fr.items() if k.startswith("wind")
-                                         and k != "windup"))
-                             or (fr.get("mu", 0.0) > 0.0 and round(fr.get("form", 0.0)) == 3))
+        return bool(fr) and friction_on(fr)
 
     def __repr__(self) -> str:
         return f"EffectModel(robot={self.robot.name!r}, base={self.base!r}, effects={self.effects!r})"
