@@ -96,13 +96,20 @@ class Run:
         return self.proc.returncode, err.decode(errors="replace")
 
 
+#: Linux's per-task flag "the task is exiting" (``PF_EXITING``, the 9th field of /proc/PID/stat).
+PF_EXITING = 0x4
+
+
 def _exited(pid: int) -> bool:
-    """True when the child has exited but is not reaped yet (a zombie): a signal sent now is
-    lost and its exit status is the command's own."""
+    """True when the child is ending or has ended and is not reaped yet: a signal sent now is
+    lost and its exit status is the command's own. That is a zombie, or a task already inside
+    the kernel's exit (``PF_EXITING``): a process that has called ``_exit`` stays "R" for some
+    10-20 ms while its memory is torn down, and a signal then changes nothing."""
     try:
         with open(f"/proc/{pid}/stat") as fh:
-            return fh.read().rsplit(")", 1)[1].split()[0] == "Z"
-    except (OSError, IndexError):
+            fields = fh.read().rsplit(")", 1)[1].split()
+        return fields[0] in ("Z", "X") or bool(int(fields[6]) & PF_EXITING)
+    except (OSError, IndexError, ValueError):
         return False
 
 
