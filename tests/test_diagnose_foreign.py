@@ -4,9 +4,9 @@ The data come from ``tests.foreign``: its own mechanics (own integration, torsio
 Cosserat shooting), its own effect forms, each outside ctrplan's fitted family of the same name
 (tests/foreign/effects.py says why, per effect: curvature ramps, curved-section stiffness,
 clearance lean + jump + 2nd harmonic, contact-length friction, Dahl-2 presliding, filled lumen +
-tether loads, periodic encoder error, registration with scale, an RBF tracker field, settling +
-step drift, drive-coupling torsion), its own noise and experiment designs; it imports nothing
-from ctrplan. A failed import fails the suite.
+tether + compliant-mount loads, periodic encoder error, registration with scale, an RBF tracker
+field, settling + step drift, drive-coupling torsion), its own noise and experiment designs; it
+imports nothing from ctrplan. A failed import fails the suite.
 
 Sizes (to keep the whole suite within its budget on 2 cores): the seed1 robot (three tubes),
 ``ROWS`` = 300 rows in 8 back-and-forth sweeps per data set, noise 0.1 mm per axis; the study
@@ -78,11 +78,12 @@ SINGLE = [e for e in foreign.VOCAB_EFFECTS] + ["friction:coulomb_lag", "friction
 #: rewritten generator, forms outside ctrplan's families, after the follower-share rule of
 #: ctrplan.calibration.select): the cases below are asserted at what was measured, not at 9,
 #: until the calibration reaches it. Never lower a number here without measuring it.
-#: load 8 (2 seeds: gravity at its +-30 m/s^2 bound, the tether and filled lumen outside the
-#: form; measured 2026-11-26), drift 8 (registration named in 2). Friction as a Coulomb lag
-#: and as presliding (lags growing with the contact of the held curved sections) reach 10 of 10
-#: with ctrplan's windup lag, test-sweep cuts 51-70 % (measured 2026-11-26).
-MEASURED_MIN: dict[str, int] = {"load": 8, "drift": 8}
+#: drift 8 (registration named in 2). Friction as a Coulomb lag and as presliding (lags
+#: growing with the contact of the held curved sections) reach 10 of 10 with ctrplan's windup
+#: lag, test-sweep cuts 51-70 % (measured 2026-11-26). Load reaches 9 of 10 since ctrplan fits
+#: the axial tip force and the generator's load has a compliant mount (measured 2026-11-27;
+#: before: 8, gravity at its +-30 m/s^2 bound standing in for the missing axial pull).
+MEASURED_MIN: dict[str, int] = {"drift": 8}
 #: study seeds (of 3) with exactly clearance, friction and torsion named (the issue's 3 of 3;
 #: seed 1's friction, 12 % of the base error, is named by its hysteresis signature)
 STUDY_NAMED_MIN = 3

@@ -744,9 +744,17 @@ def test_tether_is_a_fixed_point_and_lags_grow_with_contact():
     q = generate("seed1", "uniform", n=20, effects={}, seed=2).q
     from tests.foreign.effects import resolve
     ld = resolve({"load": {}}, n, sp)["load"]
-    assert ld["tether"] > 0 and ld["lumen_density"] > 0
+    assert ld["tether"] > 0 and ld["lumen_density"] > 0 and ld["base_compliance"] > 0
+    mounted = truth(sp, q, {"load": ld})[0]
+    ld = {**ld, "base_compliance": 0.0}
     tip, _, ok = truth(sp, q, {"load": ld})
     assert ok.all()
+    # the compliant mount turns the whole robot about the base origin: distances from it are
+    # kept, the tip moves by up to millimetres
+    np.testing.assert_allclose(np.linalg.norm(mounted, axis=1), np.linalg.norm(tip, axis=1),
+                               atol=1e-9)
+    moved = np.linalg.norm(mounted - tip, axis=1)
+    assert 0.05 < moved.mean() and moved.max() < 10.0
     # the tip force the tether exerts at the returned tip, applied as a fixed force: same tip
     F = np.array(ld["tip_force"])[None, :] + ld["tether"] * (np.array(ld["anchor"]) - tip)
     extra = np.zeros(n)

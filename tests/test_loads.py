@@ -245,6 +245,8 @@ CASES = [
      dict(gravity=(G * 0.6, 0.0, -G * 0.8), F=(0.05, -0.03, 0.01), M=(2.0, -1.0, 0.5))),
     ("two_tube_nylon", [1.0, -2.0, -40.0, -30.0], dict(F=(0.0, 0.2, -0.1), gravity=(0.0, 0.0, G))),
     ("two_tube_nylon", [0.2, 2.9, -10.0, -5.0], dict(gravity=(G, 0.0, 0.0), M=(0.0, 0.0, 5.0))),
+    # an axial pull alone (a sensor lead tensioned along the axis) bends a curved robot
+    ("seed1", [0.3, -2.0, 1.0, -40.0, -25.0, -8.0], dict(F=(0.0, 0.0, 0.1))),
 ]
 
 
@@ -412,7 +414,8 @@ def test_load_effect_params():
     ps = {p.name: p for p in effect_params("load", r)}
     assert set(ps) == {"gx", "gy", "gz", "fx", "fy", "fz"}
     assert all(p.off == 0.0 and p.lo < 0 < p.hi for p in ps.values())
-    assert [k for k, p in ps.items() if p.fit] == ["gx", "gy", "fx", "fy"]
+    # the axial tip force is fitted (it bends a curved robot), the axial weight is not
+    assert [k for k, p in ps.items() if p.fit] == ["gx", "gy", "fx", "fy", "fz"]
 
 
 def test_cli_simulate_with_load(tmp_path):

@@ -65,8 +65,10 @@ The vocabulary (docs/conventions.md):
     ``gx, gy`` (m/s^2; the component across the insertion axis, i.e. direction and magnitude
     of the sag of a robot that is not vertical; weight per length from each tube's ``density``,
     nitinol's where none is given, so a wrong density shows as a scaled g) and a tip force
-    ``fx, fy`` (N). Set by hand (not fitted: along the axis they barely bend the robot):
-    ``gz`` (m/s^2) and ``fz`` (N). Off: all 0 (the unloaded kernel runs). On a rigid base the
+    ``fx, fy, fz`` (N; the axial one too: a pull along the axis, such as a tracker sensor's lead
+    tensioned through the lumen, bends a curved robot by the tip's lateral offset). Set by hand
+    (not fitted: an axial weight barely bends the robot): ``gz`` (m/s^2). Off: all 0 (the
+    unloaded kernel runs). On a rigid base the
     loaded model is torsionally rigid (see :class:`~ctrplan.shape.physics.PhysicsModel`).
 
 A caveat written down once: on a compliant base the clearance tilt direction uses the base
@@ -182,8 +184,8 @@ def effect_params(name: str, robot: Robot, base: str = "rigid") -> tuple[Param, 
     if name == "load":
         return tuple(Param(f"g{c}", 0.0, -30.0, 30.0, "m/s^2", f"gravity component {c} (base frame)",
                            fit=c != "z") for c in "xyz") + tuple(
-            Param(f"f{c}", 0.0, -5.0, 5.0, "N", f"tip force component {c} (base frame)",
-                  fit=c != "z") for c in "xyz")
+            Param(f"f{c}", 0.0, -5.0, 5.0, "N", f"tip force component {c} (base frame)")
+            for c in "xyz")
     raise InputError("<effect>", name, f"unknown effect; known: {', '.join(EFFECT_NAMES)}")
 
 

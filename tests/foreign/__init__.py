@@ -13,7 +13,8 @@ docstring and README.md say, per effect, why ctrplan's family of the same name c
 it; tests/test_foreign_generator.py checks the best fit of that family leaves a residual).
 
 Mean / max tip displacement (mm) each effect causes at its DEFAULT parameters against the same
-rows without it (design "sweeps", n=1000, seed=1, no noise; measured 2026-11-25):
+rows without it (design "sweeps", n=1000, seed=1, no noise; measured 2026-11-25, load
+2026-11-27):
 
     effect                    seed1 mean/max    two_tube_nylon mean/max
     torsion (GJ, couplings)      1.40 / 4.83       14.89 / 44.31
@@ -23,8 +24,9 @@ rows without it (design "sweeps", n=1000, seed=1, no noise; measured 2026-11-25)
     friction presliding          1.16 / 3.99        1.53 / 18.10
     precurvature                 2.72 / 7.26        7.48 / 15.94
     stiffness                    2.49 / 4.43        1.18 / 3.22
-    load (gravity, tip force,    3.62 / 11.06       3.64 / 10.05
-          filled lumen, tether)
+    load (gravity, tip force,    4.61 / 13.60       7.83 / 17.98
+          filled lumen, tether,
+          compliant mount)
     joint_offset                 3.04 / 4.15        3.97 / 9.67
     registration (+ scale)       5.37 / 7.79        5.33 / 6.87
     distortion                   1.58 / 3.21        0.83 / 3.34

@@ -88,15 +88,18 @@ load          {"gravity": [gx, gy, gz] m/s^2 in the base frame (default [9.81, 0
               2500), "tether": N/mm (default 1.5e-4) and "anchor": [3] mm (default "auto":
               (0.15, 0, 1.0) L_1): a cable (the tracker sensor's lead, a tissue attachment)
               pulls the tip toward the anchor with F = tether (anchor - tip) (fixed point in the
-              tip), "base_compliance": rad per N mm (default 0): the mount turns the whole
+              tip), "base_compliance": rad per N mm (default 5e-4): the mount turns the whole
               robot about the base origin by that times the loads' bending moment there}.
               The defaults apply to {} only: with any key given, the keys not given are absent
               (gravity None, no tip force, empty lumen, no tether, rigid mount), e.g.
               {"gravity": [0, -9.81, 0]} is gravity alone.
               Why not ctrplan's: its loads are a constant gravity (times each tube's density
-              from the robot file, one scale for all tubes) and a constant tip force; the
-              tether's force depends on where the tip is (the filled lumen alone would be
-              nearly absorbed by a larger g).
+              from the robot file, one scale for all tubes) and a constant tip force (all three
+              components). The tether's pull is nearly constant over a workspace (a constant
+              tip force takes in all but 0.02 mm of it) and the filled lumen is nearly a larger
+              g; the compliant mount is what no constant load makes: the whole robot turns by
+              an angle that follows the loads' moment at the base, which changes with the
+              configuration (the tubes' reach and the tip's lateral offset).
 joint_offset  {"alpha": [rad per tube], "beta": [mm per tube], "periodic": [rad per tube],
                "periodic_phase": [rad per tube], "beta_scale": [per tube]}
               true alpha = alpha + offset + periodic sin(alpha + periodic_phase) (an eccentric
@@ -173,7 +176,8 @@ def defaults(name: str, n: int, spec=None) -> dict:
                 "torsion": _alt(n, 1.0, 0.8, 1.1)}
     if name == "load":
         return {"gravity": [9.81, 0.0, 0.0], "density": None, "tip_force": "auto",
-                "lumen_density": 2500.0, "tether": 1.5e-4, "anchor": "auto", "base_compliance": 0.0}
+                "lumen_density": 2500.0, "tether": 1.5e-4, "anchor": "auto",
+                "base_compliance": 5e-4}
     if name == "joint_offset":
         return {"alpha": _alt(n, 0.05, -0.06, 0.04), "beta": _alt(n, -1.5, -1.0, -0.5),
                 "periodic": _alt(n, 0.03, 0.025, 0.02), "periodic_phase": _alt(n, 0.7, 2.1, -1.3),
