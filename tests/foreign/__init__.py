@@ -13,7 +13,7 @@ docstring and README.md say, per effect, why ctrplan's family of the same name c
 it; tests/test_foreign_generator.py checks the best fit of that family leaves a residual).
 
 Mean / max tip displacement (mm) each effect causes at its DEFAULT parameters against the same
-rows without it (design "sweeps", n=1000, seed=1, no noise; measured 2026-11-25, load
+rows without it (design "sweeps", n=1000, seed=1, no noise; measured 2026-11-25, load and drift
 2026-11-27):
 
     effect                    seed1 mean/max    two_tube_nylon mean/max
@@ -30,7 +30,7 @@ rows without it (design "sweeps", n=1000, seed=1, no noise; measured 2026-11-25,
     joint_offset                 3.04 / 4.15        3.97 / 9.67
     registration (+ scale)       5.37 / 7.79        5.33 / 6.87
     distortion                   1.58 / 3.21        0.83 / 3.34
-    drift                        3.25 / 3.93        3.24 / 3.93
+    drift                        3.27 / 4.17        3.27 / 4.17
 
 Torsion uses the tubes' physical GJ = E J / (2 (1 + nu)) times ``gj_scale`` per tube; it is
 small on seed1 and large on the nylon pair. Friction is only visible where rows carry a
