@@ -39,6 +39,7 @@ import numpy as np
 
 from ctrplan.robot import Robot
 from ctrplan.shape.base import Shape, needs_direction
+from ctrplan.shape.branches import DEFAULT_STABILITY_MARGIN
 
 #: Slack (mm) on the joint constraints for interpolated states (round-off only).
 JOINT_TOL_MM = 1e-7
@@ -60,6 +61,11 @@ class ValidatorConfig:
     motion_floor_mm : with ``motion_bound``, states and edges while planning are checked with
         capsules grown by this much (mm), so that planned paths keep the small clearance the
         motion certificate's last level needs (``lip * D`` = 0.01 mm for 0.5 mm segments).
+    stability_margin : smallest elastic stability (det of the shooting Jacobian, normalised:
+        :mod:`ctrplan.shape.branches`) of a valid state, for models whose shape can depend on
+        the motion (compliant unloaded mechanics); edges are checked by continuation of the
+        equilibrium (:mod:`ctrplan.planning.tracking`). 0 keeps only stable equilibria reached
+        without a snap.
     """
 
     resolution_mm: float = 2.0
@@ -68,8 +74,11 @@ class ValidatorConfig:
     cache_size: int = 4096
     motion_bound: bool = True
     motion_floor_mm: float = 0.02
+    stability_margin: float = DEFAULT_STABILITY_MARGIN
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.stability_margin) and self.stability_margin >= 0):
+            raise ValueError("stability_margin must be a number >= 0")
         if not (self.resolution_mm > 0 and math.isfinite(self.resolution_mm)):
             raise ValueError("resolution_mm must be a positive number")
         if self.points < 2:
@@ -257,6 +266,10 @@ class PathCheck:
     bad_segments: list[int] = field(default_factory=list)
     #: (S, 2n) direction of motion of each state (direction-aware models), else None
     direction: np.ndarray | None = None
+    #: (S, n) 1/mm and (S,): the equilibrium each state was reached on and its stability
+    #: (models that track branches, :mod:`ctrplan.planning.tracking`), else None
+    uz0: np.ndarray | None = None
+    stability: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:
@@ -277,9 +290,14 @@ class BatchValidator:
     world : CollisionWorld-like (``collides``, ``first_collision``, ``check_exact`` on a Shape in
         the robot base frame; shapes with ``ok=False`` count as colliding)
     config : ValidatorConfig
+    tracking : True: track the equilibrium along motions where the model's shape can depend on
+        them (:mod:`ctrplan.planning.tracking`); False: never (every state the model's own
+        equilibrium, no stability margin); or a BranchTracker to share (its remembered states
+        and margin).
     """
 
-    def __init__(self, robot: Robot, model, world, config: ValidatorConfig | None = None):
+    def __init__(self, robot: Robot, model, world, config: ValidatorConfig | None = None,
+                 tracking=True):
         self.robot = robot
         self.model = model
         #: the model takes the direction of motion (then unknown directions are checked both ways)
@@ -293,6 +311,15 @@ class BatchValidator:
         self.n = robot.n
         self.counters = Counters()
         self._cache: OrderedDict[bytes, bool] = OrderedDict()
+        from ctrplan.planning.tracking import BranchTracker
+        from ctrplan.shape.branches import tracks_branches
+
+        #: the equilibria of reached states and the stability margin, or None
+        self.tracker: BranchTracker | None = None
+        if isinstance(tracking, BranchTracker):
+            self.tracker = tracking
+        elif tracking and tracks_branches(model):
+            self.tracker = BranchTracker(model, self.config.stability_margin)
 
     # ------------------------------------------------------------------ batches of states
     def joint_valid(self, q: np.ndarray) -> np.ndarray:
@@ -303,19 +330,34 @@ class BatchValidator:
             ok = np.all(self.robot.constraint_violations(q) >= -JOINT_TOL_MM, axis=1)
         return finite & ok
 
-    def shapes(self, q: np.ndarray, points: int | None = None, direction: np.ndarray | None = None) -> Shape:
+    def shapes(self, q: np.ndarray, points: int | None = None, direction: np.ndarray | None = None,
+               uz0: np.ndarray | None = None) -> Shape:
         """Shapes of a batch (one model call). q : (B, 2n); direction : (B, 2n) or (2n,) in
-        {-1, +1} (used only by direction-aware models; required by them)."""
+        {-1, +1} (used only by direction-aware models; required by them). With a tracker:
+        ``ok`` is False below the stability margin, and ``uz0`` (B, n) gives each state's
+        equilibrium (Newton from it) instead of the model's own."""
         self.counters.shape_calls += 1
         self.counters.states += len(q)
         q = np.asarray(q, dtype=float)
         points = points or self.config.points
+        d = None
         if self.directional:
             if direction is None:
                 raise ValueError("a direction-aware model needs the direction of motion")
-            d = np.broadcast_to(np.asarray(direction, dtype=np.int8), q.shape)
-            return self.model.shape(q, points=points, direction=np.ascontiguousarray(d))
+            d = np.ascontiguousarray(np.broadcast_to(np.asarray(direction, dtype=np.int8), q.shape))
+        if self.tracker is not None:
+            return self.tracker.states(q, points, d, uz0).shape
+        if d is not None:
+            return self.model.shape(q, points=points, direction=d)
         return self.model.shape(q, points=points)
+
+    def anchor(self, q: np.ndarray) -> None:
+        """Remember the model's own equilibria of states q (B, 2n) as the ones the robot is
+        on there (goals: the tip was computed on them). No-op without a tracker."""
+        if self.tracker is not None and len(q):
+            q = np.atleast_2d(np.asarray(q, dtype=float))
+            d = np.ones(q.shape, dtype=np.int8) if self.directional else None
+            self.tracker.register(q, self.tracker.states(q, 2, d).uz0)
 
     def variants(self, q: np.ndarray, direction: np.ndarray | None = None) -> list[np.ndarray | None]:
         """Directions to evaluate a batch with: [None] for an ordinary model; for a
@@ -369,13 +411,20 @@ class BatchValidator:
             clearance = np.minimum(clearance, np.asarray(rep.clearance_mm, dtype=float))
         return collides, clearance, contact
 
-    def first_invalid(self, q: np.ndarray, direction: np.ndarray | None = None) -> int:
+    def first_invalid(self, q: np.ndarray, direction: np.ndarray | None = None,
+                      uz_start: np.ndarray | None = None, end_default: bool = False) -> int:
         """Index of the first invalid state of an ordered batch (B, 2n), or -1 if all are valid.
 
         Joint limits are checked for all states; the states before the first joint violation go
         through one shape call and one collision query that stops at the first collision.
         direction : (2n,) direction of motion along the batch (direction-aware models).
+        With a tracker the batch is a motion (:meth:`BranchTracker.first_invalid`): from
+        ``uz_start`` (default: the remembered equilibrium of q[0]), ending, with
+        ``end_default``, on the model's own equilibrium of the last state.
         """
+        if self.tracker is not None:
+            return self.tracker.first_invalid(self, q, direction, uz_start=uz_start,
+                                              end_default=end_default)
         q = np.atleast_2d(np.asarray(q, dtype=float))
         jv = self.joint_valid(q)
         k0 = int(np.argmin(jv)) if not jv.all() else len(q)
@@ -399,7 +448,10 @@ class BatchValidator:
         """Whether the straight edge q0 -> q1 (both ends included) is valid."""
         self.counters.edges += 1
         d = edge_direction(q0, q1, self.n) if self.directional else None
-        ok = self.first_invalid(self.edge_states(q0, q1), d) < 0
+        if self.tracker is not None:
+            ok = self.tracker.edge_valid(self, q0, q1)
+        else:
+            ok = self.first_invalid(self.edge_states(q0, q1), d) < 0
         if not ok:
             self.counters.edges_invalid += 1
         return ok
@@ -555,10 +607,19 @@ class BatchValidator:
         clearance = np.full(S, np.inf)
         contact = np.full(S, "", dtype=object)
         jv = self.joint_valid(states)
+        track = None
+        if self.tracker is not None:      # the path as one motion: its shapes by continuation
+            track = self.tracker.path(self, path, states, seg, self.variants(states, direction),
+                                      points or self.config.points)
+            self.counters.shape_calls += len(track.shapes)
+            self.counters.states += S * len(track.shapes)
         for a in range(0, S, chunk):
             b = min(S, a + chunk)
-            for d in self.variants(states[a:b], None if direction is None else direction[a:b]):
-                shape = self.shapes(states[a:b], points=points, direction=d)
+            variants = [None] * len(track.shapes) if track is not None else \
+                self.variants(states[a:b], None if direction is None else direction[a:b])
+            for vi, d in enumerate(variants):
+                shape = track.shapes[vi][a:b] if track is not None else \
+                    self.shapes(states[a:b], points=points, direction=d)
                 self.counters.collision_calls += 1
                 rep = self.world.check_exact(shape) if fcl_all else self.world.check(shape)
                 hit = np.asarray(rep.collides, dtype=bool)
@@ -567,9 +628,15 @@ class BatchValidator:
                 collides[a:b] |= hit
                 clearance[a:b] = np.minimum(clearance[a:b], np.asarray(rep.clearance_mm, dtype=float))
         collides |= ~jv
+        if track is not None:          # (their shapes are ok=False: the world said "model")
+            why = track.why != ""
+            contact[why] = track.why[why]
+            collides |= why
         if c.motion_bound and not collides.any() and S > 1:
             self._check_motion(states, seg, direction, clearance, collides, contact, points)
         bad = np.flatnonzero(collides)
         first = int(bad[0]) if len(bad) else -1
         return PathCheck(states, seg, collides, clearance, contact, first,
-                         sorted({int(s) for s in seg[bad]}), direction)
+                         sorted({int(s) for s in seg[bad]}), direction,
+                         None if track is None else track.uz0,
+                         None if track is None else track.stability)

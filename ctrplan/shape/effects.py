@@ -778,17 +778,20 @@ def is_effect_model_file(path: str | os.PathLike) -> bool:
 
 def evaluate(model: EffectModel, q: np.ndarray, points: int, sweep: np.ndarray | None = None,
              effects: Mapping[str, Mapping[str, float]] | None = None,
-             direction: np.ndarray | None = None) -> Shape:
+             direction: np.ndarray | None = None, uz_init: np.ndarray | None = None,
+             chain: np.ndarray | None = None) -> Shape:
     """Shapes of ``q`` under ``model``'s robot/base with ``effects`` (default: the model's).
 
     One kernel call for the whole batch; ``effects`` must be complete (see
-    :func:`complete_effects`).
+    :func:`complete_effects`). ``uz_init``, ``chain`` : passed to
+    :meth:`~ctrplan.shape.physics.PhysicsModel.solve` (``chain``: compliant base only; branch
+    tracking, :mod:`ctrplan.shape.branches`).
     """
     eff = model.effects if effects is None else effects
     prep = prepare(model.robot, model.base, eff, q, sweep, direction,
                    pure=getattr(model, "pure", False))
     phys = model._compliant if prep.torsion else model._rigid
-    shp = phys.solve(prep.q, points, prep.params)
+    shp = phys.solve(prep.q, points, prep.params, uz_init=uz_init, chain=chain)
     if "registration" in eff:
         shp = replace(shp, points=to_sensor(eff, shp.points))
     if prep.q is not q and "joint_offset" in eff:

@@ -186,6 +186,9 @@ class SolveInfo:
     detj: np.ndarray | None = None
     branch: np.ndarray | None = None
     uz0_alt: np.ndarray | None = None
+    #: (B,) bool, chained solves only (``solve(..., chain=...)``): the row's equilibrium is the
+    #: continuation of its chain start's (:mod:`ctrplan.shape._continuation`); None otherwise
+    continued: np.ndarray | None = None
 
     @property
     def bistable(self) -> np.ndarray | None:
@@ -268,14 +271,21 @@ class PhysicsModel:
         return self.shape(q, points).points
 
     def solve(self, q: np.ndarray, points: int, params: MechanicsParams,
-              uz_init: np.ndarray | None = None) -> Shape:
+              uz_init: np.ndarray | None = None, chain: np.ndarray | None = None) -> Shape:
         """Run the kernel with explicit per-configuration parameters (used by effects).
 
         q : (B, 2n) rad and mm (checked by the caller); points : m >= 2;
         params : :class:`MechanicsParams` with arrays of shape (B, n) (kink (B, n, 2));
         uz_init : optional (B, n) initial guess of uz(0), 1/mm.
+        chain : optional (B,) bool, the rows are motions (compliant, unloaded model only): a
+            True row starts a chain at the equilibrium Newton finds from its ``uz_init`` (a NaN
+            row: the equilibrium the ordinary solve picks), every other row continues the
+            previous row's equilibrium (:mod:`ctrplan.shape._continuation`); ``last_info``
+            then has ``continued``. Shapes of rows whose branch ended are ``ok = False``.
         Returns a :class:`Shape`; diagnostics go to ``self.last_info``.
         """
+        if chain is not None:
+            return self._solve_chain(q, points, params, uz_init, chain)
         if points < 2:
             raise ValueError("points must be >= 2 (base and tip)")
         r = self.robot
@@ -377,6 +387,62 @@ class PhysicsModel:
         return Shape(points=pts, s=s, radius=radius_along(r, q, s), ok=ok,
                      pad=continuity_pad(r, q, s, kappa, kink))
 
+    def _solve_chain(self, q, points, params, uz_init, chain) -> Shape:
+        """The chained solve of :meth:`solve` (a chunk of rows at a time; a chunk continues
+        the previous one's last row)."""
+        from ctrplan import interrupt
+        from ctrplan.shape import _continuation
+
+        if points < 2:
+            raise ValueError("points must be >= 2 (base and tip)")
+        if not self.torsion or not self.config.stability:
+            raise ValueError("a chained solve needs the compliant model with its stability check")
+        if params.loaded_rows().any():
+            raise ValueError("a chained solve is for unloaded configurations only")
+        n = self.robot.n
+        q = np.ascontiguousarray(q, dtype=float)
+        B = len(q)
+        c = np.ascontiguousarray
+        start = np.asarray(chain, dtype=bool).reshape(B).copy()
+        if B:
+            start[0] = True
+        x0 = np.full((B, n), np.nan) if uz_init is None else np.array(uz_init, dtype=float).reshape(B, n)
+        pick = np.flatnonzero(start & ~np.all(np.isfinite(x0), axis=1))
+        if len(pick):      # chain starts without a given equilibrium: the ordinary solve's
+            self.solve(q[pick], 2, _rows(params, pick))
+            x0[pick] = self.last_info.uz0
+        d = np.zeros(B)
+        if B > 1:
+            dq = np.diff(q, axis=0)
+            dq[:, :n] = (dq[:, :n] + np.pi) % (2 * np.pi) - np.pi
+            d[1:] = np.hypot(30.0 * np.linalg.norm(dq[:, :n], axis=1), np.linalg.norm(dq[:, n:], axis=1))
+        parts = []
+        cfg = self.config
+        for a in range(0, max(B, 1), interrupt.CHUNK):
+            interrupt.check()
+            b = min(B, a + interrupt.CHUNK)
+            lead = 1 if a > 0 and not start[a] else 0
+            r_ = np.arange(a - lead, b)
+            st = start[r_].copy()
+            xi = x0[r_].copy()
+            if lead:         # continue from the previous chunk's last row (NaN: its branch ended)
+                st[0] = True
+                prev = parts[-1]
+                xi[0] = prev[2][-1] if prev[7][-1] else np.nan
+            out = _continuation.solve_chain(
+                c(q[r_, :n]), c(q[r_, n:]), self._lengths, self._straight, c(params.kappa[r_]),
+                c(params.EI[r_]), c(params.ratio[r_]), c(params.kink[r_]), int(points),
+                float(cfg.step_mm), float(cfg.tol), int(cfg.max_iter), c(xi), c(st), c(d[r_]),
+                int(CHAIN_LEVELS))
+            parts.append(tuple(z[lead:] for z in out))
+        interrupt.check()
+        pts, s, uz0, iters, resid, ok, detj, cont = (np.concatenate(z, axis=0) for z in zip(*parts))
+        ok = ok & chords_within_arc(pts, s)
+        self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid, detj=detj,
+                                   branch=np.zeros(B, dtype=np.int8), continued=cont)
+        return Shape(points=pts, s=s, radius=radius_along(self.robot, q, s), ok=ok,
+                     pad=continuity_pad(self.robot, q, s, params.kappa, params.kink))
+
     def _solve_loaded(self, alpha, beta, kappa, EI, ratio, kink, W, F, M, pts0, s0, uz00, ok0,
                       points):
         """The loaded rows: first guess from the unloaded solution (its torsions, and the base
@@ -405,6 +471,18 @@ class PhysicsModel:
             int(self.config.max_iter), c(x_init), c(x_start))
         uz0 = x[:, :n] * ratio / EI
         return p, s, uz0, it, res, x[:, n:]
+
+
+#: halvings of a row step the chained solve may take before it declares the branch ended there
+CHAIN_LEVELS = 5
+
+
+def _rows(params: MechanicsParams, idx: np.ndarray) -> MechanicsParams:
+    """The parameters of the rows ``idx``."""
+    pick = lambda a: None if a is None else np.asarray(a)[idx]   # noqa: E731
+    return MechanicsParams(kappa=params.kappa[idx], EI=params.EI[idx], ratio=params.ratio[idx],
+                           kink=params.kink[idx], weight=pick(params.weight),
+                           force=pick(params.force), moment=pick(params.moment))
 
 
 def chords_within_arc(points: np.ndarray, s: np.ndarray, rtol: float = 1e-4) -> np.ndarray:
