@@ -117,6 +117,8 @@ class GoalSource:
     evaluations: int = 0
     best_error_mm: float = math.inf
     goals: list[np.ndarray] = field(default_factory=list)
+    #: configurations that reached the target but failed the validator (for the status)
+    rejected: list[np.ndarray] = field(default_factory=list)
 
     def _seeds(self, count: int) -> np.ndarray:
         """IK seeds for this round: among the next ``pool`` workspace samples nearest the
@@ -176,8 +178,10 @@ class GoalSource:
         cand = np.array(keep)
         ok = self.validator.states_valid(cand)
         self.validator.remember(cand, ok)
+        self.rejected.extend(cand[~ok][: c.max_goals])
         new = cand[ok][: c.max_goals]
         if self.rank is not None and len(new) > 1:   # the same goals, best ranked first
             new = new[np.argsort(-np.asarray(self.rank(new), dtype=float), kind="stable")]
+        self.validator.anchor(new)   # the robot is on the equilibrium the tip was computed on
         self.goals.extend(new)
         return new

@@ -306,6 +306,14 @@ class _Problem:
         """Whether every edge of ``path`` passes the validator's check at the check resolution
         (exact verdicts; direction-aware models: each edge with its direction)."""
         c = self.v.config
+        if self.v.tracker is not None:
+            # a motion: continued from the start, ending on the equilibrium the goal's tip is
+            # computed on (branch tracking, ctrplan.planning.tracking)
+            states, seg = interpolate_path(path, self.n, c.alpha_weight_mm, self.res)
+            d = None
+            if self.v.directional and len(path) > 1:
+                d = np.array([edge_direction(a, b, self.n) for a, b in zip(path[:-1], path[1:])])[seg]
+            return self.v.first_invalid(states, d, end_default=True) < 0
         if not self.v.directional:
             states, _ = interpolate_path(path, self.n, c.alpha_weight_mm, self.res)
             return self.v.first_invalid(states) < 0

@@ -47,6 +47,7 @@ import numpy as np
 from ctrplan.errors import InputError
 from ctrplan.planning import ik as _ik
 from ctrplan.planning import optimize as _opt
+from ctrplan.planning import stability as _stab
 from ctrplan.planning.goals import (
     GoalSource,
     retracted_start,
@@ -77,6 +78,7 @@ class PlanStatus(str, Enum):
     GOAL_IN_COLLISION = "GOAL_IN_COLLISION"      # reachable, but every reaching configuration collides
     TIMEOUT = "TIMEOUT"                          # no collision-free path within the budget
     VERIFICATION_FAILED = "VERIFICATION_FAILED"  # the path failed an exact check and repair failed
+    UNSTABLE_ONLY = "UNSTABLE_ONLY"              # paths exist only through a fold or below the stability margin
     INPUT_ERROR = "INPUT_ERROR"                  # bad input (batch jobs; plan_to_target raises InputError)
 
 
@@ -205,6 +207,13 @@ class PlanResult:
     goal_shift_mm, goal : where the tip was planned to when a target nearer the anatomy than
         the tip's radius + margin was approached (:attr:`PlanConfig.approach`): the goal
         (scene frame, mm) and its distance from ``target`` (0.0 and None otherwise).
+    branch, stability : per ``path`` state, the equilibrium branch the robot is on (reached by
+        continuation from the start: 0 the model finds one stable equilibrium there, +1 / -1
+        the one of two with the larger / smaller base torsion of tube 1) and its elastic
+        stability (det of the shooting Jacobian, normalised: 1 without curvature interaction,
+        0 at a fold; :mod:`ctrplan.shape.branches`), of the planning model, or of the reference
+        model where only that one is compliant mechanics; None when neither is (rigid,
+        learned, loaded).
     """
 
     success: bool
@@ -245,6 +254,8 @@ class PlanResult:
     robot_spec: dict | None = None
     measured_insertion: dict | None = None
     outside_measured_states: int | None = None
+    branch: list | None = None
+    stability: list | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The plan.json fields of docs/conventions.md (plus diagnostics), JSON-ready (no NaN: null instead)."""
@@ -270,6 +281,9 @@ class PlanResult:
             "objective": self.objective,
             "objective_value": _num(self.objective_value),
             "clearance_profile": [_num(v) for v in np.asarray(self.clearance_profile, dtype=float)],
+            # per path state: the equilibrium branch and its stability (None: not tracked)
+            "branch": list(self.branch) if self.branch is not None else [None] * len(self.path),
+            "stability": list(self.stability) if self.stability is not None else [None] * len(self.path),
             "calibrated": bool(self.calibrated),
             "goal_shift_mm": float(self.goal_shift_mm),
             "goal": None if self.goal is None else [float(v) for v in self.goal],
@@ -483,6 +497,8 @@ class _Run:
     deadline: float = math.inf
     time_cap_hit: bool = False
     goal_base: np.ndarray | None = None   # where the tip is planned to (None: target_base)
+    start_branch: int | None = None       # the branch given with the start (Start.branch)
+    start_uz: dict = field(default_factory=dict)   # id(model) -> the start's equilibrium
 
     @property
     def goal(self) -> np.ndarray:
@@ -565,7 +581,10 @@ def plan_to_target(
     world : a CollisionWorld to use instead of building one for the scene (it then carries the
         margin and curvature bound; ``config.margin_mm`` is only reported).
     start : (2n,) start configuration, or None / "retracted" for the retracted one
-        (:func:`retracted_start`).
+        (:func:`retracted_start`), or a :class:`~ctrplan.planning.stability.Start` (the
+        configuration with the branch the robot is on there; needed where the model finds two
+        stable equilibria at the start, e.g. ``start_from_plan("plan.json", robot)``: the last
+        state of an earlier plan).
     objective : ``"clearance"`` (the default of :class:`PlanConfig`), ``"length"`` or
         ``"first"``; None uses ``config.objective``.
 
@@ -679,6 +698,38 @@ def _start_collision_hint(robot, validator, start) -> str:
             f"room for the start ahead of it (check it with `ctrplan check`), or give --start")
 
 
+def _start_equilibria(run: _Run, start: np.ndarray) -> str:
+    """The equilibrium the robot is on at the start, for the planning model and the reference
+    model where they track branches (InputError for a bistable start without its branch),
+    remembered by the validator. Returns why the start is below the stability margin, or ""."""
+    from ctrplan.shape.branches import tracks_branches
+
+    for model in (run.model, run.reference):
+        if model is not None and tracks_branches(model) and id(model) not in run.start_uz:
+            run.start_uz[id(model)] = _stab.resolve_start(model, start, run.start_branch)
+    tracker = run.validator.tracker
+    if tracker is None:
+        return ""
+    uz = run.start_uz[id(run.model)]
+    tracker.register(start[None], uz[None])
+    at = tracker.states(start[None], 2, np.ones((1, run.robot.dof), dtype=np.int8)
+                        if run.validator.directional else None, uz[None])
+    if not at.shape.ok[0] and at.continued[0]:
+        return (f"the start's elastic stability {float(at.stability[0]):.3g} is below the "
+                f"stability margin {tracker.margin:g} (lower it with --stability-margin)")
+    return ""
+
+
+def _start_free(validator: BatchValidator, start: np.ndarray, uz0) -> bool:
+    """Whether the start is collision-free (on its equilibrium ``uz0`` where known)."""
+    if uz0 is None or validator.tracker is None:
+        return bool(validator.states_valid(start[None])[0])
+    d = np.ones((1, len(start)), dtype=np.int8) if validator.directional else None
+    shape = validator.shapes(start[None], direction=d, uz0=np.asarray(uz0)[None])
+    return bool(validator.joint_valid(start[None])[0]) and not bool(
+        np.asarray(validator.plan_world.collides(shape))[0])
+
+
 def _stage_checks(run: _Run, start) -> np.ndarray:
     """Stage 1: reach, start configuration, target. Returns the start (2n,)."""
     t0 = time.perf_counter()
@@ -697,10 +748,16 @@ def _stage_checks(run: _Run, start) -> np.ndarray:
         t0 += time.perf_counter() - t1
         run.counts["start_rotated"] = int(adjusted)
     else:
+        if isinstance(start, _stab.Start):
+            run.start_branch, start = start.branch, start.q
         start = check_start(start, robot, validator)
     # The cap counts from here: setup (loading, caches) is not part of the plan's time.
     run.deadline = time.perf_counter() + run.time_limit
-    if not validator.states_valid(start[None])[0]:
+    unstable = _start_equilibria(run, start)
+    if unstable:
+        run.clock("checks", t0)
+        raise _Stop(run.finish(PlanStatus.UNSTABLE_ONLY, unstable))
+    if not _start_free(validator, start, run.start_uz.get(id(run.model))):
         run.clock("checks", t0)
         which = "retracted, any tube rotation" if retracted else "given with --start"
         raise _Stop(run.finish(PlanStatus.START_IN_COLLISION,
@@ -833,6 +890,11 @@ def _stage_ik(run: _Run) -> tuple[GoalSource, np.ndarray]:
                 f"mm of the target (best {source.best_error_mm:.2f} mm after {source.rounds} IK rounds)"))
         if target_outside_lumen(run.scene, run.target):
             raise _Stop(run.finish(PlanStatus.TARGET_IN_COLLISION, "the target lies outside the lumen walls"))
+        if run.validator.tracker is not None and len(source.rejected) and _relaxed(run).states_valid(
+                np.array(source.rejected)).any():
+            raise _Stop(run.finish(PlanStatus.UNSTABLE_ONLY, "every collision-free configuration "
+                                   "reaching the target is below the stability margin "
+                                   f"{run.validator.tracker.margin:g}"))
         raise _Stop(run.finish(PlanStatus.GOAL_IN_COLLISION, f"{source.reaching} configurations "
                                "reach the target but all of them collide"))
     return source, goals
@@ -876,9 +938,39 @@ def _stage_planning(run: _Run, start: np.ndarray, source: GoalSource,
     if outcome.path is None:
         why = (f"the time cap of {run.time_limit:.2f} s" if outcome.time_cap_hit
                else f"the budget of {cfg.max_states} states")
+        if _only_unstable(run, start, source):
+            raise _Stop(run.finish(PlanStatus.UNSTABLE_ONLY, f"no path within {why} keeps the "
+                                   f"stability margin {validator.tracker.margin:g} and its "
+                                   "equilibrium branch; the same search without that constraint "
+                                   "finds one (through a fold: the robot would snap)"))
         raise _Stop(run.finish(PlanStatus.TIMEOUT, f"no collision-free path found within {why} "
                                f"({outcome.goals_used} goal configurations)"))
     return outcome.path, run.planner
+
+
+def _relaxed(run: _Run) -> BatchValidator:
+    """The planning validator without branch tracking and stability margin."""
+    return BatchValidator(run.robot, run.model, run.world, run.cfg.validator, tracking=False)
+
+
+def _only_unstable(run: _Run, start: np.ndarray, source: GoalSource) -> bool:
+    """After a search without a path: whether the stability constraint is what stopped it,
+    established by the same search (budget, seed, goals) without it finding a path. Only run
+    when the constraint rejected a state or edge during the search."""
+    from ctrplan.planning import space as _space
+
+    tracker = run.validator.tracker
+    if tracker is None or not tracker.counters.any or not len(source.goals):
+        return False
+    cfg = run.cfg
+    t0 = time.perf_counter()
+    out = _space.solve(run.robot, _relaxed(run), start, np.array(source.goals), planner=run.planner,
+                       time_limit=run.time_limit, seed=run.seed,
+                       alpha_weight_mm=cfg.validator.alpha_weight_mm, range_mm=cfg.range_mm,
+                       simplify=False, optimize=cfg.optimize, max_states=cfg.max_states)
+    run.clock("planning", t0)
+    run.counts["unstable_only_check"] = 1
+    return out.path is not None
 
 
 def _stage_simplification(run: _Run, path: np.ndarray) -> np.ndarray:
@@ -892,14 +984,14 @@ def _stage_simplification(run: _Run, path: np.ndarray) -> np.ndarray:
 
 
 def _state_clearance(validator: BatchValidator, field_, q: np.ndarray,
-                     direction: np.ndarray | None = None) -> np.ndarray:
+                     direction: np.ndarray | None = None, uz0: np.ndarray | None = None) -> np.ndarray:
     """(B,) estimated clearance (mm, the world's padded capsules) of states q (B, 2n): the
     distance-field estimate of :class:`~ctrplan.planning.optimize.FieldClearance`, the worst
     case over a direction-aware model's unknown directions."""
     q = np.atleast_2d(np.asarray(q, dtype=float))
     out = np.full(len(q), np.inf)
     for d in validator.variants(q, direction):
-        shape = validator.shapes(q, direction=d)
+        shape = validator.shapes(q, direction=d, uz0=uz0)
         out = np.minimum(out, field_.capsule_clearance(shape).min(axis=1))
     return out
 
@@ -955,7 +1047,8 @@ def _stage_verification(run: _Run, path: np.ndarray,
         attempts += 1
         repaired = _repair(run.robot, run.model, run.world, path, check.bad_segments, cfg,
                            run.seed + attempts, vres / (2 * attempts),
-                           budget=max(0.5, run.deadline - time.perf_counter()))
+                           budget=max(0.5, run.deadline - time.perf_counter()),
+                           tracker=_remember_waypoints(validator, path, check))
         if repaired is None:
             break
         path = repaired
@@ -964,11 +1057,14 @@ def _stage_verification(run: _Run, path: np.ndarray,
     if not check.ok:
         run.clock("verification", t0)
         bad = check.contact[check.first_bad] if check.first_bad >= 0 else ""
+        if bad in _UNSTABLE_WHY:
+            raise _Stop(run.finish(PlanStatus.VERIFICATION_FAILED, f"the path {_UNSTABLE_WHY[bad]} "
+                                   f"when checked at {vres:g} mm and could not be repaired"))
         raise _Stop(run.finish(PlanStatus.VERIFICATION_FAILED, f"the path touches {bad or 'the scene'} "
                                f"when checked exactly at {vres:g} mm and could not be repaired"))
     ref_check = None
     if run.reference is not None:
-        ref_val = _reference_validator(run)
+        ref_val = _reference_validator(run, path[0])
         ref_check = ref_val.check_path(path, vres, points=vpoints, fcl_all=cfg.verify_fcl_all)
         run.counts["reference_states"] = len(ref_check.states)
         if not ref_check.ok:
@@ -981,13 +1077,16 @@ def _stage_verification(run: _Run, path: np.ndarray,
     return check, ref_check, path
 
 
-def _reference_validator(run: _Run) -> BatchValidator:
+def _reference_validator(run: _Run, start: np.ndarray) -> BatchValidator:
     from ctrplan.collision.capsules import curvature_bound
 
     ref = run.reference
     curvature = curvature_bound(ref) if run.cfg.sagitta else 0.0
     world = world_for(run.scene, 0.0, curvature)
-    return BatchValidator(run.robot, ref, world, run.cfg.validator)
+    val = BatchValidator(run.robot, ref, world, run.cfg.validator)
+    if val.tracker is not None and id(ref) in run.start_uz:   # the path starts on its branch
+        val.tracker.register(start[None], run.start_uz[id(ref)][None])
+    return val
 
 
 def _output(run: _Run, path: np.ndarray, solver: str, check: PathCheck,
@@ -1001,8 +1100,9 @@ def _output(run: _Run, path: np.ndarray, solver: str, check: PathCheck,
     if cfg.output_step_mm > 0:
         out_q, seg = interpolate_path(path, n, cfg.validator.alpha_weight_mm, cfg.output_step_mm)
     out_q = unwrap_path(out_q, n)
-    profile, value = _profile(run, path, out_q, seg)
-    shape = run.model.shape(out_q, points=cfg.output_points)
+    eq = _output_equilibria(run, out_q, seg, path, check, ref_check)
+    profile, value = _profile(run, path, out_q, seg, eq.get("uz0"))
+    shape = eq["shape"] if "shape" in eq else run.model.shape(out_q, points=cfg.output_points)
     backbones = run.scene.to_scene(shape.points)
     tip_err = float(np.linalg.norm(shape.tip[-1] - run.target_base))
     tip_err_phys = tip_err
@@ -1020,7 +1120,7 @@ def _output(run: _Run, path: np.ndarray, solver: str, check: PathCheck,
     extra = dict(min_clearance_mm=clear + margin_least(run.margin_mm) if math.isfinite(clear) else clear,
                  min_clearance_exact=exact)
     if ref_check is not None:
-        ref_val = _reference_validator(run)
+        ref_val = _reference_validator(run, path[0])
         rc, rexact, _ = path_min_clearance(ref_val, ref_val.world, ref_check, vpoints,
                                            max_pairs=cfg.clearance_pairs)
         extra.update(min_clearance_reference_mm=rc, min_clearance_reference_exact=rexact)
@@ -1032,12 +1132,39 @@ def _output(run: _Run, path: np.ndarray, solver: str, check: PathCheck,
     return run.finish(PlanStatus.SUCCESS, "ok", path=out_q, backbones=backbones,
                       tip_path=backbones[:, -1, :], tip_error_mm=tip_err,
                       tip_error_physics_mm=tip_err_phys, clearance_profile=profile,
-                      objective_value=value, **extra)
+                      objective_value=value, branch=eq.get("branch"),
+                      stability=eq.get("stability"), **extra)
 
 
-def _profile(run: _Run, path: np.ndarray, out_q: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, float]:
+def _output_equilibria(run: _Run, out_q: np.ndarray, seg: np.ndarray, path: np.ndarray,
+                       check: PathCheck, ref_check: PathCheck | None) -> dict:
+    """Per output state, the equilibrium the robot is on (continued from the verified state
+    before it: :func:`~ctrplan.planning.stability.output_equilibria`), its branch label and
+    stability: of the planning model (then also its shapes, ``shape``, and ``uz0``) or else
+    of the reference model where one of them tracks branches; {} otherwise."""
+    from ctrplan.shape.branches import tracks_branches
+
+    cfg, n = run.cfg, run.robot.n
+    for model, chk, own in ((run.model, check, True), (run.reference, ref_check, False)):
+        if model is None or chk is None or chk.uz0 is None or not tracks_branches(model):
+            continue
+        d = None
+        if run.validator.directional and len(path) > 1:
+            dirs = np.array([edge_direction(a, b, n) for a, b in zip(path[:-1], path[1:])])
+            d = np.where(dirs[seg] == 0, 1, dirs[seg]).astype(np.int8)
+        t, labels = _stab.output_equilibria(model, out_q, chk.states, chk.uz0, n,
+                                            cfg.validator.alpha_weight_mm, cfg.output_points, d)
+        out = {"branch": [int(v) for v in labels], "stability": _stab.stability_list(t.stability)}
+        if own:
+            out.update(shape=t.shape, uz0=t.uz0)
+        return out
+    return {}
+
+
+def _profile(run: _Run, path: np.ndarray, out_q: np.ndarray, seg: np.ndarray,
+             uz0: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """(clearance profile (K,) mm over the output states, margin not included; the objective's
-    value on the path)."""
+    value on the path). uz0 : (K, n) the states' equilibria (branch tracking), or None."""
     n, w = run.robot.n, run.cfg.validator.alpha_weight_mm
     direction = None
     if run.validator.directional and len(path) > 1:
@@ -1045,7 +1172,7 @@ def _profile(run: _Run, path: np.ndarray, out_q: np.ndarray, seg: np.ndarray) ->
         direction = dirs[seg]
         joins = np.flatnonzero(np.r_[False, seg[1:] != seg[:-1]])
         direction[joins] = 0        # a waypoint joins two edges: both directions checked
-    profile = _state_clearance(run.validator, _opt.FieldClearance(run.world), out_q, direction)
+    profile = _state_clearance(run.validator, _opt.FieldClearance(run.world), out_q, direction, uz0)
     from ctrplan.shape.error_bounds import margin_least
 
     # measured with capsules grown by the margin: add back the smallest margin along the shaft
@@ -1077,6 +1204,7 @@ def path_min_clearance(validator: BatchValidator, world, check, points: int | No
     if len(bounds) == 0:
         return math.nan, False, 0
     direction = getattr(check, "direction", None)
+    uz = getattr(check, "uz0", None)          # the states' equilibria (branch tracking)
     order = np.argsort(bounds, kind="stable")
     best = math.inf
     done, left = 0, int(max_pairs)
@@ -1084,7 +1212,8 @@ def path_min_clearance(validator: BatchValidator, world, check, points: int | No
     while done < len(order):
         idx = order[done:done + batch]
         for d in validator.variants(check.states[idx], None if direction is None else direction[idx]):
-            shape = validator.shapes(check.states[idx], points=points, direction=d)
+            shape = validator.shapes(check.states[idx], points=points, direction=d,
+                                     uz0=None if uz is None else uz[idx])
             values, used = world.clearance_bounded(shape, below=best, max_pairs=left)
             best = min(best, float(np.min(values)))
             left -= used
@@ -1111,13 +1240,34 @@ def _direct_path(validator: BatchValidator, start: np.ndarray, goals: np.ndarray
     return None
 
 
+#: what a path failing the branch tracking does (the contacts of :mod:`ctrplan.planning.tracking`)
+_UNSTABLE_WHY = {"fold": "crosses a fold of the equilibrium branch (the robot would snap there)",
+                 "stability": "falls below the stability margin",
+                 "branch": "arrives on another equilibrium branch than the one planned"}
+
+
+def _remember_waypoints(validator: BatchValidator, path: np.ndarray, check: PathCheck):
+    """The validator's tracker (None without), with every waypoint the exact check reached
+    on its branch remembered with that equilibrium (so a repair connects to it)."""
+    tracker = validator.tracker
+    if tracker is None or check.uz0 is None:
+        return tracker
+    firsts = np.flatnonzero(np.r_[True, check.segment[1:] != check.segment[:-1]])
+    for j, i in zip(check.segment[firsts], firsts):
+        if tracker.lookup(path[j]) is None and check.contact[i] not in _UNSTABLE_WHY:
+            tracker.register(path[j][None], check.uz0[i][None])
+    return tracker
+
+
 def _repair(robot, model, world, path: np.ndarray, bad_segments: list[int], cfg: PlanConfig,
-            seed: int, resolution_mm: float, budget: float) -> np.ndarray | None:
+            seed: int, resolution_mm: float, budget: float, tracker=None) -> np.ndarray | None:
     """Re-plan the segments that failed verification with a finer validator; None on failure.
-    Each segment's search is budgeted in states (``cfg.repair_states``); ``budget`` (s) is a cap."""
+    Each segment's search is budgeted in states (``cfg.repair_states``); ``budget`` (s) is a cap.
+    ``tracker`` : the planning validator's branch tracker (its remembered equilibria)."""
     from ctrplan.planning import space as _space
 
-    strict = BatchValidator(robot, model, world, replace(cfg.validator, resolution_mm=resolution_mm))
+    strict = BatchValidator(robot, model, world, replace(cfg.validator, resolution_mm=resolution_mm),
+                            tracking=tracker if tracker is not None else True)
     pieces: list[np.ndarray] = []
     last = 0
     for j in bad_segments:
