@@ -77,6 +77,7 @@ class PlanStatus(str, Enum):
     GOAL_IN_COLLISION = "GOAL_IN_COLLISION"      # reachable, but every reaching configuration collides
     TIMEOUT = "TIMEOUT"                          # no collision-free path within the budget
     VERIFICATION_FAILED = "VERIFICATION_FAILED"  # the path failed an exact check and repair failed
+    OUTSIDE_TOLERANCE = "OUTSIDE_TOLERANCE"      # a verified path, but its tip ends beyond tolerance_mm
     INPUT_ERROR = "INPUT_ERROR"                  # bad input (batch jobs; plan_to_target raises InputError)
 
 
@@ -194,9 +195,14 @@ class PlanResult:
         of radius + sagitta bound, margin not included) to the anatomy, estimated from the
         distance fields (the interpolated distance to the nearest surface sample; within about
         the field's sample spacing of FCL's distance; ``min_clearance_mm`` is FCL's).
-    calibrated : whether the planning model carries an error bound measured on the robot
-        (``error_quantiles`` / ``error_profile``); if not, clearances are relative to the
-        nominal model only.
+    calibrated : whether the planning model carries an error bound measured on a robot
+        (``error_bound: measured``: ``diagnose`` output, a model trained with ``--real`` on
+        measurements; :func:`~ctrplan.shape.error_bounds.is_calibrated`); if not, clearances
+        are relative to the nominal model only.
+    surrogate_error : for a surrogate (a network fitted to a simulated model, such as the
+        shipped ``learned`` one, ``error_bound: surrogate``): its held-out deviation from that
+        model, ``{p50, p95, p99, max}`` mm and ``against`` (the simulated data); the margin
+        ``--margin auto`` pads with, never called calibrated. None for other models.
     measured_insertion, outside_measured_states : the calibrated model's measured insertions
         ({"min": [n], "max": [n]} mm, where its error bound was measured) and the number of
         ``path`` states inserting a tube beyond them by more than
@@ -204,7 +210,12 @@ class PlanResult:
         (the margin is extrapolated there); None for a model without them.
     goal_shift_mm, goal : where the tip was planned to when a target nearer the anatomy than
         the tip's radius + margin was approached (:attr:`PlanConfig.approach`): the goal
-        (scene frame, mm) and its distance from ``target`` (0.0 and None otherwise).
+        (scene frame, mm) and its distance from ``target`` (0.0 and None otherwise). The
+        tolerance applies to ``target``, not to the moved goal: a tip that ends farther than
+        ``tolerance_mm`` from the target is ``OUTSIDE_TOLERANCE`` (not a success; the verified
+        path is kept).
+    start_rotated : the retracted start collided, so its tube rotations were changed (to the
+        free rotations with the most clearance; the start used is ``path[0]``).
     """
 
     success: bool
@@ -245,6 +256,8 @@ class PlanResult:
     robot_spec: dict | None = None
     measured_insertion: dict | None = None
     outside_measured_states: int | None = None
+    surrogate_error: dict | None = None
+    start_rotated: bool = False
 
     def to_json(self) -> dict[str, Any]:
         """The plan.json fields of docs/conventions.md (plus diagnostics), JSON-ready (no NaN: null instead)."""
@@ -271,6 +284,8 @@ class PlanResult:
             "objective_value": _num(self.objective_value),
             "clearance_profile": [_num(v) for v in np.asarray(self.clearance_profile, dtype=float)],
             "calibrated": bool(self.calibrated),
+            "surrogate_error": None if self.surrogate_error is None else dict(self.surrogate_error),
+            "start_rotated": bool(self.start_rotated),
             "goal_shift_mm": float(self.goal_shift_mm),
             "goal": None if self.goal is None else [float(v) for v in self.goal],
             "measured_insertion": self.measured_insertion,
@@ -370,6 +385,7 @@ class _RowwiseModel:
         self.effects = getattr(inner, "effects", None)
         self.error_quantiles = getattr(inner, "error_quantiles", None)
         self.error_profile = getattr(inner, "error_profile", None)
+        self.error_bound = getattr(inner, "error_bound", None)
         self.measured_insertion = getattr(inner, "measured_insertion", None)
 
     def shape(self, q, points: int = 20):
@@ -404,6 +420,7 @@ def planning_model_of(model):
                 pm.error_quantiles = model.error_quantiles
             if getattr(model, "error_profile", None) is not None:
                 pm.error_profile = model.error_profile
+            pm.error_bound = getattr(model, "error_bound", None)
             if "friction" in effects:
                 pm = _RowwiseModel(pm)
     try:
@@ -597,7 +614,7 @@ def _prepare(robot, scene, target, model, planner, time_limit, seed, tolerance_m
     t_call = time.perf_counter()
     from ctrplan.collision.capsules import curvature_bound
     from ctrplan.planning import space as _space
-    from ctrplan.shape.error_bounds import auto_margin, is_calibrated, margin_peak
+    from ctrplan.shape.error_bounds import auto_margin, is_calibrated, margin_peak, surrogate_error
 
     cfg = config or PlanConfig()
     _check_args(time_limit, tolerance_mm, seed)
@@ -642,6 +659,7 @@ def _prepare(robot, scene, target, model, planner, time_limit, seed, tolerance_m
                 time_limit_s=float(time_limit), margin_mm=margin_peak(margin), margin_auto=auto,
                 curvature_bound_per_mm=float(curvature), reference_model=ref_label,
                 objective=cfg.objective, calibrated=is_calibrated(given) or is_calibrated(pmodel),
+                surrogate_error=surrogate_error(given) or surrogate_error(pmodel),
                 measured_insertion=(getattr(given, "measured_insertion", None)
                                     or getattr(pmodel, "measured_insertion", None)))
     run = _Run(robot=robot, scene=scene, target=target, target_base=scene.to_base(target[None])[0],
@@ -679,6 +697,38 @@ def _start_collision_hint(robot, validator, start) -> str:
             f"room for the start ahead of it (check it with `ctrplan check`), or give --start")
 
 
+def _margin_words(run: _Run) -> str:
+    """What the margin is, in words: the surrogate error, the calibrated bound or --margin."""
+    if not run.margin_auto:
+        return "--margin"
+    if run.meta.get("calibrated"):
+        return f"--margin auto: the error bound of the calibrated model {run.meta['model']!r}"
+    if run.meta.get("surrogate_error"):
+        return f"--margin auto: the surrogate error of the model {run.meta['model']!r}"
+    return "--margin auto: the model's error bound"
+
+
+def _margin_start_hint(run: _Run, start: np.ndarray, retracted: bool) -> str:
+    """When a margin makes the start collide: the same start (for the retracted one: any tube
+    rotation) checked at margin 0; "" when there is no margin or it collides there too."""
+    from ctrplan.shape.error_bounds import margin_peak
+
+    peak = margin_peak(run.margin_mm)
+    if peak <= 0:
+        return ""
+    try:
+        world0 = world_for(run.scene, 0.0, run.curvature)
+        v0 = BatchValidator(run.robot, run.model, world0, run.cfg.validator)
+        q = retracted_start(run.robot, v0, world0)[0] if retracted else start
+        if not v0.states_valid(q[None])[0]:
+            return ""
+    except Exception:  # the hint is a courtesy: never let it hide the status itself
+        return ""
+    return (f"; it collides only with the {peak:.2f} mm margin ({_margin_words(run)}): at "
+            f"margin 0 it is free. Lower the margin with --margin MM (0 checks the model's "
+            f"backbone alone), plan with a model whose error bound is smaller, or give --start")
+
+
 def _stage_checks(run: _Run, start) -> np.ndarray:
     """Stage 1: reach, start configuration, target. Returns the start (2n,)."""
     t0 = time.perf_counter()
@@ -696,6 +746,7 @@ def _stage_checks(run: _Run, start) -> np.ndarray:
         run.timings["setup"] += time.perf_counter() - t1
         t0 += time.perf_counter() - t1
         run.counts["start_rotated"] = int(adjusted)
+        run.meta["start_rotated"] = bool(adjusted)
     else:
         start = check_start(start, robot, validator)
     # The cap counts from here: setup (loading, caches) is not part of the plan's time.
@@ -705,7 +756,8 @@ def _stage_checks(run: _Run, start) -> np.ndarray:
         which = "retracted, any tube rotation" if retracted else "given with --start"
         raise _Stop(run.finish(PlanStatus.START_IN_COLLISION,
                                f"the start configuration ({which}) collides with the scene"
-                               + _start_collision_hint(robot, validator, start)))
+                               + (_margin_start_hint(run, start, retracted)
+                                  or _start_collision_hint(robot, validator, start))))
     tip_radius = float(robot.tubes[0].od) / 2.0
     blocked = target_blocked(run.scene, run.world, run.target, tip_radius)
     if blocked and run.cfg.approach:
@@ -1029,10 +1081,28 @@ def _output(run: _Run, path: np.ndarray, solver: str, check: PathCheck,
                      min_clearance_reference_exact=exact)
     run.clock("verification", t0)
     run.meta["planner"] = solver
-    return run.finish(PlanStatus.SUCCESS, "ok", path=out_q, backbones=backbones,
+    # SUCCESS means the tip within the tolerance of the target asked for (planning model),
+    # whatever moved the goal (the approach off the wall, the optimiser)
+    status, message = PlanStatus.SUCCESS, "ok"
+    if not tip_err <= run.tolerance_mm:
+        status, message = PlanStatus.OUTSIDE_TOLERANCE, _outside_tolerance(run, tip_err)
+    return run.finish(status, message, path=out_q, backbones=backbones,
                       tip_path=backbones[:, -1, :], tip_error_mm=tip_err,
                       tip_error_physics_mm=tip_err_phys, clearance_profile=profile,
                       objective_value=value, **extra)
+
+
+def _outside_tolerance(run: _Run, tip_err: float) -> str:
+    """Why a verified path's tip ends beyond the tolerance, and what the user can do."""
+    text = (f"the tip ends {tip_err:.3f} mm from the target, beyond the tolerance of "
+            f"{run.tolerance_mm:g} mm (the verified path is in plan.json)")
+    shift = float(run.meta.get("goal_shift_mm") or 0.0)
+    if shift > 0:
+        accept = math.ceil(tip_err * 100.0) / 100.0
+        return (text + f": the goal was moved {shift:.2f} mm off the anatomy (goal_shift_mm) to "
+                f"keep the tip's {_tip_margin(run):.2f} mm margin ({_margin_words(run)}); accept "
+                f"it with --tolerance {accept:g}, or lower the margin with --margin MM")
+    return text + ": no goal configuration was found closer to the target"
 
 
 def _profile(run: _Run, path: np.ndarray, out_q: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, float]:
