@@ -120,11 +120,13 @@ class PlanConfig:
     optimizer : the local optimiser's settings (a count of step trials, not a time).
     goals_by_clearance : with the clearance objective, hand IK goals to the planner in order of
         their (estimated) clearance instead of their tip error.
-    approach : with a margin at the tip (a calibrated model's error bound), a target nearer the
-        anatomy than the tip's radius + margin is approached instead of refused: the goal moves
-        into the lumen, along the distance field's gradient, until the tip keeps its margin, by
-        at most that margin (the model's own error there). ``goal_shift_mm`` in plan.json says
-        by how much; ``tip_error_mm`` stays the distance to the target asked for.
+    approach : with a margin at the tip (a model's error bound, or a stated margin), a target
+        nearer the anatomy than the tip's radius + margin is approached instead of refused: the
+        goal moves into the lumen, along the distance field's gradient, until the tip keeps its
+        margin, by at most that margin (the model's own error there). ``goal_shift_mm`` in
+        plan.json says by how much; ``tip_error_mm`` stays the distance to the target asked
+        for, and the tolerance applies to it: a shift that leaves the tip farther than
+        ``tolerance_mm`` from the target gives ``OUTSIDE_TOLERANCE``, not SUCCESS.
     """
 
     validator: ValidatorConfig = field(default_factory=ValidatorConfig)
@@ -564,10 +566,10 @@ def plan_to_target(
     robot : Robot or shipped name / YAML path.
     scene : Scene or shipped name / scene folder.
     target : (3,) mm, scene frame.
-    model : "physics" (default: its own reference, margin 0), "learned" (fast, but plans with
-        its held-out error bound as margin: ~1.7 mm for the shipped seed1 network, so targets
-        closer than that to the anatomy are refused), "rigid", a model file, or a shape model
-        object. Planning,
+    model : "physics" (default: its own reference, margin 0), "learned" (an uncalibrated
+        surrogate of the physics model; plans with its surrogate error as margin: ~1.7 mm for
+        the shipped seed1 network, so targets closer than that to the anatomy are approached
+        or refused), "rigid", a model file, or a shape model object. Planning,
         IK and the first verification use its planning model (:func:`planning_model_of`);
         the final path is re-verified with ``config.reference`` (physics; a calibrated model
         with itself) and the final tip error is also measured with physics.
@@ -700,7 +702,7 @@ def _start_collision_hint(robot, validator, start) -> str:
 def _margin_words(run: _Run) -> str:
     """What the margin is, in words: the surrogate error, the calibrated bound or --margin."""
     if not run.margin_auto:
-        return "--margin"
+        return f"--margin {float(run.cfg.margin_mm or 0.0):g}"
     if run.meta.get("calibrated"):
         return f"--margin auto: the error bound of the calibrated model {run.meta['model']!r}"
     if run.meta.get("surrogate_error"):
