@@ -125,9 +125,9 @@ def _relative_to(plan: dict, model: str, robot: str) -> str:
                if plan.get("margin_auto") else
                f"with the stated margin of {margin:g} mm (its surrogate error: p99 "
                f"{float(sur.get('p99') or 0.0):.2f} mm)")
-        return (f"; relative to {surrogate_of(sur.get('against'))}, of which {model!r} is a "
-                f"surrogate, {pad} (uncalibrated: the real robot differs from the nominal "
-                f"model by an unknown amount" + calibrate)
+        return (f"; relative to {model!r}, an uncalibrated surrogate of "
+                f"{surrogate_of(sur.get('against'))}, {pad} (the real robot differs from the "
+                f"nominal model by an unknown amount" + calibrate)
     stated = f", plus the stated margin of {margin:g} mm" if margin > 0 else ""
     return (f"; relative to the nominal model{stated} (uncalibrated: the real robot differs "
             f"from it by an unknown amount" + calibrate)
