@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from ctrplan.errors import InputError
+from ctrplan.planning import hints as _hints
 from ctrplan.planning import ik as _ik
 from ctrplan.planning import optimize as _opt
 from ctrplan.planning.goals import (
@@ -699,38 +700,6 @@ def _start_collision_hint(robot, validator, start) -> str:
             f"room for the start ahead of it (check it with `ctrplan check`), or give --start")
 
 
-def _margin_words(run: _Run) -> str:
-    """What the margin is, in words: the surrogate error, the calibrated bound or --margin."""
-    if not run.margin_auto:
-        return f"--margin {float(run.cfg.margin_mm or 0.0):g}"
-    if run.meta.get("calibrated"):
-        return f"--margin auto: the error bound of the calibrated model {run.meta['model']!r}"
-    if run.meta.get("surrogate_error"):
-        return f"--margin auto: the surrogate error of the model {run.meta['model']!r}"
-    return "--margin auto: the model's error bound"
-
-
-def _margin_start_hint(run: _Run, start: np.ndarray, retracted: bool) -> str:
-    """When a margin makes the start collide: the same start (for the retracted one: any tube
-    rotation) checked at margin 0; "" when there is no margin or it collides there too."""
-    from ctrplan.shape.error_bounds import margin_peak
-
-    peak = margin_peak(run.margin_mm)
-    if peak <= 0:
-        return ""
-    try:
-        world0 = world_for(run.scene, 0.0, run.curvature)
-        v0 = BatchValidator(run.robot, run.model, world0, run.cfg.validator)
-        q = retracted_start(run.robot, v0, world0)[0] if retracted else start
-        if not v0.states_valid(q[None])[0]:
-            return ""
-    except Exception:  # the hint is a courtesy: never let it hide the status itself
-        return ""
-    return (f"; it collides only with the {peak:.2f} mm margin ({_margin_words(run)}): at "
-            f"margin 0 it is free. Lower the margin with --margin MM (0 checks the model's "
-            f"backbone alone), plan with a model whose error bound is smaller, or give --start")
-
-
 def _stage_checks(run: _Run, start) -> np.ndarray:
     """Stage 1: reach, start configuration, target. Returns the start (2n,)."""
     t0 = time.perf_counter()
@@ -758,7 +727,7 @@ def _stage_checks(run: _Run, start) -> np.ndarray:
         which = "retracted, any tube rotation" if retracted else "given with --start"
         raise _Stop(run.finish(PlanStatus.START_IN_COLLISION,
                                f"the start configuration ({which}) collides with the scene"
-                               + (_margin_start_hint(run, start, retracted)
+                               + (_hints.margin_start_hint(run, start, retracted)
                                   or _start_collision_hint(robot, validator, start))))
     tip_radius = float(robot.tubes[0].od) / 2.0
     blocked = target_blocked(run.scene, run.world, run.target, tip_radius)
@@ -1087,24 +1056,11 @@ def _output(run: _Run, path: np.ndarray, solver: str, check: PathCheck,
     # whatever moved the goal (the approach off the wall, the optimiser)
     status, message = PlanStatus.SUCCESS, "ok"
     if not tip_err <= run.tolerance_mm:
-        status, message = PlanStatus.OUTSIDE_TOLERANCE, _outside_tolerance(run, tip_err)
+        status, message = PlanStatus.OUTSIDE_TOLERANCE, _hints.outside_tolerance(run, tip_err)
     return run.finish(status, message, path=out_q, backbones=backbones,
                       tip_path=backbones[:, -1, :], tip_error_mm=tip_err,
                       tip_error_physics_mm=tip_err_phys, clearance_profile=profile,
                       objective_value=value, **extra)
-
-
-def _outside_tolerance(run: _Run, tip_err: float) -> str:
-    """Why a verified path's tip ends beyond the tolerance, and what the user can do."""
-    text = (f"the tip ends {tip_err:.3f} mm from the target, beyond the tolerance of "
-            f"{run.tolerance_mm:g} mm (the verified path is in plan.json)")
-    shift = float(run.meta.get("goal_shift_mm") or 0.0)
-    if shift > 0:
-        accept = math.ceil(tip_err * 100.0) / 100.0
-        return (text + f": the goal was moved {shift:.2f} mm off the anatomy (goal_shift_mm) to "
-                f"keep the tip's {_tip_margin(run):.2f} mm margin ({_margin_words(run)}); accept "
-                f"it with --tolerance {accept:g}, or lower the margin with --margin MM")
-    return text + ": no goal configuration was found closer to the target"
 
 
 def _profile(run: _Run, path: np.ndarray, out_q: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, float]:
