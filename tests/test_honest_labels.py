@@ -24,6 +24,7 @@ import torch
 
 import tests.foreign.recheck as R
 from ctrplan.cli import main
+from ctrplan.commands.view import plan_notes
 from ctrplan.errors import InputError
 from ctrplan.planning.plan import PlanConfig, PlanStatus, plan_to_target
 from ctrplan.robot import load_robot
@@ -74,6 +75,8 @@ def test_the_shipped_network_is_an_uncalibrated_surrogate_padded_by_its_surrogat
     assert plan["margin_auto"] is True and plan["margin_mm"] == pytest.approx(sur["p99"])
     assert "padded by its surrogate error" in text and "surrogate" in text
     assert "calibrated model" not in text and "uncalibrated" in text
+    # the view's title says the same
+    assert "uncalibrated surrogate" in plan_notes(plan) and "calibrated model" not in plan_notes(plan)
     # the status follows the tip error on the plan's own model (learned: tip_path)
     tip = float(np.linalg.norm(np.asarray(plan["tip_path"][-1]) - np.asarray(plan["target"])))
     assert plan["tip_error_mm"] == pytest.approx(tip, abs=1e-9)
@@ -184,6 +187,7 @@ def test_a_tip_beyond_the_tolerance_is_not_success_and_the_shift_is_on_the_summa
     line = text.strip().splitlines()[-1]
     assert line.startswith("OUTSIDE_TOLERANCE:") and "goal_shift_mm" in line
     assert f"{plan['goal_shift_mm']:.2f} mm" in line and "--tolerance" in line
+    assert "tolerance 1 mm" in plan_notes(plan) and "goal moved" in plan_notes(plan)
     # the rotated start: recorded, printed with its rotations (the foreign re-check: the
     # retracted configuration is nearer the anatomy than the margin; the rotated one is not)
     robot = load_robot("seed1")
