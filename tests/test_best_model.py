@@ -73,6 +73,11 @@ def test_best_model_is_the_candidate_with_the_lowest_recomputed_test_error(best_
     assert table["winner"] == winner
     # the written best model is the winner, with its test quantiles and profile
     best = load_model(str(out / table["files"]["best_model"]), "seed1")
+    # every bound here was measured on the robot's test rows: calibrated, learned ones too
+    from ctrplan.shape.error_bounds import is_calibrated
+
+    assert is_calibrated(best) and all(is_calibrated(load_model(str(out / rel), "seed1"))
+                                       for rel in table["files"].values())
     dev = _deviations(best, q, dirs, pts)
     np.testing.assert_allclose(dev, devs[winner], atol=1e-6)
     mx = dev.max(axis=1)

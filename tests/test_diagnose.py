@@ -149,6 +149,10 @@ def test_cli_diagnose_writes_report_and_calibrated_model(tmp_path, capsys):
         assert (out / f"{png}.png").stat().st_size > 5000, png
     model = load_model(str(out / "calibrated.yaml"), "two_tube_nylon")
     assert model.error_quantiles == pytest.approx(eq)
+    # its bound was measured on the (measured) rows: calibrated, and the file says so
+    from ctrplan.shape.error_bounds import is_calibrated
+
+    assert is_calibrated(model) and "error_bound: measured" in (out / "calibrated.yaml").read_text()
     data = read_measured(meas, lr("two_tube_nylon"))
     err = np.linalg.norm(model.shape(data.q, 2, sweep=data.sweep).tip - data.tip, axis=1).mean()
     assert err < 0.5 * rep["error_before_mm"]

@@ -10,6 +10,7 @@ from ctrplan.collision.capsules import capsules_from_points
 from ctrplan.shape.effects import EffectModel
 from ctrplan.shape.error_bounds import (
     auto_margin,
+    error_bound_kind,
     extend_tip_bound,
     is_calibrated,
     profile_from_backbones,
@@ -74,10 +75,13 @@ def test_learned_model_keeps_its_profile(seed1, tmp_path):
     rng = np.random.default_rng(1)
     meas = rng.normal(size=(50, 6, 3))
     m.set_error_profile(meas + 0.1 * np.linspace(0, 1, 6)[None, :, None], meas)
+    # a bound whose origin the model does not state is a surrogate's, never "calibrated"
+    assert not is_calibrated(m) and error_bound_kind(m) == "surrogate"
+    m.error_bound = "measured"            # rows measured on a robot: calibrated
     m.save(tmp_path / "m.pt")
     back = LearnedModel.load(tmp_path / "m.pt")
     np.testing.assert_allclose(auto_margin(back).at(1.0), 0.1 * np.sqrt(3), rtol=1e-6)
-    assert is_calibrated(back)
+    assert is_calibrated(back) and back.error_bound == "measured"
 
 
 def test_tip_extension_covers_a_foreign_robot_along_the_shaft(seed1):

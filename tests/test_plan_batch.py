@@ -72,6 +72,15 @@ def test_summary_rates_and_percentiles():
     by = {r["scene"]: r for r in rows}
     assert by["a"]["success_rate"] == 0.5 and by["a"]["time_median_s"] == 2.0
     assert by["all"]["jobs"] == 3 and by["all"]["statuses"] == "SUCCESS:2;TIMEOUT:1"
+    # the labels: calibrated jobs and surrogate jobs counted per scene
+    sur = {"p50": 0.7, "p95": 1.3, "p99": 1.7, "max": 2.5, "against": "physics:seed1"}
+    rows = summarize([
+        {"scene": "a", "success": True, "status": "SUCCESS", "calibrated": True},
+        {"scene": "a", "success": False, "status": "OUTSIDE_TOLERANCE", "surrogate_error": sur},
+        {"scene": "a", "success": True, "status": "SUCCESS", "calibrated": False},
+    ])
+    assert (rows[0]["calibrated_jobs"], rows[0]["surrogate_jobs"]) == (1, 1)
+    assert rows[0]["statuses"] == "OUTSIDE_TOLERANCE:1;SUCCESS:2"
 
 
 def test_batch_writes_one_json_per_job_and_resumes(tmp_path, airway_targets):
@@ -91,7 +100,12 @@ def test_batch_writes_one_json_per_job_and_resumes(tmp_path, airway_targets):
     assert rows[0]["scene"] == "airway" and float(rows[0]["success_rate"]) == 1.0
     assert np.isfinite(float(rows[0]["time_p90_s"]))
     with open(out / "jobs.csv") as fh:
-        assert len(list(csv.DictReader(fh))) == 2
+        jrows = list(csv.DictReader(fh))
+    assert len(jrows) == 2
+    # physics: not calibrated, no surrogate error (empty cell), no goal shift recorded
+    assert all(r["calibrated"] == "False" and r["surrogate_error_mm"] == "" for r in jrows)
+    assert all(float(r["goal_shift_mm"]) >= 0 and r["start_rotated"] in ("True", "False")
+               for r in jrows)
     # resumable: nothing left to do; a lost result is recomputed alone
     again = run_batch(jobs, out)
     assert (again.skipped, again.ran) == (2, 0)

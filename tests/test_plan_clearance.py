@@ -151,6 +151,7 @@ def test_calibrated_flag_follows_the_models_error_bound():
     assert nominal.success and nominal.calibrated is False
     measured = PhysicsModel(robot)
     measured.error_quantiles = {"p50": 0.05, "p95": 0.1, "p99": 0.15, "max": 0.2}
+    measured.error_bound = "measured"      # where the bound came from (error_bounds)
     calibrated = plan_to_target(robot, scene, target, model=measured, seed=0)
     assert calibrated.calibrated is True and calibrated.margin_mm == pytest.approx(0.15)
 

@@ -326,7 +326,7 @@ def _learned_candidates(robot: Robot, rows: _Rows, target: np.ndarray, models: d
     torch_threads = torch.get_num_threads()
     sdata = T.ShapeData(data.q, target, source=str(getattr(data, "source", "measured")),
                         direction=rows.direction.astype(float) if ordered else None,
-                        sweep=rows.labels)
+                        sweep=rows.labels, measured=True)
     dv = sdata.subset(np.flatnonzero(rows.dev))
     tr, va = _train_val(dv, seed)
     motion = ordered and T.has_motion(dv)
@@ -426,6 +426,7 @@ def _attach_bound(model: Any, row: dict[str, Any], shapes: bool, split: dict[str
 
         prof, extended = extend_tip_bound(eq).to_dict(), True
     model.error_profile = dict(prof) if prof else None
+    model.error_bound = "measured" if (eq or prof) else None   # the robot's held-out test rows
     if hasattr(model, "meta"):                    # learned model: where the numbers come from
         model.meta["error_quantiles_source"] = src
         model.meta.pop("error_profile_source", None)

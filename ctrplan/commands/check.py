@@ -37,7 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="safety margin added to the tube radii, mm; 'auto' (default) = the "
                         "model's error bound: the p99 of its held-out deviation at each "
                         "capsule's arc length (error_profile), else the uniform p99 of its "
-                        "error_quantiles; 0 for a model without a bound (uncalibrated)")
+                        "error_quantiles (the surrogate error for the shipped learned model, "
+                        "an uncalibrated surrogate of the physics model); 0 for a model without "
+                        "a bound")
     p.add_argument("--exact", action="store_true", help="every verdict from FCL (no prefilter)")
     p.add_argument("--out", default=DEFAULT_OUT["check"], help=f"output verdicts .csv (default {DEFAULT_OUT['check']})")
     p.set_defaults(func=run)
@@ -57,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     from ctrplan.shape.error_bounds import (
         MEASURED_SLACK_MM,
         auto_margin,
-        is_calibrated,
+        error_bound_kind,
         margin_peak,
         outside_measured,
     )
@@ -106,7 +108,12 @@ def run(args: argparse.Namespace) -> int:
         log.warning("%d of %d configurations insert a tube beyond the insertions the model's "
                     "error bound was measured on (more than %g mm): the model and its bound are "
                     "extrapolated there", counts[2], counts[0], MEASURED_SLACK_MM)
-    if auto and not is_calibrated(model):
+    kind = error_bound_kind(model)
+    if auto and kind == "surrogate":
+        log.info("the margin is the model's surrogate error (its deviation from the simulated "
+                 "model it imitates), not a bound measured on the robot: verdicts are relative "
+                 "to the nominal model (uncalibrated); calibrate with `ctrplan diagnose`")
+    elif auto and kind is None:
         log.info("the model carries no error bound (uncalibrated): verdicts are relative to the "
                  "nominal model; calibrate with `ctrplan diagnose` for a margin")
     return 0

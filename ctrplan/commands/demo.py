@@ -28,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", default=DEFAULT_SCENE, help=f"shipped scene or folder (default {DEFAULT_SCENE})")
     p.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot (default {DEFAULT_ROBOT})")
     p.add_argument("--target", default=None, help="target in the scene: anatomical name or id t01.. (default: the first one)")
-    p.add_argument("--model", default="physics", help="shape model (default physics: margin 0; the learned model plans with its error bound as margin)")
+    p.add_argument("--model", default="physics", help="shape model (default physics: margin 0; 'learned', an uncalibrated surrogate of the physics model, plans with its surrogate error as margin)")
     p.add_argument("--time", type=POSITIVE, default=5.0, help="planning time limit, s (default 5)")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
@@ -40,7 +40,7 @@ def _mm(v) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ctrplan.commands.plan import one_thread
+    from ctrplan.commands.plan import one_thread, summary_line
     from ctrplan.shape.physics import compile_in_background
 
     one_thread()
@@ -86,7 +86,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"  status {plan['status']}  success {plan['success']}  planning time "
           f"{plan['planning_time_s']:.2f} s  tip error {_mm(plan['tip_error_mm'])}  "
           f"min clearance {_mm(plan['min_clearance_mm'])}  path {len(plan['path'] or [])} states")
-    if not plan["success"]:
-        print(f"  {plan.get('message', '')}")
+    print("  " + summary_line(plan, str(args.model), str(args.robot)))
     print("  wrote " + ", ".join(str(f) for f in files) + f"  ({time.perf_counter() - t0:.1f} s total)")
     return 0 if plan["success"] else 1

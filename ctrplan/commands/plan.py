@@ -29,7 +29,9 @@ def allow_negative_values(p: argparse.ArgumentParser) -> None:
 def add_margin_arg(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--margin", default="auto", metavar="MM|auto",
                    help=f"clearance added to the tube radii {what}, mm; 'auto' (default) = the "
-                        "model's error bound (p99 of its held-out deviation; 0 for physics)")
+                        "model's error bound (p99 of its held-out deviation: measured on the "
+                        "robot for a calibrated model, the surrogate error for the shipped "
+                        "learned one; 0 for physics)")
 
 
 def parse_margin(text) -> float | None:
@@ -70,29 +72,65 @@ def parse_objective(text) -> str:
 
 
 def summary_line(plan: dict, model: str, robot: str) -> str:
-    """The human summary printed after a plan: status, tip error, closest approach, and what
-    the clearance is relative to (a calibrated model, or the nominal one and how to calibrate)."""
+    """The human summary printed after a plan: status, tip error (and the tolerance when it was
+    missed), a goal moved off the anatomy (``goal_shift_mm``), closest approach, what the
+    clearance is relative to (a calibrated model; a surrogate of the nominal model padded by
+    its surrogate error; or the nominal model and how to calibrate), and a start whose tube
+    rotations were changed (``start_rotated``)."""
     status = plan.get("status", "?")
-    if not plan.get("success"):
-        return f"{status}: {plan.get('message', '')}"
+    message = str(plan.get("message", ""))
+    shift = float(plan.get("goal_shift_mm") or 0.0)
+    moved = (f" (the goal was moved {shift:.2f} mm off the anatomy to keep the tip's margin: "
+             f"goal_shift_mm)" if shift > 0 and "goal_shift_mm" not in message else "")
+    if not plan.get("path"):
+        return f"{status}: {message}{moved}{_start_note(plan)}"
     tip = plan.get("tip_error_mm")
     clear = plan.get("min_clearance_mm")
-    text = (f"{status}: tip {'n/a' if tip is None else f'{tip:.3f}'} mm from the target, closest "
-            f"approach {'n/a' if clear is None else f'{clear:.2f}'} mm to the anatomy "
-            f"(objective {plan.get('objective', '?')})")
+    head = (f"{status}: tip {'n/a' if tip is None else f'{tip:.3f}'} mm from the target"
+            if plan.get("success") else f"{status}: {message}")
+    text = (f"{head}{moved}{',' if plan.get('success') else ';'} closest approach "
+            f"{'n/a' if clear is None else f'{clear:.2f}'} mm to the anatomy (objective "
+            f"{plan.get('objective', '?')})")
+    return text + _relative_to(plan, model, robot) + _start_note(plan)
+
+
+def _start_note(plan: dict) -> str:
+    """The rotated start (``start_rotated``), with its rotations where the path holds them."""
+    if not plan.get("start_rotated"):
+        return ""
+    path = plan.get("path") or []
+    n = len(path[0]) // 2 if path else 0
+    rot = (" to alpha = (" + ", ".join(f"{a:.2f}" for a in path[0][:n]) + ") rad" if n else "")
+    return (f"; the retracted start collided, so its tube rotations were changed{rot} "
+            f"(start_rotated)")
+
+
+def _relative_to(plan: dict, model: str, robot: str) -> str:
+    """What the clearance is relative to, and the margin's origin."""
+    from ctrplan.shape.error_bounds import surrogate_of
+
     margin = float(plan.get("margin_mm") or 0.0)
     if plan.get("calibrated"):
         out = plan.get("outside_measured_states")
         beyond = (f"; {out} of {len(plan.get('path') or [])} states insert a tube beyond the "
                   "measured insertions (the error bound is extrapolated there)" if out else "")
-        return text + (f"; relative to the calibrated model {model!r}, with its error bound as a "
-                       f"{margin:.2f} mm margin" if plan.get("margin_auto") else
-                       f"; relative to the calibrated model {model!r}, margin {margin:g} mm") + beyond
+        return (f"; relative to the calibrated model {model!r}, with its error bound as a "
+                f"{margin:.2f} mm margin" if plan.get("margin_auto") else
+                f"; relative to the calibrated model {model!r}, margin {margin:g} mm") + beyond
+    calibrate = (f"). To calibrate: `ctrplan diagnose --robot {robot} --data measured.csv "
+                 f"--out report/`, then plan with `--model report/calibrated.yaml --margin auto`")
+    sur = plan.get("surrogate_error")
+    if isinstance(sur, dict):
+        pad = (f"padded by its surrogate error as a {margin:.2f} mm margin"
+               if plan.get("margin_auto") else
+               f"with the stated margin of {margin:g} mm (its surrogate error: p99 "
+               f"{float(sur.get('p99') or 0.0):.2f} mm)")
+        return (f"; relative to {model!r}, an uncalibrated surrogate of "
+                f"{surrogate_of(sur.get('against'))}, {pad} (the real robot differs from the "
+                f"nominal model by an unknown amount" + calibrate)
     stated = f", plus the stated margin of {margin:g} mm" if margin > 0 else ""
-    return (text + f"; relative to the nominal model{stated} (uncalibrated: the real robot "
-            f"differs from it by an unknown amount). To calibrate: `ctrplan diagnose --robot "
-            f"{robot} --data measured.csv --out report/`, then plan with `--model "
-            f"report/calibrated.yaml --margin auto`")
+    return (f"; relative to the nominal model{stated} (uncalibrated: the real robot differs "
+            f"from it by an unknown amount" + calibrate)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -104,11 +142,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "tip_error_mm, planning_time_s, min_clearance_mm and min_clearance_exact "
                     "under the planning model and the reference model, clearance_profile (per "
                     "path state), objective and objective_value, calibrated (whether the model "
-                    "carries an error bound measured on the robot), margin_mm, planner = "
+                    "carries an error bound measured on a robot), surrogate_error (a surrogate's "
+                    "error against the simulated model it imitates, e.g. the shipped learned "
+                    "network's, or null), margin_mm, goal_shift_mm, start_rotated, planner = "
                     "what solved it ('direct' for the straight edge), seed, robot, model, scene, "
                     "time_cap_hit, timings, counts). The search budget is a count of validated "
                     "states, so a seed gives the same path on any machine load; --time is a cap. "
-                    "Exit code 0 on success, 1 when no plan was found (TIMEOUT, ...), 2 for bad "
+                    "SUCCESS means the tip ends within --tolerance of the target (a verified "
+                    "path that ends farther, e.g. because the goal was moved off the anatomy "
+                    "to keep the margin, is OUTSIDE_TOLERANCE, its path kept). "
+                    "Exit code 0 on success, 1 when no plan was found (TIMEOUT, "
+                    "OUTSIDE_TOLERANCE, ...), 2 for bad "
                     "input, an unreachable target or a target inside anatomy (plan.json is "
                     "still written for the latter two).")
     p.add_argument("--scene", required=True, help="shipped scene name or scene folder")

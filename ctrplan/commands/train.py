@@ -31,7 +31,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "fewer than 3 sweeps by contiguous blocks of the motion); training minimises the sum of "
                     "squared point distances with Adam and stops early on the validation loss. "
                     "Writes a model file (.pt) with its metadata, the held-out error quantiles "
-                    "(p50/p95/p99/max of the max deviation along the shaft) and the training "
+                    "(p50/p95/p99/max of the max deviation along the shaft; error_bound says "
+                    "where they were measured: 'measured' with --real, a calibrated model; "
+                    "'surrogate' from simulation alone, the network's surrogate error against "
+                    "the physics model, uncalibrated) and the training "
                     "domain (joint ranges seen; the model answers ok=False outside). "
                     "With --real and no variant flags the variant is chosen by held-out error: "
                     "the candidates (pure; direction-aware when the rows show motion with "
@@ -273,6 +276,11 @@ def run(args: argparse.Namespace) -> int:
     eq = report.error_quantiles or {}
     for line in quantile_summary(eq, model.meta.get("error_quantiles_source") or {}):
         log.info("%s", line)
+    if eq:   # where the bound comes from (error_bound in the file): what `plan` will call it
+        log.info("error_bound: %s", "measured (held-out measured rows: the model is calibrated)"
+                 if model.error_bound == "measured" else
+                 "surrogate (held-out simulated shapes: its surrogate error against the simulated "
+                 "model, not a bound on the real robot; the model is uncalibrated)")
     log.info("wrote %s (%.0f s)", out, time.perf_counter() - t0)
     return 0
 

@@ -123,6 +123,31 @@ def check_model_field(spec, source: str) -> str:
     return spec
 
 
+def _number(v) -> float | None:
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) and \
+        np.isfinite(v) else None
+
+
+def plan_notes(plan: dict) -> str:
+    """The labels a view's title carries: a tip beyond the tolerance, a goal moved off the
+    anatomy (``goal_shift_mm``), and what the planning model's margin is (a calibrated model's
+    measured bound, or an uncalibrated surrogate's ``surrogate_error``)."""
+    out = ""
+    tip, tol = _number(plan.get("tip_error_mm")), _number(plan.get("tolerance_mm"))
+    if plan.get("status") != "SUCCESS" and tip is not None and tol is not None:
+        out += f" (tip {tip:.2f} mm from the target, tolerance {tol:g} mm)"
+    shift = _number(plan.get("goal_shift_mm"))
+    if shift:
+        out += f"; goal moved {shift:.2f} mm off the anatomy"
+    margin = _number(plan.get("margin_mm")) or 0.0
+    if plan.get("calibrated") is True:
+        out += f"; calibrated model, margin {margin:.2f} mm"
+    elif isinstance(plan.get("surrogate_error"), dict):
+        out += (f"; uncalibrated surrogate, margin {margin:.2f} mm"
+                + (" (its surrogate error)" if plan.get("margin_auto") is True else ""))
+    return out
+
+
 def render_plan(plan: dict, out: Path, points: int = 40, source: str = "plan") -> None:
     """Recompute the backbones of a plan's path with its model and render them."""
     from ctrplan import viz
@@ -142,7 +167,7 @@ def render_plan(plan: dict, out: Path, points: int = 40, source: str = "plan") -
     target = plan.get("target")
     target = np.asarray(target, dtype=float) if target is not None else None
     status = plan.get("status", "")
-    title = f"{robot.name} in {scene.name}: {status}".strip().rstrip(":")
+    title = f"{robot.name} in {scene.name}: {status}".strip().rstrip(":") + plan_notes(plan)
     meshes = viz.scene_meshes(scene)
     if out.suffix.lower() == ".html":
         viz.plan_html(out, meshes, backbones, tip_path, target, title=title)

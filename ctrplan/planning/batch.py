@@ -421,12 +421,14 @@ def _run_ray(todo: Sequence[Job], address: str, workers: int, record) -> None:
 JOB_COLUMNS = ("job_id", "scene", "target_name", "x", "y", "z", "seed", "robot", "model", "planner",
                "status", "success", "planning_time_s", "tip_error_mm", "min_clearance_mm", "min_clearance_exact",
                "min_clearance_reference_mm", "margin_mm", "objective", "objective_value", "calibrated",
-               "outside_measured_states", "message")
+               "surrogate_error_mm", "goal_shift_mm", "start_rotated", "outside_measured_states",
+               "message")
 
 
 def summarize(results: Sequence[dict]) -> list[dict]:
     """Per-scene rows (then ``all``): jobs, successes, success rate, time median/p90/max,
-    the count of each status, and the path states beyond the calibrated model's measured
+    the count of each status, the jobs planned with a calibrated model and with an uncalibrated
+    surrogate (``surrogate_error``), and the path states beyond the calibrated model's measured
     insertions summed over the jobs (empty when no job's model records them)."""
     by_scene: dict[str, list[dict]] = {}
     for r in results:
@@ -450,6 +452,10 @@ def summarize(results: Sequence[dict]) -> list[dict]:
             "time_p90_s": float(np.percentile(t, 90)) if len(t) else float("nan"),
             "time_max_s": float(np.max(t)) if len(t) else float("nan"),
             "statuses": ";".join(f"{k}:{v}" for k, v in sorted(statuses.items())),
+            # the labels: jobs planned with a model whose error bound was measured on a robot,
+            # and with an uncalibrated surrogate (padded by its surrogate error with margin auto)
+            "calibrated_jobs": sum(bool(r.get("calibrated")) for r in rs),
+            "surrogate_jobs": sum(isinstance(r.get("surrogate_error"), dict) for r in rs),
             "outside_measured_states": _sum_counts(r.get("outside_measured_states") for r in rs),
         })
     return rows
@@ -468,7 +474,10 @@ def write_tables(out: Path, results: Sequence[dict], rows: Sequence[dict]) -> No
     job_rows = []
     for r in results:
         x, y, z = (list(r.get("target") or [None] * 3) + [None] * 3)[:3]
-        vals = {**r, "x": x, "y": y, "z": z, "success": int(bool(r.get("success")))}
+        sur = r.get("surrogate_error")
+        vals = {**r, "x": x, "y": y, "z": z, "success": int(bool(r.get("success"))),
+                # the surrogate's p99 (mm): what --margin auto pads an uncalibrated surrogate by
+                "surrogate_error_mm": sur.get("p99") if isinstance(sur, dict) else None}
         job_rows.append(["" if vals.get(c) is None else vals.get(c) for c in JOB_COLUMNS])
     write_csv_atomic(out / "jobs.csv", JOB_COLUMNS, job_rows)
     cols = list(rows[0].keys()) if rows else ["scene", "jobs", "success", "success_rate"]

@@ -22,10 +22,10 @@ from ctrplan.errors import InputError
 
 #: Fields that hold a number (mm, s) or null in a job file.
 NUMBER_FIELDS = ("planning_time_s", "tip_error_mm", "tip_error_physics_mm", "min_clearance_mm",
-                 "min_clearance_reference_mm", "margin_mm", "objective_value")
+                 "min_clearance_reference_mm", "margin_mm", "objective_value", "goal_shift_mm")
 #: Fields that hold true/false when present.
 BOOL_FIELDS = ("min_clearance_exact", "min_clearance_reference_exact", "calibrated",
-               "margin_auto", "time_cap_hit")
+               "margin_auto", "time_cap_hit", "start_rotated")
 #: Longest text accepted in a job file's string fields (a message is one line).
 MAX_TEXT = 4000
 
@@ -73,6 +73,13 @@ def validate_job_file(path: str | Path, data: Any, job: Any) -> dict:
         v = data.get(key)
         if v is not None and not (_is_number(v) and math.isfinite(float(v))):
             raise bad(key, f"must be a finite number or null, got {str(v)[:40]!r}")
+    sur = data.get("surrogate_error")
+    if sur is not None and not (isinstance(sur, dict) and all(
+            _is_number(sur.get(k)) and math.isfinite(float(sur[k])) and float(sur[k]) >= 0
+            for k in ("p50", "p95", "p99", "max"))):
+        raise bad("surrogate_error", "must be null or {p50, p95, p99, max} (mm, finite, >= 0)")
+    if sur is not None and data.get("calibrated") is True:
+        raise bad("surrogate_error", "a calibrated plan has no surrogate error")
     c = data.get("outside_measured_states")
     if c is not None and not (isinstance(c, int) and not isinstance(c, bool) and c >= 0):
         raise bad("outside_measured_states", f"must be a count (an integer >= 0) or null, got "

@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from ctrplan.errors import InputError
+from ctrplan.planning import hints as _hints
 from ctrplan.planning import ik as _ik
 from ctrplan.planning import optimize as _opt
 from ctrplan.planning import stability as _stab
@@ -78,6 +79,7 @@ class PlanStatus(str, Enum):
     GOAL_IN_COLLISION = "GOAL_IN_COLLISION"      # reachable, but every reaching configuration collides
     TIMEOUT = "TIMEOUT"                          # no collision-free path within the budget
     VERIFICATION_FAILED = "VERIFICATION_FAILED"  # the path failed an exact check and repair failed
+    OUTSIDE_TOLERANCE = "OUTSIDE_TOLERANCE"      # a verified path, but its tip ends beyond tolerance_mm
     UNSTABLE_ONLY = "UNSTABLE_ONLY"              # paths exist only through a fold or below the stability margin
     INPUT_ERROR = "INPUT_ERROR"                  # bad input (batch jobs; plan_to_target raises InputError)
 
@@ -121,11 +123,13 @@ class PlanConfig:
     optimizer : the local optimiser's settings (a count of step trials, not a time).
     goals_by_clearance : with the clearance objective, hand IK goals to the planner in order of
         their (estimated) clearance instead of their tip error.
-    approach : with a margin at the tip (a calibrated model's error bound), a target nearer the
-        anatomy than the tip's radius + margin is approached instead of refused: the goal moves
-        into the lumen, along the distance field's gradient, until the tip keeps its margin, by
-        at most that margin (the model's own error there). ``goal_shift_mm`` in plan.json says
-        by how much; ``tip_error_mm`` stays the distance to the target asked for.
+    approach : with a margin at the tip (a model's error bound, or a stated margin), a target
+        nearer the anatomy than the tip's radius + margin is approached instead of refused: the
+        goal moves into the lumen, along the distance field's gradient, until the tip keeps its
+        margin, by at most that margin (the model's own error there). ``goal_shift_mm`` in
+        plan.json says by how much; ``tip_error_mm`` stays the distance to the target asked
+        for, and the tolerance applies to it: a shift that leaves the tip farther than
+        ``tolerance_mm`` from the target gives ``OUTSIDE_TOLERANCE``, not SUCCESS.
     """
 
     validator: ValidatorConfig = field(default_factory=ValidatorConfig)
@@ -196,9 +200,14 @@ class PlanResult:
         of radius + sagitta bound, margin not included) to the anatomy, estimated from the
         distance fields (the interpolated distance to the nearest surface sample; within about
         the field's sample spacing of FCL's distance; ``min_clearance_mm`` is FCL's).
-    calibrated : whether the planning model carries an error bound measured on the robot
-        (``error_quantiles`` / ``error_profile``); if not, clearances are relative to the
-        nominal model only.
+    calibrated : whether the planning model carries an error bound measured on a robot
+        (``error_bound: measured``: ``diagnose`` output, a model trained with ``--real`` on
+        measurements; :func:`~ctrplan.shape.error_bounds.is_calibrated`); if not, clearances
+        are relative to the nominal model only.
+    surrogate_error : for a surrogate (a network fitted to a simulated model, such as the
+        shipped ``learned`` one, ``error_bound: surrogate``): its held-out deviation from that
+        model, ``{p50, p95, p99, max}`` mm and ``against`` (the simulated data); the margin
+        ``--margin auto`` pads with, never called calibrated. None for other models.
     measured_insertion, outside_measured_states : the calibrated model's measured insertions
         ({"min": [n], "max": [n]} mm, where its error bound was measured) and the number of
         ``path`` states inserting a tube beyond them by more than
@@ -206,7 +215,12 @@ class PlanResult:
         (the margin is extrapolated there); None for a model without them.
     goal_shift_mm, goal : where the tip was planned to when a target nearer the anatomy than
         the tip's radius + margin was approached (:attr:`PlanConfig.approach`): the goal
-        (scene frame, mm) and its distance from ``target`` (0.0 and None otherwise).
+        (scene frame, mm) and its distance from ``target`` (0.0 and None otherwise). The
+        tolerance applies to ``target``, not to the moved goal: a tip that ends farther than
+        ``tolerance_mm`` from the target is ``OUTSIDE_TOLERANCE`` (not a success; the verified
+        path is kept).
+    start_rotated : the retracted start collided, so its tube rotations were changed (to the
+        free rotations with the most clearance; the start used is ``path[0]``).
     branch, stability : per ``path`` state, the equilibrium branch the robot is on (reached by
         continuation from the start: 0 the model finds one stable equilibrium there, +1 / -1
         the one of two with the larger / smaller base torsion of tube 1) and its elastic
@@ -254,6 +268,8 @@ class PlanResult:
     robot_spec: dict | None = None
     measured_insertion: dict | None = None
     outside_measured_states: int | None = None
+    surrogate_error: dict | None = None
+    start_rotated: bool = False
     branch: list | None = None
     stability: list | None = None
 
@@ -285,6 +301,8 @@ class PlanResult:
             "branch": list(self.branch) if self.branch is not None else [None] * len(self.path),
             "stability": list(self.stability) if self.stability is not None else [None] * len(self.path),
             "calibrated": bool(self.calibrated),
+            "surrogate_error": None if self.surrogate_error is None else dict(self.surrogate_error),
+            "start_rotated": bool(self.start_rotated),
             "goal_shift_mm": float(self.goal_shift_mm),
             "goal": None if self.goal is None else [float(v) for v in self.goal],
             "measured_insertion": self.measured_insertion,
@@ -384,6 +402,7 @@ class _RowwiseModel:
         self.effects = getattr(inner, "effects", None)
         self.error_quantiles = getattr(inner, "error_quantiles", None)
         self.error_profile = getattr(inner, "error_profile", None)
+        self.error_bound = getattr(inner, "error_bound", None)
         self.measured_insertion = getattr(inner, "measured_insertion", None)
 
     def shape(self, q, points: int = 20):
@@ -418,6 +437,7 @@ def planning_model_of(model):
                 pm.error_quantiles = model.error_quantiles
             if getattr(model, "error_profile", None) is not None:
                 pm.error_profile = model.error_profile
+            pm.error_bound = getattr(model, "error_bound", None)
             if "friction" in effects:
                 pm = _RowwiseModel(pm)
     try:
@@ -563,10 +583,10 @@ def plan_to_target(
     robot : Robot or shipped name / YAML path.
     scene : Scene or shipped name / scene folder.
     target : (3,) mm, scene frame.
-    model : "physics" (default: its own reference, margin 0), "learned" (fast, but plans with
-        its held-out error bound as margin: ~1.7 mm for the shipped seed1 network, so targets
-        closer than that to the anatomy are refused), "rigid", a model file, or a shape model
-        object. Planning,
+    model : "physics" (default: its own reference, margin 0), "learned" (an uncalibrated
+        surrogate of the physics model; plans with its surrogate error as margin: ~1.7 mm for
+        the shipped seed1 network, so targets closer than that to the anatomy are approached
+        or refused), "rigid", a model file, or a shape model object. Planning,
         IK and the first verification use its planning model (:func:`planning_model_of`);
         the final path is re-verified with ``config.reference`` (physics; a calibrated model
         with itself) and the final tip error is also measured with physics.
@@ -616,7 +636,7 @@ def _prepare(robot, scene, target, model, planner, time_limit, seed, tolerance_m
     t_call = time.perf_counter()
     from ctrplan.collision.capsules import curvature_bound
     from ctrplan.planning import space as _space
-    from ctrplan.shape.error_bounds import auto_margin, is_calibrated, margin_peak
+    from ctrplan.shape.error_bounds import auto_margin, is_calibrated, margin_peak, surrogate_error
 
     cfg = config or PlanConfig()
     _check_args(time_limit, tolerance_mm, seed)
@@ -661,6 +681,7 @@ def _prepare(robot, scene, target, model, planner, time_limit, seed, tolerance_m
                 time_limit_s=float(time_limit), margin_mm=margin_peak(margin), margin_auto=auto,
                 curvature_bound_per_mm=float(curvature), reference_model=ref_label,
                 objective=cfg.objective, calibrated=is_calibrated(given) or is_calibrated(pmodel),
+                surrogate_error=surrogate_error(given) or surrogate_error(pmodel),
                 measured_insertion=(getattr(given, "measured_insertion", None)
                                     or getattr(pmodel, "measured_insertion", None)))
     run = _Run(robot=robot, scene=scene, target=target, target_base=scene.to_base(target[None])[0],
@@ -747,6 +768,7 @@ def _stage_checks(run: _Run, start) -> np.ndarray:
         run.timings["setup"] += time.perf_counter() - t1
         t0 += time.perf_counter() - t1
         run.counts["start_rotated"] = int(adjusted)
+        run.meta["start_rotated"] = bool(adjusted)
     else:
         if isinstance(start, _stab.Start):
             run.start_branch, start = start.branch, start.q
@@ -762,7 +784,8 @@ def _stage_checks(run: _Run, start) -> np.ndarray:
         which = "retracted, any tube rotation" if retracted else "given with --start"
         raise _Stop(run.finish(PlanStatus.START_IN_COLLISION,
                                f"the start configuration ({which}) collides with the scene"
-                               + _start_collision_hint(robot, validator, start)))
+                               + (_hints.margin_start_hint(run, start, retracted)
+                                  or _start_collision_hint(robot, validator, start))))
     tip_radius = float(robot.tubes[0].od) / 2.0
     blocked = target_blocked(run.scene, run.world, run.target, tip_radius)
     if blocked and run.cfg.approach:
@@ -1129,7 +1152,12 @@ def _output(run: _Run, path: np.ndarray, solver: str, check: PathCheck,
                      min_clearance_reference_exact=exact)
     run.clock("verification", t0)
     run.meta["planner"] = solver
-    return run.finish(PlanStatus.SUCCESS, "ok", path=out_q, backbones=backbones,
+    # SUCCESS means the tip within the tolerance of the target asked for (planning model),
+    # whatever moved the goal (the approach off the wall, the optimiser)
+    status, message = PlanStatus.SUCCESS, "ok"
+    if not tip_err <= run.tolerance_mm:
+        status, message = PlanStatus.OUTSIDE_TOLERANCE, _hints.outside_tolerance(run, tip_err)
+    return run.finish(status, message, path=out_q, backbones=backbones,
                       tip_path=backbones[:, -1, :], tip_error_mm=tip_err,
                       tip_error_physics_mm=tip_err_phys, clearance_profile=profile,
                       objective_value=value, branch=eq.get("branch"),

@@ -124,6 +124,8 @@ def check_q(robot: Robot, q: np.ndarray) -> np.ndarray:
 # Error bound.  A model may carry ``error_quantiles``: a dict with keys p50, p95, p99, max (mm),
 # the held-out quantiles of its max deviation along the shaft (learned models) or of its tip
 # residual (calibrated models), or None.  ``model_error_bound`` is the margin planning uses.
+# ``error_bound`` ("measured" / "surrogate") says where the bound was measured: only a measured
+# one makes the model calibrated (``ctrplan.shape.error_bounds``).
 
 def needs_direction(model) -> bool:
     """True when ``model.shape`` must be given the direction of the last motion."""

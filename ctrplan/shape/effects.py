@@ -597,7 +597,8 @@ class EffectModel:
                  config: PhysicsConfig | None = None,
                  error_quantiles: Mapping[str, float] | None = None, pure: bool = False,
                  error_profile: Mapping[str, Any] | None = None,
-                 measured_insertion: Mapping[str, Any] | None = None):
+                 measured_insertion: Mapping[str, Any] | None = None,
+                 error_bound: str = "measured"):
         self.robot = load_robot(robot)
         self.base = base
         self.effects = complete_effects(effects, self.robot, base)
@@ -610,6 +611,9 @@ class EffectModel:
         #: held-out deviation quantiles along the shaft (``error_profile`` mapping of
         #: :mod:`ctrplan.shape.error_bounds`), or None
         self.error_profile = dict(error_profile) if error_profile else None
+        #: where the bound was measured (:mod:`ctrplan.shape.error_bounds`): "measured" (the
+        #: rows ``diagnose`` held out of a measured CSV; the default) or "surrogate"
+        self.error_bound = error_bound
         #: {"min": [n], "max": [n]} mm: the insertions (beta) of the rows the error bound was
         #: measured on, or None; outside them the bound is extrapolated
         self.measured_insertion = ({k: [float(v) for v in measured_insertion[k]]
@@ -637,7 +641,8 @@ class EffectModel:
         eff = {k: v for k, v in self.effects.items() if k != "registration"}
         return EffectModel(self.robot, self.base, eff, self.config, self.error_quantiles,
                            pure=True, error_profile=self.error_profile,
-                           measured_insertion=self.measured_insertion)
+                           measured_insertion=self.measured_insertion,
+                           error_bound=self.error_bound)
 
     def shape(self, q: np.ndarray, points: int = 20, sweep: np.ndarray | None = None,
               direction: np.ndarray | None = None) -> Shape:
@@ -669,6 +674,8 @@ class EffectModel:
             from ctrplan.shape.error_bounds import profile_from_dict
 
             d["error_profile"] = profile_from_dict(self.error_profile).to_dict()
+        if self.error_quantiles or self.error_profile:
+            d["error_bound"] = self.error_bound
         if self.measured_insertion:
             d["measured_insertion"] = dict(self.measured_insertion)
         return d
@@ -690,7 +697,8 @@ class EffectModel:
         if not isinstance(data, dict) or data.get("kind") != MODEL_KIND:
             raise InputError(source, "kind", f"not a {MODEL_KIND} file")
         unknown = set(data) - {"kind", "base", "robot", "effects", "units", "notes",
-                               "error_quantiles", "error_profile", "measured_insertion"}
+                               "error_quantiles", "error_profile", "measured_insertion",
+                               "error_bound"}
         if unknown:
             raise InputError(source, sorted(unknown, key=str)[0], "unknown key")
         robot = robot_from_dict(data.get("robot"), source=source)
@@ -716,9 +724,15 @@ class EffectModel:
             except ValueError as exc:
                 field_, _, msg = str(exc).partition(": ")
                 raise InputError(source, field_, msg) from None
+        from ctrplan.shape.error_bounds import MEASURED, check_error_bound_kind
+
+        try:   # absent (files written before the field): diagnose's bounds are measured
+            kind = check_error_bound_kind(data.get("error_bound"), "error_bound") or MEASURED
+        except ValueError as exc:
+            raise InputError(source, "error_bound", str(exc).partition(": ")[2]) from None
         return cls(robot, str(data.get("base", "rigid")),
                    complete_effects(effects, robot, str(data.get("base", "rigid")), source),
-                   error_quantiles=eq, error_profile=prof,
+                   error_quantiles=eq, error_profile=prof, error_bound=kind,
                    measured_insertion=_measured_insertion(data.get("measured_insertion"),
                                                           robot.n, source))
 

@@ -28,6 +28,22 @@ it; the rule is a statement about quantiles over configurations, and it is check
 foreign generator (tests/test_error_bounds.py: a robot ~2-5 mm from nominal with curvature,
 stiffness, clearance, torsion and friction-lag differences; the extended p50/p95/p99 cover the
 true per-point quantiles at every fraction).
+
+Where a bound was measured (``error_bound``, :func:`error_bound_kind`). A bound is either
+``measured`` — the held-out deviation from measurements of a robot (``ctrplan train --real``
+on a measured CSV, ``ctrplan diagnose`` and its ``--best`` models): the model is
+**calibrated** (:func:`is_calibrated`) — or ``surrogate`` — the held-out deviation of a network
+from the simulated model it was trained to imitate (``ctrplan train --sim`` alone; the shipped
+``learned`` networks imitate the nominal physics model): the model is an uncalibrated surrogate
+and its bound is its **surrogate error** (:func:`surrogate_error`, plan.json's
+``surrogate_error``), still what ``--margin auto`` pads with, never called calibrated. Model
+files record it (learned ``.pt`` metadata and ``calibrated.yaml``: ``error_bound: measured |
+surrogate``; any other value is refused). Files written before the field existed: a
+``calibrated.yaml`` is ``measured`` (only ``diagnose`` writes a bound there); a learned file is
+``measured`` only when its metadata shows the bound came from measured rows (``data.real`` from
+a file, or ``diagnose --best``'s test rows), else ``surrogate``
+(:func:`inferred_error_bound`). A model object that carries a bound without saying where it
+came from is a ``surrogate``: calibration is a claim that needs its evidence.
 """
 
 from __future__ import annotations
@@ -197,16 +213,97 @@ def error_profile_of(model) -> ErrorProfile | None:
     return profile_from_dict(prof)
 
 
-def is_calibrated(model) -> bool:
-    """True when the model carries an error bound (``error_profile`` or ``error_quantiles``):
-    its margin can be derived from held-out data. The nominal physics model and a model file
-    without quantiles are uncalibrated (clearances are relative to the nominal model)."""
+#: ``error_bound`` values: measured on a robot / a surrogate's error against its simulated model
+MEASURED = "measured"
+SURROGATE = "surrogate"
+ERROR_BOUND_KINDS = (MEASURED, SURROGATE)
+
+
+def has_error_bound(model) -> bool:
+    """True when the model carries an error bound (``error_profile`` or ``error_quantiles``)."""
     try:
         if error_profile_of(model) is not None:
             return True
     except ValueError:
         return False
     return bool(getattr(model, "error_quantiles", None))
+
+
+def check_error_bound_kind(value: Any, source: str = "error_bound") -> str | None:
+    """A model file's ``error_bound`` (None, ``measured`` or ``surrogate``); ValueError naming
+    ``source`` otherwise."""
+    if value is None or value in ERROR_BOUND_KINDS:
+        return value
+    raise ValueError(f"{source}: must be {' or '.join(ERROR_BOUND_KINDS)}, got {str(value)[:40]!r}")
+
+
+def inferred_error_bound(meta: Mapping[str, Any]) -> str:
+    """``error_bound`` of a learned model file written before the field existed, from its
+    metadata: ``measured`` when the bound's rows were measured (the last data trained on,
+    ``data.real``, came from a file rather than the simulated ``hidden-effects:`` rows, or the
+    bound is ``diagnose --best``'s test rows), else ``surrogate``."""
+    src = meta.get("error_quantiles_source")
+    if isinstance(src, Mapping) and str(src.get("part", "")).startswith("best-model"):
+        return MEASURED
+    data = meta.get("data")
+    real = data.get("real") if isinstance(data, Mapping) else None
+    if isinstance(real, Mapping) and not str(real.get("source", "")).startswith(
+            ("hidden-effects:", "physics:", "<memory>")):
+        return MEASURED
+    return SURROGATE
+
+
+def error_bound_kind(model) -> str | None:
+    """Where the model's error bound was measured: ``measured`` (on a robot), ``surrogate``
+    (against the simulated model a network imitates; also a bound whose origin the model does
+    not state), or None (no bound: the nominal physics model)."""
+    if not has_error_bound(model):
+        return None
+    kind = getattr(model, "error_bound", None)
+    return kind if kind in ERROR_BOUND_KINDS else SURROGATE
+
+
+def is_calibrated(model) -> bool:
+    """True only when the model carries an error bound measured on a robot
+    (:func:`error_bound_kind` is ``measured``). The nominal physics model, a model file
+    without quantiles and a surrogate (the shipped learned networks) are uncalibrated: their
+    clearances are relative to the nominal model."""
+    return error_bound_kind(model) == MEASURED
+
+
+def surrogate_error(model) -> dict[str, Any] | None:
+    """plan.json's ``surrogate_error`` of a surrogate model: its held-out deviation quantiles
+    ``{p50, p95, p99, max}`` (mm; the largest along the shaft where only a profile is known)
+    and ``against`` (the simulated data it was measured on, e.g.
+    ``physics:seed1:n=100000:seed=0``, or null); None for other models."""
+    if error_bound_kind(model) != SURROGATE:
+        return None
+    eq = getattr(model, "error_quantiles", None)
+    try:
+        prof = error_profile_of(model)
+    except ValueError:
+        prof = None
+    if eq:
+        out = {k: float(eq[k]) for k in QUANTILES if k in eq}
+    elif prof is not None:
+        out = {k: float(np.max(prof.values[k])) for k in QUANTILES}
+    else:
+        return None
+    meta = getattr(model, "meta", None)
+    src = meta.get("error_quantiles_source") if isinstance(meta, Mapping) else None
+    against = src.get("data") if isinstance(src, Mapping) else None
+    out["against"] = None if against is None else str(against)
+    return out
+
+
+def surrogate_of(against: str | None) -> str:
+    """Words for what a surrogate imitates, from ``surrogate_error["against"]``."""
+    a = str(against or "")
+    if a.startswith("physics:"):
+        return "the nominal physics model"
+    if a.startswith("hidden-effects:"):
+        return "a simulated robot with hidden effects"
+    return "the simulated model it was trained on"
 
 
 def auto_margin(model) -> float | ErrorProfile:

@@ -37,7 +37,10 @@ Options recorded in the model file:
   file; evaluated in the same pass, no physics call). A residual model answers in its base
   model's frame (a calibrated model with ``registration``: the sensor frame).
 * **Error bound**: ``error_quantiles`` (p50/p95/p99/max, mm) of the max deviation along the
-  shaft on the held-out test part of the data the model was last trained on.
+  shaft on the held-out test part of the data the model was last trained on, and
+  ``error_bound``: ``measured`` (that data was measured on a robot: the model is calibrated)
+  or ``surrogate`` (simulated: the bound is the network's surrogate error against the model it
+  imitates); see :mod:`ctrplan.shape.error_bounds`.
 * **Training domain**: ``ok`` is False outside the robot's joint limits and outside the joint
   ranges seen in that data (translations: min..max per tube; rotations: the smallest arc that
   holds every angle seen, or the whole circle when no gap between seen angles exceeds
@@ -151,6 +154,9 @@ class LearnedModel:
         #: held-out deviation quantiles per arc-length fraction (the ``error_profile`` mapping
         #: of :mod:`ctrplan.shape.error_bounds`) or None
         self.error_profile: dict[str, list[float]] | None = None
+        #: where the bound was measured: "measured" (a robot), "surrogate" (the simulated
+        #: model the network imitates) or None (no bound; :mod:`ctrplan.shape.error_bounds`)
+        self.error_bound: str | None = None
         #: training domain (joint ranges seen) or None (robot limits only)
         self.domain: dict[str, Any] | None = None
         lo, hi = self.robot.beta_bounds()
@@ -615,17 +621,27 @@ class LearnedModel:
         (None: the whole circle, when no gap between seen angles exceeds FULL_CIRCLE_GAP)."""
         self.domain = training_domain(self.robot, q, source)
 
-    def set_error_profile(self, predicted: np.ndarray, measured: np.ndarray) -> dict[str, list[float]]:
+    def set_error_profile(self, predicted: np.ndarray, measured: np.ndarray,
+                          kind: str | None = None) -> dict[str, list[float]]:
         """Store the quantiles of the held-out deviation at each backbone point (predicted and
-        measured (B, m, 3), evenly spaced in arc length) as :attr:`error_profile`."""
-        from ctrplan.shape.error_bounds import profile_from_backbones
+        measured (B, m, 3), evenly spaced in arc length) as :attr:`error_profile`; ``kind``
+        (``measured`` / ``surrogate``) sets :attr:`error_bound` when given."""
+        from ctrplan.shape.error_bounds import check_error_bound_kind, profile_from_backbones
 
         self.error_profile = profile_from_backbones(predicted, measured).to_dict()
+        if kind is not None:
+            self.error_bound = check_error_bound_kind(kind)
         return self.error_profile
 
-    def set_error_quantiles(self, per_config_max: np.ndarray) -> dict[str, float]:
-        """Store quantiles of held-out max deviations (mm) as :attr:`error_quantiles`."""
+    def set_error_quantiles(self, per_config_max: np.ndarray,
+                            kind: str | None = None) -> dict[str, float]:
+        """Store quantiles of held-out max deviations (mm) as :attr:`error_quantiles`;
+        ``kind`` (``measured`` / ``surrogate``) sets :attr:`error_bound` when given."""
+        from ctrplan.shape.error_bounds import check_error_bound_kind
+
         self.error_quantiles = error_quantiles(per_config_max)
+        if kind is not None:
+            self.error_bound = check_error_bound_kind(kind)
         return self.error_quantiles
 
     def tip_and_jacobian(self, q: np.ndarray, method: str = "auto",
@@ -698,6 +714,8 @@ class LearnedModel:
             "residual": base_spec,
             "error_quantiles": self.error_quantiles,
             "error_profile": self.error_profile,
+            "error_bound": (self.error_bound if (self.error_quantiles or self.error_profile)
+                            else None),
             "domain": self.domain,
             "robot": self.robot.to_dict(),
             "architecture": {"width": self.width, "depth": self.depth, "activation": "PReLU",
@@ -789,6 +807,7 @@ class LearnedModel:
             domain = _check_domain(meta.get("domain"))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise InputError(src, "meta_json", f"missing or malformed metadata ({exc})") from None
+        bound_kind = _check_error_bound(meta, eq or profile, src)
         try:
             stored = robot_from_dict(meta.get("robot"), source=f"{src} (robot)")
         except InputError as exc:
@@ -832,6 +851,7 @@ class LearnedModel:
             raise InputError(src, "domain", f"expects {robot.n} tubes")
         model.error_quantiles = eq
         model.error_profile = profile
+        model.error_bound = bound_kind
         model.domain = domain
         keep = ("training", "metrics", "data", "created", "command", "ctrplan_version",
                 "error_quantiles_source", "variant", "error_profile_source", "selection")
@@ -983,6 +1003,22 @@ def _check_quantiles(eq: Any) -> dict[str, float] | None:
     if not all(np.isfinite(v) and v >= 0 for v in out.values()):
         raise ValueError("error_quantiles must be finite and >= 0")
     return out
+
+
+def _check_error_bound(meta: dict, bound: Any, src: str) -> str | None:
+    """The file's ``error_bound`` read strictly (``measured`` / ``surrogate``; only with a
+    bound); a file without it (older) gets :func:`~ctrplan.shape.error_bounds.inferred_error_bound`."""
+    from ctrplan.shape.error_bounds import check_error_bound_kind, inferred_error_bound
+
+    try:
+        kind = check_error_bound_kind(meta.get("error_bound"), "error_bound")
+    except ValueError as exc:
+        raise InputError(src, "error_bound", str(exc).partition(": ")[2]) from None
+    if not bound:
+        if kind is not None:
+            raise InputError(src, "error_bound", "given without error_quantiles or error_profile")
+        return None
+    return kind if kind is not None else inferred_error_bound(meta)
 
 
 def _check_domain(dom: Any) -> dict[str, Any] | None:

@@ -69,6 +69,9 @@ class ShapeData:
     source: str = "<memory>"
     direction: np.ndarray | None = None
     sweep: np.ndarray | None = None
+    #: measured on a robot (a measured CSV) rather than simulated: an error bound held out
+    #: from these rows is ``measured`` (calibrated), else ``surrogate``
+    measured: bool = False
 
     def __len__(self) -> int:
         return int(self.q.shape[0])
@@ -76,7 +79,8 @@ class ShapeData:
     def subset(self, idx: np.ndarray) -> ShapeData:
         def pick(a):
             return None if a is None else a[idx]
-        return ShapeData(self.q[idx], self.points[idx], self.source, pick(self.direction), pick(self.sweep))
+        return ShapeData(self.q[idx], self.points[idx], self.source, pick(self.direction), pick(self.sweep),
+                         self.measured)
 
     def with_direction_from_rows(self) -> ShapeData:
         """Direction of the last motion from the row order within each sweep."""
@@ -194,7 +198,7 @@ def from_measured(path: str, robot: Robot) -> ShapeData:
         raise InputError(str(path), "p1_x", "training needs backbone point columns p1_x..pM_z")
     sweep = None if md.sweep is None else np.asarray(md.sweep)
     return ShapeData(md.q, md.points, source=str(path), sweep=sweep,
-                     direction=direction_from_rows(md.q, sweep))
+                     direction=direction_from_rows(md.q, sweep), measured=True)
 
 
 def split(data: ShapeData, fractions: Sequence[float] = (0.8, 0.1, 0.1),
@@ -648,7 +652,8 @@ def finish(model: LearnedModel, seen: ShapeData, test: ShapeData, label: str,
         model.domain.update(beta_min_mm=lo.tolist(), beta_max_mm=hi.tolist(), alpha_arcs_rad=[None] * model.robot.n,
                             source="sim: uniform over the robot's joint limits")
     dev = shape_errors(predict(model, test), test.points)
-    eq = model.set_error_quantiles(dev.max(axis=1))
+    # measured rows give a calibrated bound; simulated ones the surrogate's error
+    eq = model.set_error_quantiles(dev.max(axis=1), kind="measured" if test.measured else "surrogate")
     part = f"held-out test split ({split_kind(test)})"
     model.meta["error_quantiles_source"] = {
         "data": test.source, "part": part, **_part(test),
@@ -667,7 +672,7 @@ def _concat(a: ShapeData, b: ShapeData) -> ShapeData:
     def cat(x, y):
         return None if x is None or y is None else np.concatenate([x, y])
     return ShapeData(np.concatenate([a.q, b.q]), np.concatenate([a.points, b.points]), a.source,
-                     cat(a.direction, b.direction), cat(a.sweep, b.sweep))
+                     cat(a.direction, b.direction), cat(a.sweep, b.sweep), a.measured and b.measured)
 
 
 #: ``variant="auto"``: train the candidate variants and keep the best on the validation sweeps
