@@ -160,10 +160,21 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="X,Y,Z or X Y Z in mm (scene frame; negative values welcome: "
                         "--target -5,20,0), or one of the scene's example targets by anatomical name "
                         "(carina, ...) or id (t01, ...): `ctrplan scene list`")
-    p.add_argument("--start", default="retracted", nargs="+", metavar="retracted|A1,..,Bn",
+    p.add_argument("--start", default="retracted", nargs="+", metavar="retracted|A1,..,Bn|PLAN.json",
                    help="start configuration: 'retracted' (default; the tube rotations are "
-                        "changed only if it collides) or 2n values alpha1..alphaN (rad), "
-                        "beta1..betaN (mm), comma- or space-separated")
+                        "changed only if it collides), 2n values alpha1..alphaN (rad), "
+                        "beta1..betaN (mm), comma- or space-separated, or an earlier plan.json "
+                        "(its last path state and the branch it records there)")
+    p.add_argument("--branch", default=None, metavar="-1|0|+1",
+                   help="the equilibrium branch the robot is on at --start, as plan.json records "
+                        "it; needed where the model finds two stable equilibria at the start "
+                        "(a bistable start: the plan refuses to guess)")
+    p.add_argument("--stability-margin", default=None, metavar="S",
+                   help="smallest elastic stability of a planned state (det of the shooting "
+                        "Jacobian relative to the tubes without their curvatures' interaction: "
+                        "1 = as stiff in torsion as the bare tubes, 0 = a fold where the robot "
+                        "snaps; default 0.1: the twist responds at most ~10x as strongly as the "
+                        "bare tubes'); compliant physics models only")
     add_planning_args(p)
     p.add_argument("--seed", type=SEED, default=0, help="random seed (default 0)")
     p.add_argument("--out", default=DEFAULT_OUT["plan"], help=f"output plan .json (default {DEFAULT_OUT['plan']})")
@@ -186,10 +197,21 @@ def _numbers(tokens, field: str, count: int | None = None) -> list[float] | None
     return vals
 
 
-def parse_start(tokens, robot) -> object:
-    """``--start``: 'retracted' or 2n numbers -> "retracted" or a list of floats."""
+def parse_start(tokens, robot, branch=None) -> object:
+    """``--start`` (and ``--branch``): 'retracted', 2n numbers or a plan.json ->
+    "retracted" or a :class:`~ctrplan.planning.stability.Start`."""
+    import numpy as np
+
+    from ctrplan.planning.stability import Start, check_branch, start_from_plan
+
     tokens = [tokens] if isinstance(tokens, str) else list(tokens)
+    branch = check_branch(branch)
+    if len(tokens) == 1 and tokens[0].strip().lower().endswith(".json"):
+        start = start_from_plan(tokens[0].strip(), robot)
+        return Start(start.q, start.branch if branch is None else branch)
     if len(tokens) == 1 and tokens[0].strip().lower() == "retracted":
+        if branch not in (None, 0):
+            raise InputError("--branch", "", "applies to a given --start, not the retracted one")
         return "retracted"
     vals = _numbers(tokens, "--start")
     if vals is None or len(vals) != robot.dof:
@@ -198,7 +220,20 @@ def parse_start(tokens, robot) -> object:
     from ctrplan.robot import check_config_plausible
 
     check_config_plausible([vals], robot, "--start", row_offset=1, row_word="configuration")
-    return vals
+    return Start(np.asarray(vals, dtype=float), branch)
+
+
+def parse_stability_margin(text) -> float | None:
+    """``--stability-margin``: a number >= 0 (None: the default)."""
+    if text is None:
+        return None
+    try:
+        v = strict_float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and v >= 0):
+        raise InputError("--stability-margin", "", f"must be a number >= 0, got {excerpt(text)}")
+    return v
 
 
 def parse_target(text: str, scene) -> tuple[list[float], str]:
@@ -244,8 +279,13 @@ def run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     scene = scene_by_name(args.scene)
     target, name = parse_target(args.target, scene)
-    start = parse_start(args.start, robot)
+    start = parse_start(args.start, robot, args.branch)
     config = PlanConfig(margin_mm=parse_margin(args.margin), objective=objective)
+    stability = parse_stability_margin(args.stability_margin)
+    if stability is not None:
+        from dataclasses import replace
+
+        config = replace(config, validator=replace(config.validator, stability_margin=stability))
     result = plan_to_target(robot, scene, target, model=args.model, planner=args.planner,
                             time_limit=args.time, seed=args.seed, tolerance_mm=args.tolerance,
                             config=config, start=start)
