@@ -181,7 +181,7 @@ def _segment(spec, eq: Equilibrium, qa, qb, max_step, max_step_mm, h, snaps_out,
         else:
             en_try = EN.build(spec, q_try, h)
         pred = en_try.transfer(en, x)
-        y, conv, _ = EN.minimise(en_try, pred, max_iter=NEWTON_ITER)
+        y, conv, _ = EN.minimise(en_try, pred, max_iter=NEWTON_ITER, require_pd=True)
         counter[0] += 1
         if conv and np.max(np.abs(y - pred)) <= DPSI_MAX:
             en, x, t = en_try, y, t_try

@@ -69,6 +69,7 @@ class Energy:
     pr_w: np.ndarray
     act: np.ndarray               # (n,) index of psi_i(0)
     fixed: np.ndarray             # (n,) bool: beta_i = 0, psi_i(0) = alpha_i held
+    ks: np.ndarray                # (n,) N mm: actuator springs GJ_i / -beta_i (0 where held)
 
     @property
     def n(self) -> int:
@@ -79,9 +80,8 @@ class Energy:
         """Energy (N mm) of the nodal angles x (nvar,)."""
         d = x[self.el_q] - x[self.el_p]
         e = 0.5 * np.sum(self.el_g * d * d)
-        free = ~self.fixed
-        a = x[self.act[free]] - self.alpha[free]
-        e += 0.5 * np.sum(self.spec.GJ[free] / self.ell[free] * a * a)
+        a = x[self.act] - self.alpha
+        e += 0.5 * np.sum(self.ks * a * a)
         e -= np.sum(self.pr_w * np.cos(x[self.pr_p] - x[self.pr_q]))
         return float(e)
 
@@ -90,8 +90,7 @@ class Energy:
         d = self.el_g * (x[self.el_q] - x[self.el_p])
         np.add.at(g, self.el_q, d)
         np.add.at(g, self.el_p, -d)
-        free = ~self.fixed
-        g[self.act[free]] += self.spec.GJ[free] / self.ell[free] * (x[self.act[free]] - self.alpha[free])
+        g[self.act] += self.ks * (x[self.act] - self.alpha)
         sn = self.pr_w * np.sin(x[self.pr_p] - x[self.pr_q])
         np.add.at(g, self.pr_p, sn)
         np.add.at(g, self.pr_q, -sn)
@@ -106,8 +105,7 @@ class Energy:
         np.add.at(ab[0], self.el_p, self.el_g)
         np.add.at(ab[0], self.el_q, self.el_g)
         np.add.at(ab, (self.el_q - self.el_p, self.el_p), -self.el_g)
-        free = ~self.fixed
-        ab[0, self.act[free]] += self.spec.GJ[free] / self.ell[free]
+        ab[0, self.act] += self.ks
         if x is not None:
             c = self.pr_w * np.cos(x[self.pr_p] - x[self.pr_q])
             np.add.at(ab[0], self.pr_p, c)
@@ -237,15 +235,18 @@ def build(spec: Spec, q: np.ndarray, h: float = 0.5) -> Energy:
     else:
         pr_p = pr_q = np.zeros(0, int)
         pr_w = np.zeros(0)
+    ks = np.where(fixed, 0.0, spec.GJ / np.maximum(ell, FIXED_ELL))
     return Energy(spec, beta, alpha, s, var, int(present.sum()), ell, el_p, el_q, el_g,
-                  pr_p, pr_q, pr_w, var[0].copy(), fixed)
+                  pr_p, pr_q, pr_w, var[0].copy(), fixed, ks)
 
 
-def minimise(en: Energy, x0: np.ndarray, max_iter: int = 60, tol: float = 1e-10):
+def minimise(en: Energy, x0: np.ndarray, max_iter: int = 60, tol: float = 1e-10,
+             require_pd: bool = False):
     """Local minimum of the energy from x0 by Newton's method with a line search on the energy
     (a Hessian that is not positive definite is shifted until it is, so every step descends;
     from a saddle it leaves along the softest mode). Returns (x, converged, iterations):
     converged means the last Newton step was below ``tol`` rad at a positive definite Hessian.
+    require_pd: give up (not converged) at the first Hessian that is not positive definite.
     A quasi-static robot does the same: it goes down in energy to the nearest minimum."""
     x = x0.copy()
     x[en.act[en.fixed]] = en.alpha[en.fixed]
@@ -257,9 +258,11 @@ def minimise(en: Energy, x0: np.ndarray, max_iter: int = 60, tol: float = 1e-10)
         try:
             cb = cholesky_banded(ab, lower=True)
         except LinAlgError:
+            if require_pd:
+                return x, False, it
             pd = False
             lam = float(eigvals_banded(ab, lower=True, select="i", select_range=(0, 0))[0])
-            shift = 2.0 * abs(lam) + 1e-6 * float(np.max(ab[0]))
+            shift = 2.0 * abs(lam) + 1e-9 * float(np.max(ab[0]))
             ab2 = ab.copy()
             ab2[0] += shift
             cb = cholesky_banded(ab2, lower=True)
