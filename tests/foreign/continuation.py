@@ -5,11 +5,11 @@ Code of the foreign generator (imports nothing from ctrplan). Equilibria and the
 from the finite-element energy of :mod:`tests.foreign.energy` (a discretisation that shares
 nothing with ctrplan's shooting nor with mechanics.py's):
 
-* ``continue_path(robot, states, uz0=None, points=20, max_step=0.05, max_step_mm=1.0, h=0.5)
-  -> Continued``: the robot moves linearly in joint space between consecutive states (rotations
-  unwrapped, as in plan.json ``path``). Each motion is cut into sub-steps that adapt: a sub-step
-  is accepted only if Newton on the energy, started from the previous solution turned with the
-  actuators, converges to a minimum (positive definite Hessian) within ``DPSI_MAX`` rad of that
+* ``continue_path(robot, states, uz0=None, points=20, max_step=0.05, max_step_mm=1.0, h=1.0,
+  measure=True) -> Continued``: the robot moves linearly in joint space between consecutive
+  states (rotations unwrapped, as in plan.json ``path``). Each motion is cut into sub-steps
+  that adapt: a sub-step is accepted only if Newton on the energy, started from the previous
+  solution turned with the actuators, converges to a minimum (positive definite Hessian) within ``DPSI_MAX`` rad of that
   prediction; otherwise it is halved, down to ``MIN_STEP`` (rad or mm) of joint motion. A
   sub-step that still fails there lies just past a fold: the equilibrium being followed has
   ceased to exist, and the robot does what a quasi-static robot does, it goes downhill in energy
@@ -98,8 +98,9 @@ def _twist(en: EN.Energy, x: np.ndarray) -> float:
     return float(np.interp(e_out, s1, p1) - np.interp(e_out, sn, pn) - (en.alpha[0] - en.alpha[n - 1]))
 
 
-def _equilibrium(en: EN.Energy, x: np.ndarray) -> Equilibrium:
-    return Equilibrium(en, x, en.uz0(x), _twist(en, x), en.value(x), en.stability(x))
+def _equilibrium(en: EN.Energy, x: np.ndarray, measure: bool = True) -> Equilibrium:
+    mu = en.stability(x) if measure else float("nan")
+    return Equilibrium(en, x, en.uz0(x), _twist(en, x), en.value(x), mu)
 
 
 def _fan(spec: Spec, q: np.ndarray, m: int) -> np.ndarray:
@@ -119,7 +120,7 @@ def _fan(spec: Spec, q: np.ndarray, m: int) -> np.ndarray:
     return np.vstack([np.zeros((1, n)), uz])
 
 
-def equilibria(robot, q, h: float = 0.5, fan: int | None = None) -> list[Equilibrium]:
+def equilibria(robot, q, h: float = 1.0, fan: int | None = None) -> list[Equilibrium]:
     """Every stable equilibrium of configuration q (2n,) found by descending the energy from a
     fan of twisted starts (``fan`` per relative angle; default 25 for two tubes, 9 for more),
     sorted by max |uz0| (least twisted first). Distinct: nodal angles differ by > 1e-3 rad."""
@@ -159,7 +160,7 @@ def _start(spec: Spec, q: np.ndarray, uz0, h: float) -> Equilibrium:
 
 
 # ----------------------------------------------------------------------------- continuation
-def _segment(spec, eq: Equilibrium, qa, qb, max_step, max_step_mm, h, snaps_out, counter):
+def _segment(spec, eq: Equilibrium, qa, qb, max_step, max_step_mm, h, snaps_out, counter, measure):
     """Follow eq from qa to qb; returns the equilibrium at qb. Appends (q, mu_before, x_before,
     x_after, en) per snap to snaps_out."""
     n = spec.n
@@ -199,11 +200,11 @@ def _segment(spec, eq: Equilibrium, qa, qb, max_step, max_step_mm, h, snaps_out,
             snaps_out.append((q_try.copy(), mu_before, en, x, en_try, y))
         en, x, t = en_try, y, t_try
         dt = max(t_min, min(dt_max, 1e-3))
-    return _equilibrium(en, x)
+    return _equilibrium(en, x, measure)
 
 
 def continue_path(robot, states, uz0=None, points: int = 20, max_step: float = 0.05,
-                  max_step_mm: float = 1.0, h: float = 0.5) -> Continued:
+                  max_step_mm: float = 1.0, h: float = 1.0, measure: bool = True) -> Continued:
     """Replay the joint motion ``states`` (S, 2n) (rad, mm; rotations unwrapped; the robot moves
     linearly between consecutive states) as the physical robot would, by continuation.
 
@@ -212,8 +213,10 @@ def continue_path(robot, states, uz0=None, points: int = 20, max_step: float = 0
     (the stable equilibrium with the smallest max |uz0|, ctrplan's default), or (n,) base
     torsions (1/mm; the stable equilibrium nearest to them, e.g. ctrplan's ``last_info.uz0``).
     max_step / max_step_mm: largest sub-step of rotation (rad) / translation (mm); sub-steps
-    shrink as needed (module docstring). h: element size of the energy (mm). points: backbone
-    points m."""
+    shrink as needed (module docstring). h: element size of the energy (mm; the folds of the
+    closed-form case move by about 4e-5 rad from 0.5 to 1 mm). points: backbone points m.
+    measure: compute the stability measure at every state (False: NaN, faster; snap_mu is
+    always computed)."""
     spec = load_spec(robot)
     Q = np.atleast_2d(np.asarray(states, float))
     if Q.shape[1] != 2 * spec.n or not np.all(np.isfinite(Q)):
@@ -232,7 +235,7 @@ def continue_path(robot, states, uz0=None, points: int = 20, max_step: float = 0
     for i in range(S):
         if i > 0:
             events: list = []
-            eq = _segment(spec, eq, Q[i - 1], Q[i], max_step, max_step_mm, h, events, counter)
+            eq = _segment(spec, eq, Q[i - 1], Q[i], max_step, max_step_mm, h, events, counter, measure)
             branch[i] = branch[i - 1]
             for (qs, mb, en0, x0, en1, x1) in events:
                 snap_q.append(qs)
@@ -285,7 +288,7 @@ def _psi_from_uz0(spec: Spec, q: np.ndarray, uz0: np.ndarray, en: EN.Energy) -> 
     return x
 
 
-def stability(robot, q, uz0, h: float = 0.5) -> np.ndarray:
+def stability(robot, q, uz0, h: float = 1.0) -> np.ndarray:
     """Energy stability measure mu (B,) of the equilibria with base torsions uz0 (B, n) (1/mm,
     ctrplan's convention) at configurations q (B, 2n): > 0 stable, < 0 unstable, 0 at a fold.
     Also accepts a single q (2n,) and uz0 (n,) and then returns a float."""
@@ -300,7 +303,7 @@ def stability(robot, q, uz0, h: float = 0.5) -> np.ndarray:
     return float(out[0]) if single else out
 
 
-def is_stable(robot, q, uz0, h: float = 0.5):
+def is_stable(robot, q, uz0, h: float = 1.0):
     """``stability(robot, q, uz0) > 0`` (bool, or (B,) bool for a batch)."""
     mu = stability(robot, q, uz0, h)
     return bool(mu > 0) if np.ndim(mu) == 0 else mu > 0

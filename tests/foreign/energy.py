@@ -181,7 +181,7 @@ class Energy:
         return x
 
 
-def build(spec: Spec, q: np.ndarray, h: float = 0.5) -> Energy:
+def build(spec: Spec, q: np.ndarray, h: float = 1.0) -> Energy:
     """The discrete energy of configuration q (2n,) (rad, mm); h the largest element (mm)
     where curved sections overlap."""
     q = np.asarray(q, float)
@@ -341,11 +341,15 @@ def backbone(en: Energy, x: np.ndarray, points: int, step: float = 0.5) -> np.nd
     Kx[:, 0, 2], Kx[:, 1, 2] = ay, -ax
     Kx[:, 2, 0], Kx[:, 2, 1] = -ay, ax
     Q = np.eye(3)[None] + sn[:, None, None] * Kx + (1.0 - cs)[:, None, None] * (Kx @ Kx)
+    # frames before each sub-step: exclusive prefix products Q_0 ... Q_(j-1), by a parallel
+    # (Hillis-Steele) scan in log2(steps) batched products
+    R = np.concatenate([np.eye(3)[None], Q[:-1]], axis=0)
+    shift = 1
+    while shift < len(R):
+        R[shift:] = R[:-shift] @ R[shift:]
+        shift *= 2
     P = np.zeros((len(g), 3))
-    R = np.eye(3)
-    for j in range(len(sm)):
-        P[j + 1] = P[j] + R @ d[j]
-        R = R @ Q[j]
+    P[1:] = np.cumsum(np.einsum("kij,kj->ki", R, d), axis=0)
     idx = np.searchsorted(g, s_out - TOL_S)
     idx = np.clip(idx, 0, len(g) - 1)
     return P[idx]

@@ -49,7 +49,7 @@ class FoldCase:
     up: bool
 
 
-def mu_at_pi(robot, beta, h: float = 0.5) -> float:
+def mu_at_pi(robot, beta, h: float = 1.0) -> float:
     """Stability measure of the untwisted state at relative rotation pi (two tubes)."""
     spec = load_spec(robot)
     en = EN.build(spec, np.array([np.pi, 0.0, *np.asarray(beta, float)]), h)
@@ -60,7 +60,7 @@ def mu_at_pi(robot, beta, h: float = 0.5) -> float:
     return en.stability(x)
 
 
-def bistable_range(robot, beta, h: float = 0.5):
+def bistable_range(robot, beta, h: float = 1.0):
     """(a, b) rad, the bistable range of relative rotation at translations beta (2,), or None
     where the pair is monostable at relative rotation pi (module docstring)."""
     spec = _two(robot)
@@ -69,7 +69,7 @@ def bistable_range(robot, beta, h: float = 0.5):
         return None
     d = np.arange(0.2, 2.0 * np.pi - 0.2 + 1e-9, SWEEP_STEP)
     Q = np.column_stack([d, np.zeros_like(d), np.tile(beta, (len(d), 1))])
-    r = continue_path(spec, Q, uz0="least_twisted", points=2, h=h)
+    r = continue_path(spec, Q, uz0="least_twisted", points=2, h=h, measure=False)
     if len(r.snap_q) == 0:
         return None
     b = float(r.snap_q[0, 0] - r.snap_q[0, 1])
@@ -106,7 +106,7 @@ def _draw(spec: Spec, rng, folds, beta_s, u_s):
     return start, target, up
 
 
-def fold_crossing_cases(robot, count: int, seed: int, h: float = 0.5) -> list[FoldCase]:
+def fold_crossing_cases(robot, count: int, seed: int, h: float = 1.0) -> list[FoldCase]:
     """``count`` fold-crossing problems (module docstring), deterministic per seed."""
     spec = _two(robot)
     rng = np.random.default_rng(seed)
@@ -130,14 +130,14 @@ def fold_crossing_cases(robot, count: int, seed: int, h: float = 0.5) -> list[Fo
         if len(equilibria(spec, start, h)) != 1 or len(equilibria(spec, target, h)) != 1:
             continue
         t = np.linspace(0.0, 1.0, MOTION_STATES)[:, None]
-        r = continue_path(spec, start + t * (target - start), points=2, h=h)
+        r = continue_path(spec, start + t * (target - start), points=2, h=h, measure=False)
         if len(r.snap_q) == 0:
             continue
         out.append(FoldCase(start, r.tips[-1].copy(), target, len(r.snap_q), folds, up))
     return out
 
 
-def fold_crossing_pairs(robot, count: int, seed: int, h: float = 0.5) -> list[tuple]:
+def fold_crossing_pairs(robot, count: int, seed: int, h: float = 1.0) -> list[tuple]:
     """[(start_q (4,), target_xyz (3,))] of :func:`fold_crossing_cases` (same seed, same
     cases)."""
     return [(c.start_q, c.target) for c in fold_crossing_cases(robot, count, seed, h)]
