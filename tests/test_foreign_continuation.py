@@ -112,6 +112,35 @@ def test_balanced_pair_snaps_once_each_way_at_the_closed_form_folds(L, straight,
     assert jump[at].min() > 5.0 * np.delete(jump, at).max()
 
 
+@pytest.mark.parametrize("robot,beta", [("two_tube_nylon", (-60.0, 0.0)), ("two_tube_wide", (-80.0, 0.0))])
+def test_closed_loop_on_the_robots_snaps_once_each_way_where_ctrplans_branch_ends(robot, beta):
+    """Relative rotation up through the bistable range and back (curved sections overlapping):
+    one snap each way, mirror images (a = 2 pi - b), and ctrplan's compliant model, warm-started
+    along the same branch in steps of 0.002 rad, loses that branch (its solution jumps) within
+    one step past the oracle's fold."""
+    from ctrplan.shape.physics import PhysicsModel
+
+    Q = _loop(np.pi - 1.6, np.pi + 1.6, np.array(beta))
+    r = C.continue_path(robot, Q, points=5, measure=False)
+    S = len(Q)
+    assert len(r.snap_q) == 2 and r.snaps[0] < S // 2 <= r.snaps[1]
+    up, down = r.snap_q[:, 0] - r.snap_q[:, 1]
+    assert up > np.pi + 0.3 and abs(down - (2 * np.pi - up)) < 1e-4
+    pm = PhysicsModel(_ct(robot))
+    i = r.snaps[0] - 1                       # last state on the branch before the fold
+    uz = r.uz0[i]
+    jump = None
+    for d in np.arange(Q[i, 0], up + 0.05, 0.002):
+        q = np.array([[d, 0.0, *beta]])
+        pm.solve(q, 2, pm.base_params(1), uz_init=uz[None])
+        u = pm.last_info.uz0[0]
+        if np.max(np.abs(u - uz)) > 2e-3:
+            jump = d
+            break
+        uz = u
+    assert jump is not None and 0.0 < jump - up <= 0.002 + 1e-9
+
+
 def test_balanced_pair_stability_measure_and_critical_overlap():
     """mu of the untwisted state at pi equals the closed form 1 - lambda^2 / omega^2, changes sign
     at the critical overlap L_crit (cot(lambda L) = lambda l), and a pair just below it never
