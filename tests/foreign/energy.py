@@ -306,11 +306,11 @@ def backbone(en: Energy, x: np.ndarray, points: int, step: float = 0.5) -> np.nd
     c = np.clip(en.beta + spec.straight, 0.0, None)
     tip = float(e.max())
     s_out = np.linspace(0.0, tip, points)
-    grid = [en.s, s_out]
-    for a, b in zip(en.s[:-1], en.s[1:]):
-        if b - a > step:
-            grid.append(np.linspace(a, b, int(np.ceil((b - a) / step)) + 1))
-    g = np.unique(np.concatenate(grid))
+    he = np.diff(en.s)
+    m = np.maximum(1, np.ceil(he / step)).astype(int)                 # sub-steps per element
+    first = np.repeat(np.cumsum(m) - m, m)
+    sub = np.repeat(en.s[:-1], m) + (np.arange(m.sum()) - first) / np.repeat(m, m) * np.repeat(he, m)
+    g = np.unique(np.concatenate([en.s, sub, s_out]))
     keep = np.concatenate([[True], np.diff(g) > TOL_S])
     g = g[keep]
     sm = 0.5 * (g[1:] + g[:-1])

@@ -27,7 +27,7 @@ from . import energy as EN
 from .continuation import continue_path, equilibria
 from .robot import Spec, beta_from_unit, load_spec, valid
 
-SWEEP_STEP = 0.05         # rad: state spacing of the sweep that locates a fold
+SWEEP_STEP = 0.1          # rad: state spacing of the sweep that locates a fold (sub-steps adapt)
 MARGIN = 0.15             # rad: least distance of start / target relative rotation from the folds
 REACH = 1.0               # rad: largest distance of start / target relative rotation from the folds
 MOTION_STATES = 41        # states of the replayed straight motion
@@ -67,13 +67,14 @@ def bistable_range(robot, beta, h: float = 1.0):
     beta = np.asarray(beta, float)
     if mu_at_pi(spec, beta, h) >= 0.0:
         return None
-    d = np.arange(0.2, 2.0 * np.pi - 0.2 + 1e-9, SWEEP_STEP)
-    Q = np.column_stack([d, np.zeros_like(d), np.tile(beta, (len(d), 1))])
-    r = continue_path(spec, Q, uz0="least_twisted", points=2, h=h, measure=False)
-    if len(r.snap_q) == 0:
-        return None
-    b = float(r.snap_q[0, 0] - r.snap_q[0, 1])
-    return (2.0 * np.pi - b, b)
+    for lo in (np.pi - 2.2, 0.2):          # the usual ranges first, then nearly all of 2 pi
+        d = np.arange(lo, 2.0 * np.pi - lo + 1e-9, SWEEP_STEP)
+        Q = np.column_stack([d, np.zeros_like(d), np.tile(beta, (len(d), 1))])
+        r = continue_path(spec, Q, uz0="least_twisted", points=2, h=h, measure=False)
+        if len(r.snap_q):
+            b = float(r.snap_q[0, 0] - r.snap_q[0, 1])
+            return (2.0 * np.pi - b, b)
+    return None
 
 
 def _two(robot) -> Spec:
