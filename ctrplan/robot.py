@@ -22,7 +22,7 @@ from ctrplan.io import load_yaml, write_csv_atomic
 #: Slack (mm) allowed on the joint constraints, for round-off in files and interpolation.
 CONSTRAINT_TOL_MM = 1e-9
 
-SHIPPED_ROBOTS = ("seed1", "two_tube_nylon")
+SHIPPED_ROBOTS = ("seed1", "two_tube_nylon", "two_tube_wide")
 
 #: Largest bending strain (od/2 x curvature) a curved section may carry when straightened. The
 #: most elastic tube materials used for these robots (superelastic nitinol, ~8 % recoverable;

@@ -153,7 +153,7 @@ def add_max_mb_everywhere(parser: argparse.ArgumentParser) -> None:
 
 def add_robot_arg(p: argparse.ArgumentParser, required: bool = True) -> None:
     p.add_argument("--robot", required=required, default=None if required else "seed1",
-                   help="shipped robot name (seed1, two_tube_nylon) or robot YAML path")
+                   help="shipped robot name (seed1, two_tube_nylon, two_tube_wide) or robot YAML path")
 
 
 def add_model_arg(p: argparse.ArgumentParser, default: str = "physics") -> None:

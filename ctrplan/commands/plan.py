@@ -50,7 +50,7 @@ def parse_margin(text) -> float | None:
 def add_planning_args(p: argparse.ArgumentParser) -> None:
     """Options shared by ``plan`` and ``plan-batch``."""
     p.add_argument("--robot", default="seed1",
-                   help="shipped robot name (seed1, two_tube_nylon) or robot YAML path (default seed1)")
+                   help="shipped robot name (seed1, two_tube_nylon, two_tube_wide) or robot YAML path (default seed1)")
     add_model_arg(p, default="physics")
     p.add_argument("--planner", default="rrtconnect",
                    help="rrtconnect (default), rrt, rrtstar, bitstar, kpiece, bkpiece, lbkpiece (prm is refused: it deadlocks with Python validity checkers)")

@@ -7,6 +7,13 @@ CSV writer. API: /work/coord/GENERATOR_API.md and README.md here.
 
     from tests.foreign import generate, generate_study, backbones, ForeignData
     from tests.foreign.scenarios import real_robot     # a realistic truth robot (its docstring)
+    from tests.foreign.continuation import continue_path, stability, is_stable, equilibria
+    from tests.foreign.folds import bistable_range, fold_crossing_pairs, fold_crossing_cases
+
+The continuation oracle (continuation.py, folds.py, energy.py; README.md) replays a joint motion
+as the physical robot would: it follows its equilibrium branch and snaps where that branch ends,
+with equilibria and a stability measure from an elastic energy discretised here by finite
+elements.
 
 Its effect forms are deliberately OUTSIDE ctrplan's fitted families (tests/foreign/effects.py
 docstring and README.md say, per effect, why ctrplan's family of the same name cannot represent
