@@ -55,6 +55,37 @@ def balanced_pair(straight: float = 100.0, curved: float = 100.0, kappa: float =
     return Robot(name="balanced_pair", tubes=(inner, outer))
 
 
+def open_scene():
+    """An open scene (base frame = scene frame): one 10 mm box 400 mm behind the constraint
+    plane, since a collision world needs a mesh. Where instability, not collision, decides."""
+    import trimesh
+
+    from ctrplan.collision.scene import Scene, SceneMesh
+
+    box = trimesh.creation.box((10.0, 10.0, 10.0))
+    box.apply_translation((0.0, 0.0, -400.0))
+    return Scene(name="open", path="<memory>", meshes=(SceneMesh("box", "obstacle", box),),
+                 base_pose=np.eye(4), targets=())
+
+
+def write_open_scene(folder) -> str:
+    """:func:`open_scene` as a scene folder (scene.yaml + box.ply) for the command line."""
+    from pathlib import Path
+
+    import trimesh
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    box = trimesh.creation.box((10.0, 10.0, 10.0))
+    box.apply_translation((0.0, 0.0, -400.0))
+    box.export(folder / "box.ply")
+    (folder / "scene.yaml").write_text(
+        "name: open\nunits: mm\nmeshes:\n  - {name: box, file: box.ply, role: obstacle}\n"
+        "base_pose: {position: [0, 0, 0], quaternion: [1, 0, 0, 0]}\n"
+        "source: a box written by the tests\nlicence: CC0\n")
+    return str(folder)
+
+
 def overlap_pair() -> Robot:
     """Two strongly curved tubes of equal lengths whose curved sections coincide: at
     beta = (-50, -50) they overlap over exactly s in [50, 150] mm (a long RK4 interval)."""

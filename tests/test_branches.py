@@ -27,7 +27,7 @@ from ctrplan.planning.validator import BatchValidator, ValidatorConfig
 from ctrplan.robot import load_robot
 from ctrplan.shape import branches as br
 from ctrplan.shape.physics import Loads, PhysicsModel
-from tests.conftest import balanced_pair
+from tests.conftest import balanced_pair, open_scene, write_open_scene
 
 BETA = -50.0                # balanced pair: curved overlap s in [50, 150], transmission 100 mm
 
@@ -84,7 +84,7 @@ def test_continuation_follows_the_branch_to_the_oracle_fold(pair):
     state lies beyond it), and its stability equals the oracle's d alpha / d theta_e on that
     branch (1e-3); the history-free solve jumps to the other branch before the fold."""
     robot, model, c = pair
-    th = np.linspace(0.0, 2 * math.pi, 1201)
+    th = np.linspace(0.0, 2 * math.pi, 601)
     al = _alpha_of(th, c)
     slope = np.gradient(al, th)
     turn = np.flatnonzero((slope[:-1] > 0) & (slope[1:] <= 0))
@@ -259,3 +259,134 @@ def test_start_from_plan_reads_the_last_state_and_its_branch(tmp_path):
     p.write_text(json.dumps(plan))
     with pytest.raises(InputError, match="branch"):
         start_from_plan(p, robot)
+
+
+def test_the_issues_first_example_does_not_snap():
+    """The issue's first example: two_tube_nylon from 4.08,0,-160,-100 to the tip of the
+    configuration at relative rotation 2.33 (the other side of the bistable range), open
+    scene. Before branch tracking this was a SUCCESS that snapped; now the plan, replayed by
+    the foreign generator's continuation (the physical robot), never snaps and every path
+    state's backbone is within 1 mm of the replayed one; branch and stability per state."""
+    from ctrplan.planning.plan import PlanStatus, plan_to_target
+    from tests.foreign.continuation import continue_path
+
+    model = PhysicsModel("two_tube_nylon")
+    target = model.shape(np.array([[2.33, 0.0, -160.0, -100.0]]), 2).tip[0]
+    r = plan_to_target("two_tube_nylon", open_scene(), target, start=[4.08, 0, -160, -100], seed=0)
+    assert r.status is PlanStatus.SUCCESS, r.message
+    rep = continue_path("two_tube_nylon", r.path, points=r.backbones.shape[1])
+    assert rep.snaps == []
+    assert np.linalg.norm(rep.backbones - r.backbones, axis=2).max() < 1.0
+    j = r.to_json()
+    assert len(j["branch"]) == len(j["path"]) == len(j["stability"])
+    assert set(j["branch"]) <= {-1, 0, 1} and min(j["stability"]) >= 0.1
+
+
+def test_cli_start_from_an_earlier_plan_and_a_bistable_start(tmp_path, capsys):
+    """`ctrplan plan --start plan.json` starts where the earlier plan ended, on its branch; a
+    bistable --start without --branch is refused with one line (exit 2, nothing written); with
+    --branch it is planned; a bad --branch or --stability-margin is refused."""
+    import json
+
+    from ctrplan.cli import main
+
+    scene = write_open_scene(tmp_path / "open")
+    first, second = tmp_path / "a.json", tmp_path / "b.json"
+    model = PhysicsModel("two_tube_nylon")
+    t1 = ",".join(map(str, model.shape(np.array([[math.pi, 0.0, -160.0, -100.0]]), 2).tip[0]))
+    t2 = ",".join(map(str, model.shape(np.array([[0.5, 0.0, -150.0, -100.0]]), 2).tip[0]))
+
+    def ctrplan(*args):
+        return main(["-q", "plan", "--robot", "two_tube_nylon", "--scene", scene, *args])
+
+    assert ctrplan("--target", t1, "--start", "0.3,0,-160,-100", "--out", str(first)) == 0
+    p1 = json.loads(first.read_text())
+    assert len(p1["branch"]) == len(p1["path"]) == len(p1["stability"])
+    assert ctrplan("--target", t2, "--start", str(first), "--out", str(second)) == 0
+    p2 = json.loads(second.read_text())
+    assert np.allclose(p2["path"][0], p1["path"][-1], atol=1e-9)
+    assert p2["branch"][0] == p1["branch"][-1]
+    capsys.readouterr()
+    bistable = "3.14159,0,-160,-100"
+    assert ctrplan("--target", t2, "--start", bistable, "--out", str(tmp_path / "c.json")) == 2
+    err = capsys.readouterr().err
+    assert "bistable" in err and "--branch" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "c.json").exists()
+    assert ctrplan("--target", t2, "--start", bistable, "--branch", "-1",
+                   "--out", str(tmp_path / "d.json")) == 0
+    assert json.loads((tmp_path / "d.json").read_text())["branch"][0] == -1
+    for bad in (["--branch", "2"], ["--stability-margin", "-1"], ["--stability-margin", "x"]):
+        assert ctrplan("--target", t2, "--start", bistable, *bad, "--out",
+                       str(tmp_path / "e.json")) == 2, bad
+
+
+def _fixed_pair():
+    """The balanced pair with no straight sections: both translations fixed at 0 (a curved
+    section may not start behind the plane), so only the rotations move; bistable for relative
+    rotations of about 2.5-3.78 rad."""
+    from ctrplan.robot import Robot
+    from tests.conftest import nitinol
+
+    inner = nitinol(1.0, 0.6, 0.0, 100.0, 0.02)
+    od2, id2 = 1.6, 1.2
+    e2 = inner.second_moment / (math.pi / 64.0 * (od2 ** 4 - id2 ** 4)) * inner.youngs_modulus
+    return Robot(name="fixed_pair", tubes=(inner, nitinol(od2, id2, 0.0, 100.0, 0.02, E=e2)))
+
+
+def test_unstable_only_when_only_a_fold_leads_to_the_goal():
+    """The search stage: the fixed pair inside a cylinder (radius 67 mm) that the strongly bent
+    shapes near relative rotation 0 touch. From relative rotation 4.3 to a goal at 2.0 the
+    robot can only go down through the bistable range, where its branch ends (the way up
+    through 0 is blocked): no stable path exists. The search with branch tracking finds none,
+    the same search without it does (the history-free shapes jump past the fold), so the
+    status is UNSTABLE_ONLY, not TIMEOUT. (Explicit goals: the IK would also offer the swapped
+    tube rotations, the same shape on the start's side.)"""
+    from types import SimpleNamespace
+
+    import trimesh
+
+    from ctrplan.collision.scene import Scene, SceneMesh
+    from ctrplan.planning import plan as P
+
+    robot = _fixed_pair()
+    model = PhysicsModel(robot)
+    start = np.array([4.3, 0.0, 0.0, 0.0])
+    goal = np.array([2.0, 0.0, 0.0, 0.0])
+    cyl = trimesh.creation.cylinder(radius=67.0, segment=[(0, 0, -50), (0, 0, 150)], sections=96)
+    scene = Scene(name="cylinder", path="<memory>", meshes=(SceneMesh("wall", "wall", cyl),),
+                  base_pose=np.eye(4), targets=())
+    run = P._prepare(robot, scene, model.shape(goal[None], 2).tip[0], model, "rrtconnect", 60.0,
+                     0, 1.0, P.PlanConfig(max_states=5_000), None)
+    start = P._stage_checks(run, start)
+    assert run.validator.states_valid(np.stack([start, goal])).all()
+    assert not run.validator.states_valid(np.array([[0.0, 0.0, 0.0, 0.0]]))[0]   # the way up
+    run.validator.anchor(goal[None])
+    source = SimpleNamespace(goals=[goal], next=lambda: np.zeros((0, 4)), rounds=1, reaching=1,
+                             evaluations=0)
+    assert P._relaxed(run).edge_valid(start, goal)
+    with pytest.raises(P._Stop) as stop:
+        P._stage_planning(run, start, source, goal[None])
+    res = stop.value.result
+    assert res.status is P.PlanStatus.UNSTABLE_ONLY and "fold" in res.message
+    assert run.validator.tracker.counters.folds > 0 and res.counts["unstable_only_check"] == 1
+
+
+def test_unstable_only_when_every_goal_is_below_the_margin():
+    """The IK stage: a target far out near the axis of two_tube_nylon is reached only with the
+    tubes turned against each other (stability about 0.6); with --stability-margin 1 every
+    reaching configuration is below it: UNSTABLE_ONLY; the default margin plans it."""
+    from ctrplan.planning.plan import PlanConfig, PlanStatus, plan_to_target
+
+    model = PhysicsModel("two_tube_nylon")
+    q = np.array([[-2.12409384, 0.8099516, -3.70351066, -1.00144663]])
+    target = model.shape(q, 2).tip[0]
+    strict = PlanConfig(validator=ValidatorConfig(stability_margin=1.0))
+    r = plan_to_target("two_tube_nylon", open_scene(), target, start=[0, 0, -160, -100],
+                       seed=0, config=strict)
+    assert r.status is PlanStatus.UNSTABLE_ONLY and "below the stability margin" in r.message
+    ok = plan_to_target("two_tube_nylon", open_scene(), target, start=[0, 0, -160, -100], seed=0)
+    assert ok.status is PlanStatus.SUCCESS and 0.1 <= min(ok.stability) < 1.0
+    # a start below the margin is refused the same way
+    r = plan_to_target("two_tube_nylon", open_scene(), target, start=[0, 0, -160, -100], seed=0,
+                       config=PlanConfig(validator=ValidatorConfig(stability_margin=5.0)))
+    assert r.status is PlanStatus.UNSTABLE_ONLY and "start" in r.message

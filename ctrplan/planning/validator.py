@@ -390,7 +390,7 @@ class BatchValidator:
 
     def check_states(self, q: np.ndarray, points: int | None = None,
                      direction: np.ndarray | None = None, exact: bool = False,
-                     joints: bool = True):
+                     joints: bool = True, uz0: np.ndarray | None = None):
         """(collides (B,), clearance_mm (B,), contact (B,)) of a batch with the world's
         ``check`` (``check_exact`` if ``exact``): worst case over the direction variants.
         ``joints`` : joint-constraint violations count as collisions (contact "joints")."""
@@ -401,7 +401,7 @@ class BatchValidator:
         contact = np.full(B, "", dtype=object)
         contact[collides] = "joints"
         for d in self.variants(q, direction):
-            shape = self.shapes(q, points=points, direction=d)
+            shape = self.shapes(q, points=points, direction=d, uz0=uz0)
             self.counters.collision_calls += 1
             rep = self.world.check_exact(shape) if exact else self.world.check(shape)
             hit = np.asarray(rep.collides, dtype=bool)
@@ -515,7 +515,8 @@ class BatchValidator:
         return np.array(out)
 
     # ------------------------------------------------------------------ motion between states
-    def _check_motion(self, states, seg, direction, clearance, collides, contact, points) -> None:
+    def _check_motion(self, states, seg, direction, clearance, collides, contact, points,
+                      uz0=None) -> None:
         """Cover the motion between consecutive checked states (module docstring). A segment
         whose end clearances are both at least ``lip * D`` is certified. Otherwise it is split
         into :data:`MOTION_SUBDIVISIONS` parts whose end states are checked with every capsule
@@ -540,13 +541,15 @@ class BatchValidator:
 
         def check(q, own, w, clear=False):
             dirs = None if direction is None else direction[own]
+            # branch tracking: each part's states on the branch of the segment's start state
+            uz = None if uz0 is None else uz0[own]
             self.world = w
             try:
                 if clear:
-                    return self.check_states(q, points=points, direction=dirs, joints=False)
+                    return self.check_states(q, points=points, direction=dirs, joints=False, uz0=uz)
                 hit = np.zeros(len(q), dtype=bool)
                 for d in self.variants(q, dirs):
-                    hit |= np.asarray(w.collides(self.shapes(q, points=points, direction=d)), bool)
+                    hit |= np.asarray(w.collides(self.shapes(q, points=points, direction=d, uz0=uz)), bool)
                 return hit, None, None
             finally:
                 self.world = world
@@ -633,7 +636,8 @@ class BatchValidator:
             contact[why] = track.why[why]
             collides |= why
         if c.motion_bound and not collides.any() and S > 1:
-            self._check_motion(states, seg, direction, clearance, collides, contact, points)
+            self._check_motion(states, seg, direction, clearance, collides, contact, points,
+                               None if track is None else track.uz0)
         bad = np.flatnonzero(collides)
         first = int(bad[0]) if len(bad) else -1
         return PathCheck(states, seg, collides, clearance, contact, first,
