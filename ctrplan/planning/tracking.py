@@ -79,22 +79,37 @@ class BranchTracker:
     margin: float
     counters: TrackCounters = field(default_factory=TrackCounters)
     _eq: dict = field(default_factory=dict)
+    _rows: list = field(default_factory=list)
+    _table: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.n = self.model.robot.n
 
     # ---------------------------------------------------------------- equilibria of states
     def key(self, q: np.ndarray) -> bytes:
-        return np.round(_wrapped(q, self.n), 12).tobytes()
+        return np.round(_wrapped(q, self.n), 9).tobytes()
 
     def register(self, q: np.ndarray, uz0: np.ndarray) -> None:
         """Remember the equilibria uz0 (B, n) of states q (B, 2n)."""
         for row, u in zip(np.atleast_2d(q), np.atleast_2d(uz0)):
-            self._eq[self.key(row)] = np.array(u, dtype=float)
+            k = self.key(row)
+            if k not in self._eq:
+                self._rows.append(_wrapped(row, self.n))
+                self._table = None
+            self._eq[k] = np.array(u, dtype=float)
 
     def lookup(self, q: np.ndarray) -> np.ndarray | None:
-        """The remembered equilibrium of state q (2n,), or None."""
+        """The remembered equilibrium of state q (2n,) (the same state to 1e-9 in every joint,
+        rotations compared on the circle: OMPL hands states back re-wrapped), or None."""
         u = self._eq.get(self.key(q))
+        if u is None and self._rows:          # a rounding boundary between two copies
+            if self._table is None:
+                self._table = np.array(self._rows)
+            d = self._table - _wrapped(q, self.n)[None]
+            d[:, :self.n] = np.abs(math.pi - np.mod(math.pi - d[:, :self.n], 2.0 * math.pi))
+            near = np.flatnonzero(np.max(np.abs(d), axis=1) <= 1e-9)
+            if len(near):
+                u = self._eq.get(self.key(self._table[near[0]]))
         return None if u is None else u.copy()
 
     # ---------------------------------------------------------------- shapes
