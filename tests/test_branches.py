@@ -390,3 +390,16 @@ def test_unstable_only_when_every_goal_is_below_the_margin():
     r = plan_to_target("two_tube_nylon", open_scene(), target, start=[0, 0, -160, -100], seed=0,
                        config=PlanConfig(validator=ValidatorConfig(stability_margin=5.0)))
     assert r.status is PlanStatus.UNSTABLE_ONLY and "start" in r.message
+
+
+def test_job_files_check_the_branch_fields():
+    """plan-batch resume trusts a job file's per-state branch and stability only when they are
+    lists as long as the path of -1 / 0 / +1 (or null) and of finite numbers (or null)."""
+    from ctrplan.planning.jobfile import branch_fields_problem
+
+    good = {"path": [[0, 0, -1, -1], [1, 0, -1, -1]], "branch": [0, -1], "stability": [1.5, None]}
+    assert branch_fields_problem(good) is None
+    assert branch_fields_problem({"path": []}) is None
+    for key, value in (("branch", [0, 2]), ("branch", [0]), ("branch", [0, True]),
+                       ("stability", [1.0, "x"]), ("stability", "1.0"), ("branch", [0, 1.0])):
+        assert branch_fields_problem({**good, key: value})[0] == key, (key, value)

@@ -90,8 +90,31 @@ def validate_job_file(path: str | Path, data: Any, job: Any) -> dict:
     for key in BOOL_FIELDS:
         if key in data and not isinstance(data[key], bool):
             raise bad(key, f"must be true or false, got {str(data[key])[:40]!r}")
+    why = branch_fields_problem(data)
+    if why:
+        raise bad(*why)
     _check_robot_and_path(data, src, hint, status)
     return data
+
+
+def branch_fields_problem(data: dict) -> tuple[str, str] | None:
+    """What is wrong with a plan's per-state ``branch`` and ``stability`` (field, why), or
+    None: when present, lists as long as ``path`` of -1 / 0 / +1 (or null) and of finite
+    numbers (or null)."""
+    path = data.get("path")
+    count = len(path) if isinstance(path, list) else None
+    for key, good in (("branch", lambda v: v is None or (type(v) is int and v in (-1, 0, 1))),
+                      ("stability", lambda v: v is None or (_is_number(v) and math.isfinite(float(v))))):
+        if key not in data:
+            continue
+        vals = data[key]
+        if not isinstance(vals, list) or (count is not None and len(vals) != count):
+            return key, "must be a list with one value per path state"
+        for v in vals:
+            if not good(v):
+                return key, (f"values must be -1, 0, +1 or null, got {str(v)[:20]!r}" if key == "branch"
+                             else f"values must be finite numbers or null, got {str(v)[:20]!r}")
+    return None
 
 
 def _check_robot_and_path(data: dict, src: str, hint: str, status: str) -> None:
