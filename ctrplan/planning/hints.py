@@ -11,6 +11,7 @@ settings.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -28,11 +29,12 @@ def margin_words(run: Any) -> str:
     return "--margin auto: the model's error bound"
 
 
-def margin_start_hint(run: Any, start: np.ndarray, retracted: bool, world0: Any) -> str:
+def margin_start_hint(run: Any, start: np.ndarray, retracted: bool,
+                      world0: Callable[[], Any]) -> str:
     """When a margin makes the start collide: the same start (for the retracted one: any tube
     rotation, as the planner would choose) checked at margin 0 with the planning model. The
     hint names the margin and how to lower it; "" when there is no margin or the start collides
-    at margin 0 too (then the base pose is the cause: the caller's own hint). ``world0`` : the
+    at margin 0 too (then the base pose is the cause: the caller's own hint). ``world0`` : makes the
     scene's collision world at margin 0 (same curvature bound)."""
     from ctrplan.planning.goals import retracted_start
     from ctrplan.planning.validator import BatchValidator
@@ -42,6 +44,7 @@ def margin_start_hint(run: Any, start: np.ndarray, retracted: bool, world0: Any)
     if peak <= 0:
         return ""
     try:
+        world0 = world0()
         v0 = BatchValidator(run.robot, run.model, world0, run.cfg.validator)
         q = retracted_start(run.robot, v0, world0)[0] if retracted else start
         if not v0.states_valid(q[None])[0]:

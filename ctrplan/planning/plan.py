@@ -727,8 +727,9 @@ def _stage_checks(run: _Run, start) -> np.ndarray:
         which = "retracted, any tube rotation" if retracted else "given with --start"
         raise _Stop(run.finish(PlanStatus.START_IN_COLLISION,
                                f"the start configuration ({which}) collides with the scene"
-                               + (_hints.margin_start_hint(run, start, retracted,
-                                                          world_for(run.scene, 0.0, run.curvature))
+                               + (_hints.margin_start_hint(
+                                   run, start, retracted,
+                                   lambda: world_for(run.scene, 0.0, run.curvature))
                                   or _start_collision_hint(robot, validator, start))))
     tip_radius = float(robot.tubes[0].od) / 2.0
     blocked = target_blocked(run.scene, run.world, run.target, tip_radius)
