@@ -11,6 +11,7 @@ settings.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -28,13 +29,14 @@ def margin_words(run: Any) -> str:
     return "--margin auto: the model's error bound"
 
 
-def margin_start_hint(run: Any, start: np.ndarray, retracted: bool) -> str:
+def margin_start_hint(run: Any, start: np.ndarray, retracted: bool,
+                      world0: Callable[[], Any]) -> str:
     """When a margin makes the start collide: the same start (for the retracted one: any tube
     rotation, as the planner would choose) checked at margin 0 with the planning model. The
     hint names the margin and how to lower it; "" when there is no margin or the start collides
-    at margin 0 too (then the base pose is the cause: the caller's own hint)."""
+    at margin 0 too (then the base pose is the cause: the caller's own hint). ``world0`` : makes the
+    scene's collision world at margin 0 (same curvature bound)."""
     from ctrplan.planning.goals import retracted_start
-    from ctrplan.planning.plan import world_for
     from ctrplan.planning.validator import BatchValidator
     from ctrplan.shape.error_bounds import margin_peak
 
@@ -42,7 +44,7 @@ def margin_start_hint(run: Any, start: np.ndarray, retracted: bool) -> str:
     if peak <= 0:
         return ""
     try:
-        world0 = world_for(run.scene, 0.0, run.curvature)
+        world0 = world0()
         v0 = BatchValidator(run.robot, run.model, world0, run.cfg.validator)
         q = retracted_start(run.robot, v0, world0)[0] if retracted else start
         if not v0.states_valid(q[None])[0]:
@@ -54,10 +56,10 @@ def margin_start_hint(run: Any, start: np.ndarray, retracted: bool) -> str:
             f"backbone alone), plan with a model whose error bound is smaller, or give --start")
 
 
-def outside_tolerance(run: Any, tip_err: float) -> str:
+def outside_tolerance(run: Any, tip_err: float, tip_margin: float) -> str:
     """Why a verified path's tip ends ``tip_err`` mm from the target, beyond the tolerance, and
-    what the user can do (a larger --tolerance that accepts it, or a smaller margin)."""
-    from ctrplan.planning.plan import _tip_margin
+    what the user can do (a larger --tolerance that accepts it, or a smaller margin).
+    ``tip_margin`` : the margin (mm) the tip's capsule carries."""
 
     text = (f"the tip ends {tip_err:.3f} mm from the target, beyond the tolerance of "
             f"{run.tolerance_mm:g} mm (the verified path is in plan.json)")
@@ -65,6 +67,6 @@ def outside_tolerance(run: Any, tip_err: float) -> str:
     if shift > 0:
         accept = math.ceil(tip_err * 100.0) / 100.0
         return (text + f": the goal was moved {shift:.2f} mm off the anatomy (goal_shift_mm) to "
-                f"keep the tip's {_tip_margin(run):.2f} mm margin ({margin_words(run)}); accept "
+                f"keep the tip's {tip_margin:.2f} mm margin ({margin_words(run)}); accept "
                 f"it with --tolerance {accept:g}, or lower the margin with --margin MM")
     return text + ": no goal configuration was found closer to the target"

@@ -784,7 +784,9 @@ def _stage_checks(run: _Run, start) -> np.ndarray:
         which = "retracted, any tube rotation" if retracted else "given with --start"
         raise _Stop(run.finish(PlanStatus.START_IN_COLLISION,
                                f"the start configuration ({which}) collides with the scene"
-                               + (_hints.margin_start_hint(run, start, retracted)
+                               + (_hints.margin_start_hint(
+                                   run, start, retracted,
+                                   lambda: world_for(run.scene, 0.0, run.curvature))
                                   or _start_collision_hint(robot, validator, start))))
     tip_radius = float(robot.tubes[0].od) / 2.0
     blocked = target_blocked(run.scene, run.world, run.target, tip_radius)
@@ -1156,7 +1158,8 @@ def _output(run: _Run, path: np.ndarray, solver: str, check: PathCheck,
     # whatever moved the goal (the approach off the wall, the optimiser)
     status, message = PlanStatus.SUCCESS, "ok"
     if not tip_err <= run.tolerance_mm:
-        status, message = PlanStatus.OUTSIDE_TOLERANCE, _hints.outside_tolerance(run, tip_err)
+        status = PlanStatus.OUTSIDE_TOLERANCE
+        message = _hints.outside_tolerance(run, tip_err, _tip_margin(run))
     return run.finish(status, message, path=out_q, backbones=backbones,
                       tip_path=backbones[:, -1, :], tip_error_mm=tip_err,
                       tip_error_physics_mm=tip_err_phys, clearance_profile=profile,
