@@ -1125,7 +1125,7 @@ def _output(run: _Run, path: np.ndarray, solver: str, check: PathCheck,
     if cfg.output_step_mm > 0:
         out_q, seg = interpolate_path(path, n, cfg.validator.alpha_weight_mm, cfg.output_step_mm)
     out_q = unwrap_path(out_q, n)
-    eq = _output_equilibria(run, out_q, seg, path, check, ref_check)
+    eq = _output_equilibria(run, out_q, check, ref_check)
     profile, value = _profile(run, path, out_q, seg, eq.get("uz0"))
     shape = eq["shape"] if "shape" in eq else run.model.shape(out_q, points=cfg.output_points)
     backbones = run.scene.to_scene(shape.points)
@@ -1167,8 +1167,8 @@ def _output(run: _Run, path: np.ndarray, solver: str, check: PathCheck,
                       stability=eq.get("stability"), **extra)
 
 
-def _output_equilibria(run: _Run, out_q: np.ndarray, seg: np.ndarray, path: np.ndarray,
-                       check: PathCheck, ref_check: PathCheck | None) -> dict:
+def _output_equilibria(run: _Run, out_q: np.ndarray, check: PathCheck,
+                       ref_check: PathCheck | None) -> dict:
     """Per output state, the equilibrium the robot is on (continued from the verified state
     before it: :func:`~ctrplan.planning.stability.output_equilibria`), its branch label and
     stability: of the planning model (then also its shapes, ``shape``, and ``uz0``) or else
@@ -1179,12 +1179,10 @@ def _output_equilibria(run: _Run, out_q: np.ndarray, seg: np.ndarray, path: np.n
     for model, chk, own in ((run.model, check, True), (run.reference, ref_check, False)):
         if model is None or chk is None or chk.uz0 is None or not tracks_branches(model):
             continue
-        d = None
-        if run.validator.directional and len(path) > 1:
-            dirs = np.array([edge_direction(a, b, n) for a, b in zip(path[:-1], path[1:])])
-            d = np.where(dirs[seg] == 0, 1, dirs[seg]).astype(np.int8)
+        # (a direction-aware model's output shapes are its shapes without a direction of
+        # motion, as the tip error always was: the continued equilibrium moves with them)
         t, labels = _stab.output_equilibria(model, out_q, chk.states, chk.uz0, n,
-                                            cfg.validator.alpha_weight_mm, cfg.output_points, d)
+                                            cfg.validator.alpha_weight_mm, cfg.output_points)
         out = {"branch": [int(v) for v in labels], "stability": _stab.stability_list(t.stability)}
         if own:
             out.update(shape=t.shape, uz0=t.uz0)
