@@ -967,7 +967,8 @@ def _stage_planning(run: _Run, start: np.ndarray, source: GoalSource,
             raise _Stop(run.finish(PlanStatus.UNSTABLE_ONLY, f"no path within {why} keeps the "
                                    f"stability margin {validator.tracker.margin:g} and its "
                                    "equilibrium branch; the same search without that constraint "
-                                   "finds one (through a fold: the robot would snap)"))
+                                   "finds one, below the margin or through a fold (where the "
+                                   "robot would snap)"))
         raise _Stop(run.finish(PlanStatus.TIMEOUT, f"no collision-free path found within {why} "
                                f"({outcome.goals_used} goal configurations)"))
     return outcome.path, run.planner
