@@ -732,7 +732,7 @@ def _start_equilibria(run: _Run, start: np.ndarray) -> str:
     if tracker is None:
         return ""
     uz = run.start_uz[id(run.model)]
-    tracker.register(start[None], uz[None])
+    tracker.register(start[None], uz[None], anchor=True)
     at = tracker.states(start[None], 2, np.ones((1, run.robot.dof), dtype=np.int8)
                         if run.validator.directional else None, uz[None])
     if not at.shape.ok[0] and at.continued[0]:
@@ -1111,7 +1111,7 @@ def _reference_validator(run: _Run, start: np.ndarray) -> BatchValidator:
     world = world_for(run.scene, 0.0, curvature)
     val = BatchValidator(run.robot, ref, world, run.cfg.validator)
     if val.tracker is not None and id(ref) in run.start_uz:   # the path starts on its branch
-        val.tracker.register(start[None], run.start_uz[id(ref)][None])
+        val.tracker.register(start[None], run.start_uz[id(ref)][None], anchor=True)
     return val
 
 

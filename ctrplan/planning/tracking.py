@@ -79,8 +79,7 @@ class BranchTracker:
     margin: float
     counters: TrackCounters = field(default_factory=TrackCounters)
     _eq: dict = field(default_factory=dict)
-    _rows: list = field(default_factory=list)
-    _table: np.ndarray | None = None
+    _anchors: list = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.n = self.model.robot.n
@@ -89,27 +88,28 @@ class BranchTracker:
     def key(self, q: np.ndarray) -> bytes:
         return np.round(_wrapped(q, self.n), 9).tobytes()
 
-    def register(self, q: np.ndarray, uz0: np.ndarray) -> None:
-        """Remember the equilibria uz0 (B, n) of states q (B, 2n)."""
+    def register(self, q: np.ndarray, uz0: np.ndarray, anchor: bool = False) -> None:
+        """Remember the equilibria uz0 (B, n) of states q (B, 2n). ``anchor``: states given
+        from outside the planner (the start, goals), also found again when handed back with
+        their rotations re-wrapped (a few ulps off)."""
         for row, u in zip(np.atleast_2d(q), np.atleast_2d(uz0)):
-            k = self.key(row)
-            if k not in self._eq:
-                self._rows.append(_wrapped(row, self.n))
-                self._table = None
-            self._eq[k] = np.array(u, dtype=float)
+            self._eq[self.key(row)] = np.array(u, dtype=float)
+            if anchor:
+                self._anchors.append((_wrapped(row, self.n), np.array(u, dtype=float)))
 
     def lookup(self, q: np.ndarray) -> np.ndarray | None:
-        """The remembered equilibrium of state q (2n,) (the same state to 1e-9 in every joint,
-        rotations compared on the circle: OMPL hands states back re-wrapped), or None."""
+        """The remembered equilibrium of state q (2n,), or None. Keys are the state rounded to
+        1e-9 (OMPL hands back the states it was given; an anchor is also matched to 1e-9 in
+        every joint, rotations on the circle, in case a rounding boundary lies between two
+        copies)."""
         u = self._eq.get(self.key(q))
-        if u is None and self._rows:          # a rounding boundary between two copies
-            if self._table is None:
-                self._table = np.array(self._rows)
-            d = self._table - _wrapped(q, self.n)[None]
-            d[:, :self.n] = np.abs(math.pi - np.mod(math.pi - d[:, :self.n], 2.0 * math.pi))
-            near = np.flatnonzero(np.max(np.abs(d), axis=1) <= 1e-9)
-            if len(near):
-                u = self._eq.get(self.key(self._table[near[0]]))
+        if u is None:
+            w = _wrapped(q, self.n)
+            for row, uz in self._anchors:
+                d = row - w
+                d[:self.n] = math.pi - np.mod(math.pi - d[:self.n], 2.0 * math.pi)
+                if np.max(np.abs(d)) <= 1e-9:
+                    return uz.copy()
         return None if u is None else u.copy()
 
     # ---------------------------------------------------------------- shapes

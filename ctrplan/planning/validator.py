@@ -357,7 +357,7 @@ class BatchValidator:
         if self.tracker is not None and len(q):
             q = np.atleast_2d(np.asarray(q, dtype=float))
             d = np.ones(q.shape, dtype=np.int8) if self.directional else None
-            self.tracker.register(q, self.tracker.states(q, 2, d).uz0)
+            self.tracker.register(q, self.tracker.states(q, 2, d).uz0, anchor=True)
 
     def variants(self, q: np.ndarray, direction: np.ndarray | None = None) -> list[np.ndarray | None]:
         """Directions to evaluate a batch with: [None] for an ordinary model; for a
