@@ -207,6 +207,7 @@ def _channel_bound(x0, x1, w0, w1, h, eps, vector: bool):
     (P, K). x0, x1 : values at the ends, w0, w1 : velocities, (P, K, 3) if ``vector`` else
     (P, K); h, eps : (P,) mm of metric."""
     nrm = (lambda v: np.linalg.norm(v, axis=-1)) if vector else np.abs
+    h = np.maximum(h, 1e-12)              # a zero-length segment: any displacement is a jump
     hh, ee = h[:, None], eps[:, None]
     disp = nrm(x1 - x0)
     sec = (x1 - x0) / (h[:, None, None] if vector else hh)
