@@ -214,9 +214,10 @@ def _channel_bound(x0, x1, w0, w1, h, eps, vector: bool):
     vmax = np.maximum(nrm(w0), nrm(w1))
     m2v = nrm(w1 - w0) / hh
     m2 = np.maximum(m2v, 2.0 * np.maximum(nrm(sec - w0), nrm(sec - w1)) / np.maximum(hh - ee, hh / 2))
-    reach = hh * (hh + ee) / 2.0
-    vel_only = hh * vmax + MOTION_SAFETY * m2v * reach
-    full = hh * vmax + MOTION_SAFETY * m2 * reach
+    # velocity-only bound of the displacement (the jump test) ...
+    vel_only = hh * vmax + MOTION_SAFETY * m2v * hh * (hh + ee) / 2.0
+    # ... and the cover: the displacement plus the largest distance from the straight motion
+    full = disp + MOTION_SAFETY * m2 * hh * hh / 8.0
     return vel_only, full, disp, vmax
 
 
@@ -233,18 +234,19 @@ def motion_cover(p0: np.ndarray, p1: np.ndarray, v0: np.ndarray, v1: np.ndarray,
     h, eps : (P,) mm of metric; pad0, pad1, dpad0, dpad1 : (P, m - 1) chord pads
     (``Shape.pad``) at the ends and their velocities (None: the model has none).
 
-    Derivation. With ``M2`` a bound of ``|P''|`` on the segment, the velocity at any t is
-    within ``M2 max(t, eps)`` of the window mean at t = 0 and within ``M2 max(h - t, eps)`` of
-    the one at t = h, so ``|P'| <= max(|v0|, |v1|) + M2 (h + eps) / 2`` and every point moves at
-    most ``h max(|v0|, |v1|) + M2 h (h + eps) / 2`` from either end. The samples imply lower
-    bounds of ``M2``: ``|v1 - v0| / h`` and ``2 |S - v| / (h - eps)`` (S the secant); the bound
-    takes ``M2`` = :data:`MOTION_SAFETY` times the largest of them, i.e. it assumes that the
-    second derivative of the motion on one segment is at most twice what its four samples show
-    (exact for a quadratic motion with the factor to spare; a segment where that fails is one
-    where the samples vary out of step, which the check below catches when the variation is a
-    step). A jump (a branch switch, a discontinuous model) is refused: the displacement must be
-    explained by the velocities alone, ``|P(h) - P(0)| <= h max|v| + SAFETY |v1 - v0| h (h + eps)
-    / (2 h)`` + :data:`MOTION_SLACK_MM` at every point, and no point may move faster than
+    Derivation. With ``M2`` a bound of ``|P''|`` on the segment, the motion is within
+    ``M2 t (h - t) / 2 <= M2 h^2 / 8`` of the straight motion between its ends (the linear
+    interpolation error), so every point is within ``|P(h) - P(0)| + M2 h^2 / 8`` of the same
+    point at either end. The samples imply lower bounds of ``M2``: ``|v1 - v0| / h`` and
+    ``2 |S - v| / (h - eps)`` (S the secant; the velocities are window means); the bound takes
+    ``M2`` = :data:`MOTION_SAFETY` times the largest of them, i.e. it assumes that the second
+    derivative of the motion on one segment is at most twice what its four samples show (the
+    factor to spare for a quadratic motion, exact for a kink between two straight motions, as
+    the learned network's activations make). A jump (a branch switch, a discontinuous model) is
+    refused: the displacement must be explained by the velocities alone (``|P'| <= max(|v0|,
+    |v1|) + M2v (h + eps) / 2`` with ``M2v`` the velocity-only estimate, so
+    ``|P(h) - P(0)| <= h max |v| + SAFETY |v1 - v0| (h + eps) / 2`` +
+    :data:`MOTION_SLACK_MM`, at every point), and no point may move faster than
     :data:`MAX_SPEED` (a jump inside a finite-difference window). A smooth motion passes the
     first test once the segment is short enough (split it); a jump never does.
 
