@@ -133,7 +133,9 @@ def _edge_oracle(robot, model, q0, q1, res=0.5):
     d = edge_direction(q0, q1, n) if val.directional else None
     P, _, ok, _ = continuation(model, qs, DENSE_POINTS, None if d is None else np.where(d == 0, 1, d))
     grid = P[:, ::SUB]
-    if not ok.all() or np.max(np.linalg.norm(grid[::per] - ev.shapes[0].points, axis=-1)) > 1e-5:
+    # another branch than the validator's states (or, for the learned model, more than its
+    # float32 path's round-off: the validator evaluates batches over 64 rows in float32)
+    if not ok.all() or np.max(np.linalg.norm(grid[::per] - ev.shapes[0].points, axis=-1)) > 1e-3:
         return None
     worst_pt = worst_cap = 0.0
     pads = ev.shapes[0].pad

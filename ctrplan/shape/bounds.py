@@ -203,22 +203,25 @@ class MotionCover:
 
 
 def _channel_bound(x0, x1, w0, w1, h, eps, vector: bool):
-    """One channel's velocity-only bound, full bound, displacement and largest end speed, each
+    """One channel's trapezoid defect allowance, cover, defect and largest end speed, each
     (P, K). x0, x1 : values at the ends, w0, w1 : velocities, (P, K, 3) if ``vector`` else
     (P, K); h, eps : (P,) mm of metric."""
     nrm = (lambda v: np.linalg.norm(v, axis=-1)) if vector else np.abs
     h = np.maximum(h, 1e-12)              # a zero-length segment: any displacement is a jump
     hh, ee = h[:, None], eps[:, None]
+    hv = h[:, None, None] if vector else hh
     disp = nrm(x1 - x0)
-    sec = (x1 - x0) / (h[:, None, None] if vector else hh)
+    sec = (x1 - x0) / hv
     vmax = np.maximum(nrm(w0), nrm(w1))
-    m2v = nrm(w1 - w0) / hh
-    m2 = np.maximum(m2v, 2.0 * np.maximum(nrm(sec - w0), nrm(sec - w1)) / np.maximum(hh - ee, hh / 2))
-    # velocity-only bound of the displacement (the jump test) ...
-    vel_only = hh * vmax + MOTION_SAFETY * m2v * hh * (hh + ee) / 2.0
-    # ... and the cover: the displacement plus the largest distance from the straight motion
-    full = disp + MOTION_SAFETY * m2 * hh * hh / 8.0
-    return vel_only, full, disp, vmax
+    dv = nrm(w1 - w0)
+    m2 = np.maximum(dv / hh, 2.0 * np.maximum(nrm(sec - w0), nrm(sec - w1)) / np.maximum(hh - ee, hh / 2))
+    # the displacement the velocities do not explain (trapezoid rule), and what a motion whose
+    # velocity changes by |w1 - w0| once (a kink) may leave unexplained
+    defect = nrm(x1 - x0 - hv * (w0 + w1) / 2.0)
+    allow = MOTION_SAFETY / 4.0 * dv * (hh + 2.0 * ee)
+    # the cover: the displacement plus the largest distance from the straight motion
+    cover = disp + MOTION_SAFETY * m2 * hh * hh / 8.0
+    return allow, cover, defect, vmax
 
 
 def motion_cover(p0: np.ndarray, p1: np.ndarray, v0: np.ndarray, v1: np.ndarray,
@@ -243,12 +246,14 @@ def motion_cover(p0: np.ndarray, p1: np.ndarray, v0: np.ndarray, v1: np.ndarray,
     derivative of the motion on one segment is at most twice what its four samples show (the
     factor to spare for a quadratic motion, exact for a kink between two straight motions, as
     the learned network's activations make). A jump (a branch switch, a discontinuous model) is
-    refused: the displacement must be explained by the velocities alone (``|P'| <= max(|v0|,
-    |v1|) + M2v (h + eps) / 2`` with ``M2v`` the velocity-only estimate, so
-    ``|P(h) - P(0)| <= h max |v| + SAFETY |v1 - v0| (h + eps) / 2`` +
-    :data:`MOTION_SLACK_MM`, at every point), and no point may move faster than
-    :data:`MAX_SPEED` (a jump inside a finite-difference window). A smooth motion passes the
-    first test once the segment is short enough (split it); a jump never does.
+    refused: the displacement must be explained by the velocities (trapezoid rule):
+    ``|P(h) - P(0) - h (v0 + v1) / 2| <= SAFETY / 4 |v1 - v0| (h + 2 eps)`` +
+    :data:`MOTION_SLACK_MM` at every point. A smooth motion leaves ``h^3 |P'''| / 12`` (it
+    passes once the segment is short enough: split it), a kink between two straight motions at
+    most ``h |v1 - v0| / 2`` (it passes), a jump its whole size (it fails once the segment is
+    short enough: near a fold, where the speed grows, a segment split twice refuses a snap
+    larger than about ``|v1 - v0| h / 128``). No point may move faster than
+    :data:`MAX_SPEED` (a jump inside a finite-difference window).
 
     The pad channel gets the same bound (``|pad(t) - pad(end)|``): a capsule at t lies within
     ``pad(t)`` of its chord, and its chord within the larger of its end points' bounds of the
@@ -256,9 +261,9 @@ def motion_cover(p0: np.ndarray, p1: np.ndarray, v0: np.ndarray, v1: np.ndarray,
     """
     h = np.asarray(h, dtype=float)
     eps = np.asarray(eps, dtype=float)
-    vel, full, disp, vmax = _channel_bound(p0, p1, v0, v1, h, eps, vector=True)
+    allow, full, defect, vmax = _channel_bound(p0, p1, v0, v1, h, eps, vector=True)
     slack = MOTION_SLACK_MM
-    resolved = np.all(disp <= vel + slack, axis=1)
+    resolved = np.all(defect <= allow + slack, axis=1)
     point = full + slack
     cap = np.maximum(point[:, :-1], point[:, 1:])
     if pad0 is not None and pad1 is not None:
