@@ -175,8 +175,7 @@ def _oracle(robot_name, model_name, edges, seed):
 
 
 @pytest.mark.parametrize("robot_name,model_name", [
-    ("seed1", "physics"), ("two_tube_nylon", "physics"), ("seed1", "all"),
-    ("two_tube_nylon", "all"), ("seed1", "force2"), ("seed1", "learned")])
+    ("seed1", "physics"), ("two_tube_nylon", "all"), ("seed1", "force2"), ("seed1", "learned")])
 def test_dense_continuation_never_exceeds_the_motion_cover(robot_name, model_name):
     _oracle(robot_name, model_name, edges=2, seed=1)
 
@@ -190,8 +189,8 @@ FAMILIES = ["physics", "rigid", "torsion", "friction", "clearance", "gap", "prec
 @pytest.mark.parametrize("robot_name", ["seed1", "two_tube_nylon"])
 @pytest.mark.parametrize("model_name", FAMILIES)
 def test_dense_continuation_motion_cover_every_family(robot_name, model_name):
-    """The oracle on 10 random edges per robot and model (every effect family alone)."""
-    _oracle(robot_name, model_name, edges=10, seed=20)
+    """The oracle on 6 random edges per robot and model (every effect family alone)."""
+    _oracle(robot_name, model_name, edges=6, seed=20)
 
 
 @pytest.mark.statistical
