@@ -28,6 +28,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ctrplan.robot import wrap_angle
 from ctrplan.shape.bounds import FD_FRACTION, MotionCover, motion_cover
 
 #: parts a segment that its end clearances do not certify is split into, and levels of splitting
@@ -50,6 +51,13 @@ class Chains:
     direction: np.ndarray | None
 
 
+def joint_delta(q0: np.ndarray, q1: np.ndarray, n: int) -> np.ndarray:
+    """q1 - q0 with rotations along the shorter arc. q0, q1 : (..., 2n)."""
+    d = np.asarray(q1, dtype=float) - np.asarray(q0, dtype=float)
+    d[..., :n] = wrap_angle(d[..., :n])
+    return d
+
+
 def _metric(dq: np.ndarray, n: int, w: float) -> np.ndarray:
     return w * np.abs(dq[..., :n]).sum(-1) + np.linalg.norm(dq[..., n:], axis=-1)
 
@@ -58,8 +66,6 @@ def _rows(ch: Chains, n: int, w: float):
     """The states to evaluate for chains: per chain its K + 1 states, each followed by a
     finite-difference state (forward along the chain; backward at its last state).
     Returns (rows (R, 2n), chain index (R,), eps (C,) metric mm, h (C,) metric mm)."""
-    from ctrplan.planning.validator import wrap
-
     h = _metric(ch.step, n, w)
     eps = FD_FRACTION * h
     unit = ch.step / np.where(h > 0, h, 1.0)[:, None]
@@ -75,7 +81,7 @@ def _rows(ch: Chains, n: int, w: float):
         out.append(pair)
         owner.append(np.full(2 * (K + 1), c))
     rows = np.concatenate(out) if out else np.zeros((0, 2 * n))
-    rows[:, :n] = wrap(rows[:, :n])
+    rows[:, :n] = wrap_angle(rows[:, :n])
     return rows, (np.concatenate(owner) if owner else np.zeros(0, int)), eps, h
 
 
@@ -174,8 +180,6 @@ def grown(shape, world, capsule_mm: np.ndarray):
 def path_chains(validator, states: np.ndarray) -> tuple[Chains, np.ndarray]:
     """Chains of a path's checked states: one per run of consecutive pairs with the same joint
     step (an edge). Returns (chains, first pair index of each chain)."""
-    from ctrplan.planning.validator import edge_direction, joint_delta
-
     n = validator.n
     dq = joint_delta(states[:-1], states[1:], n)                        # (S - 1, 2n)
     scale = np.maximum(np.abs(dq), 1e-9)
@@ -185,8 +189,7 @@ def path_chains(validator, states: np.ndarray) -> tuple[Chains, np.ndarray]:
     parts = np.diff(np.r_[first, len(dq)])
     direction = None
     if validator.directional:
-        direction = np.array([edge_direction(states[f], states[f + 1], n) for f in first],
-                             dtype=np.int8).reshape(len(first), 2 * n)
+        direction = np.sign(dq[first]).astype(np.int8)
     return Chains(states[first], dq[first], parts, direction), first
 
 
@@ -209,8 +212,6 @@ def check_motion(validator, states, clearance, collides, contact, points) -> Non
     owner = np.flatnonzero(~done & ~failed[:-1])
     validator.counters.motion_segments += len(owner)
     d = ch.direction[ev.part_chain[owner]] if ch.direction is not None else None
-    from ctrplan.planning.validator import joint_delta
-
     qa, dq = states[owner], joint_delta(states[owner], states[owner + 1], validator.n)
     for level in range(1, LEVELS + 1):
         if len(owner) == 0:

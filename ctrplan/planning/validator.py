@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ctrplan.planning.motion import check_motion, joint_delta
 from ctrplan.robot import Robot
 from ctrplan.shape.base import Shape, needs_direction
 
@@ -98,13 +99,6 @@ class Counters:
 def wrap(a: np.ndarray) -> np.ndarray:
     """Angles wrapped to (-pi, pi]."""
     return math.pi - np.mod(math.pi - np.asarray(a, dtype=float), 2.0 * math.pi)
-
-
-def joint_delta(q0: np.ndarray, q1: np.ndarray, n: int) -> np.ndarray:
-    """q1 - q0 with rotations along the shorter arc. q0, q1 : (..., 2n)."""
-    d = np.asarray(q1, dtype=float) - np.asarray(q0, dtype=float)
-    d[..., :n] = wrap(d[..., :n])
-    return d
 
 
 def motion_mm(q0: np.ndarray, q1: np.ndarray, n: int, alpha_weight_mm: float) -> np.ndarray:
@@ -420,8 +414,6 @@ class BatchValidator:
         segment that is not covered is marked as colliding (contact: the mesh, or "motion")."""
         if not hasattr(self.world, "with_motion"):
             return
-        from ctrplan.planning.motion import check_motion
-
         check_motion(self, states, clearance, collides, contact, points)
 
     # ------------------------------------------------------------------ exact path check
