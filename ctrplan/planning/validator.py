@@ -26,7 +26,7 @@ clearances certify it), or when both end states are free with every capsule grow
 cover. A segment the clearances do not certify is split into 8 parts checked the second way;
 parts that fail it are split again (two levels); a part still not covered fails the path, and
 so does a segment whose displacement the velocities do not explain (a jump: a branch switch, a
-discontinuous model) or whose backbone moves faster than 100 mm per mm of the metric (a fold).
+discontinuous model) or whose backbone moves faster than 250 mm per mm of the metric (a fold).
 """
 
 from __future__ import annotations

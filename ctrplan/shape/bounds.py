@@ -45,8 +45,11 @@ FD_FRACTION = 1.0 / 16.0
 #: displacement (mm) the velocities need not explain (round-off of float32 backbones)
 MOTION_SLACK_MM = 1e-3
 #: fastest backbone motion (mm per mm of the joint metric) a segment may have: faster is the
-#: signature of a fold or a jump (a branch switch inside the finite-difference step), refused
-MAX_SPEED = 100.0
+#: signature of a fold or of a jump inside a finite-difference window, refused. About 3x the
+#: steepest motion the models make: seed1's tip moves 81 mm per mm of insertion where the
+#: clearance gap form at its fit bound (length 100 mm) turns over its 1 mm window (typical
+#: motions: about 1 mm per mm).
+MAX_SPEED = 250.0
 
 
 def sagitta_pad(s: np.ndarray, curvature_per_mm: np.ndarray | float) -> np.ndarray:
@@ -253,7 +256,9 @@ def motion_cover(p0: np.ndarray, p1: np.ndarray, v0: np.ndarray, v1: np.ndarray,
     most ``h |v1 - v0| / 2`` (it passes), a jump its whole size (it fails once the segment is
     short enough: near a fold, where the speed grows, a segment split twice refuses a snap
     larger than about ``|v1 - v0| h / 128``). No point may move faster than
-    :data:`MAX_SPEED` (a jump inside a finite-difference window).
+    :data:`MAX_SPEED` (a jump inside a finite-difference window: one smaller than
+    ``MAX_SPEED eps`` there is not seen, which the planner's stability margin, keeping states
+    away from folds, is left to exclude).
 
     The pad channel gets the same bound (``|pad(t) - pad(end)|``): a capsule at t lies within
     ``pad(t)`` of its chord, and its chord within the larger of its end points' bounds of the
