@@ -124,7 +124,7 @@ def _edge_oracle(robot, model, q0, q1, res=0.5):
     n = robot.n
     val = BatchValidator(robot, model, None)
     states = interpolate(q0, q1, n, val.config.alpha_weight_mm, res)
-    ev = evaluate_chains(val, path_chains(val, states)[0], POINTS)
+    ev = evaluate_chains(val, path_chains(val, states), POINTS)
     cov = ev.cover
     K = len(states) - 1
     per = max(PER, -(-50 // K))
@@ -273,7 +273,7 @@ def test_a_fold_on_the_motion_is_refused():
     assert BatchValidator(robot, model, world).check_path(np.stack([q0, near]), 0.5, fcl_all=False).ok
     val = BatchValidator(robot, Continued(robot, q0, uz0), None)
     states = interpolate(q0, near, robot.n, 30.0, 0.5)
-    cov = evaluate_chains(val, path_chains(val, states)[0], POINTS).cover
+    cov = evaluate_chains(val, path_chains(val, states), POINTS).cover
     K = len(states) - 1
     qs = q0[None] + np.linspace(0, 1, K * PER + 1)[:, None] * (near - q0)[None]
     P, _, ok, _ = continuation(PhysicsModel(robot), qs, POINTS, uz=uz0[None])
@@ -292,7 +292,7 @@ def test_a_jump_between_states_is_never_certified():
     q0, q1 = np.array([3.0, 0.0, -160.0, -100.0]), np.array([3.3, 0.0, -160.0, -100.0])
     val = BatchValidator(robot, model, _far_world())
     states = interpolate(q0, q1, robot.n, 30.0, 0.5)
-    cov = evaluate_chains(val, path_chains(val, states)[0], POINTS).cover
+    cov = evaluate_chains(val, path_chains(val, states), POINTS).cover
     jump = np.max(np.linalg.norm(np.diff(val.shapes(states).points, axis=0), axis=-1), axis=1)
     assert jump.max() > 40.0
     assert not cov.certified[np.argmax(jump)]

@@ -91,13 +91,12 @@ class Evaluated:
 
     shapes : list over variants of Shapes of the states (S_total rows, in chain order);
     cover : MotionCover of every part, worst over the variants (P_total rows);
-    part_chain : (P_total,) chain of each part; state_chain : (S_total,) chain of each state.
+    part_chain : (P_total,) chain of each part.
     """
 
     shapes: list
     cover: MotionCover
     part_chain: np.ndarray
-    state_chain: np.ndarray
 
 
 def evaluate_chains(validator, ch: Chains, points: int) -> Evaluated:
@@ -146,7 +145,7 @@ def evaluate_chains(validator, ch: Chains, points: int) -> Evaluated:
                             np.maximum(cover.capsule_mm, c.capsule_mm),
                             cover.resolved & c.resolved, np.maximum(cover.speed, c.speed))
     a_chain = np.repeat(np.arange(len(K)), K)
-    return Evaluated(shapes, cover, a_chain, owner[base])
+    return Evaluated(shapes, cover, a_chain)
 
 
 def _take(shape, idx):
@@ -177,9 +176,9 @@ def grown(shape, world, capsule_mm: np.ndarray):
     return replace(shape, pad=base + np.where(np.isfinite(cover), cover, 0.0), ok=ok), world
 
 
-def path_chains(validator, states: np.ndarray) -> tuple[Chains, np.ndarray]:
-    """Chains of a path's checked states: one per run of consecutive pairs with the same joint
-    step (an edge). Returns (chains, first pair index of each chain)."""
+def path_chains(validator, states: np.ndarray) -> Chains:
+    """Chains of a path's checked states (S, 2n): one per run of consecutive pairs with the same
+    joint step (an edge)."""
     n = validator.n
     dq = joint_delta(states[:-1], states[1:], n)                        # (S - 1, 2n)
     scale = np.maximum(np.abs(dq), 1e-9)
@@ -190,7 +189,7 @@ def path_chains(validator, states: np.ndarray) -> tuple[Chains, np.ndarray]:
     direction = None
     if validator.directional:
         direction = np.sign(dq[first]).astype(np.int8)
-    return Chains(states[first], dq[first], parts, direction), first
+    return Chains(states[first], dq[first], parts, direction)
 
 
 def check_motion(validator, states, clearance, collides, contact, points) -> None:
@@ -198,7 +197,7 @@ def check_motion(validator, states, clearance, collides, contact, points) -> Non
     state of every segment that fails (``collides`` True, ``contact`` the mesh or "motion")."""
     world = validator.world
     S = len(states)
-    ch, _ = path_chains(validator, states)
+    ch = path_chains(validator, states)
     ev = evaluate_chains(validator, ch, points)
     cov = ev.cover
     need = np.max(cov.capsule_mm, axis=1)                                # (S - 1,)
