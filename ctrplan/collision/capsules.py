@@ -15,7 +15,8 @@ interpolation bound, applied to ``u . e`` for every unit vector ``u``). Padding 
 ``kappa h^2 / 8`` therefore makes the capsule chain cover the continuous tube, not only its
 samples. The physics models' backbone curvature is an EI-weighted mean of the precurvature
 vectors of the tubes present, so its magnitude never exceeds the largest precurvature
-(:func:`curvature_bound`).
+(:func:`curvature_bound`); external loads add a per-segment share that the mechanics models
+carry in ``Shape.pad`` (:mod:`ctrplan.shape.bounds`).
 """
 
 from __future__ import annotations
@@ -25,6 +26,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ctrplan.shape.base import Shape
+
+# chord bounds live with the shape models (re-exported here for callers of this module)
+from ctrplan.shape.bounds import curvature_bound, kink_pad, sagitta_pad  # noqa: F401
 
 
 @dataclass(frozen=True)
@@ -94,31 +98,6 @@ def arc_from_chord(chord_mm: np.ndarray, curvature_per_mm: float) -> np.ndarray:
         return c
     x = np.clip(k * c / 2.0, 0.0, 1.0)
     return 2.0 / k * np.arcsin(x)
-
-
-def curvature_bound(model_or_robot) -> float:
-    """Upper bound (1/mm) of the backbone curvature a shape model can produce.
-
-    A model may state its own bound as ``max_curvature`` (1/mm; e.g. a model with external
-    loads). Otherwise: the largest precurvature of the robot's tubes (times the ``precurvature``
-    effect's scales for a calibrated model), which bounds the curvature of the physics models
-    (torsionally rigid or compliant): their bending curvature is the EI-weighted mean of the
-    tubes' rotated precurvature vectors.
-    """
-    own = getattr(model_or_robot, "max_curvature", None)
-    if own is not None:
-        v = float(own)
-        if not (np.isfinite(v) and v >= 0):
-            raise ValueError(f"max_curvature must be a finite number >= 0, got {own!r}")
-        return v
-    robot = getattr(model_or_robot, "robot", model_or_robot)
-    kappa = np.abs(np.asarray(robot.array("curvature"), dtype=float))
-    effects = getattr(model_or_robot, "effects", None) or {}
-    pc = effects.get("precurvature") if isinstance(effects, dict) else None
-    if pc:
-        scale = np.array([abs(float(pc.get(f"scale{i + 1}", 1.0))) for i in range(len(kappa))])
-        kappa = kappa * np.maximum(scale, 1.0)
-    return float(kappa.max()) if kappa.size else 0.0
 
 
 def capsules_from_points(points: np.ndarray, radius: np.ndarray, margin_mm=0.0,
@@ -207,41 +186,6 @@ def capsules_from_shape(shape: Shape, margin_mm=0.0, curvature_per_mm: float = 0
         return capsules_from_points(shape.points, shape.radius, margin_mm, 0.0, shape.s)
     return capsules_from_points(shape.points, shape.radius, margin_mm, curvature_per_mm, shape.s,
                                 getattr(shape, "pad", None))
-
-
-def kink_pad(s: np.ndarray, where: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """(B, m - 1) bound (mm) of the distance between a backbone and its chords caused by
-    tangent jumps: a jump of ``angle`` (rad) at arc length ``where`` inside the segment
-    ``[s_a, s_b]`` (length ``h``) adds ``2 sin(angle / 2) (where - s_a) (s_b - where) / h``.
-
-    Derivation: the chord error ``e(s)`` vanishes at both ends of the segment and ``e''`` is the
-    curvature plus an impulse ``dt`` (the tangent jump, ``|dt| = 2 sin(angle/2)``) at the kink;
-    with the Green's function of ``d^2/ds^2`` on ``[0, h]`` (zero at both ends),
-    ``|G(s, w)| <= w (h - w) / h``, so the impulse moves ``u . e`` by at most
-    ``|dt| w (h - w) / h`` for every unit ``u`` (``h sin(angle / 2) / 2`` for a kink in the
-    middle: exactly the corner of two straight halves). It adds to the sagitta bound.
-
-    s : (B, m) arc lengths of the samples; where, angle : (B, J) kinks (angle 0 = none).
-    """
-    s = np.asarray(s, dtype=float)
-    where = np.asarray(where, dtype=float)
-    angle = np.abs(np.asarray(angle, dtype=float))
-    sa, sb = s[:, :-1, None], s[:, 1:, None]                  # (B, K, 1)
-    w = where[:, None, :]                                     # (B, 1, J)
-    h = sb - sa
-    inside = (w > sa) & (w < sb) & (h > 0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        g = np.where(inside, (w - sa) * (sb - w) / np.where(h > 0, h, 1.0), 0.0)
-    return (2.0 * np.sin(np.minimum(angle, np.pi) / 2.0)[:, None, :] * g).sum(axis=-1)
-
-
-def sagitta_pad(s: np.ndarray, curvature_per_mm: np.ndarray | float) -> np.ndarray:
-    """(B, m - 1) sagitta bound ``kappa h^2 / 8`` of each segment of backbones sampled at arc
-    lengths ``s`` (B, m); ``curvature_per_mm`` a number or (B,) per configuration."""
-    s = np.asarray(s, dtype=float)
-    k = np.asarray(curvature_per_mm, dtype=float)
-    k = k[:, None] if k.ndim == 1 else k
-    return k * np.square(np.diff(s, axis=1)) / 8.0
 
 
 def rotation_z_to(d: np.ndarray) -> np.ndarray:

@@ -68,8 +68,8 @@ class CollisionWorld:
         really are the whole geometry, e.g. a probe); it must be asked for by name.
     motion_mm : float
         Extra padding (mm) for the motion between two checked states: the largest distance a
-        backbone point can be from the nearest checked state's (see
-        :func:`ctrplan.planning.validator.motion_padding`). 0 = states only.
+        backbone point can be from the nearest checked state's (the path check grows each
+        capsule by its own bound instead: :mod:`ctrplan.planning.motion`). 0 = states only.
     prefilter : bool
         Use the conservative distance-field prefilter (same verdicts, faster).
     field_config : FieldConfig

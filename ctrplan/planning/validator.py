@@ -16,16 +16,17 @@ the estimated backbone motion between consecutive states is at most ``resolution
 estimate is ``alpha_weight_mm * sum|d alpha| + ||d beta||`` (mm), the same metric OMPL uses.
 
 Motion between checked states (:meth:`BatchValidator.check_path`, the final verification).
-Every backbone point (at a fixed arc-length fraction) moves at most ``lip`` mm per mm of the
-metric, ``lip`` measured per model against dense interpolation (:func:`motion_lipschitz`, with a
-safety factor). A state t on the straight edge between checked states t0, t1 (metric distance
-``D``) then has every point within ``lip D`` of the same point of t0 and of t1, and the tube
-radius at each fraction is that of t0 or of t1 (tube ends move linearly), so the segment is
-covered when both end states are at least ``lip D`` from the anatomy (their conservative
-clearances certify it), or when both end states are free with every capsule grown by
-``lip D``. A segment the clearances do not certify is split into 8 parts checked the second
-way; parts that fail it are split again (two levels: 0.01 mm of padding for a 0.5 mm
-segment); a part still not covered fails the path.
+The bound comes from the model along each segment (:mod:`ctrplan.planning.motion`,
+:func:`ctrplan.shape.bounds.motion_cover`): the backbones at the segment's two states and their
+velocities along it (finite differences) bound how far every backbone point (at a fixed
+arc-length fraction) and every capsule's chord pad can move on the segment. The tube radius at
+each fraction is that of t0 or of t1 (tube ends move linearly), so the segment is covered when
+both end states are at least the largest capsule cover from the anatomy (their conservative
+clearances certify it), or when both end states are free with every capsule grown by its own
+cover. A segment the clearances do not certify is split into 8 parts checked the second way;
+parts that fail it are split again (two levels); a part still not covered fails the path, and
+so does a segment whose displacement the velocities do not explain (a jump: a branch switch, a
+discontinuous model) or whose backbone moves faster than 250 mm per mm of the metric (a fold).
 """
 
 from __future__ import annotations
@@ -33,10 +34,10 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
+from ctrplan.planning.motion import check_motion, joint_delta
 from ctrplan.robot import Robot
 from ctrplan.shape.base import Shape, needs_direction
 from ctrplan.shape.branches import DEFAULT_STABILITY_MARGIN
@@ -51,16 +52,16 @@ class ValidatorConfig:
 
     resolution_mm : largest estimated backbone motion between two checked states of an edge.
     points : backbone points per shape used for collision checking.
-    alpha_weight_mm : mm of backbone motion per rad of rotation (the metric's weight). The
-        largest displacement of any backbone point per mm of this metric is measured per model
-        (:func:`motion_lipschitz`: 0.84 for seed1 physics, 0.90 for the shipped learned model,
-        x1.5 safety) and enforced by the final path check (``motion_bound``).
+    alpha_weight_mm : mm of backbone motion per rad of rotation (the metric's weight; about the
+        largest displacement of a backbone point per mm of this metric on seed1). The motion
+        between checked states is bounded from the model by the final path check
+        (``motion_bound``).
     cache_size : single-state results kept (OMPL asks again for start/goal states).
     motion_bound : the final path check (:meth:`BatchValidator.check_path`) also covers the
         motion between its states (see the module docstring); False checks the states only.
     motion_floor_mm : with ``motion_bound``, states and edges while planning are checked with
         capsules grown by this much (mm), so that planned paths keep the small clearance the
-        motion certificate's last level needs (``lip * D`` = 0.01 mm for 0.5 mm segments).
+        motion certificate's last level needs (about 0.01 mm for 0.5 mm segments).
     stability_margin : smallest elastic stability (det of the shooting Jacobian, normalised:
         :mod:`ctrplan.shape.branches`) of a valid state, for models whose shape can depend on
         the motion (compliant unloaded mechanics); edges are checked by continuation of the
@@ -107,13 +108,6 @@ class Counters:
 def wrap(a: np.ndarray) -> np.ndarray:
     """Angles wrapped to (-pi, pi]."""
     return math.pi - np.mod(math.pi - np.asarray(a, dtype=float), 2.0 * math.pi)
-
-
-def joint_delta(q0: np.ndarray, q1: np.ndarray, n: int) -> np.ndarray:
-    """q1 - q0 with rotations along the shorter arc. q0, q1 : (..., 2n)."""
-    d = np.asarray(q1, dtype=float) - np.asarray(q0, dtype=float)
-    d[..., :n] = wrap(d[..., :n])
-    return d
 
 
 def motion_mm(q0: np.ndarray, q1: np.ndarray, n: int, alpha_weight_mm: float) -> np.ndarray:
@@ -175,55 +169,6 @@ def interpolate_path(path: np.ndarray, n: int, alpha_weight_mm: float,
         states.append(e)
         seg.append(np.full(len(e), j))
     return np.concatenate(states), np.concatenate(seg)
-
-
-#: safety factor on the measured Lipschitz constant of the backbone motion
-MOTION_SAFETY = 1.5
-#: subdivisions of a path segment the clearances do not certify, and levels of subdividing
-MOTION_SUBDIVISIONS = 8
-MOTION_LEVELS = 2
-_LIPSCHITZ: dict[tuple, tuple[Any, float]] = {}
-
-
-def motion_lipschitz(model, robot: Robot, alpha_weight_mm: float, samples: int = 256,
-                     points: int = 24, seed: int = 0) -> float:
-    """Largest motion (mm) of any backbone point per mm of the joint metric, times
-    :data:`MOTION_SAFETY`; measured (deterministic seed) against dense interpolation: random
-    configurations, random straight steps of 0.25..2 mm of metric, 8 states along each; the
-    largest ratio of a point's displacement from the step's start to the metric distance
-    travelled. Cached per model object. (Measured on seed1, physics: 0.8-1.0 before the factor.)"""
-    key = (id(model), float(alpha_weight_mm), int(samples), int(points), int(seed))
-    hit = _LIPSCHITZ.get(key)
-    if hit is not None and hit[0] is model:
-        return hit[1]
-    rng = np.random.default_rng([seed, 4242])
-    n = robot.n
-    q0 = robot.sample(samples, seed=rng)
-    d = rng.normal(size=q0.shape)
-    d /= motion_mm(np.zeros_like(d), d, n, alpha_weight_mm)[:, None]
-    d *= rng.uniform(0.25, 2.0, (samples, 1))
-    q1 = project_joints(robot, q0 + d)
-    ts = np.linspace(0.0, 1.0, 9)[1:]
-    qs = np.concatenate([q0] + [q0 + t * joint_delta(q0, q1, n) for t in ts])
-    qs = project_joints(robot, qs)
-    dirs = np.broadcast_to(np.sign(joint_delta(q0, q1, n)), (len(ts) + 1,) + q0.shape).reshape(qs.shape)
-    if needs_direction(model):
-        shp = model.shape(qs, points=points, direction=np.ascontiguousarray(dirs.astype(np.int8)))
-    else:
-        shp = model.shape(qs, points=points)
-    P = shp.points.reshape(len(ts) + 1, samples, points, 3)
-    ok = np.asarray(shp.ok, dtype=bool).reshape(len(ts) + 1, samples).all(axis=0)
-    Q = qs.reshape(len(ts) + 1, samples, -1)
-    best = 0.0
-    for k in range(1, len(ts) + 1):
-        dist = motion_mm(Q[0], Q[k], n, alpha_weight_mm)
-        move = np.linalg.norm(P[k] - P[0], axis=-1).max(axis=1)
-        good = ok & (dist > 1e-9) & np.all(np.isfinite(move[:, None]), axis=1)
-        if good.any():
-            best = max(best, float(np.max(move[good] / dist[good])))
-    lip = MOTION_SAFETY * best
-    _LIPSCHITZ[key] = (model, lip)
-    return lip
 
 
 def project_joints(robot: Robot, q: np.ndarray) -> np.ndarray:
@@ -517,74 +462,14 @@ class BatchValidator:
     # ------------------------------------------------------------------ motion between states
     def _check_motion(self, states, seg, direction, clearance, collides, contact, points,
                       uz0=None) -> None:
-        """Cover the motion between consecutive checked states (module docstring). A segment
-        whose end clearances are both at least ``lip * D`` is certified. Otherwise it is split
-        into :data:`MOTION_SUBDIVISIONS` parts whose end states are checked with every capsule
-        grown by ``lip * D`` of a part (full-step cover); parts that fail that but whose states
-        are free are split again, down to :data:`MOTION_LEVELS` levels (0.008 mm of metric for
-        a 0.5 mm segment). A state that collides, or a part still not covered, fails the
-        segment (its first state is marked)."""
-        world = self.world
-        if not hasattr(world, "with_motion"):
+        """Cover the motion between consecutive checked states with a bound derived from the
+        model along each segment (:mod:`ctrplan.planning.motion`); the first state of a
+        segment that is not covered is marked as colliding (contact: the mesh, or "motion").
+        uz0 : (S, n) the equilibrium of each state reached by continuation (branch tracking):
+        the states between them are solved from it, so the cover follows the robot's branch."""
+        if not hasattr(self.world, "with_motion"):
             return
-        c = self.config
-        lip = motion_lipschitz(self.model, self.robot, c.alpha_weight_mm)
-        n, k = self.n, MOTION_SUBDIVISIONS
-        dq = joint_delta(states[:-1], states[1:], n)
-        need = lip * motion_mm(np.zeros_like(dq), dq, n, c.alpha_weight_mm)
-        open_ = np.minimum(clearance[:-1], clearance[1:]) < need
-        qa, dq, owner = states[:-1][open_], dq[open_], np.flatnonzero(open_)
-        self.counters.motion_segments += len(owner)
-        failed = np.zeros(len(states), dtype=bool)
-        why = np.full(len(states), "", dtype=object)
-        t = np.linspace(0.0, 1.0, k + 1)
-
-        def check(q, own, w, clear=False):
-            dirs = None if direction is None else direction[own]
-            # branch tracking: each part's states on the branch of the segment's start state
-            uz = None if uz0 is None else uz0[own]
-            self.world = w
-            try:
-                if clear:
-                    return self.check_states(q, points=points, direction=dirs, joints=False, uz0=uz)
-                hit = np.zeros(len(q), dtype=bool)
-                for d in self.variants(q, dirs):
-                    hit |= np.asarray(w.collides(self.shapes(q, points=points, direction=d, uz0=uz)), bool)
-                return hit, None, None
-            finally:
-                self.world = world
-
-        for level in range(1, MOTION_LEVELS + 1):
-            if len(owner) == 0:
-                break
-            sub = qa[:, None, :] + t[None, :, None] * dq[:, None, :]          # (P, k + 1, 2n)
-            sub[..., :n] = wrap(sub[..., :n])
-            flat = sub.reshape(-1, sub.shape[-1])
-            own = np.repeat(owner, k + 1)
-            dsub = dq / k
-            pad = lip * float(np.max(motion_mm(np.zeros_like(dsub), dsub, n, c.alpha_weight_mm)))
-            padded_hit = check(flat, own, world.with_motion(pad))[0].reshape(-1, k + 1)
-            cover = ~(padded_hit[:, :-1] | padded_hit[:, 1:])                  # (P, k) parts
-            if padded_hit.any():
-                rows = np.flatnonzero(padded_hit.reshape(-1))
-                hit, _, con = check(flat[rows], own[rows], world, clear=True)
-                for r, h, cn in zip(rows, hit, con):
-                    if h:
-                        failed[own[r]] = True
-                        why[own[r]] = str(cn) or "motion"
-            todo = ~cover & ~failed[owner][:, None]
-            if level == MOTION_LEVELS:
-                for i in np.flatnonzero(todo.any(axis=1)):
-                    failed[owner[i]] = True
-                    why[owner[i]] = why[owner[i]] or "motion"
-                break
-            pi, pj = np.nonzero(todo)
-            qa = sub[pi, pj]
-            dq = dsub[pi]
-            owner = owner[pi]
-        for i in np.flatnonzero(failed):
-            collides[i] = True
-            contact[i] = why[i]
+        check_motion(self, states, clearance, collides, contact, points, uz0)
 
     # ------------------------------------------------------------------ exact path check
     def check_path(self, path: np.ndarray, resolution_mm: float, points: int | None = None,

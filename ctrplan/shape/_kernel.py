@@ -65,16 +65,20 @@ def runtime(typingctx, v):
 @njit(cache=True, error_model="numpy")
 def _tube_events(beta, L, straight, tpos, ttyp, tidx):
     """Sorted tube events (curve start = 0, tube end = 1) by insertion sort; ties keep
-    curve starts before ends and lower tube indices first."""
+    curve starts before ends, curve starts of lower tube indices first and ends of higher
+    (outer) tube indices first: the order of ends just apart, as the constraints allow them
+    (an inner tube reaches at least as far), so that the clearance kinks of tubes ending
+    together compose as in the limit and the shape is continuous there."""
     n = beta.shape[0]
     ne = 2 * n
     for i in range(n):
         tpos[i] = max(beta[i] + straight[i], 0.0)
         ttyp[i] = 0
         tidx[i] = i
-        tpos[n + i] = max(beta[i] + L[i], 0.0)
+        o = n - 1 - i
+        tpos[n + i] = max(beta[o] + L[o], 0.0)
         ttyp[n + i] = 1
-        tidx[n + i] = i
+        tidx[n + i] = o
     for k in range(1, ne):
         p = tpos[k]
         t = ttyp[k]

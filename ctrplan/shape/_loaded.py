@@ -51,6 +51,10 @@ import numpy as np
 from numba import njit
 
 from ctrplan.shape._kernel import _hermite_out, _tube_events, runtime
+
+# numba caches this module's kernels with the _kernel functions they call compiled in, and
+# checks only this file's time stamp: edit this file too when _kernel.py changes (last: the
+# tie order of tube ends in _tube_events).
 from ctrplan.shape._shooting import _newton_step
 
 

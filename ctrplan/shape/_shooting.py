@@ -48,6 +48,10 @@ from numba import njit
 
 from ctrplan.shape._kernel import _integrate, _tube_events, runtime
 
+# numba caches this module's kernels with the _kernel functions they call compiled in, and
+# checks only this file's time stamp: edit this file too when _kernel.py changes (last: the
+# tie order of tube ends in _tube_events).
+
 
 @njit(cache=True, error_model="numpy")
 def _max_abs(v):

@@ -22,7 +22,7 @@ class Shape:
         did not converge, or a point, arc length, radius or pad is not finite); callers must treat such shapes as invalid.
     pad : (B, m - 1) float, mm, or None — the model's bound of the distance between its
         continuous backbone and the chord between consecutive points (sagitta of its curvature
-        bound, tangent jumps, polynomial bound; see :mod:`ctrplan.collision.capsules`). Collision
+        bound, tangent jumps, loads, polynomial bound; see :mod:`ctrplan.shape.bounds`). Collision
         capsules grow by it. None: the model states no bound (the points are taken as a polyline
         unless the collision world is given a curvature bound).
     """

@@ -542,7 +542,7 @@ class LearnedModel:
             if pad is not None:
                 base_pad = getattr(sh, "pad", None)
                 if base_pad is None:   # a base that states no bound: its curvature bound
-                    from ctrplan.collision.capsules import curvature_bound, sagitta_pad
+                    from ctrplan.shape.bounds import curvature_bound, sagitta_pad
 
                     base_pad = sagitta_pad(sh.s, curvature_bound(rest))
                 # the chord error of a sum is the sum of the chord errors (same s grid)

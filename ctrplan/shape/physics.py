@@ -15,6 +15,7 @@ import numpy as np
 from ctrplan.robot import Robot, load_robot
 from ctrplan.shape import _loaded, _shooting
 from ctrplan.shape.base import Shape, check_q, radius_along
+from ctrplan.shape.bounds import continuity_pad
 
 _warmup: subprocess.Popen | None = None
 
@@ -384,8 +385,13 @@ class PhysicsModel:
         ok &= chords_within_arc(pts, s)
         self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid, moment0=moment0,
                                    detj=detj, branch=branch, uz0_alt=uz0_alt)
-        return Shape(points=pts, s=s, radius=radius_along(r, q, s), ok=ok,
-                     pad=continuity_pad(r, q, s, kappa, kink))
+        W = F = M = None
+        if loaded.any():   # the loads' curvature on the loaded rows (zero loads elsewhere)
+            W = np.zeros((B, n, 3)) if weight is None else np.where(loaded[:, None, None], weight, 0.0)
+            F = np.zeros((B, 3)) if force is None else np.where(loaded[:, None], force, 0.0)
+            M = np.zeros((B, 3)) if moment is None else np.where(loaded[:, None], moment, 0.0)
+        pad = continuity_pad(q, self._lengths, s, pts, kappa, EI, kink, W, F, M)
+        return Shape(points=pts, s=s, radius=radius_along(r, q, s), ok=ok, pad=pad)
 
     def _solve_chain(self, q, points, params, uz_init, chain) -> Shape:
         """The chained solve of :meth:`solve` (a chunk of rows at a time; a chunk continues
@@ -494,21 +500,3 @@ def chords_within_arc(points: np.ndarray, s: np.ndarray, rtol: float = 1e-4) -> 
         arc = np.diff(s, axis=1)
         good = chord <= arc * (1.0 + rtol) + 1e-6
     return np.all(good, axis=1)
-
-
-def continuity_pad(robot: Robot, q: np.ndarray, s: np.ndarray, kappa: np.ndarray,
-                   kink: np.ndarray) -> np.ndarray:
-    """(B, m - 1) bound (mm) of the distance between the continuous backbone and the chord of
-    each segment: the sagitta of the row's curvature bound (its largest precurvature: the
-    bending curvature is an EI-weighted mean of the tubes' rotated precurvatures) plus the
-    offset of the tangent jumps the clearance kinks cause where tubes end
-    (:func:`ctrplan.collision.capsules.kink_pad`). External loads are not covered by the
-    curvature bound (a loaded model may state ``max_curvature``)."""
-    from ctrplan.collision.capsules import kink_pad, sagitta_pad
-
-    n = robot.n
-    pad = sagitta_pad(s, np.max(np.abs(kappa), axis=1))
-    angle = np.linalg.norm(kink, axis=-1)                 # (B, n)
-    if np.any(angle > 0):
-        pad = pad + kink_pad(s, q[:, n:] + robot.lengths, angle)
-    return pad
