@@ -447,7 +447,8 @@ class PhysicsModel:
         self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid, detj=detj,
                                    branch=np.zeros(B, dtype=np.int8), continued=cont)
         return Shape(points=pts, s=s, radius=radius_along(self.robot, q, s), ok=ok,
-                     pad=continuity_pad(self.robot, q, s, params.kappa, params.kink))
+                     pad=continuity_pad(q, self._lengths, s, pts, params.kappa, params.EI,
+                                        params.kink))
 
     def _solve_loaded(self, alpha, beta, kappa, EI, ratio, kink, W, F, M, pts0, s0, uz00, ok0,
                       points):
