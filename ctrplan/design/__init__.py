@@ -69,9 +69,15 @@ class DesignConfig:
         :mod:`ctrplan.planning.ray_pool`): a cluster address, or ``"local"`` to start a Ray
         instance on this machine with every core; results do not depend on it either.
         Excludes ``workers > 1``. Needs ``pip install 'ctrplan[ray]'``.
-    generation : designs per generation (fixed, so results do not depend on ``workers``).
-    patience : generations without improvement before stopping once every target is reached
-        with at least ``clearance_goal_mm`` of clearance.
+    generation : designs per generation (fixed, so results do not depend on ``workers``):
+        the CMA-ES populations of every tube count together, screened in parallel.
+    plans_per_generation : designs planned in full per generation at most (their targets are
+        planned in parallel).
+    derive : search the ranges read from the anatomy (:mod:`ctrplan.design.derive`) inside
+        ``bounds``; False searches ``bounds`` as they are.
+    patience : once every target is reached, the search stops after this many generations
+        without more clearance (up to ``clearance_goal_mm``; the estimate along the plans);
+        simpler designs of the same reach and clearance do not hold it.
     bounds : design-variable bounds and constraint limits (:class:`~ctrplan.design.space.Bounds`;
         ``strain_limit`` default 6 %, see :data:`~ctrplan.design.space.DEFAULT_STRAIN_LIMIT`).
     stock : a CSV of stock tube sizes (od_mm,id_mm), None for the shipped table.
@@ -89,7 +95,9 @@ class DesignConfig:
     time_limit: float = 1200.0
     workers: int = 1
     ray_address: str | None = None
-    generation: int = 8
+    generation: int = 16
+    plans_per_generation: int = 2
+    derive: bool = True
     patience: int = 3
     clearance_goal_mm: float = 0.5
     bounds: Bounds = field(default_factory=Bounds)
@@ -103,7 +111,8 @@ class DesignConfig:
     stability_step_rad: float = 0.02
 
     def __post_init__(self) -> None:
-        for name in ("budget", "generation", "screen_samples", "plan_states", "workers"):
+        for name in ("budget", "generation", "screen_samples", "plan_states", "workers",
+                     "plans_per_generation"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise InputError(f"--{name.replace('_', '-')}", "", f"must be an integer >= 1, got {v!r}")
@@ -218,6 +227,19 @@ def _state_key(scene, names, pts, cfg: DesignConfig, fixed) -> str:
     return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()
 
 
+def read_anatomy(scene, names, pts: np.ndarray, cfg: DesignConfig, stock, curvature_bound: float):
+    """The anatomy read (:func:`ctrplan.design.anatomy.analyse`) and the design space derived
+    from it (:func:`ctrplan.design.derive.derive`) for ``cfg``'s bounds."""
+    from ctrplan.design.anatomy import analyse
+    from ctrplan.design.derive import derive
+    from ctrplan.planning.plan import world_for
+
+    world = world_for(scene, 0.0, curvature_bound)      # only its distance fields are used
+    radii = np.array([od / 2 for od, _ in stock])
+    anatomy = analyse(scene, world, names, pts, radii, tolerance_mm=cfg.tolerance_mm)
+    return anatomy, derive(anatomy, cfg.bounds, stock, margin_mm=cfg.margin_mm or 0.0)
+
+
 def design(scene, targets, config: DesignConfig | None = None, start_from: Robot | str | None = None,
            out: str | os.PathLike | None = None, progress: bool = True) -> DesignResult:
     """Design a tube set for ``scene`` and ``targets``.
@@ -259,8 +281,13 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
         fr = load_robot(start_from)
         fixed, src = fr.tubes, str(fr.source if fr.source != "<memory>" else "--from")
     stock = load_stock(cfg.stock)
-    space = make_space(cfg.bounds, stock, fixed, cfg.tubes, source=src)
+    make_space(cfg.bounds, stock, fixed, cfg.tubes, source=src)      # bad bounds: before any work
     kbound = max([cfg.bounds.curvature[1]] + [abs(t.curvature) for t in fixed])
+    t_an = time.perf_counter()
+    anatomy, derived = read_anatomy(sc, names, pts, cfg, stock, kbound)
+    space = make_space(cfg.bounds, stock, fixed, cfg.tubes, source=src,
+                       derived=derived if cfg.derive else None)
+    t_an = time.perf_counter() - t_an
     settings = EvalSettings(screen_samples=cfg.screen_samples, tolerance_mm=cfg.tolerance_mm,
                             margin_mm=cfg.margin_mm, plan_time_s=cfg.plan_time_s,
                             plan_states=cfg.plan_states, stability_step_mm=cfg.stability_step_mm,
@@ -273,7 +300,8 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
     bar = _progress.bar(total=cfg.budget, desc="design", unit="design", disable=not progress)
     search = Search(space, str(sc.path), pts, settings, cfg.seed, cfg.budget, plan_budget,
                     cfg.generation, cfg.patience, cfg.time_limit, state_path, cfg.clearance_goal_mm,
-                    _state_key(sc, names, pts, cfg, fixed), progress=bar.update)
+                    _state_key(sc, names, pts, cfg, fixed), progress=bar.update,
+                    plans_per_generation=cfg.plans_per_generation)
     try:
         search.run(cfg.workers, cfg.ray_address)
     finally:
@@ -303,7 +331,7 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
     reached = sum(o.reached for o in outcomes)
     status = (DesignStatus.ALL_REACHED if outcomes and reached == len(outcomes)
               else DesignStatus.PARTIAL if reached else DesignStatus.NONE_REACHED)
-    timings = dict(search.timings)
+    timings = {"anatomy": t_an, **search.timings}
     timings["final_plans"] = time.perf_counter() - t_final
     timings["total"] = time.perf_counter() - t0
     counts = {"evaluations": len(search.evaluations), "planned": search.planned,

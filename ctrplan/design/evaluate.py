@@ -76,7 +76,8 @@ def _shape(model, q, points):
 
 def screen(robot: Robot, scene, world, targets_base: np.ndarray, settings: EvalSettings,
            seed: int) -> dict:
-    """Stages 1-3. Returns ``entry_ok``, ``errors`` (T,) mm (None: nothing free near),
+    """Stages 1-3. Returns ``entry_ok``, ``entry_clearance_mm`` (the best start rotation's
+    clearance; negative: a lower bound of its penetration), ``errors`` (T,) mm (None: nothing free near),
     ``passed`` (T,) bool, ``goal_clearance_mm`` (T,) (the largest conservative clearance of a
     collision-free IK goal within tolerance; None where none) and ``timings``."""
     from ctrplan.planning.ik import IKConfig, solve_ik
@@ -89,11 +90,14 @@ def screen(robot: Robot, scene, world, targets_base: np.ndarray, settings: EvalS
     q0 = robot.retracted()
     rots = np.array([q0] + [np.concatenate([np.full(robot.n, a), q0[robot.n:]])
                             for a in np.arange(1, 8) * math.pi / 4])
-    free0 = ~world.collides(_shape(model, rots, settings.screen_points))
+    rep0 = world.check(_shape(model, rots, settings.screen_points))
+    free0 = ~np.asarray(rep0.collides, dtype=bool)
+    # the best rotation's clearance (negative: a lower bound of its penetration depth)
+    entry_clearance = float(np.max(rep0.clearance_mm))
     timings["screen_entry"] = time.perf_counter() - t0
     if not free0.any():
-        return {"entry_ok": False, "errors": [None] * T, "passed": [False] * T,
-                "goal_clearance_mm": [None] * T, "timings": timings}
+        return {"entry_ok": False, "entry_clearance_mm": entry_clearance, "errors": [None] * T,
+                "passed": [False] * T, "goal_clearance_mm": [None] * T, "timings": timings}
     t1 = time.perf_counter()
     q = robot.sample(settings.screen_samples, seed=seed)
     sh = _shape(model, q, settings.screen_points)
@@ -125,7 +129,8 @@ def screen(robot: Robot, scene, world, targets_base: np.ndarray, settings: EvalS
             # no free IK solution: the free sampled tip workspace's distance (a smooth signal)
             errors[j] = float(d.min()) + 10.0
     timings["screen_ik"] = time.perf_counter() - t2
-    return {"entry_ok": True, "errors": [float(e) if math.isfinite(e) else None for e in errors],
+    return {"entry_ok": True, "entry_clearance_mm": entry_clearance,
+            "errors": [float(e) if math.isfinite(e) else None for e in errors],
             "passed": (errors <= settings.screen_tolerance_mm).tolist(),
             "goal_clearance_mm": [float(c) if math.isfinite(c) else None for c in goal_clear],
             "timings": timings}
@@ -174,12 +179,16 @@ def plans(robot: Robot, scene, targets_scene: np.ndarray, todo: list[int], setti
           seed: int, keep: bool = False, objective: str = "first") -> dict:
     """Stages 4-5 for the targets ``todo`` (``objective``: the plans' path objective where
     plan_to_target has one). Returns per target (T lists) ``status``,
-    ``reached``, ``clearance_mm``, ``tip_error_mm``, ``stable``; ``results`` (PlanResults,
+    ``reached``, ``clearance_mm`` (conservative: the plans' minimum clearance, planning and
+    reference model), ``clearance_estimate_mm`` (FCL's exact minimum where the plan settled it,
+    else the distance fields' estimate along the path: what designs are ranked by),
+    ``tip_error_mm``, ``stable``; ``results`` (PlanResults,
     only with ``keep``) and ``timings``."""
     from ctrplan.planning.plan import PlanConfig, plan_to_target
 
     T = len(targets_scene)
     out = {"status": ["NOT_TRIED"] * T, "reached": [False] * T, "clearance_mm": [None] * T,
+           "clearance_estimate_mm": [None] * T,
            "tip_error_mm": [None] * T, "stable": [None] * T, "results": [None] * T,
            "stability_states": 0}
     t_plan = t_stab = 0.0
@@ -205,6 +214,11 @@ def plans(robot: Robot, scene, targets_scene: np.ndarray, todo: list[int], setti
             else float(r.tip_error_mm)
         c = r.min_clearance_reference_mm if math.isfinite(r.min_clearance_reference_mm) else r.min_clearance_mm
         out["clearance_mm"][j] = float(min(c, r.min_clearance_mm))
+        # for ranking designs: FCL's minimum where it settled it, else the distance fields'
+        # estimate along the path (a lower bound of 0 says nothing about the design)
+        prof = np.asarray(r.clearance_profile, dtype=float)
+        est = r.min_clearance_mm if r.min_clearance_exact or not len(prof) else float(prof.min())
+        out["clearance_estimate_mm"][j] = float(est)
         if stable:
             out["reached"][j] = True
         else:
