@@ -343,3 +343,44 @@ def _with_neck(sdf: np.ndarray, lo: np.ndarray, h: float, depth: float) -> np.nd
     slab = np.abs(z - depth) <= NECK_HALF_MM
     flat[slab] = np.maximum(flat[slab], h)
     return np.minimum(flat, thread).reshape(sdf.shape)
+
+
+# ----------------------------------------------------------------------------- analytic lumens
+def write_scene(folder: str | Path, mesh, pose: np.ndarray, targets: dict, name: str) -> Path:
+    """A scene folder: ``lumen.ply`` (the mesh, already in the scene frame), scene.yaml with
+    ``base_pose`` and the named targets (scene frame)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    mesh.export(folder / "lumen.ply", file_type="ply", encoding="binary")
+    doc = {"name": name, "units": "mm", "meshes": [{"name": "lumen", "file": "lumen.ply", "role": "wall"}],
+           "base_pose": {"position": [float(v) for v in pose[:3, 3]], "quaternion": quaternion(pose[:3, :3])},
+           "targets": [{"name": k, "position": [float(x) for x in v]} for k, v in targets.items()],
+           "source": "tests/design_scenes.py", "licence": "BSD-3-Clause"}
+    (folder / "scene.yaml").write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
+    return folder
+
+
+def bend_centreline(straight: float, radius: float, angle: float, tail: float,
+                    step: float = 0.1) -> np.ndarray:
+    """Centre line (N, 3) base frame: ``straight`` mm along +z from z = -8 (behind the base),
+    an arc of ``radius`` turning by ``angle`` rad toward +x, then ``tail`` mm straight on."""
+    z = np.arange(-8.0, straight, step)
+    a = np.column_stack([np.zeros_like(z), np.zeros_like(z), z])
+    t = np.arange(0.0, angle, step / radius)
+    b = np.column_stack([radius * (1 - np.cos(t)), np.zeros_like(t), straight + radius * np.sin(t)])
+    end = np.array([radius * (1 - math.cos(angle)), 0.0, straight + radius * math.sin(angle)])
+    d = np.array([math.sin(angle), 0.0, math.cos(angle)])
+    s = np.arange(0.0, tail + 1e-9, step)
+    c = end + s[:, None] * d
+    return np.vstack([a, b, c])
+
+
+def tube_lumen(folder: str | Path, centre: np.ndarray, radii: np.ndarray, pose: np.ndarray,
+               targets: dict, name: str = "tube", h: float = GRID_MM) -> Path:
+    """A closed lumen: the union of balls of ``radii`` (N,) along ``centre`` (N, 3) base frame,
+    meshed and moved into the scene frame by ``pose``; targets given in the base frame."""
+    sdf, lo = signed_distance(np.asarray(centre, float), np.asarray(radii, float), h)
+    mesh = mesh_of(sdf, lo, h)
+    mesh.apply_transform(pose)
+    R, t = pose[:3, :3], pose[:3, 3]
+    return write_scene(folder, mesh, pose, {k: R @ np.asarray(v, float) + t for k, v in targets.items()}, name)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
 import os
 import sys
@@ -42,6 +43,8 @@ from ctrplan.design.space import (
 )
 from ctrplan.errors import InputError
 from ctrplan.robot import Robot
+
+log = logging.getLogger("ctrplan")
 
 __all__ = ["DEFAULT_STRAIN_LIMIT", "Bounds", "DesignConfig", "DesignResult", "DesignStatus", "TargetOutcome", "design", "resolve_scene",
            "resolve_targets"]
@@ -154,6 +157,10 @@ class DesignResult:
     feasible). targets : per target outcome. evaluations : every design evaluated (dicts as in
     design.json). binding : hard constraints that bind at the chosen design. constraints :
     each constraint's value, limit, satisfied, binds. timings : seconds per stage.
+    anatomy : the anatomy read before the search (:meth:`Anatomy.to_json`); space : the design
+    space derived from it (None with ``derive=False``); blocked : per target not reached, what
+    blocks it (:func:`ctrplan.design.explain.explain`); closest : the closest design found (the
+    best by the search's ranking; with ``robot`` None, the only design there is to show).
     """
 
     success: bool
@@ -170,6 +177,10 @@ class DesignResult:
     scene: str
     time_cap_hit: bool = False
     config: DesignConfig = field(default_factory=DesignConfig)
+    anatomy: dict | None = None
+    space: dict | None = None
+    blocked: tuple[dict, ...] = ()
+    closest: dict | None = None
 
     @property
     def reached(self) -> int:
@@ -227,6 +238,27 @@ def _state_key(scene, names, pts, cfg: DesignConfig, fixed) -> str:
     return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()
 
 
+def _starts(space, anatomy, scene):
+    """The arc fitted to the corridors (:func:`ctrplan.design.seed.fit_arc`) and the search's
+    start point per number of designed tubes (the cube's centre without derived ranges)."""
+    from ctrplan.design.seed import fit_arc, start_point
+
+    if space.derived is None or not space.k_max:
+        return None, {}
+    r = space.derived.inner
+    fit = fit_arc(anatomy, np.asarray(scene.base_pose, float), space.stock[r.sizes[0]][0] / 2,
+                  r.curvature, r.curved_length)
+    return fit, {k: start_point(space, k, fit) for k in range(max(1, space.k_min), space.k_max + 1)}
+
+
+def _ruled_out(anatomy, cfg: DesignConfig, stock, fixed, designed: int) -> bool:
+    """Whether a necessary condition (:mod:`ctrplan.design.explain`) fails for every target."""
+    from ctrplan.design.explain import explain
+
+    pre = explain(anatomy, cfg.bounds, stock, fixed, designed, cfg.margin_mm or 0.0, cfg.tolerance_mm, [], None)
+    return bool(pre) and all(b["kind"] == "necessary" for b in pre)
+
+
 def read_anatomy(scene, names, pts: np.ndarray, cfg: DesignConfig, stock, curvature_bound: float):
     """The anatomy read (:func:`ctrplan.design.anatomy.analyse`) and the design space derived
     from it (:func:`ctrplan.design.derive.derive`) for ``cfg``'s bounds."""
@@ -262,9 +294,8 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
         ``start_from`` robot beyond the strain limit.
     """
     from ctrplan import progress as _progress
-    from ctrplan.design.evaluate import EvalSettings, plans
+    from ctrplan.design.evaluate import EvalSettings
     from ctrplan.design.search import STATE_FILE, Search
-    from ctrplan.design.space import decode
     from ctrplan.robot import load_robot
 
     cfg = config or DesignConfig()
@@ -297,57 +328,100 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
     state_path = Path(out) / STATE_FILE if out is not None else None
     if state_path is not None:
         state_path.parent.mkdir(parents=True, exist_ok=True)
-    bar = _progress.bar(total=cfg.budget, desc="design", unit="design", disable=not progress)
-    search = Search(space, str(sc.path), pts, settings, cfg.seed, cfg.budget, plan_budget,
+    budget = cfg.budget
+    if _ruled_out(anatomy, cfg, stock, fixed, space.k_max):
+        # the anatomy rules out every target: one generation, to show the closest design
+        budget = min(budget, cfg.generation)
+        log.info("the anatomy rules out every target; searching one generation only")
+    bar = _progress.bar(total=budget, desc="design", unit="design", disable=not progress)
+    fit, starts = _starts(space, anatomy, sc)
+    search = Search(space, str(sc.path), pts, settings, cfg.seed, budget, plan_budget,
                     cfg.generation, cfg.patience, cfg.time_limit, state_path, cfg.clearance_goal_mm,
                     _state_key(sc, names, pts, cfg, fixed), progress=bar.update,
-                    plans_per_generation=cfg.plans_per_generation)
+                    plans_per_generation=cfg.plans_per_generation, starts=starts)
+    final: dict = {}
+
+    def finish(runner) -> None:
+        t = time.perf_counter()
+        final["out"] = _final_plans(search, space, sc, names, pts, cfg, runner)
+        final["s"] = time.perf_counter() - t
+
     try:
-        search.run(cfg.workers, cfg.ray_address)
+        search.run(cfg.workers, cfg.ray_address, finish=finish)
     finally:
         bar.close()
+    return _finish(search, space, sc, names, pts, cfg, final, fixed, stock, anatomy, t0, t_an)
+
+
+def _final_plans(search, space, sc, names, pts, cfg, runner):
+    """The chosen design, its plans per target (clearance objective; one job per target on
+    the search's workers), its constraints."""
+    from ctrplan.design.space import decode
+
     best = search.best()
-    outcomes: list[TargetOutcome] = []
-    robot = None
-    binding: tuple[str, ...] = ()
-    constraints: dict = {}
-    t_final = time.perf_counter()
-    if best is not None:
-        robot = decode(space, best["k"], np.array(best["u"]), name=f"design_{sc.name}").robot
-        todo = list(range(len(pts)))
-        res = plans(robot, sc, pts, todo, settings, cfg.seed, keep=True, objective="clearance")
-        for j, n in enumerate(names):
-            c = res["clearance_mm"][j]
-            e = res["tip_error_mm"][j]
-            outcomes.append(TargetOutcome(n, pts[j], bool(res["reached"][j]), res["status"][j],
-                                          math.nan if c is None else float(c),
-                                          math.nan if e is None else float(e), res["results"][j]))
-        constraints = constraint_report(robot, cfg.bounds)
-        constraints["stability"] = {"satisfied": all(s is not False for s in res["stable"]),
-                                    "binds": any(s is False for s in res["stable"]),
-                                    "states_checked": res["stability_states"]}
-        constraints["entry"] = {"satisfied": True, "binds": False}
-        binding = tuple(k for k, v in constraints.items() if v["binds"])
+    if best is None:
+        return None, [], (), {}
+    robot = decode(space, best["k"], np.array(best["u"]), name=f"design_{sc.name}").robot
+    per = runner.map([search.job(robot, "final", [j]) for j in range(len(pts))])
+    res = {k: [p[k][j] for j, p in enumerate(per)]
+           for k in ("status", "reached", "clearance_mm", "tip_error_mm", "stable", "results")}
+    outcomes = []
+    for j, n in enumerate(names):
+        c = res["clearance_mm"][j]
+        e = res["tip_error_mm"][j]
+        outcomes.append(TargetOutcome(n, pts[j], bool(res["reached"][j]), res["status"][j],
+                                      math.nan if c is None else float(c),
+                                      math.nan if e is None else float(e), res["results"][j]))
+    constraints = constraint_report(robot, cfg.bounds)
+    constraints["stability"] = {"satisfied": all(s is not False for s in res["stable"]),
+                                "binds": any(s is False for s in res["stable"]),
+                                "states_checked": int(sum(p["stability_states"] for p in per))}
+    constraints["entry"] = {"satisfied": True, "binds": False}
+    binding = tuple(k for k, v in constraints.items() if v["binds"])
+    return robot, outcomes, binding, constraints
+
+
+def _closest_json(ev: dict | None) -> dict | None:
+    if ev is None:
+        return None
+    keys = ("index", "k", "robot", "parameters", "entry_ok", "entry_clearance_mm", "screen_passed",
+            "screen_errors", "planned", "reached", "binding")
+    out = {k: ev.get(k) for k in keys}
+    out["tubes"] = out.pop("k")
+    out["screen_errors_mm"] = out.pop("screen_errors")
+    return out
+
+
+def _finish(search, space, sc, names, pts, cfg, final, fixed, stock, anatomy, t0, t_an) -> DesignResult:
+    from ctrplan.design.explain import explain
+
+    robot, outcomes, binding, constraints = final.get("out", (None, [], (), {}))
     reached = sum(o.reached for o in outcomes)
     status = (DesignStatus.ALL_REACHED if outcomes and reached == len(outcomes)
               else DesignStatus.PARTIAL if reached else DesignStatus.NONE_REACHED)
     timings = {"anatomy": t_an, **search.timings}
-    timings["final_plans"] = time.perf_counter() - t_final
+    timings["final_plans"] = final.get("s", 0.0)
+    blocked = explain(anatomy, cfg.bounds, stock, fixed, space.k_max, cfg.margin_mm or 0.0,
+                      cfg.tolerance_mm, search.evaluations, outcomes or None)
     timings["total"] = time.perf_counter() - t0
     counts = {"evaluations": len(search.evaluations), "planned": search.planned,
-              "resumed": search.resumed, "targets": len(pts)}
+              "resumed": search.resumed, "targets": len(pts), "generations": search.generations}
     if robot is not None:
         msg = f"{reached}/{len(pts)} targets reached by a {robot.n}-tube design"
     else:
+        msg = f"0/{len(pts)} targets reached: no design was planned with success"
+    if blocked:
         from collections import Counter
 
-        why = Counter(b for e in search.evaluations for b in set(e["binding"])).most_common(2)
-        msg = (f"0/{len(pts)} targets reached: no design passed the screen"
-               + (f" (most often bound by: {', '.join(k for k, _ in why)})" if why else ""))
+        why = Counter(b["blocking"] for b in blocked)
+        msg += " (not reached: " + ", ".join(f"{n} by {k}" for k, n in why.most_common()) + ")"
     return DesignResult(success=status is DesignStatus.ALL_REACHED, status=status, message=msg,
                         robot=robot, targets=tuple(outcomes), evaluations=tuple(search.evaluations),
                         binding=binding, constraints=constraints, timings=timings, counts=counts,
-                        seed=cfg.seed, scene=str(sc.path), time_cap_hit=search.time_cap_hit, config=cfg)
+                        seed=cfg.seed, scene=str(sc.path), time_cap_hit=search.time_cap_hit, config=cfg,
+                        anatomy=anatomy.to_json(),
+                        space=None if space.derived is None else space.derived.to_json(stock),
+                        blocked=tuple(blocked), closest=_closest_json(search.closest()))
 
 
 class _CallableModule(types.ModuleType):

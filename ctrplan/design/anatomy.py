@@ -11,13 +11,13 @@ the base, or inside an obstacle, are not free). Then, per target:
   components by scipy) -- a tube of radius above ``b`` cannot reach the target (up to the grid's
   resolution), whatever its design; where the corridor may be too narrow for the smallest stock
   tube (narrower than its diameter + 2 h), the narrowest cross-section is measured again from the
-  mesh itself (trimesh's exact signed distance on a 0.1 mm grid);
+  mesh itself (trimesh's closest points, refined to a 0.1 mm grid);
 - **centreline**: the cheapest path (scikit-image's minimum-cost path, 26-connected) from the base
   to the target through nodes with ``d >= b``, each step costing its length times
   ``1 + (1 mm / d)^2`` (it keeps to the middle of the lumen), resampled every 1 mm and smoothed
   (Gaussian, 2 mm); along it the clearance profile, the depth (arc length), the **narrowest**
   place (width ``2 d``, arc length from the entry, position) and the **bends** (stretches where
-  the centreline's curvature exceeds 1/150 mm and that turn by more than 10 degrees: where they
+  the centreline's curvature exceeds 1/80 mm and that turn by more than 10 degrees: where they
   start, their angle, length and radius);
 - the **entry room**: how far the retracted robot can protrude from the base: for each stock
   radius, the straight distance along the base's +z before the clearance drops below it, and the
@@ -40,10 +40,10 @@ import numpy as np
 log = logging.getLogger("ctrplan")
 
 #: Curvature (1/mm) above which the centreline counts as bending, and the smallest bend kept.
-BEND_CURVATURE = 1.0 / 150.0
+BEND_CURVATURE = 1.0 / 80.0
 BEND_MIN_DEG = 10.0
 #: Smoothing (mm) of the centreline and its resampling step.
-SMOOTH_MM = 2.0
+SMOOTH_MM = 2.5
 STEP_MM = 1.0
 #: Centring of the centreline: cost per mm is 1 + (CENTRE_MM / clearance)^2.
 CENTRE_MM = 1.0
@@ -117,12 +117,14 @@ class Route:
     def to_json(self) -> dict:
         n = self.narrowest
         return {"target": self.name, "position": [float(v) for v in self.target],
-                "connected": self.connected, "target_gap_mm": round(self.target_gap_mm, 3),
+                "connected": self.connected,
+                "target_gap_mm": round(self.target_gap_mm, 3) if math.isfinite(self.target_gap_mm) else None,
                 "bottleneck_width_mm": round(2 * self.bottleneck_mm, 3),
                 "narrowest": None if n is None else {
                     "width_mm": round(n.width_mm, 3), "at_mm": round(n.at_mm, 2),
                     "position": [round(float(v), 3) for v in n.position], "refined": n.refined},
-                "depth_mm": round(self.depth_mm, 2), "straight_mm": round(self.straight_mm, 2),
+                "depth_mm": round(self.depth_mm, 2) if math.isfinite(self.depth_mm) else None,
+                "straight_mm": round(self.straight_mm, 2),
                 "bends": [{"at_mm": round(b.at_mm, 1), "angle_deg": round(b.angle_deg, 1),
                            "length_mm": round(b.length_mm, 1), "radius_mm": round(b.radius_mm, 1)}
                           for b in self.bends]}
@@ -335,8 +337,11 @@ def _centreline(grid: _Grid, start: tuple, end_flat: np.ndarray, floor: float) -
     return path * grid.h + grid.origin
 
 
-def _smooth(path: np.ndarray, base: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Base, the node path and the target, resampled every STEP_MM and smoothed (ends kept)."""
+def _smooth(path: np.ndarray, base: np.ndarray, target: np.ndarray,
+            pinned: bool = True) -> np.ndarray:
+    """Base, the node path and the target, resampled every STEP_MM and smoothed (with
+    ``pinned``, blended back to the raw points within 2 SMOOTH_MM of the ends, so the
+    centreline starts at the base and ends at the target)."""
     from scipy.ndimage import gaussian_filter1d
 
     p = np.vstack([base, path, target])
@@ -349,6 +354,8 @@ def _smooth(path: np.ndarray, base: np.ndarray, target: np.ndarray) -> np.ndarra
     q = np.column_stack([np.interp(u, s, p[:, k]) for k in range(3)])
     sig = SMOOTH_MM / (u[1] - u[0])
     sm = np.column_stack([gaussian_filter1d(q[:, k], sig, mode="nearest") for k in range(3)])
+    if not pinned:
+        return sm
     w = np.clip(np.minimum(u, u[-1] - u) / (2 * SMOOTH_MM), 0.0, 1.0)[:, None]
     return q * (1 - w) + sm * w
 
@@ -380,34 +387,53 @@ def _bends(c: np.ndarray) -> tuple[np.ndarray, tuple[Bend, ...]]:
     return s, tuple(bends)
 
 
-def _refine_width(scene, centre: np.ndarray, tangent: np.ndarray, span: float = 1.5,
-                  half: float = 1.5, step: float = 0.1) -> float | None:
-    """Width (mm) of the narrowest cross-section near ``centre`` measured on the mesh: for
-    cross-sections perpendicular to ``tangent`` every 0.25 mm within +-span, twice the largest
-    inside distance (trimesh's exact signed distance) on a ``step`` grid; the smallest of them."""
+def _free_distance(scene, pts: np.ndarray) -> np.ndarray:
+    """Signed distance (N,) from points to the nearest collision mesh, measured on the meshes
+    (trimesh's closest points): positive on the free side (inside a wall, outside an
+    obstacle), the side taken from the closest triangle's outward normal."""
     import trimesh
 
-    walls = [m for m in scene.collision_meshes]
+    out = np.full(len(pts), np.inf)
+    for m in scene.collision_meshes:
+        c, d, tri = trimesh.proximity.ProximityQuery(m.mesh).on_surface(pts)
+        outward = np.einsum("ij,ij->i", pts - c, m.mesh.face_normals[tri]) > 0
+        inside = np.where(outward, -d, d)
+        out = np.minimum(out, inside if m.role == "wall" else -inside)
+    return out
+
+
+def _refine_width(scene, centre: np.ndarray, tangent: np.ndarray, span: float = 1.5,
+                  half: float = 1.6) -> float | None:
+    """Width (mm) of the narrowest cross-section near ``centre`` measured on the mesh: for
+    cross-sections perpendicular to ``tangent`` every 0.5 mm within +-span, twice the largest
+    distance to the mesh on the free side (:func:`_free_distance`), found on a 0.4 mm grid
+    over +-half mm and refined on a 0.1 mm grid around the best point; the smallest of them."""
     t = tangent / max(np.linalg.norm(tangent), 1e-12)
     a = np.cross(t, [1.0, 0.0, 0.0] if abs(t[0]) < 0.9 else [0.0, 1.0, 0.0])
     a /= np.linalg.norm(a)
     b = np.cross(t, a)
-    g = np.arange(-half, half + 1e-9, step)
-    U, V = np.meshgrid(g, g, indexing="ij")
-    plane = U.reshape(-1, 1) * a + V.reshape(-1, 1) * b
+
+    def plane(cu: float, cv: float, h: float, step: float) -> tuple[np.ndarray, np.ndarray]:
+        g = np.arange(-h, h + 1e-9, step)
+        U, V = np.meshgrid(cu + g, cv + g, indexing="ij")
+        uv = np.column_stack([U.ravel(), V.ravel()])
+        return uv, uv[:, :1] * a + uv[:, 1:] * b
+
     widths = []
     for off in np.arange(-span, span + 1e-9, 0.5):
-        pts = centre + off * t + plane
-        inside = np.full(len(pts), np.inf)
-        for m in walls:
-            sd = trimesh.proximity.signed_distance(m.mesh, pts)   # + inside the mesh
-            inside = np.minimum(inside, sd if m.role == "wall" else -sd)
-        widths.append(2.0 * max(float(inside.max()), 0.0))
+        o = centre + off * t
+        uv, pl = plane(0.0, 0.0, half, 0.4)
+        d = _free_distance(scene, o + pl)
+        k = int(np.argmax(d))
+        uv2, pl2 = plane(uv[k, 0], uv[k, 1], 0.4, 0.1)
+        d2 = _free_distance(scene, o + pl2)
+        widths.append(2.0 * max(float(max(d.max(), d2.max())), 0.0))
     return min(widths) if widths else None
 
 
 def _route(grid: _Grid, scene, name: str, target: np.ndarray, start: tuple, base: np.ndarray,
-           ends: np.ndarray, bottleneck: float, refine_below: float, tol: float) -> Route:
+           ends: np.ndarray, bottleneck: float, refine_below: float, tol: float,
+           closures: dict) -> Route:
     straight = float(np.linalg.norm(target - base))
     empty = np.zeros((0, 3)), np.zeros(0), np.zeros(0)
     if len(ends) == 0:
@@ -416,10 +442,12 @@ def _route(grid: _Grid, scene, name: str, target: np.ndarray, start: tuple, base
     gap = 0.0 if grid.at(target[None])[0] > 0 else float(np.linalg.norm(near - target, axis=1).min())
     path = _centreline(grid, start, ends, 0.999 * bottleneck) if bottleneck > 0 else None
     if path is None:
-        closed = _closure(grid, scene, start, base, ends)
+        closed = _closure(grid, scene, start, base, ends, closures)
         return Route(name, target, False, gap, 0.0, closed, math.nan, straight, (), *empty)
     c = _smooth(path, base, target)
-    s, bends = _bends(c)
+    s, _ = _bends(c)
+    # bends from the centreline smoothed to its ends (the pinned ends kink on the node grid)
+    _, bends = _bends(_smooth(path, base, target, pinned=False))
     clr = np.maximum(grid.at(c), 0.0)
     # the narrowest place: along the smoothed centreline (a path too: its minimum is a lower
     # bound of the corridor's), or the node path's bottleneck where that is wider
@@ -441,17 +469,26 @@ def _route(grid: _Grid, scene, name: str, target: np.ndarray, start: tuple, base
                  float(s[-1]), straight, bends, c, s, clr)
 
 
-def _closure(grid: _Grid, scene, start: tuple, base: np.ndarray, ends: np.ndarray) -> Narrowest | None:
+def _closure(grid: _Grid, scene, start: tuple, base: np.ndarray, ends: np.ndarray,
+             cache: dict) -> Narrowest | None:
     """Where the corridor to a target closes: the closest pair of nodes between the base's free
     component and the target's; width measured on the mesh across the gap, arc length along
-    the base side's centreline to it plus half the gap."""
+    the base side's centreline to it plus half the gap (``cache``: per target component)."""
+    from scipy import ndimage
     from scipy.spatial import cKDTree
 
     free = grid.d > 0
-    a = _component(free, start)
+    if "labels" not in cache:
+        cache["labels"] = ndimage.label(free, structure=np.ones((3, 3, 3), bool))[0]
+    lab = cache["labels"]
     e = tuple(int(v) for v in np.unravel_index(ends[0], grid.d.shape))
-    bmask = _component(free, e)
-    if not a.any() or not bmask.any():
+    key = int(lab[e])
+    if key in cache:
+        return cache[key]
+    a = lab == lab[start]
+    bmask = lab == key
+    if not free[start] or key == 0:
+        cache[key] = None
         return None
     pa = np.argwhere(a) * grid.h + grid.origin
     pb = np.argwhere(bmask) * grid.h + grid.origin
@@ -465,7 +502,8 @@ def _closure(grid: _Grid, scene, start: tuple, base: np.ndarray, ends: np.ndarra
         c = np.vstack([base, path, mid])
         s_mid = float(np.sum(np.linalg.norm(np.diff(c, axis=0), axis=1)))
     w = _refine_width(scene, mid, q - p)
-    return Narrowest(0.0 if w is None else w, s_mid, mid, w is not None)
+    cache[key] = Narrowest(0.0 if w is None else w, s_mid, mid, w is not None)
+    return cache[key]
 
 
 # ----------------------------------------------------------------------------- entry room
@@ -520,10 +558,11 @@ def analyse(scene, world, names, targets: np.ndarray, radii, tolerance_mm: float
     bott = _bottlenecks(grid, start, ends, cap=base_clear)
     refine = (refine_below_mm if refine_below_mm is not None
               else 2.0 * float(np.min(radii)) + 2.0 * grid.h)
-    routes = tuple(_route(grid, scene, str(n), t, start, base, e, b, refine, tolerance_mm)
+    closures: dict = {}
+    routes = tuple(_route(grid, scene, str(n), t, start, base, e, b, refine, tolerance_mm, closures)
                    for n, t, e, b in zip(names, targets, ends, bott))
     entry = entry_room(grid, scene, radii)
-    log.info("anatomy read in %.2f s (%d targets, grid %s at %.2f mm)", time.perf_counter() - t0,
+    log.debug("anatomy read in %.2f s (%d targets, grid %s at %.2f mm)", time.perf_counter() - t0,
              len(targets), grid.d.shape, grid.h)
     return Anatomy(routes, entry, grid.h, base_clear)
 

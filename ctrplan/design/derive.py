@@ -97,51 +97,51 @@ def _first_clearance(route, upto: float) -> float:
 
 
 def derive(anatomy, bounds, stock, margin_mm: float = 0.0) -> Derived:
-    """The derived space (module docstring) from an :class:`~ctrplan.design.anatomy.Anatomy`."""
+    """The derived space (module docstring) from an :class:`~ctrplan.design.anatomy.Anatomy`.
+    Without any open corridor the ranges that need one fall back to the bounds; the entry room
+    still caps the curved lengths."""
     notes: list[str] = []
     routes = [r for r in anatomy.routes if r.connected]
     h = anatomy.resolution_mm
     radii = np.array([od / 2 for od, _ in stock])
     if not routes:
-        notes.append("no corridor reaches any target: searching the bounds")
-        everything = tuple(range(len(stock)))
-        full = TubeRanges(tuple(bounds.curvature), tuple(bounds.curved_length),
-                          tuple(bounds.straight_length), everything)
-        return Derived(full, full, None, tuple(notes))
+        notes.append("no open corridor reaches any target: the ranges that need one are the bounds")
     # stock: innermost through a bottleneck, the others through the first stretch
-    b = max(r.bottleneck_mm for r in routes) + 0.5 * h
-    inner_sizes = tuple(int(i) for i in np.flatnonzero(radii + margin_mm <= b))
-    if not inner_sizes:
-        inner_sizes = (0,)
-        notes.append(f"innermost stock: no size fits the widest bottleneck ({2 * b:.2f} mm); "
-                     "the smallest is searched")
     first = bounds.curved_length[0]
-    entry_clr = min(max(_first_clearance(r, first + 1.0) for r in routes),
+    b = (max(r.bottleneck_mm for r in routes) if routes else anatomy.base_clearance_mm) + 0.5 * h
+    inner_sizes = tuple(int(i) for i in np.flatnonzero(radii + margin_mm <= b)) or (0,)
+    entry_clr = min(max((_first_clearance(r, first + 1.0) for r in routes), default=math.inf),
                     anatomy.base_clearance_mm) + 0.5 * h
-    outer_sizes = tuple(int(i) for i in np.flatnonzero(radii + margin_mm <= entry_clr))
-    if not outer_sizes:
-        outer_sizes = inner_sizes
-    notes.append(f"stock: innermost od <= {2 * (b - margin_mm):.2f} mm (widest bottleneck "
-                 f"{2 * (b - 0.5 * h):.2f} mm + grid), others od <= {2 * (entry_clr - margin_mm):.2f} mm "
-                 f"(corridor over the first {first + 1:g} mm)")
-    # curvature: the sharpest bend, the turn out of +z included
+    outer_sizes = tuple(int(i) for i in np.flatnonzero(radii + margin_mm <= entry_clr)) or inner_sizes
+    notes.append(f"stock: innermost od <= {2 * (b - margin_mm):.2f} mm ("
+                 + ("widest bottleneck" if routes else "clearance at the base")
+                 + f" + half the grid), others od <= {2 * (entry_clr - margin_mm):.2f} mm (the corridor "
+                 f"over the first {first + 1:g} mm)")
+    # curvature: the sharpest bend of the corridors
     sharp = max((bd.curvature for r in routes for bd in r.bends), default=0.0)
-    k_hi = max(MIN_CURVATURE_RANGE, BEND_FACTOR * sharp)
-    curv = _clip(bounds.curvature[0], k_hi, bounds.curvature, "curvature", notes)
-    notes.append(f"curvature <= {curv[1]:.4g} 1/mm (sharpest bend {sharp:.4g} 1/mm x {BEND_FACTOR:g})")
+    if routes:
+        curv = _clip(bounds.curvature[0], max(MIN_CURVATURE_RANGE, BEND_FACTOR * sharp), bounds.curvature,
+                     "curvature", notes)
+        notes.append(f"curvature <= {curv[1]:.4g} 1/mm (sharpest bend {sharp:.4g} 1/mm x {BEND_FACTOR:g})")
+    else:
+        curv = tuple(bounds.curvature)
     # curved length: the entry room (for the thinnest allowed tube, best curvature) and depth
-    deep = max(r.depth_mm for r in routes)
-    shallow = min(r.depth_mm for r in routes)
+    deep = max((r.depth_mm for r in routes), default=bounds.curved_length[1])
+    shallow = min((r.depth_mm for r in routes), default=bounds.straight_length[0])
     kk = anatomy.entry.kappa[anatomy.entry.kappa <= curv[1] + 1e-12]
     room = max(anatomy.entry.longest(radii[inner_sizes[0]], float(k)) for k in kk) + ENTRY_SLACK_MM
     curved = _clip(bounds.curved_length[0], min(room, deep), bounds.curved_length, "curved_length", notes)
-    notes.append(f"curved length <= {curved[1]:.1f} mm (entry room {room:.1f} mm, deepest corridor "
-                 f"{deep:.1f} mm), capped per design by the room at its curvature")
-    s_in = _clip(shallow - curved[1], deep + REACH_SLACK_MM - curved[0], bounds.straight_length,
-                 "straight_length", notes)
-    s_out = _clip(bounds.straight_length[0], deep, bounds.straight_length, "straight_length (outer)", notes)
-    notes.append(f"straight length: innermost [{s_in[0]:.1f}, {s_in[1]:.1f}] mm (corridors "
-                 f"{shallow:.1f}-{deep:.1f} mm deep), others [{s_out[0]:.1f}, {s_out[1]:.1f}] mm")
+    notes.append(f"curved length <= {curved[1]:.1f} mm (entry room {room:.1f} mm"
+                 + (f", deepest corridor {deep:.1f} mm" if routes else "")
+                 + "), capped per design by the room at its curvature")
+    if routes:
+        s_in = _clip(shallow - curved[1], deep + REACH_SLACK_MM - curved[0], bounds.straight_length,
+                     "straight_length", notes)
+        s_out = _clip(bounds.straight_length[0], deep, bounds.straight_length, "straight_length (outer)", notes)
+        notes.append(f"straight length: innermost [{s_in[0]:.1f}, {s_in[1]:.1f}] mm (corridors "
+                     f"{shallow:.1f}-{deep:.1f} mm deep), others [{s_out[0]:.1f}, {s_out[1]:.1f}] mm")
+    else:
+        s_in = s_out = tuple(bounds.straight_length)
     inner = TubeRanges(curv, curved, s_in, inner_sizes)
     outer = TubeRanges(curv, curved, s_out, outer_sizes)
     return Derived(inner, outer, anatomy.entry, tuple(notes))

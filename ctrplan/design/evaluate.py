@@ -231,8 +231,9 @@ def plans(robot: Robot, scene, targets_scene: np.ndarray, todo: list[int], setti
 
 def evaluate_job(job: dict) -> dict:
     """Worker entry point: ``job`` has ``robot`` (dict), ``scene`` (spec), ``targets`` (T, 3
-    scene frame), ``settings`` (dict), ``seed``, ``stage`` ("screen" or "plan") and, for
-    plans, ``todo``. Returns a JSON-ready dict."""
+    scene frame), ``settings`` (dict), ``seed``, ``stage`` ("screen", "plan" or "final": the
+    chosen design's plans with the clearance objective, PlanResults kept) and, for plans,
+    ``todo``. Returns a JSON-ready dict (with PlanResults for "final")."""
     from ctrplan.robot import robot_from_dict
 
     settings = EvalSettings(**job["settings"])
@@ -241,4 +242,7 @@ def evaluate_job(job: dict) -> dict:
     targets = np.asarray(job["targets"], dtype=float)
     if job["stage"] == "screen":
         return screen(robot, scene, world, scene.to_base(targets), settings, int(job["seed"]))
+    if job["stage"] == "final":      # the chosen design: clearance objective, PlanResults kept
+        return plans(robot, scene, targets, list(job["todo"]), settings, int(job["seed"]), keep=True,
+                     objective="clearance")
     return plans(robot, scene, targets, list(job["todo"]), settings, int(job["seed"]))

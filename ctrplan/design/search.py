@@ -5,10 +5,11 @@ One covariance-matrix-adaptation evolution strategy per number of designed tubes
 unit cube of :mod:`ctrplan.design.space` (bounds [0, 1]); a generation asks every strategy for
 its share of ``generation`` candidates (16 by default), screens them all at once (on the
 worker pool or Ray: the candidates are independent), plans the most promising of them (one job
-per design and target, again all at once), and tells each strategy the fitness of its
-candidates (:meth:`Search.fitness`: targets reached or passing the screen, clearance, the
-screen's tip errors; an entry that collides or an infeasible design ranks last, graded by how
-far off it is). A strategy that stops (cma's termination criteria) restarts from the best
+per design and target, in the same batch as the next generation's screens, so long plans
+overlap short screens on the workers), and tells each strategy the fitness of its candidates
+(:meth:`Search.fitness`: targets passing the screen, the goals' clearance, the screen's tip
+errors; an entry that collides or an infeasible design ranks last, graded by how far off it
+is). The plans decide which design is chosen and when the search stops. A strategy that stops (cma's termination criteria) restarts from the best
 design it found.
 
 Determinism: ``cma`` draws from numpy's global generator; every call into it swaps in the
@@ -123,7 +124,8 @@ class Search:
     def __init__(self, space: Space, scene_spec, targets: np.ndarray, settings: EvalSettings,
                  seed: int, budget: int, plan_budget: int, generation: int, patience: int,
                  time_limit: float, state_path: Path | None, clearance_goal_mm: float, state_key: str,
-                 progress: Callable[[int], None] | None = None, plans_per_generation: int = 2):
+                 progress: Callable[[int], None] | None = None, plans_per_generation: int = 2,
+                 starts: dict | None = None):
         self.space = space
         self.scene_spec = scene_spec
         self.targets = np.asarray(targets, dtype=float)
@@ -133,6 +135,7 @@ class Search:
         self.plan_budget = int(plan_budget)
         self.generation = int(generation)
         self.plans_per_generation = int(plans_per_generation)
+        self.starts = starts or {}
         self.patience = int(patience)
         self.time_limit = float(time_limit)
         self.state_path = state_path
@@ -170,7 +173,11 @@ class Search:
 
     # ------------------------------------------------------------------ candidates
     def _job(self, dec: Decoded, stage: str, todo: list[int] | None = None) -> dict:
-        return {"robot": dec.robot.to_dict(), "scene": self.scene_spec, "targets": self.targets.tolist(),
+        return self.job(dec.robot, stage, todo)
+
+    def job(self, robot, stage: str, todo: list[int] | None = None) -> dict:
+        """An evaluation job (:func:`ctrplan.design.evaluate.evaluate_job`) for ``robot``."""
+        return {"robot": robot.to_dict(), "scene": self.scene_spec, "targets": self.targets.tolist(),
                 "settings": self.settings.__dict__, "seed": self.seed, "stage": stage,
                 "todo": todo or []}
 
@@ -179,7 +186,9 @@ class Search:
         ks = list(range(max(1, self.space.k_min), self.space.k_max + 1))
         share = [self.generation // len(ks) + (1 if i < self.generation % len(ks) else 0)
                  for i in range(len(ks))]
-        return [Strategy(k, self.space.dim, max(2, m), self.seed * 7 + k, np.full(self.space.dim, 0.5))
+        # a start fitted to the anatomy is searched closer around (step 0.15 of each range)
+        return [Strategy(k, self.space.dim, max(2, m), self.seed * 7 + k,
+                         self.starts.get(k, np.full(self.space.dim, 0.5)), 0.15 if k in self.starts else 0.3)
                 for k, m in zip(ks, share)]
 
     # ------------------------------------------------------------------ ranking
@@ -213,10 +222,10 @@ class Search:
         return (ev["reached"], ev["clearance_bin"], -n, -round(bend, 3), -round(length, 1))
 
     # ------------------------------------------------------------------ evaluation
-    def _evaluate(self, runner: Runner, cands: list[tuple[int, np.ndarray]]) -> list[dict]:
-        evs = []
-        todo_screen = []
-        pending: set[str] = set()
+    def _screen_jobs(self, cands: list[tuple[int, np.ndarray]]) -> tuple[list[dict], list, list[dict]]:
+        """Evaluation records of the candidates and the screen jobs still to run (a design
+        screened before, in this run or a resumed one, is taken from the cache)."""
+        evs, todo, pending = [], [], set()
         for k, u in cands:
             dec = decode(self.space, k, u, name=f"design-{len(self.evaluations) + len(evs):04d}")
             ev = {"index": len(self.evaluations) + len(evs), "k": k, "u": [float(x) for x in u],
@@ -234,17 +243,18 @@ class Search:
                     self.resumed += 1
                 elif ev["key"] not in pending:      # the same design twice: screened once
                     pending.add(ev["key"])
-                    todo_screen.append((ev, dec))
+                    todo.append((ev, dec))
             evs.append(ev)
-        results = runner.map([self._job(dec, "screen") for _, dec in todo_screen])
-        for (ev, _), res in zip(todo_screen, results):
+        return evs, [ev for ev, _ in todo], [self._job(dec, "screen") for _, dec in todo]
+
+    def _absorb_screens(self, evs: list[dict], todo: list[dict], results: list[dict]) -> None:
+        for ev, res in zip(todo, results):
             self.cache.setdefault(ev["key"], {})["screen"] = res
             for k, v in res["timings"].items():
                 self.timings[k] = self.timings.get(k, 0.0) + v
         for ev in evs:
             if ev["robot"] is not None:
                 self._apply_screen(ev, self.cache[ev["key"]]["screen"])
-        return evs
 
     @staticmethod
     def _apply_screen(ev: dict, s: dict) -> None:
@@ -260,21 +270,29 @@ class Search:
         # optimistic: the goals' clearance bounds the plans' (planned designs use their own)
         ev["goal_clearance_bin"] = float(math.floor(min(gc) / 0.25) * 0.25) if gc else 0.0
 
-    def _plan_promising(self, runner: Runner, evs: list[dict]) -> None:
+    def _choose(self, evs: list[dict]) -> list[dict]:
+        """The designs of a generation to plan in full (at most ``plans_per_generation``, within
+        the plan budget): the best by the search's ranking that pass the screen for at least
+        as many targets as the best plan so far reached, not planned before."""
         best_reached = max((e["reached"] for e in self.evaluations if e["planned"]), default=0)
-        seen = {e["key"] for e in self.evaluations if e["planned"]}
+        seen = {e["key"] for e in self.evaluations if e.get("chosen")}
         order = sorted((e for e in evs if e["entry_ok"] and e["screen_passed"] > 0
                         and e["screen_passed"] >= best_reached),
                        key=lambda e: (self.search_key(e), -e["index"]), reverse=True)
         chosen = []
         for e in order:
-            if self.planned + len(chosen) >= self.plan_budget or len(chosen) >= self.plans_per_generation:
+            if self.planned >= self.plan_budget or len(chosen) >= self.plans_per_generation:
                 break
             if e["key"] in seen:
                 continue
             seen.add(e["key"])
+            e["chosen"] = True
             chosen.append(e)
-        # one job per (design, target): the pool plans the targets of the designs side by side
+            self.planned += 1
+        return chosen
+
+    def _plan_jobs(self, chosen: list[dict]) -> tuple[list[dict], list[dict]]:
+        """One job per (design, target that passed its screen): the pool plans them side by side."""
         jobs, owners = [], []
         for e in chosen:
             c = self.cache[e["key"]]
@@ -286,8 +304,12 @@ class Search:
             for j in todo or [None]:
                 jobs.append(self._job(dec, "plan", [] if j is None else [j]))
                 owners.append(e)
+        return jobs, owners
+
+    def _absorb_plans(self, chosen: list[dict], jobs: list[dict], owners: list[dict],
+                      results: list[dict]) -> None:
         merged: dict[str, dict] = {}
-        for e, job, res in zip(owners, jobs, runner.map(jobs)):
+        for e, job, res in zip(owners, jobs, results):
             m = merged.get(e["key"])
             if m is None:
                 merged[e["key"]] = res
@@ -305,7 +327,6 @@ class Search:
                 self.timings[k] = self.timings.get(k, 0.0) + v
         for e in chosen:
             self._apply_plans(e, self.cache[e["key"]]["plans"])
-        self.planned += len(chosen)
 
     @staticmethod
     def _apply_plans(e: dict, p: dict) -> None:
@@ -322,12 +343,35 @@ class Search:
             e["binding"].append("stability")
 
     # ------------------------------------------------------------------ main loop
-    def run(self, workers: int = 1, ray_address: str | None = None) -> None:
+    def _generation(self, runner: Runner, cands: list, chosen: list[dict]) -> list[dict]:
+        """Screen the candidates and plan the designs chosen from the generation before, in one
+        batch (the plans overlap the screens on the workers); returns the candidates' records."""
+        evs, todo, sjobs = self._screen_jobs(cands)
+        pjobs, owners = self._plan_jobs(chosen)
+        res = runner.map(sjobs + pjobs)
+        self._absorb_screens(evs, todo, res[:len(sjobs)])
+        self._absorb_plans(chosen, pjobs, owners, res[len(sjobs):])
+        return evs
+
+    def _progress_key(self) -> tuple | None:
+        """More targets reached, or more clearance up to the goal (simpler designs of the same
+        reach and clearance do not count as progress)."""
+        return max(((e["reached"], min(e["clearance_bin"], self.clearance_goal))
+                    for e in self.evaluations if e["planned"]), default=None)
+
+    def run(self, workers: int = 1, ray_address: str | None = None,
+            finish: Callable[[Runner], None] | None = None) -> None:
+        """Search until the budget (a count) is used, the time cap hits, or every target is
+        reached and ``patience`` generations brought no progress. The designs chosen from a
+        generation are planned with the next one's screens; the fitness told to CMA-ES is the
+        screen's (:meth:`fitness`), plans decide the chosen design and when to stop.
+        ``finish(runner)`` runs on the same workers before they stop (the final plans)."""
         t0 = time.perf_counter()
         stale = 0
         best_score = None
         T = len(self.targets)
         strategies = self._strategies() if self.space.k_max else []
+        chosen: list[dict] = []
         with Runner(workers, ray_address) as runner:
             while len(self.evaluations) < self.budget:
                 if time.perf_counter() - t0 > self.time_limit:
@@ -337,14 +381,9 @@ class Search:
                     asked = [(None, [(0, np.zeros(0))])]
                 else:
                     asked = [(st, [(st.k, x) for x in st.ask()]) for st in strategies]
-                cands = [c for _, cs in asked for c in cs]
-                evs = self._evaluate(runner, cands)
-                self._plan_promising(runner, evs)
+                evs = self._generation(runner, [c for _, cs in asked for c in cs], chosen)
                 self.evaluations.extend(evs)
                 self.generations += 1
-                self._save_state()
-                if self.progress is not None:
-                    self.progress(len(evs))
                 i = 0
                 for st, cs in asked:
                     mine = evs[i:i + len(cs)]
@@ -352,19 +391,24 @@ class Search:
                     if st is not None:
                         st.tell([np.array(e["u"]) for e in mine], [self.fitness(e) for e in mine],
                                 self._best_u(st.k))
-                # progress: more targets reached, or more clearance up to the goal (simpler
-                # designs of the same reach and clearance do not hold the search)
-                cur = max(((e["reached"], min(e["clearance_bin"], self.clearance_goal))
-                           for e in self.evaluations if e["planned"]), default=None)
+                chosen = self._choose(evs)
+                self._save_state()
+                if self.progress is not None:
+                    self.progress(len(evs))
+                cur = self._progress_key()
                 if cur is not None and (best_score is None or cur > best_score):
-                    best_score = cur
-                    stale = 0
+                    best_score, stale = cur, 0
                 else:
                     stale += 1
-                if not self.space.k_max:
+                if not self.space.k_max or (best_score is not None and best_score[0] == T
+                                            and stale >= self.patience):
                     break
-                if best_score is not None and best_score[0] == T and stale >= self.patience:
-                    break
+            if chosen:                            # the last generation's choices
+                pjobs, owners = self._plan_jobs(chosen)
+                self._absorb_plans(chosen, pjobs, owners, runner.map(pjobs))
+                self._save_state()
+            if finish is not None:
+                finish(runner)
 
     def _best_u(self, k: int) -> np.ndarray | None:
         mine = [e for e in self.evaluations if e["k"] == k]
