@@ -203,16 +203,18 @@ class Search:
 
     def fitness(self, ev: dict) -> float:
         """What each strategy minimises: an infeasible design ranks last, then a retracted
-        start that collides (graded by how deep), then minus 1000 per target reached
-        (planned) or passing the screen, minus 10 per clearance bin (0.25 mm, up to 1 mm), plus
-        the mean tip error of the screen's IK (each at most 100 mm)."""
+        start that collides (graded by how deep), then the screen's total tip error beyond the
+        tolerance over the targets (each at most 50 mm: a design close to every target beats
+        one that reaches some and misses another by far), less a little for the goals'
+        clearance (up to 1 mm)."""
         if ev.get("robot") is None:
             return 1e6
         if not ev.get("entry_ok", False):
             return 1e5 + 100.0 * max(0.0, -float(ev.get("entry_clearance_mm") or 0.0))
-        count = ev["reached"] if ev.get("planned") else ev["screen_passed"]
-        clear = ev.get("clearance_bin", 0.0) if ev.get("planned") else ev.get("goal_clearance_bin", 0.0)
-        return -1000.0 * count - 10.0 * min(clear, 1.0) + ev["screen_error"] / max(1, len(self.targets))
+        tol = self.settings.screen_tolerance_mm
+        errs = [100.0 if e is None else e for e in ev.get("screen_errors") or []]
+        excess = sum(min(max(e - tol, 0.0), 50.0) for e in errs)
+        return excess - 0.1 * min(ev.get("goal_clearance_bin", 0.0), 1.0)
 
     @staticmethod
     def score(ev: dict) -> tuple:
