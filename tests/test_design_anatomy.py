@@ -144,8 +144,8 @@ def test_blocks_are_named_with_numbers_and_places(bend):
     an, sc = _analyse(bend[0])
     stock = load_stock()
 
-    def why(b=Bounds(), st=stock, margin=0.0):
-        (ans,) = explain(an, b, st, (), 1, margin, 1.0, [], None)
+    def why(b=None, st=stock, margin=0.0):
+        (ans,) = explain(an, b or Bounds(), st, (), 1, margin, 1.0, [], None)
         return ans
 
     assert why()["blocking"] == "search"

@@ -23,7 +23,6 @@ Stages (timed separately, ``timings``):
 
 from __future__ import annotations
 
-import inspect
 import math
 import time
 from dataclasses import dataclass
@@ -166,39 +165,37 @@ def stable_along(robot: Robot, path: np.ndarray, settings: EvalSettings) -> tupl
     return bool(ok.all()), int(len(states))
 
 
-def plan_kwargs(objective: str) -> dict:
-    """Extra keyword arguments for plan_to_target: the path objective, where plan_to_target
-    has one (``first`` in the search loop: cheap; ``clearance`` for the chosen design)."""
-    from ctrplan.planning.plan import plan_to_target
+def plan_target(robot: Robot, scene, target: np.ndarray, settings: EvalSettings, seed: int,
+                objective: str):
+    """The one place design plans: a PlanResult for ``robot`` from the retracted start to
+    ``target`` (scene frame), physics model, the settings' margin, tolerance, state budget and
+    time cap, the path ``objective`` (``first`` in the search, ``clearance`` for the chosen
+    design). A prepared planner shared by every design would replace this body only."""
+    from ctrplan.planning.plan import PlanConfig, plan_to_target
 
-    params = inspect.signature(plan_to_target).parameters
-    return {"objective": objective} if "objective" in params else {}
+    cfg = PlanConfig(max_states=settings.plan_states, margin_mm=settings.margin_mm)
+    return plan_to_target(robot, scene, target, model="physics", seed=seed, time_limit=settings.plan_time_s,
+                          tolerance_mm=settings.tolerance_mm, config=cfg, objective=objective)
 
 
 def plans(robot: Robot, scene, targets_scene: np.ndarray, todo: list[int], settings: EvalSettings,
           seed: int, keep: bool = False, objective: str = "first") -> dict:
-    """Stages 4-5 for the targets ``todo`` (``objective``: the plans' path objective where
-    plan_to_target has one). Returns per target (T lists) ``status``,
+    """Stages 4-5 for the targets ``todo`` (:func:`plan_target` with ``objective``, then the
+    stability check). Returns per target (T lists) ``status``,
     ``reached``, ``clearance_mm`` (conservative: the plans' minimum clearance, planning and
     reference model), ``clearance_estimate_mm`` (FCL's exact minimum where the plan settled it,
     else the distance fields' estimate along the path: what designs are ranked by),
     ``tip_error_mm``, ``stable``; ``results`` (PlanResults,
     only with ``keep``) and ``timings``."""
-    from ctrplan.planning.plan import PlanConfig, plan_to_target
-
     T = len(targets_scene)
     out = {"status": ["NOT_TRIED"] * T, "reached": [False] * T, "clearance_mm": [None] * T,
            "clearance_estimate_mm": [None] * T,
            "tip_error_mm": [None] * T, "stable": [None] * T, "results": [None] * T,
            "stability_states": 0}
     t_plan = t_stab = 0.0
-    cfg = PlanConfig(max_states=settings.plan_states, margin_mm=settings.margin_mm)
-    extra = plan_kwargs(objective)
     for j in todo:
         t0 = time.perf_counter()
-        r = plan_to_target(robot, scene, targets_scene[j], model="physics", seed=seed,
-                           time_limit=settings.plan_time_s, tolerance_mm=settings.tolerance_mm,
-                           config=cfg, **extra)
+        r = plan_target(robot, scene, targets_scene[j], settings, seed, objective)
         t_plan += time.perf_counter() - t0
         out["status"][j] = r.status.value
         if keep:
