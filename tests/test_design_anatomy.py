@@ -67,7 +67,7 @@ def neck(tmp_path_factory):
     return folder, pose
 
 
-def _analyse(folder, tolerance=1.0):
+def _analyse(folder, tolerance=1.0, extra=None):
     from ctrplan.design import resolve_scene, resolve_targets
     from ctrplan.design.anatomy import analyse
     from ctrplan.design.space import load_stock
@@ -75,6 +75,8 @@ def _analyse(folder, tolerance=1.0):
 
     sc = resolve_scene(folder)
     names, pts = resolve_targets(sc, [t.name for t in sc.targets])
+    if extra is not None:                       # more targets (scene frame)
+        names, pts = names + [f"x{i}" for i in range(len(extra))], np.vstack([pts, extra])
     radii = np.array([od / 2 for od, _ in load_stock()])
     return analyse(sc, world_for(sc, 0.0, 0.08), names, pts, radii, tolerance_mm=tolerance), sc
 
@@ -149,6 +151,13 @@ def test_blocks_are_named_with_numbers_and_places(bend):
         return ans
 
     assert why()["blocking"] == "search"
+    # a target 6 mm beside the tail's end, outside the lumen of radius 2.5 mm
+    pose = bend[1]
+    c = bend_centreline(STRAIGHT, BEND_R, math.radians(BEND_DEG), TAIL)
+    out = pose[:3, :3] @ (c[-1] + [0.0, 6.0, 0.0]) + pose[:3, 3]
+    an2, _ = _analyse(bend[0], extra=out[None])
+    (tg,) = [a for a in explain(an2, Bounds(), stock, (), 1, 0.0, 1.0, [], None) if a["target"] == "x0"]
+    assert tg["blocking"] == "target" and 3.0 < tg["numbers"]["gap_mm"] < 4.2, tg
     wide = ((3.0, 2.6), (3.5, 3.1))                          # only tubes wider than the narrowing
     a = why(st=wide)
     assert a["blocking"] == "corridor" and a["kind"] == "necessary"

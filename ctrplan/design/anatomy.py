@@ -436,8 +436,10 @@ def _route(grid: _Grid, scene, name: str, target: np.ndarray, start: tuple, base
            closures: dict) -> Route:
     straight = float(np.linalg.norm(target - base))
     empty = np.zeros((0, 3)), np.zeros(0), np.zeros(0)
-    if len(ends) == 0:
-        return Route(name, target, False, math.inf, 0.0, None, math.nan, straight, (), *empty)
+    if len(ends) == 0:           # the target lies outside the lumen: how far from it
+        free = np.argwhere(grid.d > 0)
+        gap = float(np.min(np.linalg.norm(free * grid.h + grid.origin - target, axis=1))) if len(free) else math.inf
+        return Route(name, target, False, gap, 0.0, None, math.nan, straight, (), *empty)
     near = np.stack(np.unravel_index(ends, grid.d.shape), 1) * grid.h + grid.origin
     gap = 0.0 if grid.at(target[None])[0] > 0 else float(np.linalg.norm(near - target, axis=1).min())
     path = _centreline(grid, start, ends, 0.999 * bottleneck) if bottleneck > 0 else None
