@@ -64,7 +64,8 @@ class DesignConfig:
 
     tubes : the largest number of tubes (1-3; designs with fewer are tried and preferred).
     seed : seeds the search and every plan (same seed, same design).
-    budget : designs screened (a count); plan_budget : designs planned in full (None:
+    budget : designs screened (a count, in whole generations: the last may go past it);
+        plan_budget : designs planned in full (None:
         max(4, min(24, budget // 6))).
     time_limit : wall-clock cap (s); ``time_cap_hit`` when it stopped the search.
     workers : local worker processes (results do not depend on it).
@@ -73,7 +74,8 @@ class DesignConfig:
         instance on this machine with every core; results do not depend on it either.
         Excludes ``workers > 1``. Needs ``pip install 'ctrplan[ray]'``.
     generation : designs per generation (fixed, so results do not depend on ``workers``):
-        the CMA-ES populations of every tube count together, screened in parallel.
+        the CMA-ES populations of every tube count together (at least 4 each), screened in
+        parallel.
     plans_per_generation : designs planned in full per generation at most (their targets are
         planned in parallel).
     derive : search the ranges read from the anatomy (:mod:`ctrplan.design.derive`) inside

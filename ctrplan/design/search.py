@@ -45,6 +45,9 @@ from ctrplan.design.strategy import Strategy
 log = logging.getLogger("ctrplan")
 
 STATE_FILE = "state.json"
+#: The smallest population of one CMA-ES (a generation smaller than this many per tube count
+#: is raised to it).
+MIN_POPSIZE = 4
 
 
 def design_key(robot_dict: dict) -> str:
@@ -182,12 +185,13 @@ class Search:
                 "todo": todo or []}
 
     def _strategies(self) -> list[Strategy]:
-        """One CMA-ES per number of designed tubes, sharing ``generation`` candidates."""
+        """One CMA-ES per number of designed tubes, sharing ``generation`` candidates (at
+        least MIN_POPSIZE each)."""
         ks = list(range(max(1, self.space.k_min), self.space.k_max + 1))
         share = [self.generation // len(ks) + (1 if i < self.generation % len(ks) else 0)
                  for i in range(len(ks))]
         # a start fitted to the anatomy is searched closer around (step 0.15 of each range)
-        return [Strategy(k, self.space.dim, max(2, m), self.seed * 7 + k,
+        return [Strategy(k, self.space.dim, max(MIN_POPSIZE, m), self.seed * 7 + k,
                          self.starts.get(k, np.full(self.space.dim, 0.5)), 0.15 if k in self.starts else 0.3)
                 for k, m in zip(ks, share)]
 
