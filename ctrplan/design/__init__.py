@@ -139,7 +139,10 @@ class DesignConfig:
 @dataclass(frozen=True)
 class TargetOutcome:
     """One target under the chosen design: ``reached`` by a verified, stable, collision-free
-    plan; ``clearance_mm`` (min along the plan, planning and reference model), ``tip_error_mm``
+    plan; ``clearance_mm`` (min along the plan, planning and reference model: a lower bound,
+    0 where the plan's distance queries did not settle it), ``clearance_estimate_mm`` (FCL's
+    minimum where settled, else the distance fields' estimate at the path's states: what
+    designs are ranked by, not a bound), ``tip_error_mm``
     (physics), ``status`` (the plan's, or UNSTABLE / NOT_TRIED), ``plan`` (the PlanResult)."""
 
     name: str
@@ -149,6 +152,7 @@ class TargetOutcome:
     clearance_mm: float
     tip_error_mm: float
     plan: object = None
+    clearance_estimate_mm: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -366,14 +370,17 @@ def _final_plans(search, space, sc, names, pts, cfg, runner):
     robot = decode(space, best["k"], np.array(best["u"]), name=f"design_{sc.name}").robot
     per = runner.map([search.job(robot, "final", [j]) for j in range(len(pts))])
     res = {k: [p[k][j] for j, p in enumerate(per)]
-           for k in ("status", "reached", "clearance_mm", "tip_error_mm", "stable", "results")}
+           for k in ("status", "reached", "clearance_mm", "clearance_estimate_mm", "tip_error_mm", "stable",
+                     "results")}
     outcomes = []
     for j, n in enumerate(names):
         c = res["clearance_mm"][j]
         e = res["tip_error_mm"][j]
+        est = res["clearance_estimate_mm"][j]
         outcomes.append(TargetOutcome(n, pts[j], bool(res["reached"][j]), res["status"][j],
                                       math.nan if c is None else float(c),
-                                      math.nan if e is None else float(e), res["results"][j]))
+                                      math.nan if e is None else float(e), res["results"][j],
+                                      math.nan if est is None else float(est)))
     constraints = constraint_report(robot, cfg.bounds)
     constraints["stability"] = {"satisfied": all(s is not False for s in res["stable"]),
                                 "binds": any(s is False for s in res["stable"]),

@@ -184,7 +184,8 @@ def plans(robot: Robot, scene, targets_scene: np.ndarray, todo: list[int], setti
     stability check). Returns per target (T lists) ``status``,
     ``reached``, ``clearance_mm`` (conservative: the plans' minimum clearance, planning and
     reference model), ``clearance_estimate_mm`` (FCL's exact minimum where the plan settled it,
-    else the distance fields' estimate along the path: what designs are ranked by),
+    else the distance fields' estimate at the path's states, not between them: what designs
+    are ranked by, not a bound),
     ``tip_error_mm``, ``stable``; ``results`` (PlanResults,
     only with ``keep``) and ``timings``."""
     T = len(targets_scene)

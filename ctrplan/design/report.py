@@ -25,7 +25,9 @@ def design_json(result) -> dict:
     for t in result.targets:
         targets.append({"name": t.name, "position": [float(v) for v in t.position],
                         "reached": bool(t.reached), "status": t.status,
-                        "clearance_mm": _num(t.clearance_mm), "tip_error_mm": _num(t.tip_error_mm),
+                        "clearance_mm": _num(t.clearance_mm),
+                        "clearance_estimate_mm": _num(t.clearance_estimate_mm),
+                        "tip_error_mm": _num(t.tip_error_mm),
                         "path_file": f"paths/{t.name}.json" if t.plan is not None else None})
     evals = []
     for e in result.evaluations:
