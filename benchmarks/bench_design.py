@@ -1,19 +1,27 @@
-"""Speed of ``ctrplan design`` on the ``design_bend`` scene.
+"""``ctrplan design``: scaling over workers, and success on anatomies it has never seen.
 
-Reports designs evaluated per second, the share of time in each stage (pre-screen: entry,
-sampled workspace, IK; plans; stability; the final plans of the chosen design; ``driver``: the
-rest of the in-process run's wall time -- decoding, ranking, bookkeeping) and the scaling from 1
-to 2 workers: the same search (same seed, same budget, so the same evaluations and the same
-design) run with ``workers=1``, ``workers=2`` and, when ray is installed, ``ray_address="local"``
-(a local Ray instance with every core: the plan-batch Ray path) in this process, one after the
-other; the ratios are the numbers to read. The 2-worker and Ray runs include starting their
-workers (each imports ctrplan and loads the scene; Ray also starts its own services).
-Stage seconds are summed over the processes that ran them (CPU-side time per stage), so with
-2 workers they can add up to more than the wall time. These machines are shared: the load
-average before and after each run is recorded, and ratios measured under load are noisy.
+Two parts (each writes a JSON file into ``benchmarks/results/``):
+
+``scaling`` -- one search (a generated anatomy, default settings, the same seed) run with 1, 2,
+4 and 8 local workers and on a local Ray instance, one after the other in this process. Budgets
+are counts, so every run evaluates the same designs and returns the same design
+(``same_design_all_runs``). Reports the wall time, the speed-up and the parallel efficiency
+``T1 / (w Tw)`` per worker count, the share of time per stage, and where it ran (CPU model,
+cores, load averages before and after each run). Worker counts above the machine's cores are
+skipped (and said so). Parallel runs include starting their workers.
+
+``anatomies`` -- ``--count`` generated known-feasible anatomies (tests/design_scenes.py: a lumen
+around a known two-tube robot's motions to three targets, fresh seeds from ``--first``) with
+``ctrplan design`` at its defaults: targets reached, every reached plan replayed by the
+independent re-check (tests/foreign/recheck.py: foreign mechanics, exact FCL cylinders), the
+strain of every tube from robot.yaml; and the same anatomies narrowed below the smallest stock
+tube (a neck): what the report names as blocking, and how far its place is from the neck.
+Resumable: each anatomy's row goes to ``--work`` as it finishes; a rerun skips the rows there.
+
 Usage::
 
-    python benchmarks/bench_design.py [--budget N] [--no-ray] [--out benchmarks/results/design.json]
+    python benchmarks/bench_design.py scaling [--workers 1,2,4,8] [--no-ray] [--seed 2100]
+    python benchmarks/bench_design.py anatomies [--count 10] [--first 2000] [--work DIR]
 """
 
 from __future__ import annotations
@@ -21,7 +29,9 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import math
 import os
+import platform
 import sys
 import time
 from pathlib import Path
@@ -29,78 +39,211 @@ from pathlib import Path
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-from ctrplan.design import Bounds, DesignConfig, design  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
-TARGETS = "t01,t02,t03,t04,t05,t06"
+from ctrplan.design import DesignConfig, design  # noqa: E402
+
+RESULTS = Path(__file__).resolve().parent / "results"
+#: Strain limit the designs must keep (DEFAULT_STRAIN_LIMIT; restated, checked by hand).
+STRAIN_LIMIT = 0.06
+#: Smallest stock tube (od, mm) of the shipped table.
+SMALLEST_OD = 0.51
 
 
-def _one(cfg: DesignConfig, label: str) -> tuple[dict, dict | None]:
+def machine() -> dict:
+    """Where it ran: CPU model, cores (logical and usable), OS, Python."""
+    model = ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        model = platform.processor()
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {"cpu_model": model, "cpu_count": os.cpu_count(), "usable_cores": usable,
+            "os": platform.platform(), "python": platform.python_version(),
+            "date": time.strftime("%Y-%m-%d %H:%M")}
+
+
+# ----------------------------------------------------------------------------- scaling
+def _timed(folder: Path, cfg: DesignConfig, label: str) -> tuple[dict, dict | None]:
     load_before = os.getloadavg()[0]
     t0 = time.perf_counter()
-    r = design("design_bend", TARGETS, cfg, progress=False)
+    r = design(folder, "a,b,c", cfg, progress=False)
     wall = time.perf_counter() - t0
     stages = {k: v for k, v in r.timings.items() if k != "total"}
-    total_stage = sum(stages.values())
-    row = {
-        "label": label, "wall_s": wall, "evaluations": r.counts["evaluations"],
-        "planned": r.counts["planned"], "evaluations_per_s": r.counts["evaluations"] / wall,
-        "reached": r.reached, "stage_s": stages,
-        "stage_share": {k: v / total_stage for k, v in stages.items()},
-        "load_average_1min_before": load_before, "load_average_1min_after": os.getloadavg()[0],
-    }
-    if cfg.workers == 1 and cfg.ray_address is None:
-        # in-process: the stages and the driver's own work add up to the wall time
-        row["wall_share"] = {**{k: v / wall for k, v in stages.items()},
-                             "driver": max(0.0, wall - total_stage) / wall}
+    row = {"label": label, "wall_s": wall, "evaluations": r.counts["evaluations"],
+           "generations": r.counts.get("generations"), "planned": r.counts["planned"],
+           "reached": r.reached, "stage_s": stages,
+           "load_average_1min_before": load_before, "load_average_1min_after": os.getloadavg()[0]}
     return row, (r.robot.to_dict() if r.robot is not None else None)
 
 
-def run(budget: int = 96, use_ray: bool = True) -> dict:
-    cfg = DesignConfig(tubes=1, budget=budget, generation=8,
-                       bounds=Bounds(curvature=(0.0, 0.06), curved_length=(10.0, 100.0),
-                                     straight_length=(20.0, 120.0)))
-    design("design_bend", "t01", DesignConfig(tubes=1, budget=1, generation=1), progress=False)  # warm-up
-    out: dict = {"scene": "design_bend", "targets": TARGETS, "budget": budget, "runs": {},
-                 "cpu_count": os.cpu_count()}
+def scaling(workers: list[int], use_ray: bool, seed: int, work: Path) -> dict:
+    from tests.design_scenes import build
+
+    folder = work / f"known_{seed}"
+    build(seed, folder)
+    design(folder, "a", DesignConfig(budget=2, generation=2), progress=False)     # warm-up: field, numba
+    cores = machine()["usable_cores"] or 1
+    out: dict = {"anatomy_seed": seed, "machine": machine(), "runs": {}, "skipped": []}
     robots = {}
-    variants = [("1", {"workers": 1}), ("2", {"workers": 2})]
+    for w in workers:
+        if w > cores:
+            out["skipped"].append(f"{w} workers: only {cores} usable cores here")
+            continue
+        row, robots[str(w)] = _timed(folder, DesignConfig(workers=w), str(w))
+        out["runs"][str(w)] = row
     if use_ray and importlib.util.find_spec("ray") is not None:
-        variants.append(("ray_local", {"ray_address": "local"}))
-    for label, extra in variants:
-        row, robots[label] = _one(DesignConfig(**{**cfg.__dict__, **extra}), label)
-        out["runs"][label] = row
-    wall1 = out["runs"]["1"]["wall_s"]
-    out["speedup_2_over_1"] = wall1 / out["runs"]["2"]["wall_s"]
-    if "ray_local" in out["runs"]:
-        out["speedup_ray_local_over_1"] = wall1 / out["runs"]["ray_local"]["wall_s"]
-    out["same_design_all_runs"] = all(r == robots["1"] for r in robots.values())
-    out["notes"] = (
-        "Measured on a shared machine (cpu_count cores, other jobs running: see the load "
-        "averages); wall-time ratios between runs are noisy and say little beyond their sign at "
-        "this budget. Parallel runs include starting their workers (spawned processes / a local "
-        "Ray instance), which this small search does not amortise: each generation plans at most "
-        "two designs, so the parallel share of the work is small. stage_s is summed over the "
-        "processes that ran each stage. Budgets are counts, so every run evaluates the same "
-        "designs and returns the same design (same_design_all_runs).")
+        row, robots["ray_local"] = _timed(folder, DesignConfig(ray_address="local"), "ray_local")
+        out["runs"]["ray_local"] = row
+    t1 = out["runs"].get("1", {}).get("wall_s")
+    for key, row in out["runs"].items():
+        w = cores if key == "ray_local" else int(key)
+        if t1:
+            row["speedup"] = t1 / row["wall_s"]
+            row["parallel_efficiency"] = t1 / (w * row["wall_s"])
+    out["same_design_all_runs"] = len({json.dumps(r, sort_keys=True) for r in robots.values()}) == 1
     return out
+
+
+# ----------------------------------------------------------------------------- anatomies
+def _recheck(out: Path, folder: Path, robot_yaml: Path) -> dict:
+    """Every reached target's plan replayed by the independent re-check."""
+    from tests.foreign.recheck import recheck_path
+
+    doc = json.loads((out / "design.json").read_text())
+    rows = {}
+    for t in doc["targets"]:
+        if not t["reached"]:
+            continue
+        plan = json.loads((out / t["path_file"]).read_text())
+        rep = recheck_path(str(robot_yaml), str(folder), plan["path"], distances=False)
+        rows[t["name"]] = {"free": rep.free, "states": int(len(rep.edge))}
+    return rows
+
+
+def _strain(robot_yaml: Path) -> float:
+    import yaml
+
+    tubes = yaml.safe_load(robot_yaml.read_text())["tubes"]
+    return max(t["od"] / 2 * abs(t["curvature"]) for t in tubes)
+
+
+def feasible_row(seed: int, work: Path) -> dict:
+    """One known-feasible anatomy: ``ctrplan design`` at its defaults, plans re-checked."""
+    from ctrplan.cli import main
+    from tests.design_scenes import build
+
+    folder = work / f"known_{seed}"
+    t0 = time.perf_counter()
+    ks = build(seed, folder)
+    t_build = time.perf_counter() - t0
+    out = work / f"design_{seed}"
+    t0 = time.perf_counter()
+    rc = main(["-q", "design", "--scene", str(folder), "--targets", ",".join(ks.names), "--out", str(out)])
+    t_design = time.perf_counter() - t0
+    doc = json.loads((out / "design.json").read_text())
+    row = {"seed": seed, "rc": rc, "reached": doc["reached"], "targets": doc["targets_total"],
+           "status": doc["status"], "build_s": t_build, "design_s": t_design,
+           "evaluations": doc["counts"]["evaluations"], "planned": doc["counts"]["planned"],
+           "known_robot": ks.robot["tubes"], "blocked": [(b["target"], b["blocking"]) for b in doc["blocked"]]}
+    if doc["robot"] is not None:
+        row["robot"] = doc["robot"]["tubes"]
+        row["strain"] = _strain(out / "robot.yaml")
+        row["recheck"] = _recheck(out, folder, out / "robot.yaml")
+    row["ok"] = (doc["reached"] >= math.ceil(2 * doc["targets_total"] / 3)
+                 and all(v["free"] for v in row.get("recheck", {}).values())
+                 and row.get("strain", 0.0) <= STRAIN_LIMIT + 1e-12)
+    return row
+
+
+def infeasible_row(seed: int, work: Path) -> dict:
+    """The same anatomy with a neck below the smallest stock tube: what blocks each target and
+    how far the named place is from the neck (base frame)."""
+    import numpy as np
+
+    from ctrplan.cli import main
+    from tests.design_scenes import build
+
+    folder = work / f"neck_{seed}"
+    ks = build(seed, folder, infeasible=True)
+    out = work / f"design_neck_{seed}"
+    t0 = time.perf_counter()
+    rc = main(["-q", "design", "--scene", str(folder), "--targets", ",".join(ks.names), "--out", str(out)])
+    t_design = time.perf_counter() - t0
+    doc = json.loads((out / "design.json").read_text())
+    named = []
+    for b in doc["blocked"]:
+        place = b.get("place") or {}
+        dist = (float(np.linalg.norm(np.asarray(place["position"]) - ks.neck_centre))
+                if place.get("position") is not None else None)
+        named.append({"target": b["target"], "blocking": b["blocking"], "kind": b["kind"],
+                      "width_mm": b["numbers"].get("width_mm"), "at_mm": place.get("at_mm"),
+                      "distance_to_neck_mm": dist, "message": b["message"]})
+    ok = (rc == 1 and len(named) == len(ks.names)
+          and all(n["blocking"] == "corridor" and n["distance_to_neck_mm"] is not None
+                  and n["distance_to_neck_mm"] <= 2.5 and (n["width_mm"] or 0.0) < SMALLEST_OD
+                  for n in named))
+    return {"seed": seed, "rc": rc, "status": doc["status"], "neck_depth_mm": ks.neck_depth_mm,
+            "design_s": t_design, "named": named, "ok": ok}
+
+
+def anatomies(count: int, first: int, work: Path) -> dict:
+    work.mkdir(parents=True, exist_ok=True)
+    rows = {"feasible": [], "infeasible": []}
+    for seed in range(first, first + count):
+        for kind, fn in (("feasible", feasible_row), ("infeasible", infeasible_row)):
+            done = work / f"{kind}_{seed}.json"
+            if done.is_file():
+                rows[kind].append(json.loads(done.read_text()))
+                continue
+            row = fn(seed, work)
+            done.write_text(json.dumps(row, indent=1, default=str) + "\n")
+            rows[kind].append(row)
+            print(f"{kind} {seed}: ok={row['ok']}", flush=True)
+    f, n = rows["feasible"], rows["infeasible"]
+    return {"machine": machine(), "seeds": [first, first + count - 1],
+            "feasible_ok": sum(r["ok"] for r in f), "feasible_total": len(f),
+            "feasible_share": sum(r["ok"] for r in f) / max(1, len(f)),
+            "plans_rechecked": sum(len(r.get("recheck", {})) for r in f),
+            "plans_free": sum(v["free"] for r in f for v in r.get("recheck", {}).values()),
+            "infeasible_named": sum(r["ok"] for r in n), "infeasible_total": len(n),
+            "design_s_median": sorted(r["design_s"] for r in f)[len(f) // 2] if f else None,
+            "rows": rows}
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--budget", type=int, default=96)
-    ap.add_argument("--no-ray", action="store_true", help="skip the local Ray run")
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "design.json"))
+    sub = ap.add_subparsers(dest="part", required=True)
+    s = sub.add_parser("scaling")
+    s.add_argument("--workers", default="1,2,4,8")
+    s.add_argument("--no-ray", action="store_true")
+    s.add_argument("--seed", type=int, default=2100, help="the anatomy's seed")
+    s.add_argument("--work", default="/tmp/ctrplan_bench_design")
+    s.add_argument("--out", default=str(RESULTS / "design_scaling.json"))
+    a = sub.add_parser("anatomies")
+    a.add_argument("--count", type=int, default=10)
+    a.add_argument("--first", type=int, default=2000)
+    a.add_argument("--work", default="/tmp/ctrplan_bench_design")
+    a.add_argument("--out", default=str(RESULTS / "design_generated.json"))
     args = ap.parse_args(argv)
-    res = run(args.budget, use_ray=not args.no_ray)
-    Path(args.out).write_text(json.dumps(res, indent=1) + "\n", encoding="utf-8")
-    for w, r in res["runs"].items():
-        share = ", ".join(f"{k} {100 * v:.0f}%" for k, v in r["stage_share"].items())
-        print(f"workers {w}: {r['evaluations']} designs in {r['wall_s']:.1f} s "
-              f"({r['evaluations_per_s']:.2f}/s), {r['reached']} targets reached; {share}")
-    ray = (f", Ray local / 1 worker: {res['speedup_ray_local_over_1']:.2f}x"
-           if "speedup_ray_local_over_1" in res else "")
-    print(f"2 workers / 1 worker speed-up: {res['speedup_2_over_1']:.2f}x{ray}; "
-          f"same design in every run: {res['same_design_all_runs']}")
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    if args.part == "scaling":
+        res = scaling([int(w) for w in args.workers.split(",")], not args.no_ray, args.seed, work)
+        for k, r in res["runs"].items():
+            eff = f", efficiency {r['parallel_efficiency']:.2f}" if "parallel_efficiency" in r else ""
+            print(f"{k}: {r['wall_s']:.1f} s, {r['evaluations']} designs, {r['reached']} reached{eff}")
+        print(f"same design in every run: {res['same_design_all_runs']}; {res['machine']}")
+    else:
+        res = anatomies(args.count, args.first, work)
+        print(f"known-feasible: {res['feasible_ok']}/{res['feasible_total']} reach >= 2/3 with every plan "
+              f"free in the re-check ({res['plans_free']}/{res['plans_rechecked']} plans); infeasible: "
+              f"{res['infeasible_named']}/{res['infeasible_total']} name the neck")
+    Path(args.out).write_text(json.dumps(res, indent=1, default=str) + "\n", encoding="utf-8")
     return 0
 
 

@@ -139,7 +139,7 @@ def test_the_construction_reaches_every_target(scene):
         assert r.success, (t.name, r.status)
 
 
-QUICK = DesignConfig(tubes=1, budget=32, generation=8,
+QUICK = DesignConfig(tubes=1, budget=48, generation=8,
                      bounds=Bounds(curvature=(0.0, 0.06), curved_length=(10.0, 100.0),
                                    straight_length=(20.0, 120.0)))
 
@@ -180,7 +180,7 @@ def test_rerun_resumes_from_the_state_file_with_the_same_design(quick, tmp_path)
     assert (tmp_path / "r.yaml").read_bytes() == (out / "robot.yaml").read_bytes()
 
 
-QUICK_CLI = ["--tubes", "1", "--budget", "32", "--curvature", "0,0.06", "--curved-length", "10,100",
+QUICK_CLI = ["--tubes", "1", "--budget", "48", "--generation", "8", "--curvature", "0,0.06", "--curved-length", "10,100",
              "--straight-length", "20,120"]   # QUICK on the command line
 
 

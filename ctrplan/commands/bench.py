@@ -354,8 +354,26 @@ def _m_real_robot(flow: str):
     return f
 
 
+def _m_design_generated(res: Path) -> str | None:
+    d = _load(res / "design_generated.json")
+    if not d:
+        return None
+    return (f"{d['feasible_ok']}/{d['feasible_total']} anatomies (seeds {d['seeds'][0]}-{d['seeds'][1]}); "
+            f"{d['plans_free']}/{d['plans_rechecked']} plans free in the re-check "
+            "(`design_generated.json`)")
+
+
+def _m_design_infeasible(res: Path) -> str | None:
+    d = _load(res / "design_generated.json")
+    if not d:
+        return None
+    return f"{d['infeasible_named']}/{d['infeasible_total']} anatomies (`design_generated.json`)"
+
+
 #: claim ``measured`` key -> its value as text, computed from the JSON in benchmarks/results/
 MEASURED = {
+    "design_generated": _m_design_generated,
+    "design_infeasible": _m_design_infeasible,
     "learned_foreign_best_gain": _m_learned_foreign_best_gain,
     "learned_foreign_auto_ratio": _m_learned_foreign_auto_ratio,
     "hard_rrtconnect_success": _m_hard_rrtconnect_success,

@@ -11,7 +11,10 @@ from ctrplan.commands._vocab import DEFAULT_OUT
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "design", help="design a tube set that reaches the targets of a scene",
-        description="Search tube curvatures, curved and straight lengths and stock sizes for the "
+        description="Read the anatomy first (the corridor from the entry to each target: widths, "
+                    "bends, the room the retracted robot has at the entry) and derive the ranges to "
+                    "search from it; then search tube curvatures, curved and straight lengths and "
+                    "stock sizes (CMA-ES populations of 16 designs per generation) for the "
                     "design that reaches the most targets by a verified collision-free, elastically "
                     "stable plan from the scene's entry, then has the most clearance, then is the "
                     "simplest. Writes OUT/robot.yaml (loads in every command), OUT/design.json, "
@@ -21,7 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "(--workers K) or on Ray (--ray ADDRESS, 'local' starts a Ray instance here; "
                     "the same Ray path as plan-batch). Budgets are counts, so a seed gives the same "
                     "design on any load, number of workers or Ray; --time is a cap. Exit 0 when every target is "
-                    "reached, 1 otherwise, 2 for bad input.")
+                    "reached, 1 otherwise, 2 for bad input. For each target not reached the output "
+                    "says what blocks it, where, and which single constraint to relax.")
     p.add_argument("--scene", required=True, help="shipped scene name (or design_bend) or scene folder")
     p.add_argument("--targets", required=True,
                    help="comma-separated names of the scene's targets, or a CSV (x,y,z[,name], mm, scene frame)")
@@ -31,6 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=SEED, default=0, help="random seed (default 0)")
     p.add_argument("--budget", type=int_arg(1, 10_000_000), default=400,
                    help="designs screened (default 400; at most 24 of them are planned in full)")
+    p.add_argument("--generation", type=int_arg(2, 100_000), default=16,
+                   help="designs per generation, screened in parallel (default 16; the same on any "
+                        "number of workers)")
     p.add_argument("--time", type=POSITIVE, default=1200.0, help="wall-clock cap, s (default 1200)")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=WORKERS, default=1, help="local worker processes (default 1)")
@@ -47,6 +54,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--curved-length", default=None, metavar="MIN,MAX", help="curved length bounds, mm (default 5,150)")
     p.add_argument("--straight-length", default=None, metavar="MIN,MAX",
                    help="straight length bounds, mm (default 10,300)")
+    p.add_argument("--no-derive", dest="derive", action="store_false",
+                   help="search the bounds as given instead of the ranges derived from the anatomy "
+                        "(corridor widths, bends and the room at the entry)")
     p.add_argument("--stock", default=None, help="CSV of stock tube sizes (od_mm,id_mm); default the shipped table")
     p.add_argument("--out", default=DEFAULT_OUT["design"], help=f"output folder (default {DEFAULT_OUT['design']})")
     p.set_defaults(func=run)
@@ -90,13 +100,19 @@ def run(args: argparse.Namespace) -> int:
         if v is not None:
             b = replace(b, **{attr: float(v)})
     cfg = DesignConfig(tubes=args.tubes, seed=args.seed, budget=args.budget, time_limit=args.time,
-                       workers=args.workers, ray_address=args.ray, bounds=b, stock=args.stock)
+                       generation=args.generation,
+                       workers=args.workers, ray_address=args.ray, bounds=b, stock=args.stock,
+                       derive=args.derive)
     result = design(args.scene, args.targets, cfg, start_from=args.start_from, out=out)
     write_outputs(result, out)
     print(f"{result.message} ({result.status.value}); binding: {', '.join(result.binding) or 'none'}")
+    from ctrplan.design.explain import summary_line
+
     for t in result.targets:
         c = f"{t.clearance_mm:.2f} mm" if t.reached else "-"
         print(f"  {t.name}: {'reached' if t.reached else t.status}, clearance {c}")
+    for b in result.blocked:
+        print("  " + summary_line(b))
     written = ([out / "robot.yaml"] if result.robot is not None else []) + [out / "design.json", out / "report.md"]
     print("wrote " + ", ".join(str(p) for p in written))
     return 0 if result.success else 1

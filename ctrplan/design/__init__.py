@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
 import os
 import sys
@@ -43,6 +44,8 @@ from ctrplan.design.space import (
 from ctrplan.errors import InputError
 from ctrplan.robot import Robot
 
+log = logging.getLogger("ctrplan")
+
 __all__ = ["DEFAULT_STRAIN_LIMIT", "Bounds", "DesignConfig", "DesignResult", "DesignStatus", "TargetOutcome", "design", "resolve_scene",
            "resolve_targets"]
 
@@ -61,7 +64,8 @@ class DesignConfig:
 
     tubes : the largest number of tubes (1-3; designs with fewer are tried and preferred).
     seed : seeds the search and every plan (same seed, same design).
-    budget : designs screened (a count); plan_budget : designs planned in full (None:
+    budget : designs screened (a count, in whole generations: the last may go past it);
+        plan_budget : designs planned in full (None:
         max(4, min(24, budget // 6))).
     time_limit : wall-clock cap (s); ``time_cap_hit`` when it stopped the search.
     workers : local worker processes (results do not depend on it).
@@ -69,9 +73,16 @@ class DesignConfig:
         :mod:`ctrplan.planning.ray_pool`): a cluster address, or ``"local"`` to start a Ray
         instance on this machine with every core; results do not depend on it either.
         Excludes ``workers > 1``. Needs ``pip install 'ctrplan[ray]'``.
-    generation : designs per generation (fixed, so results do not depend on ``workers``).
-    patience : generations without improvement before stopping once every target is reached
-        with at least ``clearance_goal_mm`` of clearance.
+    generation : designs per generation (fixed, so results do not depend on ``workers``):
+        the CMA-ES populations of every tube count together (at least 4 each), screened in
+        parallel.
+    plans_per_generation : designs planned in full per generation at most (their targets are
+        planned in parallel).
+    derive : search the ranges read from the anatomy (:mod:`ctrplan.design.derive`) inside
+        ``bounds``; False searches ``bounds`` as they are.
+    patience : once every target is reached, the search stops after this many generations
+        without more clearance (up to ``clearance_goal_mm``; the estimate along the plans);
+        simpler designs of the same reach and clearance do not hold it.
     bounds : design-variable bounds and constraint limits (:class:`~ctrplan.design.space.Bounds`;
         ``strain_limit`` default 6 %, see :data:`~ctrplan.design.space.DEFAULT_STRAIN_LIMIT`).
     stock : a CSV of stock tube sizes (od_mm,id_mm), None for the shipped table.
@@ -89,7 +100,9 @@ class DesignConfig:
     time_limit: float = 1200.0
     workers: int = 1
     ray_address: str | None = None
-    generation: int = 8
+    generation: int = 16
+    plans_per_generation: int = 2
+    derive: bool = True
     patience: int = 3
     clearance_goal_mm: float = 0.5
     bounds: Bounds = field(default_factory=Bounds)
@@ -103,7 +116,8 @@ class DesignConfig:
     stability_step_rad: float = 0.02
 
     def __post_init__(self) -> None:
-        for name in ("budget", "generation", "screen_samples", "plan_states", "workers"):
+        for name in ("budget", "generation", "screen_samples", "plan_states", "workers",
+                     "plans_per_generation"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise InputError(f"--{name.replace('_', '-')}", "", f"must be an integer >= 1, got {v!r}")
@@ -125,7 +139,10 @@ class DesignConfig:
 @dataclass(frozen=True)
 class TargetOutcome:
     """One target under the chosen design: ``reached`` by a verified, stable, collision-free
-    plan; ``clearance_mm`` (min along the plan, planning and reference model), ``tip_error_mm``
+    plan; ``clearance_mm`` (min along the plan, planning and reference model: a lower bound,
+    0 where the plan's distance queries did not settle it), ``clearance_estimate_mm`` (FCL's
+    minimum where settled, else the distance fields' estimate at the path's states: what
+    designs are ranked by, not a bound), ``tip_error_mm``
     (physics), ``status`` (the plan's, or UNSTABLE / NOT_TRIED), ``plan`` (the PlanResult)."""
 
     name: str
@@ -135,6 +152,7 @@ class TargetOutcome:
     clearance_mm: float
     tip_error_mm: float
     plan: object = None
+    clearance_estimate_mm: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -145,6 +163,10 @@ class DesignResult:
     feasible). targets : per target outcome. evaluations : every design evaluated (dicts as in
     design.json). binding : hard constraints that bind at the chosen design. constraints :
     each constraint's value, limit, satisfied, binds. timings : seconds per stage.
+    anatomy : the anatomy read before the search (:meth:`Anatomy.to_json`); space : the design
+    space derived from it (None with ``derive=False``); blocked : per target not reached, what
+    blocks it (:func:`ctrplan.design.explain.explain`); closest : the closest design found (the
+    best by the search's ranking; with ``robot`` None, the only design there is to show).
     """
 
     success: bool
@@ -161,6 +183,10 @@ class DesignResult:
     scene: str
     time_cap_hit: bool = False
     config: DesignConfig = field(default_factory=DesignConfig)
+    anatomy: dict | None = None
+    space: dict | None = None
+    blocked: tuple[dict, ...] = ()
+    closest: dict | None = None
 
     @property
     def reached(self) -> int:
@@ -218,6 +244,40 @@ def _state_key(scene, names, pts, cfg: DesignConfig, fixed) -> str:
     return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()
 
 
+def _starts(space, anatomy, scene):
+    """The arc fitted to the corridors (:func:`ctrplan.design.seed.fit_arc`) and the search's
+    start point per number of designed tubes (the cube's centre without derived ranges)."""
+    from ctrplan.design.seed import fit_arc, start_point
+
+    if space.derived is None or not space.k_max:
+        return None, {}
+    r = space.derived.inner
+    fit = fit_arc(anatomy, np.asarray(scene.base_pose, float), space.stock[r.sizes[0]][0] / 2,
+                  r.curvature, r.curved_length)
+    return fit, {k: start_point(space, k, fit) for k in range(max(1, space.k_min), space.k_max + 1)}
+
+
+def _ruled_out(anatomy, cfg: DesignConfig, stock, fixed, designed: int) -> bool:
+    """Whether a necessary condition (:mod:`ctrplan.design.explain`) fails for every target."""
+    from ctrplan.design.explain import explain
+
+    pre = explain(anatomy, cfg.bounds, stock, fixed, designed, cfg.margin_mm or 0.0, cfg.tolerance_mm, [], None)
+    return bool(pre) and all(b["kind"] == "necessary" for b in pre)
+
+
+def read_anatomy(scene, names, pts: np.ndarray, cfg: DesignConfig, stock, curvature_bound: float):
+    """The anatomy read (:func:`ctrplan.design.anatomy.analyse`) and the design space derived
+    from it (:func:`ctrplan.design.derive.derive`) for ``cfg``'s bounds."""
+    from ctrplan.design.anatomy import analyse
+    from ctrplan.design.derive import derive
+    from ctrplan.planning.plan import world_for
+
+    world = world_for(scene, 0.0, curvature_bound)      # only its distance fields are used
+    radii = np.array([od / 2 for od, _ in stock])
+    anatomy = analyse(scene, world, names, pts, radii, tolerance_mm=cfg.tolerance_mm)
+    return anatomy, derive(anatomy, cfg.bounds, stock, margin_mm=cfg.margin_mm or 0.0)
+
+
 def design(scene, targets, config: DesignConfig | None = None, start_from: Robot | str | None = None,
            out: str | os.PathLike | None = None, progress: bool = True) -> DesignResult:
     """Design a tube set for ``scene`` and ``targets``.
@@ -240,9 +300,8 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
         ``start_from`` robot beyond the strain limit.
     """
     from ctrplan import progress as _progress
-    from ctrplan.design.evaluate import EvalSettings, plans
+    from ctrplan.design.evaluate import EvalSettings
     from ctrplan.design.search import STATE_FILE, Search
-    from ctrplan.design.space import decode
     from ctrplan.robot import load_robot
 
     cfg = config or DesignConfig()
@@ -259,8 +318,13 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
         fr = load_robot(start_from)
         fixed, src = fr.tubes, str(fr.source if fr.source != "<memory>" else "--from")
     stock = load_stock(cfg.stock)
-    space = make_space(cfg.bounds, stock, fixed, cfg.tubes, source=src)
+    make_space(cfg.bounds, stock, fixed, cfg.tubes, source=src)      # bad bounds: before any work
     kbound = max([cfg.bounds.curvature[1]] + [abs(t.curvature) for t in fixed])
+    t_an = time.perf_counter()
+    anatomy, derived = read_anatomy(sc, names, pts, cfg, stock, kbound)
+    space = make_space(cfg.bounds, stock, fixed, cfg.tubes, source=src,
+                       derived=derived if cfg.derive else None)
+    t_an = time.perf_counter() - t_an
     settings = EvalSettings(screen_samples=cfg.screen_samples, tolerance_mm=cfg.tolerance_mm,
                             margin_mm=cfg.margin_mm, plan_time_s=cfg.plan_time_s,
                             plan_states=cfg.plan_states, stability_step_mm=cfg.stability_step_mm,
@@ -270,56 +334,103 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
     state_path = Path(out) / STATE_FILE if out is not None else None
     if state_path is not None:
         state_path.parent.mkdir(parents=True, exist_ok=True)
-    bar = _progress.bar(total=cfg.budget, desc="design", unit="design", disable=not progress)
-    search = Search(space, str(sc.path), pts, settings, cfg.seed, cfg.budget, plan_budget,
+    budget = cfg.budget
+    if _ruled_out(anatomy, cfg, stock, fixed, space.k_max):
+        # the anatomy rules out every target: one generation, to show the closest design
+        budget = min(budget, cfg.generation)
+        log.info("the anatomy rules out every target; searching one generation only")
+    bar = _progress.bar(total=budget, desc="design", unit="design", disable=not progress)
+    fit, starts = _starts(space, anatomy, sc)
+    search = Search(space, str(sc.path), pts, settings, cfg.seed, budget, plan_budget,
                     cfg.generation, cfg.patience, cfg.time_limit, state_path, cfg.clearance_goal_mm,
-                    _state_key(sc, names, pts, cfg, fixed), progress=bar.update)
+                    _state_key(sc, names, pts, cfg, fixed), progress=bar.update,
+                    plans_per_generation=cfg.plans_per_generation, starts=starts)
+    final: dict = {}
+
+    def finish(runner) -> None:
+        t = time.perf_counter()
+        final["out"] = _final_plans(search, space, sc, names, pts, cfg, runner)
+        final["s"] = time.perf_counter() - t
+
     try:
-        search.run(cfg.workers, cfg.ray_address)
+        search.run(cfg.workers, cfg.ray_address, finish=finish)
     finally:
         bar.close()
+    return _finish(search, space, sc, names, pts, cfg, final, fixed, stock, anatomy, t0, t_an)
+
+
+def _final_plans(search, space, sc, names, pts, cfg, runner):
+    """The chosen design, its plans per target (clearance objective; one job per target on
+    the search's workers), its constraints."""
+    from ctrplan.design.space import decode
+
     best = search.best()
-    outcomes: list[TargetOutcome] = []
-    robot = None
-    binding: tuple[str, ...] = ()
-    constraints: dict = {}
-    t_final = time.perf_counter()
-    if best is not None:
-        robot = decode(space, best["k"], np.array(best["u"]), name=f"design_{sc.name}").robot
-        todo = list(range(len(pts)))
-        res = plans(robot, sc, pts, todo, settings, cfg.seed, keep=True, objective="clearance")
-        for j, n in enumerate(names):
-            c = res["clearance_mm"][j]
-            e = res["tip_error_mm"][j]
-            outcomes.append(TargetOutcome(n, pts[j], bool(res["reached"][j]), res["status"][j],
-                                          math.nan if c is None else float(c),
-                                          math.nan if e is None else float(e), res["results"][j]))
-        constraints = constraint_report(robot, cfg.bounds)
-        constraints["stability"] = {"satisfied": all(s is not False for s in res["stable"]),
-                                    "binds": any(s is False for s in res["stable"]),
-                                    "states_checked": res["stability_states"]}
-        constraints["entry"] = {"satisfied": True, "binds": False}
-        binding = tuple(k for k, v in constraints.items() if v["binds"])
+    if best is None:
+        return None, [], (), {}
+    robot = decode(space, best["k"], np.array(best["u"]), name=f"design_{sc.name}").robot
+    per = runner.map([search.job(robot, "final", [j]) for j in range(len(pts))])
+    res = {k: [p[k][j] for j, p in enumerate(per)]
+           for k in ("status", "reached", "clearance_mm", "clearance_estimate_mm", "tip_error_mm", "stable",
+                     "results")}
+    outcomes = []
+    for j, n in enumerate(names):
+        c = res["clearance_mm"][j]
+        e = res["tip_error_mm"][j]
+        est = res["clearance_estimate_mm"][j]
+        outcomes.append(TargetOutcome(n, pts[j], bool(res["reached"][j]), res["status"][j],
+                                      math.nan if c is None else float(c),
+                                      math.nan if e is None else float(e), res["results"][j],
+                                      math.nan if est is None else float(est)))
+    constraints = constraint_report(robot, cfg.bounds)
+    constraints["stability"] = {"satisfied": all(s is not False for s in res["stable"]),
+                                "binds": any(s is False for s in res["stable"]),
+                                "states_checked": int(sum(p["stability_states"] for p in per))}
+    constraints["entry"] = {"satisfied": True, "binds": False}
+    binding = tuple(k for k, v in constraints.items() if v["binds"])
+    return robot, outcomes, binding, constraints
+
+
+def _closest_json(ev: dict | None) -> dict | None:
+    if ev is None:
+        return None
+    keys = ("index", "k", "robot", "parameters", "entry_ok", "entry_clearance_mm", "screen_passed",
+            "screen_errors", "planned", "reached", "binding")
+    out = {k: ev.get(k) for k in keys}
+    out["tubes"] = out.pop("k")
+    out["screen_errors_mm"] = out.pop("screen_errors")
+    return out
+
+
+def _finish(search, space, sc, names, pts, cfg, final, fixed, stock, anatomy, t0, t_an) -> DesignResult:
+    from ctrplan.design.explain import explain
+
+    robot, outcomes, binding, constraints = final.get("out", (None, [], (), {}))
     reached = sum(o.reached for o in outcomes)
     status = (DesignStatus.ALL_REACHED if outcomes and reached == len(outcomes)
               else DesignStatus.PARTIAL if reached else DesignStatus.NONE_REACHED)
-    timings = dict(search.timings)
-    timings["final_plans"] = time.perf_counter() - t_final
+    timings = {"anatomy": t_an, **search.timings}
+    timings["final_plans"] = final.get("s", 0.0)
+    blocked = explain(anatomy, cfg.bounds, stock, fixed, space.k_max, cfg.margin_mm or 0.0,
+                      cfg.tolerance_mm, search.evaluations, outcomes or None)
     timings["total"] = time.perf_counter() - t0
     counts = {"evaluations": len(search.evaluations), "planned": search.planned,
-              "resumed": search.resumed, "targets": len(pts)}
+              "resumed": search.resumed, "targets": len(pts), "generations": search.generations}
     if robot is not None:
         msg = f"{reached}/{len(pts)} targets reached by a {robot.n}-tube design"
     else:
+        msg = f"0/{len(pts)} targets reached: no design was planned with success"
+    if blocked:
         from collections import Counter
 
-        why = Counter(b for e in search.evaluations for b in set(e["binding"])).most_common(2)
-        msg = (f"0/{len(pts)} targets reached: no design passed the screen"
-               + (f" (most often bound by: {', '.join(k for k, _ in why)})" if why else ""))
+        why = Counter(b["blocking"] for b in blocked)
+        msg += " (not reached: " + ", ".join(f"{n} by {k}" for k, n in why.most_common()) + ")"
     return DesignResult(success=status is DesignStatus.ALL_REACHED, status=status, message=msg,
                         robot=robot, targets=tuple(outcomes), evaluations=tuple(search.evaluations),
                         binding=binding, constraints=constraints, timings=timings, counts=counts,
-                        seed=cfg.seed, scene=str(sc.path), time_cap_hit=search.time_cap_hit, config=cfg)
+                        seed=cfg.seed, scene=str(sc.path), time_cap_hit=search.time_cap_hit, config=cfg,
+                        anatomy=anatomy.to_json(),
+                        space=None if space.derived is None else space.derived.to_json(stock),
+                        blocked=tuple(blocked), closest=_closest_json(search.closest()))
 
 
 class _CallableModule(types.ModuleType):

@@ -23,7 +23,6 @@ Stages (timed separately, ``timings``):
 
 from __future__ import annotations
 
-import inspect
 import math
 import time
 from dataclasses import dataclass
@@ -76,7 +75,8 @@ def _shape(model, q, points):
 
 def screen(robot: Robot, scene, world, targets_base: np.ndarray, settings: EvalSettings,
            seed: int) -> dict:
-    """Stages 1-3. Returns ``entry_ok``, ``errors`` (T,) mm (None: nothing free near),
+    """Stages 1-3. Returns ``entry_ok``, ``entry_clearance_mm`` (the best start rotation's
+    clearance; negative: a lower bound of its penetration), ``errors`` (T,) mm (None: nothing free near),
     ``passed`` (T,) bool, ``goal_clearance_mm`` (T,) (the largest conservative clearance of a
     collision-free IK goal within tolerance; None where none) and ``timings``."""
     from ctrplan.planning.ik import IKConfig, solve_ik
@@ -89,11 +89,14 @@ def screen(robot: Robot, scene, world, targets_base: np.ndarray, settings: EvalS
     q0 = robot.retracted()
     rots = np.array([q0] + [np.concatenate([np.full(robot.n, a), q0[robot.n:]])
                             for a in np.arange(1, 8) * math.pi / 4])
-    free0 = ~world.collides(_shape(model, rots, settings.screen_points))
+    rep0 = world.check(_shape(model, rots, settings.screen_points))
+    free0 = ~np.asarray(rep0.collides, dtype=bool)
+    # the best rotation's clearance (negative: a lower bound of its penetration depth)
+    entry_clearance = float(np.max(rep0.clearance_mm))
     timings["screen_entry"] = time.perf_counter() - t0
     if not free0.any():
-        return {"entry_ok": False, "errors": [None] * T, "passed": [False] * T,
-                "goal_clearance_mm": [None] * T, "timings": timings}
+        return {"entry_ok": False, "entry_clearance_mm": entry_clearance, "errors": [None] * T,
+                "passed": [False] * T, "goal_clearance_mm": [None] * T, "timings": timings}
     t1 = time.perf_counter()
     q = robot.sample(settings.screen_samples, seed=seed)
     sh = _shape(model, q, settings.screen_points)
@@ -125,7 +128,8 @@ def screen(robot: Robot, scene, world, targets_base: np.ndarray, settings: EvalS
             # no free IK solution: the free sampled tip workspace's distance (a smooth signal)
             errors[j] = float(d.min()) + 10.0
     timings["screen_ik"] = time.perf_counter() - t2
-    return {"entry_ok": True, "errors": [float(e) if math.isfinite(e) else None for e in errors],
+    return {"entry_ok": True, "entry_clearance_mm": entry_clearance,
+            "errors": [float(e) if math.isfinite(e) else None for e in errors],
             "passed": (errors <= settings.screen_tolerance_mm).tolist(),
             "goal_clearance_mm": [float(c) if math.isfinite(c) else None for c in goal_clear],
             "timings": timings}
@@ -161,35 +165,38 @@ def stable_along(robot: Robot, path: np.ndarray, settings: EvalSettings) -> tupl
     return bool(ok.all()), int(len(states))
 
 
-def plan_kwargs(objective: str) -> dict:
-    """Extra keyword arguments for plan_to_target: the path objective, where plan_to_target
-    has one (``first`` in the search loop: cheap; ``clearance`` for the chosen design)."""
-    from ctrplan.planning.plan import plan_to_target
+def plan_target(robot: Robot, scene, target: np.ndarray, settings: EvalSettings, seed: int,
+                objective: str):
+    """The one place design plans: a PlanResult for ``robot`` from the retracted start to
+    ``target`` (scene frame), physics model, the settings' margin, tolerance, state budget and
+    time cap, the path ``objective`` (``first`` in the search, ``clearance`` for the chosen
+    design). A prepared planner shared by every design would replace this body only."""
+    from ctrplan.planning.plan import PlanConfig, plan_to_target
 
-    params = inspect.signature(plan_to_target).parameters
-    return {"objective": objective} if "objective" in params else {}
+    cfg = PlanConfig(max_states=settings.plan_states, margin_mm=settings.margin_mm)
+    return plan_to_target(robot, scene, target, model="physics", seed=seed, time_limit=settings.plan_time_s,
+                          tolerance_mm=settings.tolerance_mm, config=cfg, objective=objective)
 
 
 def plans(robot: Robot, scene, targets_scene: np.ndarray, todo: list[int], settings: EvalSettings,
           seed: int, keep: bool = False, objective: str = "first") -> dict:
-    """Stages 4-5 for the targets ``todo`` (``objective``: the plans' path objective where
-    plan_to_target has one). Returns per target (T lists) ``status``,
-    ``reached``, ``clearance_mm``, ``tip_error_mm``, ``stable``; ``results`` (PlanResults,
+    """Stages 4-5 for the targets ``todo`` (:func:`plan_target` with ``objective``, then the
+    stability check). Returns per target (T lists) ``status``,
+    ``reached``, ``clearance_mm`` (conservative: the plans' minimum clearance, planning and
+    reference model), ``clearance_estimate_mm`` (FCL's exact minimum where the plan settled it,
+    else the distance fields' estimate at the path's states, not between them: what designs
+    are ranked by, not a bound),
+    ``tip_error_mm``, ``stable``; ``results`` (PlanResults,
     only with ``keep``) and ``timings``."""
-    from ctrplan.planning.plan import PlanConfig, plan_to_target
-
     T = len(targets_scene)
     out = {"status": ["NOT_TRIED"] * T, "reached": [False] * T, "clearance_mm": [None] * T,
+           "clearance_estimate_mm": [None] * T,
            "tip_error_mm": [None] * T, "stable": [None] * T, "results": [None] * T,
            "stability_states": 0}
     t_plan = t_stab = 0.0
-    cfg = PlanConfig(max_states=settings.plan_states, margin_mm=settings.margin_mm)
-    extra = plan_kwargs(objective)
     for j in todo:
         t0 = time.perf_counter()
-        r = plan_to_target(robot, scene, targets_scene[j], model="physics", seed=seed,
-                           time_limit=settings.plan_time_s, tolerance_mm=settings.tolerance_mm,
-                           config=cfg, **extra)
+        r = plan_target(robot, scene, targets_scene[j], settings, seed, objective)
         t_plan += time.perf_counter() - t0
         out["status"][j] = r.status.value
         if keep:
@@ -205,6 +212,11 @@ def plans(robot: Robot, scene, targets_scene: np.ndarray, todo: list[int], setti
             else float(r.tip_error_mm)
         c = r.min_clearance_reference_mm if math.isfinite(r.min_clearance_reference_mm) else r.min_clearance_mm
         out["clearance_mm"][j] = float(min(c, r.min_clearance_mm))
+        # for ranking designs: FCL's minimum where it settled it, else the distance fields'
+        # estimate along the path (a lower bound of 0 says nothing about the design)
+        prof = np.asarray(r.clearance_profile, dtype=float)
+        est = r.min_clearance_mm if r.min_clearance_exact or not len(prof) else float(prof.min())
+        out["clearance_estimate_mm"][j] = float(est)
         if stable:
             out["reached"][j] = True
         else:
@@ -217,8 +229,9 @@ def plans(robot: Robot, scene, targets_scene: np.ndarray, todo: list[int], setti
 
 def evaluate_job(job: dict) -> dict:
     """Worker entry point: ``job`` has ``robot`` (dict), ``scene`` (spec), ``targets`` (T, 3
-    scene frame), ``settings`` (dict), ``seed``, ``stage`` ("screen" or "plan") and, for
-    plans, ``todo``. Returns a JSON-ready dict."""
+    scene frame), ``settings`` (dict), ``seed``, ``stage`` ("screen", "plan" or "final": the
+    chosen design's plans with the clearance objective, PlanResults kept) and, for plans,
+    ``todo``. Returns a JSON-ready dict (with PlanResults for "final")."""
     from ctrplan.robot import robot_from_dict
 
     settings = EvalSettings(**job["settings"])
@@ -227,4 +240,7 @@ def evaluate_job(job: dict) -> dict:
     targets = np.asarray(job["targets"], dtype=float)
     if job["stage"] == "screen":
         return screen(robot, scene, world, scene.to_base(targets), settings, int(job["seed"]))
+    if job["stage"] == "final":      # the chosen design: clearance objective, PlanResults kept
+        return plans(robot, scene, targets, list(job["todo"]), settings, int(job["seed"]), keep=True,
+                     objective="clearance")
     return plans(robot, scene, targets, list(job["todo"]), settings, int(job["seed"]))

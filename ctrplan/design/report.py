@@ -25,15 +25,20 @@ def design_json(result) -> dict:
     for t in result.targets:
         targets.append({"name": t.name, "position": [float(v) for v in t.position],
                         "reached": bool(t.reached), "status": t.status,
-                        "clearance_mm": _num(t.clearance_mm), "tip_error_mm": _num(t.tip_error_mm),
+                        "clearance_mm": _num(t.clearance_mm),
+                        "clearance_estimate_mm": _num(t.clearance_estimate_mm),
+                        "tip_error_mm": _num(t.tip_error_mm),
                         "path_file": f"paths/{t.name}.json" if t.plan is not None else None})
     evals = []
     for e in result.evaluations:
-        evals.append({"index": e["index"], "tubes": e["k"], "parameters": e["parameters"],
+        evals.append({"index": e["index"], "generation": e.get("generation"), "tubes": e["k"],
+                      "parameters": e["parameters"],
                       "robot": e["robot"], "entry_ok": e["entry_ok"],
+                      "entry_clearance_mm": e.get("entry_clearance_mm"),
                       "screen_passed": e["screen_passed"], "screen_errors_mm": e.get("screen_errors"),
                       "planned": e["planned"], "reached": e["reached"],
                       "clearance_mm": e["clearance_mm"],
+                      "clearance_estimate_mm": e.get("clearance_estimate_mm"),
                       "score": list(score_of(e)) if e["planned"] else None,
                       "binding": e["binding"]})
     return jsonable({
@@ -43,8 +48,11 @@ def design_json(result) -> dict:
         "robot_file": "robot.yaml" if result.robot is not None else None,
         "reached": result.reached, "targets_total": len(result.targets),
         "targets": targets, "binding": list(result.binding), "constraints": result.constraints,
+        "blocked": list(result.blocked), "closest": result.closest,
+        "anatomy": result.anatomy, "space": result.space,
         "objective": ["targets reached (verified, stable, collision-free plan)",
-                      "min clearance along those plans (0.25 mm bins)",
+                      "min clearance along those plans (0.25 mm bins; FCL's minimum where the plan "
+                      "settled it, else the distance fields' estimate)",
                       "simplicity: fewer tubes, less bending (sum kappa x curved length), shorter"],
         "config": asdict(cfg), "time_cap_hit": result.time_cap_hit, "timings": result.timings,
         "counts": result.counts, "evaluations": evals,
@@ -165,6 +173,7 @@ def report_md(result) -> str:
             lim = f"{v['limit']:.4g}" if "limit" in v else ""
             lines.append(f"| {k} | {val} | {lim} | {'yes' if v['satisfied'] else 'NO'} | "
                          f"{'yes' if v['binds'] else ''} |")
+    lines += _blocked_md(result) + _anatomy_md(result)
     t = result.timings
     if any(t.reached for t in result.targets):
         lines += ["", "## Paths", "", "![the design at each reached target](paths.png)", "",
@@ -172,3 +181,48 @@ def report_md(result) -> str:
     lines += ["", "## Search", "", "![coverage against evaluations](coverage.png)", "",
               "Time per stage (s): " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()), ""]
     return "\n".join(lines)
+
+
+def _blocked_md(result) -> list[str]:
+    """Why targets are not reached, and the closest design found."""
+    if not result.blocked:
+        return []
+    lines = ["", "## Why targets are not reached", "",
+             "| target | blocked by | kind | what and where | relax (alone) | closest (screen tip error) |",
+             "|---|---|---|---|---|---|"]
+    for b in result.blocked:
+        c = b.get("closest") or {}
+        near = f"{c['tip_error_mm']:.2f} mm (design {c['design_index']})" if "tip_error_mm" in c else "none"
+        lines.append(f"| {b['target']} | {b['blocking']} | {b['kind']} | {b['message']} | "
+                     f"{b['relax'].get('why') or ''} | {near} |")
+    cl = result.closest
+    if result.robot is None and cl is not None and cl.get("robot"):
+        lines += ["", f"Closest design found (design {cl['index']}, not reaching any target; "
+                      f"{'start free' if cl['entry_ok'] else 'retracted start collides'}, "
+                      f"{cl['screen_passed']} targets passing the screen):", "",
+                  "| tube | od mm | id mm | straight mm | curved mm | curvature 1/mm |", "|---|---|---|---|---|---|"]
+        for i, t in enumerate(cl["robot"]["tubes"]):
+            lines.append(f"| {i + 1} | {t['od']:g} | {t['id']:g} | {t['straight_length']:g} | "
+                         f"{t['curved_length']:g} | {t['curvature']:g} |")
+    return lines
+
+
+def _anatomy_md(result) -> list[str]:
+    """The corridors read before the search and the design space derived from them."""
+    a = result.anatomy
+    if not a:
+        return []
+    lines = ["", "## Anatomy (read before the search)", "",
+             f"Distance-field grid {a['resolution_mm']:g} mm; clearance at the base "
+             f"{a['base_clearance_mm']:.2f} mm.", "",
+             "| target | corridor | narrowest (width, mm past the entry) | depth mm | bends (deg over mm, at mm) |",
+             "|---|---|---|---|---|"]
+    for r in a["routes"]:
+        n = r["narrowest"]
+        nw = "" if n is None else f"{n['width_mm']:.2f} mm at {n['at_mm']:.1f} mm"
+        bends = ", ".join(f"{b['angle_deg']:.0f} over {b['length_mm']:.0f} at {b['at_mm']:.0f}" for b in r["bends"])
+        depth = "" if r["depth_mm"] is None or not math.isfinite(r["depth_mm"]) else f"{r['depth_mm']:.1f}"
+        lines.append(f"| {r['target']} | {'open' if r['connected'] else 'closed'} | {nw} | {depth} | {bends} |")
+    if result.space:
+        lines += ["", "Design space derived from it:", ""] + [f"- {x}" for x in result.space["notes"]]
+    return lines

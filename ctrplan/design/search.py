@@ -1,11 +1,25 @@
-"""The design search: seeded random designs, then a (1 + lambda) evolution strategy around the
-best, screens in batches, real plans only for promising designs.
+"""The design search: CMA-ES populations (the ``cma`` package), screens in batches, real plans
+only for promising designs.
 
-Determinism: the candidates of each generation are drawn from one seeded generator and depend
-only on the results of earlier generations; generation size does not depend on ``workers``;
-every evaluation is a pure function of its design and the seed (plans have count budgets).
-So the same seed gives the same design on any number of workers and any machine load, unless
-the ``time_limit`` cap stopped the search (``time_cap_hit``).
+One covariance-matrix-adaptation evolution strategy per number of designed tubes searches the
+unit cube of :mod:`ctrplan.design.space` (bounds [0, 1]); a generation asks every strategy for
+its share of ``generation`` candidates (16 by default), screens them all at once (on the
+worker pool or Ray: the candidates are independent), plans the most promising of them (one job
+per design and target, in the same batch as the next generation's screens, so long plans
+overlap short screens on the workers), and tells each strategy the fitness of its candidates
+(:meth:`Search.fitness`: targets passing the screen, the goals' clearance, the screen's tip
+errors; an entry that collides or an infeasible design ranks last, graded by how far off it
+is). The plans decide which design is chosen and when the search stops. A strategy that stops (cma's termination criteria) restarts from the best
+design it found.
+
+Determinism: ``cma`` draws from numpy's global generator; every call into it swaps in the
+strategy's own generator state (seeded from the design seed) and restores the caller's, so
+nothing else that runs in this process (planning seeds numpy too) changes the candidates. The
+candidates of each generation depend only on the seed and the results of earlier generations;
+the generation size does not depend on ``workers``; every evaluation is a pure function of its
+design and the seed (plans have count budgets). So the same seed gives the same design on any
+number of workers, on Ray, and on any machine load, unless the ``time_limit`` cap stopped the
+search (``time_cap_hit``).
 
 Resuming: after every generation the results so far go to ``OUT/state.json`` (atomic); a rerun
 with the same scene, targets and settings replays the search and takes each design it has
@@ -26,10 +40,14 @@ import numpy as np
 
 from ctrplan.design.evaluate import EvalSettings, evaluate_job
 from ctrplan.design.space import Decoded, Space, decode, simplicity
+from ctrplan.design.strategy import Strategy
 
 log = logging.getLogger("ctrplan")
 
 STATE_FILE = "state.json"
+#: The smallest population of one CMA-ES (a generation smaller than this many per tube count
+#: is raised to it).
+MIN_POPSIZE = 4
 
 
 def design_key(robot_dict: dict) -> str:
@@ -109,7 +127,8 @@ class Search:
     def __init__(self, space: Space, scene_spec, targets: np.ndarray, settings: EvalSettings,
                  seed: int, budget: int, plan_budget: int, generation: int, patience: int,
                  time_limit: float, state_path: Path | None, clearance_goal_mm: float, state_key: str,
-                 progress: Callable[[int], None] | None = None):
+                 progress: Callable[[int], None] | None = None, plans_per_generation: int = 2,
+                 starts: dict | None = None):
         self.space = space
         self.scene_spec = scene_spec
         self.targets = np.asarray(targets, dtype=float)
@@ -118,6 +137,8 @@ class Search:
         self.budget = int(budget)
         self.plan_budget = int(plan_budget)
         self.generation = int(generation)
+        self.plans_per_generation = int(plans_per_generation)
+        self.starts = starts or {}
         self.patience = int(patience)
         self.time_limit = float(time_limit)
         self.state_path = state_path
@@ -128,6 +149,7 @@ class Search:
         self.evaluations: list[dict] = []
         self.planned = 0
         self.time_cap_hit = False
+        self.generations = 0
         self.timings = {"screen_entry": 0.0, "screen_sample": 0.0, "screen_ik": 0.0, "plans": 0.0,
                         "stability": 0.0}
         self.resumed = 0
@@ -153,24 +175,50 @@ class Search:
         write_json_atomic(self.state_path, {"key": self.state_key, "cache": self.cache})
 
     # ------------------------------------------------------------------ candidates
-    def _random(self, rng: np.random.Generator) -> tuple[int, np.ndarray]:
-        k = int(rng.integers(self.space.k_min, self.space.k_max + 1))
-        return k, rng.uniform(0.0, 1.0, size=self.space.dim)
-
     def _job(self, dec: Decoded, stage: str, todo: list[int] | None = None) -> dict:
-        return {"robot": dec.robot.to_dict(), "scene": self.scene_spec, "targets": self.targets.tolist(),
+        return self.job(dec.robot, stage, todo)
+
+    def job(self, robot, stage: str, todo: list[int] | None = None) -> dict:
+        """An evaluation job (:func:`ctrplan.design.evaluate.evaluate_job`) for ``robot``."""
+        return {"robot": robot.to_dict(), "scene": self.scene_spec, "targets": self.targets.tolist(),
                 "settings": self.settings.__dict__, "seed": self.seed, "stage": stage,
                 "todo": todo or []}
 
+    def _strategies(self) -> list[Strategy]:
+        """One CMA-ES per number of designed tubes, sharing ``generation`` candidates (at
+        least MIN_POPSIZE each)."""
+        ks = list(range(max(1, self.space.k_min), self.space.k_max + 1))
+        share = [self.generation // len(ks) + (1 if i < self.generation % len(ks) else 0)
+                 for i in range(len(ks))]
+        # a start fitted to the anatomy is searched closer around (step 0.15 of each range)
+        return [Strategy(k, self.space.dim, max(MIN_POPSIZE, m), self.seed * 7 + k,
+                         self.starts.get(k, np.full(self.space.dim, 0.5)), 0.15 if k in self.starts else 0.3)
+                for k, m in zip(ks, share)]
+
     # ------------------------------------------------------------------ ranking
     def search_key(self, ev: dict) -> tuple:
-        """Parent selection: targets reached (planned) or passing the screen, clearance bin,
-        closeness of the screen, simplicity."""
+        """Ranking of evaluated designs (larger is better): targets reached (planned) or
+        passing the screen, clearance bin, closeness of the screen, simplicity."""
         if ev.get("robot") is None or not ev.get("entry_ok", False):
             return (-1, 0.0, -math.inf, 0.0)
         count = ev["reached"] if ev.get("planned") else ev["screen_passed"]
         clear = ev.get("clearance_bin", 0.0) if ev.get("planned") else ev.get("goal_clearance_bin", 0.0)
         return (count, clear, -ev["screen_error"], -ev["simplicity"][1])
+
+    def fitness(self, ev: dict) -> float:
+        """What each strategy minimises: an infeasible design ranks last, then a retracted
+        start that collides (graded by how deep), then the screen's total tip error beyond the
+        tolerance over the targets (each at most 50 mm: a design close to every target beats
+        one that reaches some and misses another by far), less a little for the goals'
+        clearance (up to 1 mm)."""
+        if ev.get("robot") is None:
+            return 1e6
+        if not ev.get("entry_ok", False):
+            return 1e5 + 100.0 * max(0.0, -float(ev.get("entry_clearance_mm") or 0.0))
+        tol = self.settings.screen_tolerance_mm
+        errs = [100.0 if e is None else e for e in ev.get("screen_errors") or []]
+        excess = sum(min(max(e - tol, 0.0), 50.0) for e in errs)
+        return excess - 0.1 * min(ev.get("goal_clearance_bin", 0.0), 1.0)
 
     @staticmethod
     def score(ev: dict) -> tuple:
@@ -180,12 +228,14 @@ class Search:
         return (ev["reached"], ev["clearance_bin"], -n, -round(bend, 3), -round(length, 1))
 
     # ------------------------------------------------------------------ evaluation
-    def _evaluate(self, runner: Runner, cands: list[tuple[int, np.ndarray]]) -> list[dict]:
-        evs = []
-        todo_screen = []
+    def _screen_jobs(self, cands: list[tuple[int, np.ndarray]]) -> tuple[list[dict], list, list[dict]]:
+        """Evaluation records of the candidates and the screen jobs still to run (a design
+        screened before, in this run or a resumed one, is taken from the cache)."""
+        evs, todo, pending = [], [], set()
         for k, u in cands:
             dec = decode(self.space, k, u, name=f"design-{len(self.evaluations) + len(evs):04d}")
             ev = {"index": len(self.evaluations) + len(evs), "k": k, "u": [float(x) for x in u],
+                  "generation": self.generations,
                   "binding": list(dec.binding), "parameters": dec.parameters, "robot": None,
                   "entry_ok": False, "screen_passed": 0, "screen_error": math.inf, "planned": False,
                   "reached": 0, "clearance_bin": 0.0, "clearance_mm": None,
@@ -197,43 +247,58 @@ class Search:
                 ev["simplicity"] = list(simplicity(dec.robot))
                 if ev["key"] in self.cache and "screen" in self.cache[ev["key"]]:
                     self.resumed += 1
-                else:
-                    todo_screen.append((ev, dec))
+                elif ev["key"] not in pending:      # the same design twice: screened once
+                    pending.add(ev["key"])
+                    todo.append((ev, dec))
             evs.append(ev)
-        results = runner.map([self._job(dec, "screen") for _, dec in todo_screen])
-        for (ev, _), res in zip(todo_screen, results):
+        return evs, [ev for ev, _ in todo], [self._job(dec, "screen") for _, dec in todo]
+
+    def _absorb_screens(self, evs: list[dict], todo: list[dict], results: list[dict]) -> None:
+        for ev, res in zip(todo, results):
             self.cache.setdefault(ev["key"], {})["screen"] = res
             for k, v in res["timings"].items():
                 self.timings[k] = self.timings.get(k, 0.0) + v
         for ev in evs:
-            if ev["robot"] is None:
-                continue
-            s = self.cache[ev["key"]]["screen"]
-            ev["entry_ok"] = bool(s["entry_ok"])
-            if not ev["entry_ok"]:
-                ev["binding"].append("entry")
-            errs = np.array([math.inf if e is None else e for e in s["errors"]], dtype=float)
-            ev["screen_passed"] = int(np.sum(s["passed"]))
-            ev["screen_errors"] = [None if not math.isfinite(e) else float(e) for e in errs]
-            ev["screen_error"] = float(np.sum(np.minimum(errs, 100.0)))
-            gc = [c for c, p in zip(s.get("goal_clearance_mm", []), s["passed"]) if p and c is not None]
-            # optimistic: the goals' clearance bounds the plans' (planned designs use their own)
-            ev["goal_clearance_bin"] = float(math.floor(min(gc) / 0.25) * 0.25) if gc else 0.0
-        return evs
+            if ev["robot"] is not None:
+                self._apply_screen(ev, self.cache[ev["key"]]["screen"])
 
-    def _plan_promising(self, runner: Runner, evs: list[dict]) -> None:
+    @staticmethod
+    def _apply_screen(ev: dict, s: dict) -> None:
+        ev["entry_ok"] = bool(s["entry_ok"])
+        ev["entry_clearance_mm"] = s.get("entry_clearance_mm")
+        if not ev["entry_ok"]:
+            ev["binding"].append("entry")
+        errs = np.array([math.inf if e is None else e for e in s["errors"]], dtype=float)
+        ev["screen_passed"] = int(np.sum(s["passed"]))
+        ev["screen_errors"] = [None if not math.isfinite(e) else float(e) for e in errs]
+        ev["screen_error"] = float(np.sum(np.minimum(errs, 100.0)))
+        gc = [c for c, p in zip(s.get("goal_clearance_mm", []), s["passed"]) if p and c is not None]
+        # optimistic: the goals' clearance bounds the plans' (planned designs use their own)
+        ev["goal_clearance_bin"] = float(math.floor(min(gc) / 0.25) * 0.25) if gc else 0.0
+
+    def _choose(self, evs: list[dict]) -> list[dict]:
+        """The designs of a generation to plan in full (at most ``plans_per_generation``, within
+        the plan budget): the best by the search's ranking that pass the screen for at least
+        as many targets as the best plan so far reached, not planned before."""
         best_reached = max((e["reached"] for e in self.evaluations if e["planned"]), default=0)
+        seen = {e["key"] for e in self.evaluations if e.get("chosen")}
         order = sorted((e for e in evs if e["entry_ok"] and e["screen_passed"] > 0
                         and e["screen_passed"] >= best_reached),
                        key=lambda e: (self.search_key(e), -e["index"]), reverse=True)
         chosen = []
         for e in order:
-            if self.planned + len(chosen) >= self.plan_budget:
+            if self.planned >= self.plan_budget or len(chosen) >= self.plans_per_generation:
                 break
-            if len(chosen) >= 2:     # at most two planned designs per generation
-                break
+            if e["key"] in seen:
+                continue
+            seen.add(e["key"])
+            e["chosen"] = True
             chosen.append(e)
-        # one job per (design, target): the pool plans the targets of a design side by side
+            self.planned += 1
+        return chosen
+
+    def _plan_jobs(self, chosen: list[dict]) -> tuple[list[dict], list[dict]]:
+        """One job per (design, target that passed its screen): the pool plans them side by side."""
         jobs, owners = [], []
         for e in chosen:
             c = self.cache[e["key"]]
@@ -245,14 +310,19 @@ class Search:
             for j in todo or [None]:
                 jobs.append(self._job(dec, "plan", [] if j is None else [j]))
                 owners.append(e)
+        return jobs, owners
+
+    def _absorb_plans(self, chosen: list[dict], jobs: list[dict], owners: list[dict],
+                      results: list[dict]) -> None:
         merged: dict[str, dict] = {}
-        for e, job, res in zip(owners, jobs, runner.map(jobs)):
+        for e, job, res in zip(owners, jobs, results):
             m = merged.get(e["key"])
             if m is None:
                 merged[e["key"]] = res
                 continue
             for j in job["todo"]:
-                for k in ("status", "reached", "clearance_mm", "tip_error_mm", "stable"):
+                for k in ("status", "reached", "clearance_mm", "clearance_estimate_mm", "tip_error_mm",
+                          "stable"):
                     m[k][j] = res[k][j]
             m["stability_states"] += res["stability_states"]
             for k, v in res["timings"].items():
@@ -262,73 +332,95 @@ class Search:
             for k, v in res["timings"].items():
                 self.timings[k] = self.timings.get(k, 0.0) + v
         for e in chosen:
-            p = self.cache[e["key"]]["plans"]
-            e["planned"] = True
-            e["plan"] = {k: p[k] for k in ("status", "reached", "clearance_mm", "tip_error_mm", "stable")}
-            e["reached"] = int(np.sum(p["reached"]))
-            cl = [c for c, r in zip(p["clearance_mm"], p["reached"]) if r and c is not None]
-            e["clearance_mm"] = float(min(cl)) if cl else None
-            e["clearance_bin"] = float(math.floor(min(cl) / 0.25) * 0.25) if cl else 0.0
-            if any(s is False for s in p["stable"]):
-                e["binding"].append("stability")
-        self.planned += len(chosen)
+            self._apply_plans(e, self.cache[e["key"]]["plans"])
+
+    @staticmethod
+    def _apply_plans(e: dict, p: dict) -> None:
+        e["planned"] = True
+        e["plan"] = {k: p[k] for k in ("status", "reached", "clearance_mm", "tip_error_mm", "stable")}
+        e["reached"] = int(np.sum(p["reached"]))
+        cl = [c for c, r in zip(p["clearance_mm"], p["reached"]) if r and c is not None]
+        est = [c for c, r in zip(p.get("clearance_estimate_mm", p["clearance_mm"]), p["reached"])
+               if r and c is not None]
+        e["clearance_mm"] = float(min(cl)) if cl else None
+        e["clearance_estimate_mm"] = float(min(est)) if est else None
+        e["clearance_bin"] = float(math.floor(max(min(est), 0.0) / 0.25) * 0.25) if est else 0.0
+        if any(s is False for s in p["stable"]):
+            e["binding"].append("stability")
 
     # ------------------------------------------------------------------ main loop
-    def run(self, workers: int = 1, ray_address: str | None = None) -> None:
-        rng = np.random.default_rng(self.seed)
+    def _generation(self, runner: Runner, cands: list, chosen: list[dict]) -> list[dict]:
+        """Screen the candidates and plan the designs chosen from the generation before, in one
+        batch (the plans overlap the screens on the workers); returns the candidates' records."""
+        evs, todo, sjobs = self._screen_jobs(cands)
+        pjobs, owners = self._plan_jobs(chosen)
+        res = runner.map(sjobs + pjobs)
+        self._absorb_screens(evs, todo, res[:len(sjobs)])
+        self._absorb_plans(chosen, pjobs, owners, res[len(sjobs):])
+        return evs
+
+    def _progress_key(self) -> tuple | None:
+        """More targets reached, or more clearance up to the goal (simpler designs of the same
+        reach and clearance do not count as progress)."""
+        return max(((e["reached"], min(e["clearance_bin"], self.clearance_goal))
+                    for e in self.evaluations if e["planned"]), default=None)
+
+    def run(self, workers: int = 1, ray_address: str | None = None,
+            finish: Callable[[Runner], None] | None = None) -> None:
+        """Search until the budget (a count) is used, the time cap hits, or every target is
+        reached and ``patience`` generations brought no progress. The designs chosen from a
+        generation are planned with the next one's screens; the fitness told to CMA-ES is the
+        screen's (:meth:`fitness`), plans decide the chosen design and when to stop.
+        ``finish(runner)`` runs on the same workers before they stop (the final plans)."""
         t0 = time.perf_counter()
-        n_init = min(self.budget, max(self.generation, self.budget // 3))
-        sigma = 0.15
         stale = 0
         best_score = None
-        best_key = None
         T = len(self.targets)
+        strategies = self._strategies() if self.space.k_max else []
+        chosen: list[dict] = []
         with Runner(workers, ray_address) as runner:
             while len(self.evaluations) < self.budget:
                 if time.perf_counter() - t0 > self.time_limit:
                     self.time_cap_hit = True
                     break
-                m = min(self.generation, self.budget - len(self.evaluations))
-                if not self.space.k_max:
-                    m = 1                       # nothing to design: the --from robot as it is
-                if len(self.evaluations) < n_init or not self.space.k_max:
-                    cands = [self._random(rng) for _ in range(m)]
+                if not self.space.k_max:          # nothing to design: the --from robot as it is
+                    asked = [(None, [(0, np.zeros(0))])]
                 else:
-                    ranked = sorted(self.evaluations, key=lambda e: (self.search_key(e), -e["index"]),
-                                    reverse=True)
-                    parents = [e for e in ranked if e["robot"] is not None][:3] or ranked[:1]
-                    cands = []
-                    for i in range(m):
-                        p = parents[0] if i % 2 == 0 or len(parents) == 1 else parents[1 + (i // 2) % (len(parents) - 1)]
-                        if rng.uniform() < 0.1:
-                            cands.append(self._random(rng))
-                            continue
-                        u = np.clip(np.array(p["u"]) + sigma * rng.standard_normal(self.space.dim), 0.0, 1.0)
-                        cands.append((p["k"], u))
-                evs = self._evaluate(runner, cands)
-                self._plan_promising(runner, evs)
+                    asked = [(st, [(st.k, x) for x in st.ask()]) for st in strategies]
+                evs = self._generation(runner, [c for _, cs in asked for c in cs], chosen)
                 self.evaluations.extend(evs)
+                self.generations += 1
+                i = 0
+                for st, cs in asked:
+                    mine = evs[i:i + len(cs)]
+                    i += len(cs)
+                    if st is not None:
+                        st.tell([np.array(e["u"]) for e in mine], [self.fitness(e) for e in mine],
+                                self._best_u(st.k))
+                chosen = self._choose(evs)
                 self._save_state()
                 if self.progress is not None:
                     self.progress(len(evs))
-                planned = [e for e in self.evaluations if e["planned"]]
-                cur = max((self.score(e) for e in planned), default=None)
+                cur = self._progress_key()
                 if cur is not None and (best_score is None or cur > best_score):
-                    best_score = cur
-                    stale = 0
+                    best_score, stale = cur, 0
                 else:
                     stale += 1
-                # step size (1/5 success rule): grow when more than a fifth of the children
-                # beat the best design before this generation, shrink otherwise
-                if len(self.evaluations) > n_init and best_key is not None:
-                    wins = sum(self.search_key(e) > best_key for e in evs)
-                    sigma = min(0.3, sigma * 1.5) if wins > 0.2 * len(evs) else max(0.005, sigma * 0.7)
-                best_key = max(self.search_key(e) for e in self.evaluations)
-                if not self.space.k_max:
+                if not self.space.k_max or (best_score is not None and best_score[0] == T
+                                            and stale >= self.patience):
                     break
-                if (best_score is not None and best_score[0] == T and best_score[1] >= self.clearance_goal
-                        and stale >= self.patience):
-                    break
+            if chosen:                            # the last generation's choices
+                pjobs, owners = self._plan_jobs(chosen)
+                self._absorb_plans(chosen, pjobs, owners, runner.map(pjobs))
+                self._save_state()
+            if finish is not None:
+                finish(runner)
+
+    def _best_u(self, k: int) -> np.ndarray | None:
+        mine = [e for e in self.evaluations if e["k"] == k]
+        if not mine:
+            return None
+        return np.array(min(mine, key=lambda e: (self.fitness(e), e["index"]))["u"])
 
     def best(self) -> dict | None:
         planned = [e for e in self.evaluations if e["planned"]]
@@ -336,3 +428,10 @@ class Search:
             return None
         return max(planned, key=lambda e: (self.score(e), -e["index"]))
 
+    def closest(self) -> dict | None:
+        """The design that came closest when none was planned with success: the best by the
+        search's ranking (entry, then targets passing the screen, then the screen's errors)."""
+        live = [e for e in self.evaluations if e["robot"] is not None]
+        if not live:
+            return None
+        return min(live, key=lambda e: (self.fitness(e), e["index"]))

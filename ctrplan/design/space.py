@@ -1,7 +1,9 @@
 """Design variables, bounds and hard constraints of ``ctrplan design``.
 
 A design is a vector ``u`` in the unit cube, ``4`` numbers per designed tube (innermost first):
-curvature, curved length, straight length and the stock size, each scaled to its bound. Decoding
+curvature, curved length, straight length and the stock size, each scaled to its range: the
+range derived from the anatomy (:mod:`ctrplan.design.derive`) inside the bounds, or the bounds
+themselves (``derive=False``). Decoding
 (:func:`decode`) turns it into a :class:`~ctrplan.robot.Robot` and repairs it onto the hard
 constraints, naming each one that binds:
 
@@ -89,14 +91,16 @@ class Bounds:
 
 @dataclass(frozen=True)
 class Space:
-    """The design space: bounds, stock sizes, the user's fixed outer tubes and the number of
-    tubes designed (``k_min..k_max``)."""
+    """The design space: bounds, stock sizes, the user's fixed outer tubes, the number of
+    tubes designed (``k_min..k_max``) and the ranges derived from the anatomy
+    (:class:`~ctrplan.design.derive.Derived`; None: the bounds as they are)."""
 
     bounds: Bounds
     stock: tuple[tuple[float, float], ...]
     fixed: tuple[Tube, ...]
     k_min: int
     k_max: int
+    derived: object | None = None
 
     @property
     def dim(self) -> int:
@@ -113,8 +117,10 @@ class Decoded:
     parameters: dict
 
 
-def make_space(bounds: Bounds, stock, fixed: tuple[Tube, ...], tubes: int, source: str = "") -> Space:
-    """Check the bounds (InputError naming the infeasible one) and build the :class:`Space`."""
+def make_space(bounds: Bounds, stock, fixed: tuple[Tube, ...], tubes: int, source: str = "",
+               derived=None) -> Space:
+    """Check the bounds (InputError naming the infeasible one) and build the :class:`Space`
+    (``derived``: the ranges read from the anatomy, :func:`ctrplan.design.derive.derive`)."""
     b = bounds
     for name in ("curvature", "curved_length", "straight_length"):
         lo, hi = getattr(b, name)
@@ -156,7 +162,8 @@ def make_space(bounds: Bounds, stock, fixed: tuple[Tube, ...], tubes: int, sourc
             raise InputError("bounds", "nesting",
                              f"infeasible bounds: no stock tube fits inside the --from robot's "
                              f"innermost tube (id {fixed[0].id:g} mm) with a radial gap of {b.min_gap_mm:g} mm")
-    return Space(bounds=b, stock=tuple(stock), fixed=tuple(fixed), k_min=k_min, k_max=k_max)
+    return Space(bounds=b, stock=tuple(stock), fixed=tuple(fixed), k_min=k_min, k_max=k_max,
+                 derived=derived)
 
 
 def _fitting_sizes(stock, fixed, gap: float) -> list[int]:
@@ -166,41 +173,67 @@ def _fitting_sizes(stock, fixed, gap: float) -> list[int]:
     return [j for j, (od, _) in enumerate(stock) if (fixed[0].id - od) / 2 >= gap - 1e-12]
 
 
-def decode(space: Space, k: int, u: np.ndarray, name: str = "design") -> Decoded:
-    """The robot of ``k`` designed tubes (innermost first) from ``u`` (dim,) in [0, 1], plus
-    the fixed tubes outside them; constraints repaired where possible and named."""
+def _ranges(space: Space, i: int):
+    """(curvature, curved_length, straight_length, allowed stock indices) of designed tube i."""
+    d = space.derived
+    if d is None:
+        b = space.bounds
+        return b.curvature, b.curved_length, b.straight_length, tuple(range(len(space.stock)))
+    r = d.ranges(i)
+    return r.curvature, r.curved_length, r.straight_length, r.sizes
+
+
+def _sizes(space: Space, k: int, u: np.ndarray, binding: list) -> list | None:
+    """Stock sizes of the k designed tubes (innermost first): each the size its variable picks
+    among the allowed ones, or the largest allowed that still nests inside the tube around it."""
     b = space.bounds
-    u = np.clip(np.asarray(u, dtype=float), 0.0, 1.0)
-    binding: list[str] = []
     stock = space.stock
-    # sizes: outermost designed tube first, each the chosen size or the largest that still fits
-    allowed = _fitting_sizes(stock, space.fixed, b.min_gap_mm)
+    fits_fixed = set(_fitting_sizes(stock, space.fixed, b.min_gap_mm))
     sizes: list[tuple[float, float]] = [(0.0, 0.0)] * k
     limit_id = space.fixed[0].id if space.fixed else math.inf
     for i in range(k - 1, -1, -1):
+        allowed = [j for j in _ranges(space, i)[3] if j in fits_fixed] or sorted(fits_fixed)
         fit = [j for j in allowed if (limit_id - stock[j][0]) / 2 >= b.min_gap_mm - 1e-12]
         if not fit:
-            return Decoded(None, ("nesting",), {"tubes": k})
-        want = int(min(len(stock) - 1, math.floor(u[PER_TUBE * i + 3] * len(stock))))
+            return None
+        want = allowed[int(min(len(allowed) - 1, math.floor(u[PER_TUBE * i + 3] * len(allowed))))]
         j = want if want in fit else max((f for f in fit if f <= want), default=fit[0])
         if j != want:
             binding.append("nesting")
         sizes[i] = stock[j]
         limit_id = stock[j][1]
+    return sizes
+
+
+def decode(space: Space, k: int, u: np.ndarray, name: str = "design") -> Decoded:
+    """The robot of ``k`` designed tubes (innermost first) from ``u`` (dim,) in [0, 1], plus
+    the fixed tubes outside them; constraints repaired where possible and named. With derived
+    ranges (``space.derived``) each variable spans its tube's derived range and the curved
+    length at most the entry room at the tube's curvature."""
+    b = space.bounds
+    u = np.clip(np.asarray(u, dtype=float), 0.0, 1.0)
+    binding: list[str] = []
+    sizes = _sizes(space, k, u, binding)
+    if sizes is None:
+        return Decoded(None, ("nesting",), {"tubes": k})
     tubes: list[Tube] = []
     # lengths from the outermost designed tube inward (an inner tube is at least as long)
     outer_len = space.fixed[0].length if space.fixed else 0.0
     outer_straight = space.fixed[0].straight_length if space.fixed else 0.0
     for i in range(k - 1, -1, -1):
         od, id_ = sizes[i]
+        kr, cr, sr, _ = _ranges(space, i)
         uk, uc, us = u[PER_TUBE * i: PER_TUBE * i + 3]
-        kappa = b.curvature[0] + uk * (b.curvature[1] - b.curvature[0])
+        kappa = kr[0] + uk * (kr[1] - kr[0])
         kmax = b.strain_limit / (od / 2)
         if kappa > kmax:
             kappa = kmax
             binding.append("strain")
-        curved = b.curved_length[0] + uc * (b.curved_length[1] - b.curved_length[0])
-        straight = b.straight_length[0] + us * (b.straight_length[1] - b.straight_length[0])
+        c_hi = cr[1]
+        if space.derived is not None:
+            c_hi = max(cr[0], min(c_hi, space.derived.curved_cap(od / 2, kappa)))
+        curved = cr[0] + uc * (c_hi - cr[0])
+        straight = sr[0] + us * (sr[1] - sr[0])
         if straight > b.max_stroke_mm:
             straight = b.max_stroke_mm
             binding.append("stroke")
