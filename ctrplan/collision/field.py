@@ -28,26 +28,22 @@ that starts inside a closed wall (or outside a closed obstacle) and has an axis 
 lie outside it (inside the obstacle) must cross the surface, so it provably collides.
 Anything else goes to FCL.
 
-Fields are cached on disk (``$CTRPLAN_CACHE`` or ``~/.cache/ctrplan``), keyed by a hash of the
-mesh and the field parameters.
+Fields are cached on disk, verified on load (:mod:`ctrplan.collision.field_cache`).
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
-import os
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numba as nb
 import numpy as np
 
 log = logging.getLogger("ctrplan")
 
-FIELD_VERSION = 4
+FIELD_VERSION = 5
 #: Safety added to every decision threshold (mm): covers float32 storage and FCL's tolerance.
 EPS_MM = 1e-3
 
@@ -85,53 +81,6 @@ class DistanceField:
     side: np.ndarray        # (nx, ny, nz) int8: +1 outside, -1 inside, 0 unknown (closed meshes)
     watertight: bool        # whether side holds any information
     build_s: float = 0.0    # seconds it took to build (0 when read from the cache)
-
-
-def cache_dir() -> Path:
-    """Folder for cached fields: ``$CTRPLAN_CACHE`` or ``~/.cache/ctrplan``."""
-    env = os.environ.get("CTRPLAN_CACHE")
-    return Path(env) if env else Path.home() / ".cache" / "ctrplan"
-
-
-def mesh_key(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig) -> str:
-    """Hash of a mesh and the field parameters (the cache key)."""
-    h = hashlib.sha256()
-    h.update(f"v{FIELD_VERSION}:{config}".encode())
-    h.update(np.ascontiguousarray(vertices, dtype=np.float64).tobytes())
-    h.update(np.ascontiguousarray(faces, dtype=np.int64).tobytes())
-    return h.hexdigest()[:32]
-
-
-def field_for(mesh, config: FieldConfig = FieldConfig(), cache: bool | Path = True) -> DistanceField:
-    """The distance field of a trimesh mesh, from the disk cache when present."""
-    v = np.asarray(mesh.vertices, dtype=float)
-    f = np.asarray(mesh.faces, dtype=np.int64)
-    folder = None
-    if cache:
-        folder = cache_dir() if cache is True else Path(cache)
-        path = folder / f"field-{mesh_key(v, f, config)}.npz"
-        if path.is_file():
-            try:
-                with np.load(path) as z:
-                    return DistanceField(origin=z["origin"], h=float(z["h"]), lb=z["lb"], ub=z["ub"],
-                                         box_lo=z["box_lo"], box_hi=z["box_hi"], rho=float(z["rho"]),
-                                         side=z["side"], watertight=bool(z["watertight"]))
-            except (OSError, ValueError, KeyError) as exc:  # a corrupt cache entry is rebuilt
-                log.warning("ignoring unreadable field cache %s (%s)", path, exc)
-    log.info("preparing the distance field of a %d-triangle mesh (once; cached in %s)",
-             len(f), folder if folder is not None else "memory only")
-    field = build_field(v, f, config, watertight=bool(mesh.is_watertight), progress=True)
-    if folder is not None:
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
-            np.savez(tmp, origin=field.origin, h=field.h, lb=field.lb, ub=field.ub,
-                     box_lo=field.box_lo, box_hi=field.box_hi, rho=field.rho, side=field.side,
-                     watertight=field.watertight)
-            os.replace(tmp, path)
-        except OSError as exc:  # a read-only cache only costs time
-            log.warning("could not write field cache in %s (%s)", folder, exc)
-    return field
 
 
 def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = FieldConfig(),
@@ -397,10 +346,12 @@ def _sides(lb: np.ndarray, h: float, lo: np.ndarray, v: np.ndarray, f: np.ndarra
     comes near (each half lies in a surface-free ball), so the connected components of such
     nodes (6-connectivity) each lie on one side. A component touching the grid's border is
     outside (the border is outside the mesh's bounding box); every other component takes the
-    side of one of its nodes by trimesh's ray-parity containment test.
+    side of one of its nodes by ray parity (:func:`ctrplan.collision._raycast.odd_parity`: exact
+    for a closed surface, memory only the mesh).
     """
-    import trimesh
     from scipy import ndimage
+
+    from ctrplan.collision._raycast import odd_parity
 
     safe = lb > h / 2.0
     labels, n = ndimage.label(safe)
@@ -415,8 +366,7 @@ def _sides(lb: np.ndarray, h: float, lo: np.ndarray, v: np.ndarray, f: np.ndarra
         order = np.argsort(flat, kind="stable")
         starts = np.searchsorted(flat[order], rest)
         reps = np.stack(np.unravel_index(order[starts], labels.shape), axis=1) * h + lo
-        mesh = trimesh.Trimesh(v, f, process=False)
-        side_of[rest] = np.where(mesh.contains(reps), -1, 1)
+        side_of[rest] = np.where(odd_parity(v, f, reps), -1, 1)
     side_of[0] = 0
     return side_of[labels]
 
@@ -613,3 +563,11 @@ def point_bounds(field: DistanceField, points: np.ndarray) -> tuple[np.ndarray, 
     _point_bounds(p, field.lb, field.ub, field.side, field.origin, field.h, field.box_lo,
                   field.box_hi, lo, up, sd)
     return lo, up, sd
+
+
+def field_for(mesh, config: FieldConfig = FieldConfig(), cache=True, watertight: bool | None = None):
+    """The distance field of a mesh from the verified disk cache, else built
+    (:func:`ctrplan.collision.field_cache.field_for`)."""
+    from ctrplan.collision.field_cache import field_for as cached
+
+    return cached(mesh, config, cache, watertight)

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ctrplan.collision.capsules import Capsules, capsules_from_shape
-from ctrplan.collision.field import EPS_MM, FieldConfig, capsule_bounds, field_for
+from ctrplan.collision.field import EPS_MM, FieldConfig, capsule_bounds
+from ctrplan.collision.field_cache import field_for
 from ctrplan.collision.scene import Scene, load_scene
 from ctrplan.errors import InputError
 from ctrplan.shape.base import Shape
@@ -116,11 +117,13 @@ class CollisionWorld:
         self.pose = np.asarray(self.scene.base_pose, dtype=float)
         # Side proofs (field module): a point outside a closed wall that contains the base, or
         # inside a closed obstacle, proves a collision of the chain that starts at the base.
+        # Generally: for any mesh closed on its own, a point of the other ray parity than the
+        # base proves that the chain crossed it (the chain starts at the base).
+        from ctrplan.collision.scene import inside_mesh
+
         base = self.pose[:3, 3][None]
-        self._bad_side = [
-            (1 if m.role == "wall" and m.mesh.is_watertight and bool(m.mesh.contains(base)[0])
-             else -1 if m.role == "obstacle" and m.mesh.is_watertight else 0)
-            for m in meshes]
+        self._bad_side = [(1 if inside_mesh(m, base)[0] else -1) if m.is_closed else 0
+                          for m in meshes]
 
     # ------------------------------------------------------------------ geometry
     def capsules(self, shape: Shape) -> Capsules:
@@ -147,7 +150,7 @@ class CollisionWorld:
     def fields(self):
         """Distance fields of the meshes (built or read from the cache on first use)."""
         if self._fields is None:
-            self._fields = [field_for(m.mesh, self.field_config, self._cache)
+            self._fields = [field_for(m.mesh, self.field_config, self._cache, m.is_closed)
                             for m in self.scene.collision_meshes]
         return self._fields
 

@@ -23,9 +23,11 @@ def target_blocked(scene, world, target_scene: np.ndarray, tip_radius_mm: float)
     closer to anatomy than the tip's radius."""
     from ctrplan.shape.base import Shape
 
+    from ctrplan.collision.scene import inside_mesh
+
     p = np.asarray(target_scene, dtype=float)[None]
     for m in getattr(scene, "meshes", ()):
-        if m.role == "obstacle" and getattr(m.mesh, "is_watertight", False) and bool(m.mesh.contains(p)[0]):
+        if m.role == "obstacle" and bool(inside_mesh(m, p)[0]):
             return f"the target lies inside {m.name!r}"
     # A probe as thick as the tip, at the target: does it touch anything?
     pb = scene.to_base(p)[0]
