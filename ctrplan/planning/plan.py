@@ -37,7 +37,6 @@ import logging
 import math
 import os
 import time
-import weakref
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Any
@@ -45,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from ctrplan.errors import InputError
+from ctrplan.objcache import Bounded, owned
 from ctrplan.planning import ik as _ik
 from ctrplan.planning import optimize as _opt
 from ctrplan.planning.goals import (
@@ -311,13 +311,17 @@ def _num(v: float) -> float | None:
 
 
 # ---------------------------------------------------------------------- caches
-_MODELS: dict[tuple, Any] = {}
-_SCENES: dict[str, Any] = {}
-_WORLDS: dict[tuple, tuple[weakref.ref, Any]] = {}
+# Nothing here keeps alive what the caller dropped (a long-running service loads scenes per
+# request): models and scenes looked up by name are kept in small LRU caches, and what is
+# derived from an object (its world, its planning model) is cached on that object
+# (:mod:`ctrplan.objcache`), freed with it.
+_MODELS = Bounded(8)
+_SCENES = Bounded(4)
 
 
 def resolve_model(spec, robot: Robot):
-    """A shape model for ``spec`` (name, file or object), cached per (robot, name)."""
+    """A shape model for ``spec`` (name, file or object), cached per (robot, name) (the 8 most
+    recently used)."""
     from ctrplan.shape.models import load_model
 
     if not isinstance(spec, (str, os.PathLike)):
@@ -331,7 +335,8 @@ def resolve_model(spec, robot: Robot):
 
 
 def scene_by_name(spec: str | os.PathLike):
-    """``load_scene(spec)``, cached per name/path in this process (meshes load slowly)."""
+    """``load_scene(spec)``, cached per name/path in this process (meshes load slowly; the 4
+    most recently used)."""
     from ctrplan.collision.scene import load_scene
 
     key = str(spec)
@@ -342,17 +347,19 @@ def scene_by_name(spec: str | os.PathLike):
 
 
 def world_for(scene, margin_mm=0.0, curvature_per_mm: float = 0.0):
-    """The CollisionWorld of a scene (cached per scene object, margin and curvature bound).
-    margin_mm : a number or an ErrorProfile (:func:`ctrplan.shape.error_bounds.auto_margin`)."""
+    """The CollisionWorld of a scene (cached on the scene object, per margin and curvature
+    bound). margin_mm : a number or an ErrorProfile (:func:`ctrplan.shape.error_bounds.auto_margin`)."""
     from ctrplan.collision.world import CollisionWorld
     from ctrplan.shape.error_bounds import margin_key
 
-    key = (id(scene), margin_key(margin_mm), float(curvature_per_mm))
-    hit = _WORLDS.get(key)
-    if hit is not None and hit[0]() is scene:
-        return hit[1]
+    cache = owned(scene)
+    key = ("world", margin_key(margin_mm), float(curvature_per_mm))
+    hit = cache.get(key) if cache is not None else None
+    if hit is not None:
+        return hit
     world = CollisionWorld(scene, margin_mm=margin_mm, curvature_per_mm=curvature_per_mm)
-    _WORLDS[key] = (weakref.ref(scene), world)
+    if cache is not None:
+        cache[key] = world
     return world
 
 
@@ -380,17 +387,15 @@ class _RowwiseModel:
         return self.shape(q, points).points
 
 
-_PLANNING_MODELS: dict[int, tuple[weakref.ref | None, Any]] = {}
-
-
 def planning_model_of(model):
     """The model fit for collision checking: ``model.planning_model()`` when it has one (no
     sensor registration, friction a pure function of q and the direction of motion); for a
     calibrated model without it, the same effects without ``registration`` and with each row
-    its own motion; otherwise the model itself. Cached per model object."""
-    hit = _PLANNING_MODELS.get(id(model))
-    if hit is not None and (hit[0] is None or hit[0]() is model):
-        return hit[1]
+    its own motion; otherwise the model itself. Cached on the model object."""
+    cache = owned(model)
+    hit = cache.get("planning_model") if cache is not None else None
+    if hit is not None:
+        return hit
     make = getattr(model, "planning_model", None)
     if callable(make):
         pm = make()
@@ -406,11 +411,8 @@ def planning_model_of(model):
                 pm.error_profile = model.error_profile
             if "friction" in effects:
                 pm = _RowwiseModel(pm)
-    try:
-        ref = weakref.ref(model)
-    except TypeError:
-        ref = None
-    _PLANNING_MODELS[id(model)] = (ref, pm)
+    if cache is not None:
+        cache["planning_model"] = pm
     return pm
 
 

@@ -33,7 +33,6 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
@@ -173,7 +172,6 @@ MOTION_SAFETY = 1.5
 #: subdivisions of a path segment the clearances do not certify, and levels of subdividing
 MOTION_SUBDIVISIONS = 8
 MOTION_LEVELS = 2
-_LIPSCHITZ: dict[tuple, tuple[Any, float]] = {}
 
 
 def motion_lipschitz(model, robot: Robot, alpha_weight_mm: float, samples: int = 256,
@@ -182,11 +180,14 @@ def motion_lipschitz(model, robot: Robot, alpha_weight_mm: float, samples: int =
     :data:`MOTION_SAFETY`; measured (deterministic seed) against dense interpolation: random
     configurations, random straight steps of 0.25..2 mm of metric, 8 states along each; the
     largest ratio of a point's displacement from the step's start to the metric distance
-    travelled. Cached per model object. (Measured on seed1, physics: 0.8-1.0 before the factor.)"""
-    key = (id(model), float(alpha_weight_mm), int(samples), int(points), int(seed))
-    hit = _LIPSCHITZ.get(key)
-    if hit is not None and hit[0] is model:
-        return hit[1]
+    travelled. Cached on the model object. (Measured on seed1, physics: 0.8-1.0 before the factor.)"""
+    from ctrplan.objcache import owned
+
+    cache = owned(model)       # cached on the model: freed with it
+    key = ("motion_lipschitz", float(alpha_weight_mm), int(samples), int(points), int(seed))
+    hit = cache.get(key) if cache is not None else None
+    if hit is not None:
+        return hit
     rng = np.random.default_rng([seed, 4242])
     n = robot.n
     q0 = robot.sample(samples, seed=rng)
@@ -213,7 +214,8 @@ def motion_lipschitz(model, robot: Robot, alpha_weight_mm: float, samples: int =
         if good.any():
             best = max(best, float(np.max(move[good] / dist[good])))
     lip = MOTION_SAFETY * best
-    _LIPSCHITZ[key] = (model, lip)
+    if cache is not None:
+        cache[key] = lip
     return lip
 
 
