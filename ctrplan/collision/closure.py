@@ -258,7 +258,8 @@ def _close_loops(parts, ends, pool, faces, owner, bnd, loops, max_hole_mm, src):
         apex += 1
         c = Closure(parts[m].name, "open end" if hit else "hole", centre, size, len(sel), area)
         closures.append(c)
-        (log.info if hit else log.warning)("%s: %s", parts[m].file, c.describe())
+        # a declared end is expected (debug); a filled hole is news (a warning)
+        (log.debug if hit else log.warning)("%s: %s", parts[m].file, c.describe())
     for e, end in enumerate(ends):
         names = [p.name for p in parts]
         if end.shape == "ball" and end.mesh in names:
@@ -272,7 +273,7 @@ def _close_loops(parts, ends, pool, faces, owner, bnd, loops, max_hole_mm, src):
             c = Closure(end.mesh, "plug", np.asarray(end.position, float), 2.0 * end.radius, 0,
                         4.0 * np.pi * end.radius ** 2)
             closures.append(c)
-            log.info("%s: %s", parts[m].file, c.describe())
+            log.debug("%s: %s", parts[m].file, c.describe())
     if refuse:
         size, m, centre, edges = max(refuse, key=lambda r: r[0])
         at = ", ".join(f"{x:.2f}" for x in centre)

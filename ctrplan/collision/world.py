@@ -22,6 +22,7 @@ from ctrplan.collision.field import EPS_MM, FieldConfig, capsule_bounds
 from ctrplan.collision.field_cache import field_for
 from ctrplan.collision.scene import Scene, load_scene
 from ctrplan.errors import InputError
+from ctrplan.objcache import Bounded
 from ctrplan.shape.base import Shape
 
 #: contact value of a configuration whose shape model failed (ok=False)
@@ -44,6 +45,45 @@ class CollisionReport:
 
     def __len__(self) -> int:
         return int(self.collides.shape[0])
+
+
+class WorldGeometry:
+    """What a :class:`CollisionWorld` builds from a scene's collision meshes: the exact-geometry
+    models (FCL), the distance fields (built or read from the cache on first use) and ``memo``,
+    a dict for results that depend on them (e.g. the planner's start). It holds the meshes, not
+    the scene, so a scene can cache it (and worlds over it) without a reference cycle: it is
+    freed with the scene."""
+
+    def __init__(self, meshes, field_config: FieldConfig, cache=True):
+        from ctrplan.collision._fcl import FclMeshes
+
+        self.meshes = tuple(meshes)
+        self.field_config = field_config
+        self.cache = cache
+        self.exact = FclMeshes([m.mesh for m in self.meshes])
+        self._fields = None
+        self.memo: dict = Bounded(256)
+
+    def bad_sides(self, base: np.ndarray) -> list[int]:
+        """Per mesh, the side whose points prove a collision of a chain starting at ``base``
+        (field module): for a mesh closed on its own, the other ray parity than the base's
+        (+1: outside a closed wall that contains the base; -1: inside a closed obstacle); 0
+        for a mesh that is not closed. Cached per base."""
+        from ctrplan.collision.scene import inside_mesh
+
+        key = ("bad_sides", tuple(np.asarray(base, dtype=float).tolist()))
+        if key not in self.memo:
+            b = np.asarray(base, dtype=float)[None]
+            self.memo[key] = [(1 if inside_mesh(m, b)[0] else -1) if m.is_closed else 0
+                              for m in self.meshes]
+        return self.memo[key]
+
+    @property
+    def fields(self):
+        if self._fields is None:
+            self._fields = [field_for(m.mesh, self.field_config, self.cache, m.is_closed)
+                            for m in self.meshes]
+        return self._fields
 
 
 class CollisionWorld:
@@ -75,11 +115,14 @@ class CollisionWorld:
         Use the conservative distance-field prefilter (same verdicts, faster).
     field_config : FieldConfig
         Distance-field parameters. cache : bool or folder for the field cache.
+    geometry : WorldGeometry, optional
+        Reuse the exact models and fields of another world of the same scene meshes.
     """
 
     def __init__(self, scene: Scene | str, margin_mm=0.0, prefilter: bool = True,
                  field_config: FieldConfig | None = None, cache=True,
-                 curvature_per_mm: float = 0.0, padding: str = "auto", motion_mm: float = 0.0):
+                 curvature_per_mm: float = 0.0, padding: str = "auto", motion_mm: float = 0.0,
+                 geometry: WorldGeometry | None = None):
         from ctrplan.collision.capsules import PADDINGS
         from ctrplan.shape.error_bounds import ErrorProfile
 
@@ -107,23 +150,17 @@ class CollisionWorld:
         self.names = np.array([m.name for m in meshes] + [""], dtype=object)
         self.prefilter = bool(prefilter)
         self.field_config = field_config or FieldConfig()
-        from ctrplan.collision._fcl import FclMeshes
-
-        self._fcl = FclMeshes([m.mesh for m in meshes])
-        self._fields = None
-        self._cache = cache
+        if geometry is None or geometry.field_config != self.field_config or tuple(
+                m.mesh for m in geometry.meshes) != tuple(m.mesh for m in meshes):
+            geometry = WorldGeometry(meshes, self.field_config, cache)
+        #: what is built from the meshes (exact-geometry models, distance fields), shareable
+        #: between the worlds of one scene (:func:`ctrplan.planning.plan.world_for`)
+        self.geometry = geometry
+        self._fcl = geometry.exact
         #: configurations sent to FCL by the last check/collides call (for benchmarks)
         self.last_fcl_calls = 0
         self.pose = np.asarray(self.scene.base_pose, dtype=float)
-        # Side proofs (field module): a point outside a closed wall that contains the base, or
-        # inside a closed obstacle, proves a collision of the chain that starts at the base.
-        # Generally: for any mesh closed on its own, a point of the other ray parity than the
-        # base proves that the chain crossed it (the chain starts at the base).
-        from ctrplan.collision.scene import inside_mesh
-
-        base = self.pose[:3, 3][None]
-        self._bad_side = [(1 if inside_mesh(m, base)[0] else -1) if m.is_closed else 0
-                          for m in meshes]
+        self._bad_side = geometry.bad_sides(self.pose[:3, 3])
 
     # ------------------------------------------------------------------ geometry
     def capsules(self, shape: Shape) -> Capsules:
@@ -149,10 +186,16 @@ class CollisionWorld:
     @property
     def fields(self):
         """Distance fields of the meshes (built or read from the cache on first use)."""
-        if self._fields is None:
-            self._fields = [field_for(m.mesh, self.field_config, self._cache, m.is_closed)
-                            for m in self.scene.collision_meshes]
-        return self._fields
+        return self.geometry.fields
+
+    def params_key(self) -> tuple:
+        """What a verdict depends on besides the geometry: margin, curvature bound, padding,
+        motion padding, prefilter (hashable)."""
+        from ctrplan.shape.error_bounds import margin_key
+
+        margin = self.margin_profile if self.margin_profile is not None else self.margin_mm
+        return (margin_key(margin), self.curvature_per_mm, self.padding, self.motion_mm,
+                self.prefilter)
 
     # ------------------------------------------------------------------ queries
     def check(self, shape: Shape) -> CollisionReport:

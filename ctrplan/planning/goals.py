@@ -66,10 +66,10 @@ def retracted_start(robot: Robot, validator: BatchValidator, world, samples: int
 
     Returns (q (2n,), adjusted). If no rotation is free, the plain retracted configuration.
     """
-    from ctrplan.objcache import owned
-
-    cache = owned(world)       # cached on the world: freed with it
-    key = ("retracted_start", id(validator.model), robot, samples, seed)
+    # cached with the world's geometry (shared by the worlds of one scene, freed with it)
+    cache = getattr(getattr(world, "geometry", None), "memo", None)
+    key = (("retracted_start", id(validator.model), world.params_key(), robot, samples, seed)
+           if cache is not None else None)
     hit = cache.get(key) if cache is not None else None
     if hit is not None and hit[0]() is validator.model:
         return hit[1].copy(), hit[2]

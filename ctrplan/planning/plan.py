@@ -347,19 +347,20 @@ def scene_by_name(spec: str | os.PathLike):
 
 
 def world_for(scene, margin_mm=0.0, curvature_per_mm: float = 0.0):
-    """The CollisionWorld of a scene (cached on the scene object, per margin and curvature
-    bound). margin_mm : a number or an ErrorProfile (:func:`ctrplan.shape.error_bounds.auto_margin`)."""
+    """A CollisionWorld of a scene with this margin and curvature bound, over the scene's exact
+    models and distance fields (built once per scene object and cached on it).
+    margin_mm : a number or an ErrorProfile (:func:`ctrplan.shape.error_bounds.auto_margin`)."""
     from ctrplan.collision.world import CollisionWorld
-    from ctrplan.shape.error_bounds import margin_key
 
+    # The scene caches the geometry (exact models, fields), not the world: a world refers to
+    # its scene, and a scene -> world -> scene cycle would keep both (and their memory) alive
+    # until a full garbage collection. Worlds themselves are cheap.
     cache = owned(scene)
-    key = ("world", margin_key(margin_mm), float(curvature_per_mm))
-    hit = cache.get(key) if cache is not None else None
-    if hit is not None:
-        return hit
-    world = CollisionWorld(scene, margin_mm=margin_mm, curvature_per_mm=curvature_per_mm)
+    geometry = cache.get("world_geometry") if cache is not None else None
+    world = CollisionWorld(scene, margin_mm=margin_mm, curvature_per_mm=curvature_per_mm,
+                           geometry=geometry)
     if cache is not None:
-        cache[key] = world
+        cache["world_geometry"] = world.geometry
     return world
 
 
@@ -395,7 +396,7 @@ def planning_model_of(model):
     cache = owned(model)
     hit = cache.get("planning_model") if cache is not None else None
     if hit is not None:
-        return hit
+        return model if hit is _SAME else hit
     make = getattr(model, "planning_model", None)
     if callable(make):
         pm = make()
@@ -411,9 +412,12 @@ def planning_model_of(model):
                 pm.error_profile = model.error_profile
             if "friction" in effects:
                 pm = _RowwiseModel(pm)
-    if cache is not None:
-        cache["planning_model"] = pm
+    if cache is not None:    # (the model itself is not stored in its own cache: no cycle)
+        cache["planning_model"] = _SAME if pm is model else pm
     return pm
+
+
+_SAME = object()
 
 
 def _scene_label(spec, scene) -> str:
@@ -445,7 +449,14 @@ def check_target(target) -> np.ndarray:
         raise InputError("--target", "", f"must be three numbers X,Y,Z (mm), got {t.size}")
     if not np.all(np.isfinite(t)):
         raise InputError("--target", "", "must be finite numbers (mm)")
+    if np.max(np.abs(t)) > MAX_TARGET_MM:    # (also keeps the distances below finite)
+        raise InputError("--target", "", f"{float(np.max(np.abs(t))):.4g} mm is outside the plausible "
+                         f"range of a scene coordinate (|X|, |Y|, |Z| <= {MAX_TARGET_MM:g} mm)")
     return t
+
+
+#: Largest target coordinate (mm) accepted: scenes are at most 2 m across.
+MAX_TARGET_MM = 1e6
 
 
 def _check_args(time_limit: float, tolerance_mm: float, seed: int) -> None:
