@@ -113,24 +113,13 @@ def wall_open_ends(walls: list[tuple[str, object]], margin_mm: float = 1.0) -> l
     """The boundary loops of wall meshes taken together (seams between them are closed), each
     as an ``open_ends`` entry ``{mesh, position, radius}``: the loop's centre and the largest
     distance from it to the loop's vertices plus ``margin_mm``, rounded up to 0.5 mm."""
-    from ctrplan.collision.closure import Part, edge_runs
+    from ctrplan.collision.closure import Part, boundary_loops
 
     parts = [Part(n, n, np.asarray(m.vertices, float), np.asarray(m.faces)) for n, m in walls]
-    from ctrplan.collision.closure import _loops, _welded
-
-    pool, faces, owner = _welded(parts)
-    order, starts, counts = edge_runs(faces, len(pool))
-    bnd = order[starts[counts % 2 == 1]]
-    label, n = _loops(faces, bnd)
     ends = []
-    for k in range(n):
-        sel = bnd[label == k]
-        verts = np.unique(np.concatenate([faces.ravel()[sel], np.roll(faces, -1, axis=1).ravel()[sel]]))
-        centre = pool[verts].mean(axis=0)
-        radius = float(np.max(np.linalg.norm(pool[verts] - centre, axis=1))) + margin_mm
-        m = int(np.argmax(np.bincount(owner[sel // 3], minlength=len(parts))))
-        ends.append({"mesh": parts[m].name, "position": [round(float(x), 4) for x in centre],
-                     "radius": float(np.ceil(radius * 2.0) / 2.0)})
+    for name, centre, radius in boundary_loops(parts):
+        ends.append({"mesh": name, "position": [round(float(x), 4) for x in centre],
+                     "radius": float(np.ceil((radius + margin_mm) * 2.0) / 2.0)})
     return ends
 
 

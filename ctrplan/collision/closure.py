@@ -33,6 +33,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 
 from ctrplan.errors import InputError
@@ -118,24 +119,111 @@ def weld(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return sv[new], inverse
 
 
-def edge_runs(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Edges of a triangle list, grouped: (order (3F,) edge occurrences sorted by undirected
-    edge, starts (R,) of each run in ``order``, counts (R,)). Occurrence ``e`` is edge ``e % 3``
-    of face ``e // 3``, directed ``f[k] -> f[(k + 1) % 3]``."""
+@dataclass(frozen=True)
+class Edges:
+    """The edges of a triangle list, counted: the boundary edges (used by an odd number of
+    triangles; one each, directed as in a triangle that uses it, with that triangle's part),
+    edges shared by two triangles that traverse them the same way (inconsistent winding),
+    and edges shared by more than two triangles of one part (non-manifold)."""
+
+    a: np.ndarray
+    b: np.ndarray
+    owner: np.ndarray
+    inconsistent: int
+    non_manifold: int
+    non_manifold_part: int
+
+
+def count_edges(faces: np.ndarray, n_vertices: int, owner: np.ndarray | None = None,
+                parts: int = 1) -> Edges:
+    """:class:`Edges` of ``faces`` (F, 3) over ``n_vertices`` vertices (``owner`` (F,): the part
+    of each face). One sort of 3F packed 64-bit keys (edge, part, direction) and a compiled
+    scan: memory about 8 bytes per edge."""
     f = np.asarray(faces, dtype=np.int64)
-    a = f.ravel()
-    b = np.roll(f, -1, axis=1).ravel()
-    key = np.minimum(a, b) * np.int64(n_vertices) + np.maximum(a, b)
-    order = np.argsort(key, kind="stable")
-    ks = key[order]
-    del key
-    head = np.empty(len(ks), dtype=bool)
-    if len(ks):
-        head[0] = True
-        np.not_equal(ks[1:], ks[:-1], out=head[1:])
-    starts = np.flatnonzero(head)
-    counts = np.diff(np.append(starts, len(ks)))
-    return order, starts, counts
+    nv = np.int64(max(int(n_vertices), 1))
+    if float(nv) ** 2 * parts * 2 >= 2.0 ** 62:
+        raise InputError("mesh", "vertices", f"{int(nv):,} vertices: too many to count edges")
+    own = (np.asarray(owner, dtype=np.int64) if owner is not None and parts > 1
+           else np.zeros(1, dtype=np.int64))
+    keys = _pack_keys(f, nv, np.int64(parts), own, owner is not None and parts > 1)
+    keys.sort()
+    n_bnd, inc, nm, nm_part = _scan_count(keys, parts)
+    ea = np.empty(n_bnd, np.int64)
+    eb = np.empty(n_bnd, np.int64)
+    eo = np.empty(n_bnd, np.int32)
+    _scan_fill(keys, parts, nv, ea, eb, eo)
+    return Edges(ea, eb, eo, int(inc), int(nm), int(nm_part))
+
+
+@nb.njit(cache=True)
+def _pack_keys(f, nv, parts, owner, with_owner):
+    """(3F,) keys ((edge * parts + part) * 2 + direction), edge = lo * nv + hi."""
+    keys = np.empty(3 * f.shape[0], np.int64)
+    for t in range(f.shape[0]):
+        p = owner[t] if with_owner else 0
+        for k in range(3):
+            a = f[t, k]
+            b = f[t, (k + 1) % 3]
+            lo = min(a, b)
+            hi = max(a, b)
+            keys[3 * t + k] = ((lo * nv + hi) * parts + p) * 2 + (1 if a > b else 0)
+    return keys
+
+
+@nb.njit(cache=True)
+def _scan_count(keys, parts):
+    n = keys.shape[0]
+    i = 0
+    n_bnd = inc = nm = 0
+    nm_part = -1
+    while i < n:
+        e = (keys[i] >> 1) // parts
+        j = i + 1
+        while j < n and (keys[j] >> 1) // parts == e:
+            j += 1
+        cnt = j - i
+        if cnt % 2 == 1:
+            n_bnd += 1
+        elif cnt == 2 and (keys[i] & 1) == (keys[i + 1] & 1):
+            inc += 1
+        if cnt > 2:
+            k = i
+            while k < j:          # occurrences are sorted by part within the edge
+                p = (keys[k] >> 1) % parts
+                m = k + 1
+                while m < j and (keys[m] >> 1) % parts == p:
+                    m += 1
+                if m - k > 2:
+                    nm += 1
+                    nm_part = p
+                    break
+                k = m
+        i = j
+    return n_bnd, inc, nm, nm_part
+
+
+@nb.njit(cache=True)
+def _scan_fill(keys, parts, nv, ea, eb, eo):
+    n = keys.shape[0]
+    i = 0
+    out = 0
+    while i < n:
+        e = (keys[i] >> 1) // parts
+        j = i + 1
+        while j < n and (keys[j] >> 1) // parts == e:
+            j += 1
+        if (j - i) % 2 == 1:
+            lo = e // nv
+            hi = e % nv
+            if keys[i] & 1:      # the triangle ran hi -> lo
+                ea[out] = hi
+                eb[out] = lo
+            else:
+                ea[out] = lo
+                eb[out] = hi
+            eo[out] = (keys[i] >> 1) % parts
+            out += 1
+        i = j
 
 
 def close_group(parts: list[Part], ends: list[OpenEnd], max_hole_mm: float,
@@ -147,16 +235,20 @@ def close_group(parts: list[Part], ends: list[OpenEnd], max_hole_mm: float,
     with bar(total=3, desc="closing meshes", disable=sum(len(p.faces) for p in parts) < 1_000_000) as pb:
         pool, faces, owner = _welded(parts)
         pb.update(1)
-        order, starts, counts = edge_runs(faces, len(pool))
-        _refuse_non_manifold(parts, owner, order, starts, counts)
-        bnd = order[starts[counts % 2 == 1]]            # one occurrence per boundary edge
+        edges = count_edges(faces, len(pool), owner, len(parts))
+        if edges.non_manifold:
+            raise InputError(parts[edges.non_manifold_part].file, "faces", f"non-manifold: "
+                             f"{edges.non_manifold} edges shared by more than two triangles")
         pb.update(1)
-        loops = _loops(faces, bnd)
-        inconsistent = _inconsistent(faces, order, starts, counts)
-        del order, starts, counts
-        new_v, new_f, new_owner, closures = _close_loops(parts, ends, pool, faces, owner, bnd,
-                                                         loops, max_hole_mm, src)
+        loops = _loops(edges.a, edges.b)
+        new_v, new_f, new_owner, closures = _close_loops(parts, ends, pool, edges, loops,
+                                                         max_hole_mm, src)
         pb.update(1)
+    if len(parts) == 1 and not new_f and len(pool) == len(parts[0].vertices):
+        # nothing merged, nothing added: the mesh as read (no copies of a large mesh)
+        part = parts[0]
+        f = _orient(part, part.vertices, np.asarray(part.faces, dtype=np.int64), edges.inconsistent)
+        return [ClosedPart(part.name, part.vertices, f, True, ())]
     pool = np.vstack([pool] + new_v) if new_v else pool
     all_f = np.vstack([faces] + new_f) if new_f else faces
     all_owner = np.concatenate([owner] + new_owner) if new_owner else owner
@@ -166,9 +258,10 @@ def close_group(parts: list[Part], ends: list[OpenEnd], max_hole_mm: float,
         used, local = np.unique(fm, return_inverse=True)
         v, f = pool[used], local.reshape(-1, 3).astype(np.int64)
         mine = tuple(c for c in closures if c.mesh == part.name)
-        closed = len(parts) == 1 or _odd_edges(f, len(v)) == 0
+        own = count_edges(f, len(v))
+        closed = len(own.a) == 0
         if closed:
-            f = _orient(part, v, f, inconsistent if len(parts) == 1 else None)
+            f = _orient(part, v, f, own.inconsistent)
         out.append(ClosedPart(part.name, v, f, closed, mine))
     return out
 
@@ -177,34 +270,40 @@ def _welded(parts: list[Part]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(vertex pool, faces into it (F, 3), owner part of each face (F,))."""
     offsets = np.cumsum([0] + [len(p.vertices) for p in parts])
     pool, inverse = weld(np.vstack([p.vertices for p in parts]))
+    if len(parts) == 1 and len(pool) == len(parts[0].vertices):     # nothing to merge
+        f = np.asarray(parts[0].faces, dtype=np.int64)
+        return parts[0].vertices, f, np.zeros(len(f), dtype=np.int32)
     faces = np.vstack([inverse[np.asarray(p.faces, dtype=np.int64) + o]
                        for p, o in zip(parts, offsets[:-1])])
     owner = np.concatenate([np.full(len(p.faces), m, dtype=np.int32) for m, p in enumerate(parts)])
     return pool, faces, owner
 
 
-def _refuse_non_manifold(parts, owner, order, starts, counts) -> None:
-    """An edge shared by more than two triangles of one mesh has no consistent inside."""
-    for r in np.flatnonzero(counts > 2):
-        occ = order[starts[r]:starts[r] + counts[r]] // 3
-        per = np.bincount(owner[occ], minlength=len(parts))
-        if per.max() > 2:
-            m = int(np.argmax(per))
-            bad = int(np.sum(counts > 2))
-            raise InputError(parts[m].file, "faces", f"non-manifold: {bad} edges shared by more "
-                             "than two triangles")
+def boundary_loops(parts: list[Part]) -> list[tuple[str, np.ndarray, float]]:
+    """The boundary loops of meshes taken together (seams between them closed): (name of the
+    part owning most of the loop, centre (mean of its vertices), largest distance from the
+    centre to a vertex)."""
+    pool, faces, owner = _welded(parts)
+    edges = count_edges(faces, len(pool), owner, len(parts))
+    label, n = _loops(edges.a, edges.b)
+    out = []
+    for k in range(n):
+        sel = label == k
+        verts = np.unique(np.concatenate([edges.a[sel], edges.b[sel]]))
+        centre = pool[verts].mean(axis=0)
+        m = int(np.argmax(np.bincount(edges.owner[sel], minlength=len(parts))))
+        out.append((parts[m].name, centre, float(np.max(np.linalg.norm(pool[verts] - centre, axis=1)))))
+    return out
 
 
-def _loops(faces: np.ndarray, bnd: np.ndarray) -> tuple[np.ndarray, int]:
-    """(loop label of each boundary occurrence (E_b,), number of loops): connected components
+def _loops(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, int]:
+    """(loop label of each boundary edge a-b (E_b,), number of loops): connected components
     of the boundary edges."""
-    if len(bnd) == 0:
+    if len(a) == 0:
         return np.zeros(0, dtype=np.int64), 0
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    a = faces.ravel()[bnd]
-    b = np.roll(faces, -1, axis=1).ravel()[bnd]
     ids, local = np.unique(np.concatenate([a, b]), return_inverse=True)
     la, lb = local[:len(a)], local[len(a):]
     g = coo_matrix((np.ones(len(a)), (la, lb)), shape=(len(ids), len(ids)))
@@ -212,25 +311,11 @@ def _loops(faces: np.ndarray, bnd: np.ndarray) -> tuple[np.ndarray, int]:
     return label[la], int(n)
 
 
-def _inconsistent(faces, order, starts, counts) -> int:
-    """Edges shared by two triangles that traverse it in the same direction (inconsistent
-    winding)."""
-    two = starts[counts == 2]
-    if len(two) == 0:
-        return 0
-    flat = faces.ravel()
-    rolled = np.roll(faces, -1, axis=1).ravel()
-    i, j = order[two], order[two + 1]
-    return int(np.sum((flat[i] < rolled[i]) == (flat[j] < rolled[j])))
-
-
-def _close_loops(parts, ends, pool, faces, owner, bnd, loops, max_hole_mm, src):
+def _close_loops(parts, ends, pool, edges: Edges, loops, max_hole_mm, src):
     """Fans for every loop (cap, fill) or the refusal of the largest unfillable one."""
     label, n = loops
     new_v, new_f, new_owner, closures = [], [], [], []
-    a = faces.ravel()[bnd]
-    b = np.roll(faces, -1, axis=1).ravel()[bnd]
-    face_owner = owner[bnd // 3]
+    a, b, face_owner = edges.a, edges.b, edges.owner
     order = np.argsort(label, kind="stable")
     cuts = np.searchsorted(label[order], np.arange(n + 1))
     used_ends: set[int] = set()
@@ -307,11 +392,6 @@ def _check_ends_used(parts, ends, used: set[int], src: str) -> None:
                              "vertex lies within its radius)")
 
 
-def _odd_edges(faces: np.ndarray, n_vertices: int) -> int:
-    _, _, counts = edge_runs(faces, n_vertices)
-    return int(np.sum(counts % 2 == 1))
-
-
 def signed_volume(vertices: np.ndarray, faces: np.ndarray, chunk: int = 1 << 20) -> float:
     """Signed volume (mm^3) enclosed by a closed triangle surface (positive: normals outward)."""
     total = 0.0
@@ -321,11 +401,8 @@ def signed_volume(vertices: np.ndarray, faces: np.ndarray, chunk: int = 1 << 20)
     return total / 6.0
 
 
-def _orient(part: Part, v: np.ndarray, f: np.ndarray, inconsistent: int | None) -> np.ndarray:
+def _orient(part: Part, v: np.ndarray, f: np.ndarray, inconsistent: int) -> np.ndarray:
     """Faces of a closed mesh with consistent winding and outward normals (changes logged)."""
-    if inconsistent is None:
-        order, starts, counts = edge_runs(f, len(v))
-        inconsistent = _inconsistent(f, order, starts, counts)
     if inconsistent:
         import trimesh
 

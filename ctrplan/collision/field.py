@@ -116,40 +116,93 @@ def _build_field(vertices, faces, config, watertight, pbar, ndimage) -> Distance
     rep = sv[first]
     grid = np.ones(shape, dtype=bool)
     grid.flat[marked] = False
+    del node, flat
     # exact Euclidean distance transform: for every node, the nearest marked node
     dist, idx = ndimage.distance_transform_edt(grid, sampling=h, return_indices=True)
+    del grid
     pbar.update(1)
-    near = np.ravel_multi_index(idx.reshape(3, -1), shape)
-    del idx
-    rep_near = rep[np.searchsorted(marked, near)]
-    nodes = np.stack(np.unravel_index(np.arange(len(near)), shape), axis=1) * h + lo
-    # upper bound: distance to a true surface point (the sample held by the nearest marked node)
-    ub = np.linalg.norm(nodes - rep_near, axis=1).reshape(shape).astype(np.float32)
-    del nodes, rep_near
+    # upper bound: distance to a true surface point (the sample held by the nearest marked
+    # node); computed in chunks of nodes so memory stays O(chunk)
+    ub = _upper_bounds(idx.reshape(3, -1), shape, h, lo, marked, rep)
+    del idx, marked, rep
     # lower bound: the nearest surface point x has a sample within rho, whose node is within
     # h*sqrt(3)/2 of it, so dist <= d + rho + h*sqrt(3)/2
     lb = np.maximum(dist - rho - h * math.sqrt(3.0) / 2.0, 0.0).astype(np.float32)
     pbar.update(1)
     # Near the surface, where verdicts are decided, replace both bounds by the exact distance
-    # to the nearest sample (lb then loses only rho, not the snapping term): every sample
-    # visits the nodes within refine_mm of it (numba); a node whose nearest visiting sample is
-    # within refine_mm has found its true nearest sample.
-    near = np.full(shape, np.inf, dtype=np.float64)
-    _splat(sv[np.argsort(sv[:, 0], kind="stable")], lo, h, float(config.refine_mm), near)
-    np.sqrt(near, out=near)
+    # to the nearest sample (lb then loses only rho, not the snapping term). A node within
+    # refine_mm of a sample has a marked node within refine_mm + h sqrt(3)/2 (the sample's),
+    # so only those nodes are asked for their nearest sample (a k-d tree over the samples).
+    refine = refine_radius(config.refine_mm, len(sv), len(f), h)
+    cand = np.flatnonzero(dist.ravel() <= refine + h * math.sqrt(3.0) / 2.0)
+    del dist
+    near = _nearest_sample(sv, cand, shape, h, lo, refine)
     pbar.update(1)
-    band = near <= config.refine_mm
-    lb[band] = np.maximum(lb[band], np.maximum(near[band] - rho, 0.0))
-    ub[band] = np.minimum(ub[band], near[band])
-    del near, band
+    band = near <= refine
+    cand, near = cand[band], near[band]
+    lbf, ubf = lb.reshape(-1), ub.reshape(-1)
+    lbf[cand] = np.maximum(lbf[cand], np.maximum(near - rho, 0.0))
+    ubf[cand] = np.minimum(ubf[cand], near)
+    del near, band, cand
     side = _sides(lb, h, lo, v, f) if watertight else np.zeros(shape, dtype=np.int8)
     pbar.update(1)
     field = DistanceField(origin=lo, h=float(h), lb=lb, ub=ub, box_lo=box_lo, box_hi=box_hi,
                           rho=rho, side=side, watertight=watertight,
                           build_s=time.perf_counter() - t0)
-    log.debug("distance field: %s nodes, h %.3f mm, %d samples, rho %.3f mm, %.2f s",
-              shape, h, len(sv), rho, field.build_s)
+    log.debug("distance field: %s nodes, h %.3f mm, %d samples, rho %.3f mm, refined within "
+              "%.2f mm, %.2f s", shape, h, len(sv), rho, refine, field.build_s)
     return field
+
+
+#: Nodes per chunk of the bounds computation.
+NODE_CHUNK = 1 << 20
+#: Meshes above this many triangles (large: a fine segmentation; every shipped mesh has fewer
+#: than 50,000) get a refinement radius capped by REFINE_WORK.
+LARGE_TRIANGLES = 250_000
+#: Largest refinement work, samples x (radius / h)^3 (about 25 s on one core of the reference
+#: machine; the shipped brain surface needs 1.4e8 at 4 mm).
+REFINE_WORK = 1.5e8
+
+
+def refine_radius(refine_mm: float, samples: int, triangles: int, h: float) -> float:
+    """The refinement radius: ``refine_mm``, except for a mesh of more than LARGE_TRIANGLES
+    triangles, where it shrinks so that samples x (radius / h)^3 stays within REFINE_WORK (the
+    nearest-sample search costs in proportion; 2.5 million samples at h 0.5 mm give 1.8 mm).
+    Bounds stay valid either way: only nodes within the radius are tightened."""
+    if triangles <= LARGE_TRIANGLES or samples == 0:
+        return float(refine_mm)
+    return float(min(refine_mm, h * (REFINE_WORK / samples) ** (1.0 / 3.0)))
+
+
+def _upper_bounds(idx: np.ndarray, shape: tuple, h: float, lo: np.ndarray, marked: np.ndarray,
+                  rep: np.ndarray) -> np.ndarray:
+    """(shape) float32: distance from every node to the sample held by its nearest marked node
+    (``idx`` (3, N): the distance transform's nearest-node indices)."""
+    n = int(np.prod(shape))
+    ub = np.empty(n, dtype=np.float32)
+    for s in range(0, n, NODE_CHUNK):
+        e = min(s + NODE_CHUNK, n)
+        held = rep[np.searchsorted(marked, np.ravel_multi_index(idx[:, s:e], shape))]
+        nodes = np.stack(np.unravel_index(np.arange(s, e), shape), axis=1) * h + lo
+        ub[s:e] = np.linalg.norm(nodes - held, axis=1)
+    return ub.reshape(shape)
+
+
+def _nearest_sample(samples: np.ndarray, flat: np.ndarray, shape: tuple, h: float,
+                    lo: np.ndarray, radius: float) -> np.ndarray:
+    """(len(flat),) distance from each node (flat indices) to its nearest sample, inf where
+    none lies within ``radius``."""
+    from scipy.spatial import cKDTree
+
+    out = np.full(len(flat), np.inf)
+    if len(flat) == 0 or len(samples) == 0:
+        return out
+    tree = cKDTree(samples, leafsize=16, balanced_tree=False, compact_nodes=False)
+    for s in range(0, len(flat), NODE_CHUNK):
+        nodes = np.stack(np.unravel_index(flat[s:s + NODE_CHUNK], shape), axis=1) * h + lo
+        d, _ = tree.query(nodes, k=1, distance_upper_bound=radius * (1.0 + 1e-12), workers=1)
+        out[s:s + NODE_CHUNK] = d
+    return out
 
 
 #: A triangle is sampled by a grid in its plane (cost ~ area) instead of the barycentric
@@ -174,9 +227,39 @@ def surface_samples(v: np.ndarray, f: np.ndarray, max_edge: float) -> tuple[np.n
     diameter is at most ``g sqrt(2)``; triangulated from its corners, every point lies within
     (longest edge) / sqrt(3) of a corner, so ``e = g sqrt(2)`` bounds the covering radius.
     """
-    tri = np.ascontiguousarray(v[f], dtype=float)
-    if len(tri) == 0:
+    f = np.asarray(f, dtype=np.int64)
+    if len(f) == 0:
         return np.empty((0, 3)), 0.0
+    # in chunks of triangles (memory O(chunk), not O(F)): whether any triangle is thin decides
+    # the covering radius of all of them, so that is settled first
+    chunks = [(s, min(s + TRI_CHUNK, len(f))) for s in range(0, len(f), TRI_CHUNK)]
+    for any_thin in (False, True):      # the second pass only when some triangle is thin
+        outs, corner_sets, e, thin_seen = [], [], 0.0, False
+        for s, e_ in chunks:
+            pts, corners, e_c, thin = _chunk_samples(v, f[s:e_], max_edge, any_thin)
+            if thin and not any_thin:
+                thin_seen = True
+                break
+            outs.append(pts)
+            corner_sets.append(corners)
+            e = max(e, e_c)
+        if not thin_seen:
+            break
+    # a triangle whose lattice is its three corners (n = 1) is covered by the mesh's vertices:
+    # they are taken once each, not once per triangle (a fine mesh shares each about 6 times)
+    used = np.zeros(len(v), dtype=bool)
+    for c in corner_sets:
+        used[c] = True
+    return np.concatenate(outs + [v[used]]), e
+
+
+#: Triangles per chunk of :func:`surface_samples`.
+TRI_CHUNK = 1 << 19
+
+
+def _sample_plan(v, f, max_edge: float, any_thin: bool):
+    """(tri (T, 3, 3), longest (T,), n (T,), thin (T,)) of a chunk of triangles."""
+    tri = np.ascontiguousarray(v[f], dtype=float)
     edges = np.stack([np.linalg.norm(tri[:, i] - tri[:, (i + 1) % 3], axis=1) for i in range(3)], axis=1)
     longest = edges.max(axis=1)
     n = np.maximum(np.ceil(longest / max_edge), 1).astype(np.int64)
@@ -185,27 +268,37 @@ def surface_samples(v: np.ndarray, f: np.ndarray, max_edge: float) -> tuple[np.n
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     by_area = area / g**2 + 2.0 * edges.sum(axis=1) / g + 3.0
     thin = lattice > LATTICE_EXCESS * by_area
-    if thin.any():
+    if any_thin:
         # the grid triangles set the covering radius (e = g sqrt(2)): sample the others with
         # lattice sub-edges up to that too, and each triangle by whichever needs fewer points
         n = np.maximum(np.ceil(longest / (g * math.sqrt(2.0))), 1).astype(np.int64)
         lattice = (n + 1) * (n + 2) // 2
         thin |= lattice > by_area
-    counts = np.where(thin, 0, lattice)
+    return tri, longest, n, thin
+
+
+def _chunk_samples(v, f, max_edge: float, any_thin: bool):
+    """(samples, vertex indices of corner-only triangles, e, any thin) of a chunk of
+    triangles (with ``any_thin`` False it stops at the plan when the chunk has a thin one)."""
+    tri, longest, n, thin = _sample_plan(v, f, max_edge, any_thin)
+    if not any_thin and thin.any():
+        return None, None, 0.0, True
+    g = max_edge
+    corners = ~thin & (n == 1)
+    counts = np.where(thin | corners, 0, (n + 1) * (n + 2) // 2)
     if thin.any():
         counts[thin] = _grid_samples(tri[thin], g, np.empty((0, 3)), np.zeros(1, np.int64), False)
     offsets = np.concatenate([[0], np.cumsum(counts)])
     out = np.empty((int(offsets[-1]), 3))
     fat = ~thin
-    if fat.any():
-        sel = np.flatnonzero(fat)
-        _lattice_at(tri, n, offsets, sel, out)
+    if (fat & ~corners).any():
+        _lattice_at(tri, n, offsets, np.flatnonzero(fat & ~corners), out)
     if thin.any():
         _grid_samples(tri[thin], g, out, offsets[:-1][thin], True)
     e = float((longest[fat] / n[fat]).max()) if fat.any() else 0.0
     if thin.any():
         e = max(e, g * math.sqrt(2.0))
-    return out, e
+    return out, f[corners].ravel(), e, bool(thin.any())
 
 
 @nb.njit(cache=True)
@@ -299,44 +392,6 @@ def _grid_samples(tri, g, out, offsets, write):
                     k += 1
         counts[t] = k
     return counts
-
-
-@nb.njit(cache=True, parallel=True)
-def _splat(samples, lo, h, radius, near):
-    """``near`` (inf on entry) gets, at every node within ``radius`` of a sample, the squared
-    distance to the nearest such sample; the caller takes the root. ``samples`` must be sorted
-    by x: each x-slab of the grid (one per thread at a time, so no two threads write the same
-    node) visits only the samples within ``radius`` of it, and its nodes stay in cache."""
-    nx, ny, nz = near.shape
-    r2 = radius * radius
-    xs = samples[:, 0]
-    for i in nb.prange(nx):
-        xi = lo[0] + i * h
-        p0 = np.searchsorted(xs, xi - radius, side="left")
-        p1 = np.searchsorted(xs, xi + radius, side="right")
-        for p in range(p0, p1):
-            dx = xi - samples[p, 0]
-            rx = r2 - dx * dx
-            if rx < 0.0:
-                continue
-            y = samples[p, 1]
-            z = samples[p, 2]
-            ry = math.sqrt(rx)
-            j0 = max(int(math.ceil((y - ry - lo[1]) / h)), 0)
-            j1 = min(int(math.floor((y + ry - lo[1]) / h)), ny - 1)
-            for j in range(j0, j1 + 1):
-                dy = lo[1] + j * h - y
-                rz2 = rx - dy * dy
-                if rz2 < 0.0:
-                    continue
-                rz = math.sqrt(rz2)
-                k0 = max(int(math.ceil((z - rz - lo[2]) / h)), 0)
-                k1 = min(int(math.floor((z + rz - lo[2]) / h)), nz - 1)
-                dxy = dx * dx + dy * dy
-                row = near[i, j]
-                for k in range(k0, k1 + 1):
-                    dz = lo[2] + k * h - z
-                    row[k] = min(row[k], dxy + dz * dz)
 
 
 def _sides(lb: np.ndarray, h: float, lo: np.ndarray, v: np.ndarray, f: np.ndarray) -> np.ndarray:

@@ -59,6 +59,9 @@ def read_mesh(path: str | os.PathLike, data: bytes) -> tuple[np.ndarray, np.ndar
         return _trimesh_arrays(data, "stl", src)
     if kind == ".ply":
         header = ply_header(data, src)
+        fast = _binary_triangles(data, header, src)
+        if fast is not None:
+            return fast
         v, f = _trimesh_arrays(data, "ply", src)
         if len(v) != header["vertex"]:
             raise InputError(src, "element vertex", f"the header declares {header['vertex']} "
@@ -186,12 +189,13 @@ def ply_header(data: bytes, src: str, size: int | None = None) -> dict:
         if size - (stop + 1) < least:
             raise InputError(src, "", f"truncated: the header declares {vert[1]} vertices and "
                              f"{face[1]} faces (at least {least + stop + 1} bytes), the file has {size}")
-    return {"format": fmt, "vertex": vert[1], "face": face[1], "length": stop + 1}
+    return {"format": fmt, "vertex": vert[1], "face": face[1], "length": stop + 1,
+            "elements": elements}
 
 
 def _ply_elements(lines: list[str], src: str) -> tuple[str, list]:
     fmt = ""
-    elements: list = []     # (name, count, [(property name, type or "list", size type)])
+    elements: list = []     # (name, count, [(property, type or "list", size type, item type)])
     for k, line in enumerate(lines, 2):
         tok = line.split()
         if not tok or tok[0] in ("comment", "obj_info"):
@@ -214,13 +218,49 @@ def _ply_elements(lines: list[str], src: str) -> tuple[str, list]:
             if not ok:
                 raise InputError(src, where, f"malformed property ({line[:60]!r})")
             # (name, type or "list", the type whose size a record takes at the least: a
-            # list's count type, as a list may be empty)
-            elements[-1][2].append((tok[-1], tok[1], tok[2] if tok[1] == "list" else tok[1]))
+            # list's count type, as a list may be empty; the item type)
+            elements[-1][2].append((tok[-1], tok[1], tok[2] if tok[1] == "list" else tok[1],
+                                    tok[3] if tok[1] == "list" else tok[1]))
         else:
             raise InputError(src, where, f"unknown header keyword {tok[0][:40]!r}")
     if not fmt:
         raise InputError(src, "header", "no format line")
     return fmt, elements
+
+
+_NUMPY_TYPES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4",
+                "uint": "u4", "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1",
+                "int16": "i2", "uint16": "u2", "int32": "i4", "uint32": "u4", "float32": "f4",
+                "float64": "f8"}
+
+
+def _binary_triangles(data: bytes, header: dict, src: str):
+    """(vertices, faces) of a binary PLY holding only a vertex and a face element, the faces
+    all triangles (read straight into numpy: a fine segmentation has millions); None for any
+    other layout (trimesh reads those)."""
+    elements = header["elements"]
+    if header["format"] == "ascii" or [e[0] for e in elements] != ["vertex", "face"]:
+        return None
+    (_, nv, vprops), (_, nf, fprops) = elements
+    if len(fprops) != 1 or fprops[0][1] != "list" or any(p[1] == "list" for p in vprops):
+        return None
+    end = "<" if header["format"] == "binary_little_endian" else ">"
+    vdt = np.dtype([(p[0], end + _NUMPY_TYPES[p[1]]) for p in vprops])
+    _, _, count_type, item = fprops[0]
+    fdt = np.dtype([("n", end + _NUMPY_TYPES[count_type]), ("i", end + _NUMPY_TYPES[item], (3,))])
+    start = header["length"]
+    need = start + vdt.itemsize * nv + fdt.itemsize * nf
+    if len(data) != need:
+        return None                 # polygons other than triangles, or extra bytes: trimesh
+    vert = np.frombuffer(data, dtype=vdt, count=nv, offset=start)
+    face = np.frombuffer(data, dtype=fdt, count=nf, offset=start + vdt.itemsize * nv)
+    if nf and not np.all(face["n"] == 3):
+        return None
+    v = np.stack([vert["x"], vert["y"], vert["z"]], axis=1).astype(np.float64)
+    f = face["i"].astype(np.int64)
+    if len(f) and (f.min() < 0 or f.max() >= len(v)):
+        raise InputError(src, "element face", "face indices out of range")
+    return v, f
 
 
 # ---------------------------------------------------------------------------- STL

@@ -295,7 +295,8 @@ def _load_meshes(entries: list, ends: list, max_hole: float, src: str) -> list[S
     from ctrplan.collision.closure import Part, close_group
 
     check_scene_budget([(e[3], e[1]) for e in entries], src)
-    parts = {name: Part(name, str(path), *read_mesh_file(path)) for name, _, _, path in entries}
+    parts = {name: Part(name, str(path), *read_mesh_file(path, edges=role == "landmark"))
+             for name, role, _, path in entries}
     groups = [[e[0] for e in entries if e[1] == "wall"]]
     groups += [[e[0]] for e in entries if e[1] == "obstacle"]
     closed = {}
@@ -333,9 +334,11 @@ def _mesh_path(yml: Path, file: str, src: str, fieldname: str) -> Path:
     return path
 
 
-def read_mesh_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+def read_mesh_file(path: str | os.PathLike, edges: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """(vertices (V, 3) mm, faces (F, 3)) of a mesh file, read by the rules of its format
-    (:mod:`ctrplan.collision.meshio`) and validated; errors name the file."""
+    (:mod:`ctrplan.collision.meshio`) and validated (``edges``: the non-manifold check too,
+    which :mod:`ctrplan.collision.closure` makes anyway on the welded mesh); errors name the
+    file."""
     from ctrplan.collision.meshio import read_mesh
     from ctrplan.io import read_bytes
 
@@ -347,7 +350,7 @@ def read_mesh_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     if not found:
         raise InputError(str(path), "", "mesh file not found")
     v, f = read_mesh(path, read_bytes(path, "mesh"))
-    validate_arrays(v, f, str(path))
+    validate_arrays(v, f, str(path), edges=edges)
     return v, f
 
 
@@ -364,8 +367,10 @@ def validate_mesh(mesh, source: str) -> None:
     validate_arrays(np.asarray(mesh.vertices), np.asarray(mesh.faces), source)
 
 
-def validate_arrays(v: np.ndarray, f: np.ndarray, source: str, chunk: int = 1 << 20) -> None:
-    """:func:`validate_mesh` on arrays (vertices (V, 3), faces (F, 3)); memory O(F)."""
+def validate_arrays(v: np.ndarray, f: np.ndarray, source: str, chunk: int = 1 << 20,
+                    edges: bool = True) -> None:
+    """:func:`validate_mesh` on arrays (vertices (V, 3), faces (F, 3)); memory O(F).
+    ``edges``: check for non-manifold edges too."""
     v = np.asarray(v, dtype=float)
     f = np.asarray(f)
     if len(v) == 0 or len(f) == 0 or f.ndim != 2 or f.shape[1] != 3:
@@ -380,12 +385,14 @@ def validate_arrays(v: np.ndarray, f: np.ndarray, source: str, chunk: int = 1 <<
                          f"[{MIN_EXTENT_MM}, {MAX_EXTENT_MM}] mm: is the mesh in mm?")
     if not any(np.any(_areas(v, f[s:s + chunk]) > 0) for s in range(0, len(f), chunk)):
         raise InputError(source, "faces", "all triangles are degenerate")
-    from ctrplan.collision.closure import edge_runs
+    if not edges:
+        return
+    from ctrplan.collision.closure import count_edges
 
-    _, _, counts = edge_runs(f, len(v))
-    if np.any(counts > 2):
-        raise InputError(source, "faces", f"non-manifold: {int((counts > 2).sum())} edges shared "
-                         "by more than two triangles")
+    bad = count_edges(f, len(v)).non_manifold
+    if bad:
+        raise InputError(source, "faces", f"non-manifold: {bad} edges shared by more than two "
+                         "triangles")
 
 
 def _areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:

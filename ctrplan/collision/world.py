@@ -1,7 +1,8 @@
 """CollisionWorld: batched whole-shape collision checks of robot backbones against a scene.
 
-Verdicts are exact FCL verdicts (capsule chains vs the wall and obstacle meshes). The
-prefilter (:mod:`ctrplan.collision.field`) only skips FCL where a distance bound proves the
+Verdicts are exact (capsule chains vs the wall and obstacle meshes): FCL's, or for meshes of
+millions of triangles those of a lean grid of triangle lists (:mod:`ctrplan.collision._grid`,
+``exact=``). The prefilter (:mod:`ctrplan.collision.field`) only skips FCL where a distance bound proves the
 answer; everything it cannot prove goes to FCL, so the verdicts with and without it are equal.
 
 Clearances (``clearance_mm``) are conservative: for a free configuration a lower bound of the
@@ -47,6 +48,22 @@ class CollisionReport:
         return int(self.collides.shape[0])
 
 
+#: Above this many triangles (all collision meshes together) exact verdicts come from the
+#: grid backend (:mod:`ctrplan.collision._grid`: about 10 bytes per triangle) instead of FCL
+#: (about 600 bytes and 9 us to build per triangle).
+GRID_ABOVE_TRIANGLES = 250_000
+EXACT_BACKENDS = ("auto", "fcl", "grid")
+
+
+def exact_backend(exact: str, triangles: int) -> str:
+    """The exact-geometry backend for ``exact`` ("auto", "fcl" or "grid") and a triangle count."""
+    if exact not in EXACT_BACKENDS:
+        raise InputError("exact", "", f"must be one of {', '.join(EXACT_BACKENDS)}, got {exact!r}")
+    if exact == "auto":
+        return "grid" if triangles > GRID_ABOVE_TRIANGLES else "fcl"
+    return exact
+
+
 class WorldGeometry:
     """What a :class:`CollisionWorld` builds from a scene's collision meshes: the exact-geometry
     models (FCL), the distance fields (built or read from the cache on first use) and ``memo``,
@@ -54,13 +71,19 @@ class WorldGeometry:
     the scene, so a scene can cache it (and worlds over it) without a reference cycle: it is
     freed with the scene."""
 
-    def __init__(self, meshes, field_config: FieldConfig, cache=True):
-        from ctrplan.collision._fcl import FclMeshes
-
+    def __init__(self, meshes, field_config: FieldConfig, cache=True, exact: str = "auto"):
         self.meshes = tuple(meshes)
         self.field_config = field_config
         self.cache = cache
-        self.exact = FclMeshes([m.mesh for m in self.meshes])
+        self.backend = exact_backend(exact, sum(len(m.mesh.faces) for m in self.meshes))
+        if self.backend == "fcl":
+            from ctrplan.collision._fcl import FclMeshes
+
+            self.exact = FclMeshes([m.mesh for m in self.meshes])
+        else:
+            from ctrplan.collision._grid import GridMeshes
+
+            self.exact = GridMeshes([m.mesh for m in self.meshes])
         self._fields = None
         self.memo: dict = Bounded(256)
 
@@ -117,12 +140,16 @@ class CollisionWorld:
         Distance-field parameters. cache : bool or folder for the field cache.
     geometry : WorldGeometry, optional
         Reuse the exact models and fields of another world of the same scene meshes.
+    exact : "auto" (default), "fcl" or "grid"
+        Where exact verdicts come from: FCL, or the lean grid of triangle lists
+        (:mod:`ctrplan.collision._grid`) that "auto" picks above
+        :data:`GRID_ABOVE_TRIANGLES` triangles. Both are exact; they differ in memory.
     """
 
     def __init__(self, scene: Scene | str, margin_mm=0.0, prefilter: bool = True,
                  field_config: FieldConfig | None = None, cache=True,
                  curvature_per_mm: float = 0.0, padding: str = "auto", motion_mm: float = 0.0,
-                 geometry: WorldGeometry | None = None):
+                 geometry: WorldGeometry | None = None, exact: str = "auto"):
         from ctrplan.collision.capsules import PADDINGS
         from ctrplan.shape.error_bounds import ErrorProfile
 
@@ -151,8 +178,9 @@ class CollisionWorld:
         self.prefilter = bool(prefilter)
         self.field_config = field_config or FieldConfig()
         if geometry is None or geometry.field_config != self.field_config or tuple(
-                m.mesh for m in geometry.meshes) != tuple(m.mesh for m in meshes):
-            geometry = WorldGeometry(meshes, self.field_config, cache)
+                m.mesh for m in geometry.meshes) != tuple(m.mesh for m in meshes) or (
+                exact != "auto" and geometry.backend != exact):
+            geometry = WorldGeometry(meshes, self.field_config, cache, exact)
         #: what is built from the meshes (exact-geometry models, distance fields), shareable
         #: between the worlds of one scene (:func:`ctrplan.planning.plan.world_for`)
         self.geometry = geometry
