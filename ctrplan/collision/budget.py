@@ -20,12 +20,14 @@ from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
 
-#: Peak memory (MB) of a check whatever the meshes (libraries, distance-field grids).
+#: Peak memory (MB) of a check whatever the meshes (libraries, distance-field grids; measured
+#: 560-610 MB for 0.3-2.5 million triangles).
 BASE_MB = 600.0
-#: Peak memory per million triangles (MB) on top of BASE_MB.
-MB_PER_MTRI = 260.0
-#: Wall time per million triangles (s, one core) to read, close, index and build the fields.
-S_PER_MTRI = 14.0
+#: Peak memory per million triangles (MB) on top of BASE_MB (measured about 55; 100 leaves room).
+MB_PER_MTRI = 100.0
+#: Wall time per million triangles (s, one core) to read, close, index and build the fields
+#: (measured 7-11 on a busy 2-core machine).
+S_PER_MTRI = 12.0
 #: Meshes above this many triangles (all together) get a notice with the estimate.
 NOTICE_TRIANGLES = 500_000
 
@@ -33,7 +35,7 @@ NOTICE_TRIANGLES = 500_000
 def estimate(triangles: int) -> tuple[float, float]:
     """(peak memory MB, seconds) to prepare meshes of ``triangles`` triangles in all."""
     mtri = triangles / 1e6
-    return BASE_MB + MB_PER_MTRI * mtri, 2.0 + S_PER_MTRI * mtri
+    return BASE_MB + MB_PER_MTRI * mtri, 5.0 + S_PER_MTRI * mtri
 
 
 def memory_budget_mb() -> float:

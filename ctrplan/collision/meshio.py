@@ -209,6 +209,8 @@ def _ply_elements(lines: list[str], src: str) -> tuple[str, list]:
             if len(tok) != 3 or not tok[2].isdigit() or not tok[2].isascii() or int(tok[2]) > 2 ** 31:
                 raise InputError(src, where, "an element needs a name and a count (an integer "
                                  "0 .. 2^31)")
+            if tok[1] in {e[0] for e in elements}:
+                raise InputError(src, where, f"element {tok[1][:40]!r} declared twice")
             elements.append((tok[1], int(tok[2]), []))
         elif tok[0] == "property":
             if not elements:
@@ -217,6 +219,8 @@ def _ply_elements(lines: list[str], src: str) -> tuple[str, list]:
                 len(tok) == 5 and tok[1] == "list" and tok[2] in _PLY_TYPES and tok[3] in _PLY_TYPES)
             if not ok:
                 raise InputError(src, where, f"malformed property ({line[:60]!r})")
+            if tok[-1] in {p[0] for p in elements[-1][2]}:
+                raise InputError(src, where, f"property {tok[-1][:40]!r} declared twice")
             # (name, type or "list", the type whose size a record takes at the least: a
             # list's count type, as a list may be empty; the item type)
             elements[-1][2].append((tok[-1], tok[1], tok[2] if tok[1] == "list" else tok[1],
@@ -250,6 +254,9 @@ def _binary_triangles(data: bytes, header: dict, src: str):
     fdt = np.dtype([("n", end + _NUMPY_TYPES[count_type]), ("i", end + _NUMPY_TYPES[item], (3,))])
     start = header["length"]
     need = start + vdt.itemsize * nv + fdt.itemsize * nf
+    if len(data) < need:            # every face has at least 3 vertices: cut short
+        raise InputError(src, "", f"truncated: the header declares {nv} vertices and {nf} faces "
+                         f"(at least {need} bytes), the file has {len(data)}")
     if len(data) != need:
         return None                 # polygons other than triangles, or extra bytes: trimesh
     vert = np.frombuffer(data, dtype=vdt, count=nv, offset=start)
