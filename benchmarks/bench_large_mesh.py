@@ -16,8 +16,9 @@ work estimate ``ctrplan.collision.budget.estimate`` is printed beside them. The 
 default (2048 MB) must hold for 5 million triangles, or the command must refuse up front.
 The two runs' verdicts must be equal (``same_verdicts``).
 
-Run: ``python benchmarks/bench_large_mesh.py [--quick] [--sizes 0.3,1.25,5] [--out large.json]``
-(``--quick``: 0.3 M only).
+Run: ``python benchmarks/bench_large_mesh.py [--quick] [--sizes 0.3,1.25,5] [--baseline CHECKOUT]
+[--out large.json]`` (``--quick``: 0.3 M only; ``--baseline``: also time another checkout's
+``ctrplan check`` on the same scenes, e.g. the commit before this work).
 """
 
 from __future__ import annotations
@@ -92,9 +93,10 @@ def make_scene(folder: Path, mtri: float) -> int:
     return len(f)
 
 
-def timed_check(scene: Path, configs: Path, out: Path, cache: Path, extra: list[str]) -> dict:
+def timed_check(scene: Path, configs: Path, out: Path, cache: Path, extra: list[str],
+                root: Path = ROOT) -> dict:
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", NUMBA_NUM_THREADS="1",
-               CTRPLAN_CACHE=str(cache), PYTHONPATH=str(ROOT))
+               CTRPLAN_CACHE=str(cache), PYTHONPATH=str(root))
     cmd = ["/usr/bin/time", "-v", str(Path(sys.executable).parent / "ctrplan"), "check", "--scene", str(scene),
            "--robot", "seed1", "--configs", str(configs), "--out", str(out), *extra]
     t0 = time.perf_counter()
@@ -106,7 +108,7 @@ def timed_check(scene: Path, configs: Path, out: Path, cache: Path, extra: list[
             "stderr_tail": proc.stderr.split("\tCommand being timed")[0][-400:]}
 
 
-def run(quick: bool = False, sizes: tuple[float, ...] | None = None) -> dict:
+def run(quick: bool = False, sizes: tuple[float, ...] | None = None, baseline: str = "") -> dict:
     from ctrplan.collision.budget import estimate
     from ctrplan.robot import load_robot
 
@@ -126,6 +128,10 @@ def run(quick: bool = False, sizes: tuple[float, ...] | None = None) -> dict:
             cache = tmp / f"cache_{mtri}"
             row["first"] = timed_check(folder, configs, tmp / "v1.csv", cache, [])
             row["cached"] = timed_check(folder, configs, tmp / "v2.csv", cache, [])
+            if baseline:       # another checkout (e.g. before this work), same scene, same run
+                row["baseline_first"] = timed_check(folder, configs, tmp / "vb.csv",
+                                                    tmp / f"cache_b{mtri}", ["--max-mb", "1e6"],
+                                                    Path(baseline))
             if row["first"]["rc"] == 0 and row["cached"]["rc"] == 0:
                 row["same_verdicts"] = (tmp / "v1.csv").read_bytes() == (tmp / "v2.csv").read_bytes()
                 row["collide"] = int(np.loadtxt(tmp / "v1.csv", delimiter=",", skiprows=1,
@@ -139,10 +145,11 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
     p.add_argument("--sizes", default="", help="million triangles, comma-separated")
+    p.add_argument("--baseline", default="", help="another checkout to time on the same scenes")
     p.add_argument("--out", default="")
     a = p.parse_args()
     sizes = tuple(float(x) for x in a.sizes.split(",")) if a.sizes else None
-    res = run(a.quick, sizes)
+    res = run(a.quick, sizes, a.baseline)
     if a.out:
         Path(a.out).write_text(json.dumps(res, indent=1))
 
