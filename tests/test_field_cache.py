@@ -85,11 +85,21 @@ def _damage(path: Path, how: str, other: Path) -> None:
         np.savez(path, **arrays)
 
 
+@pytest.fixture(scope="module")
+def filled_cache(tmp_path_factory, reference):
+    """A cache folder holding both meshes' entries (built once; each test damages a copy)."""
+    wide, narrow, _ = reference
+    folder = tmp_path_factory.mktemp("cache")
+    field_for(wide, CFG, cache=folder)
+    field_for(narrow, CFG, cache=folder)
+    return folder
+
+
 @pytest.mark.parametrize("how", ["truncated", "empty", "flipped", "foreign", "not-npz", "edited"])
-def test_a_bad_cache_entry_never_changes_a_verdict(tmp_path, caplog, reference, how):
+def test_a_bad_cache_entry_never_changes_a_verdict(tmp_path, caplog, reference, filled_cache, how):
     wide, narrow, want = reference
-    field_for(wide, CFG, cache=tmp_path)
-    field_for(narrow, CFG, cache=tmp_path)
+    tmp_path = tmp_path / "cache"
+    shutil.copytree(filled_cache, tmp_path)
     entry, other = _entry(tmp_path, narrow), _entry(tmp_path, wide)
     assert entry.is_file() and other.is_file()
     _damage(entry, how, other)

@@ -62,7 +62,8 @@ def _chains(scene, centre, normal, rng, k=8):
 
 
 def _exact(scene, shape):
-    return CollisionWorld(scene, padding="none", prefilter=False).check_exact(shape).collides
+    # FCL verdicts alone (no distance field is built for the holed meshes)
+    return CollisionWorld(scene, padding="none", prefilter=False).collides(shape)
 
 
 @pytest.mark.parametrize("scene_name, wall", WALLS)
@@ -98,7 +99,7 @@ def test_random_holes_are_filled_or_refused_never_free(tmp_path, scene_name, wal
             assert intact.mesh(wall).file in msg and "hole" in msg, msg
             at = np.array([float(x) for x in msg.split(" at (")[1].split(")")[0].split(",")])
             size = float(msg.split("a hole ")[1].split(" mm")[0])
-            assert np.linalg.norm(at - c) <= radius + 2.0 and size > LIMIT_MM, msg
+            assert np.linalg.norm(at - c) <= radius + 2.0 and size > LIMIT_MM - 0.005, msg  # 2 decimals
             refused += 1
             continue
         filled += 1

@@ -45,7 +45,7 @@ def test_segment_triangle_distance_against_brute_force():
 
 
 def test_grid_backend_agrees_with_fcl_on_random_capsules():
-    """3,000 random capsules (and spheres) in and around the airway's trachea and a sphere:
+    """1,800 random capsules (and spheres) in and around the airway's trachea and a sphere:
     the same first hit; distances within FCL's GJK tolerance (1e-3 mm, EPS_MM, plus 0.3 % of
     the distance far away: measured 0.011 mm at 5 mm, where the grid's value equals the
     minimum over all triangles)."""
@@ -56,7 +56,7 @@ def test_grid_backend_agrees_with_fcl_on_random_capsules():
     rng = np.random.default_rng(0)
     lo, hi = m.bounds
     hits = 0
-    for _ in range(1000):
+    for _ in range(600):
         a = rng.uniform(lo, hi, (3, 3))
         b = a + rng.normal(0, 5.0, (3, 3))
         if rng.random() < 0.3:
@@ -71,7 +71,7 @@ def test_grid_backend_agrees_with_fcl_on_random_capsules():
             assert (dg < 0) == (df < 0)
             if dg >= 0:     # FCL's GJK distance is approximate: 1e-3 mm near, 0.3 % far
                 assert abs(dg - df) < 1e-3 + 3e-3 * dg
-    assert 200 < hits < 900
+    assert 120 < hits < 540
 
 
 def test_worlds_on_either_backend_give_the_same_verdicts(seed1):
