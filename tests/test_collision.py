@@ -9,7 +9,8 @@ import trimesh
 import yaml
 
 from ctrplan.collision.build_scenes import sample_reach
-from ctrplan.collision.field import FieldConfig, build_field, field_for, point_bounds
+from ctrplan.collision.field import FieldConfig, build_field, point_bounds
+from ctrplan.collision.field_cache import field_for
 from ctrplan.collision.scene import SHIPPED_SCENES, Scene, load_scene
 from ctrplan.collision.world import CollisionWorld
 from ctrplan.errors import InputError

@@ -432,10 +432,3 @@ def point_bounds(field: DistanceField, points: np.ndarray) -> tuple[np.ndarray, 
                   field.box_hi, lo, up, sd)
     return lo, up, sd
 
-
-def field_for(mesh, config: FieldConfig = FieldConfig(), cache=True, watertight: bool | None = None):
-    """The distance field of a mesh from the verified disk cache, else built
-    (:func:`ctrplan.collision.field_cache.field_for`)."""
-    from ctrplan.collision.field_cache import field_for as cached
-
-    return cached(mesh, config, cache, watertight)
