@@ -269,6 +269,8 @@ MAKERS = {
     "points-shape": lambda i, o: _shape(i, o, f"{HEADER}\n{GOOD}\n", "--points", "1"),
     "target-implausible": lambda i, o: ["plan", "--scene", "airway", "--target", "1e200,0,0",
                                         "--out", str(o / "p.json")],
+    "margin-implausible": lambda i, o: ["plan", "--scene", "airway", "--target", "carina",
+                                        "--margin", "1e300", "--out", str(o / "p.json")],
     "target-malformed": lambda i, o: ["plan", "--scene", "airway", "--target", "1,2",
                                       "--out", str(o / "p.json")],
     "model-unknown": lambda i, o: _shape(i, o, f"{HEADER}\n{GOOD}\n", "--model", "nope"),

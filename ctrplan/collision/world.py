@@ -28,6 +28,9 @@ from ctrplan.shape.base import Shape
 
 #: contact value of a configuration whose shape model failed (ok=False)
 MODEL_FAILED = "model"
+#: Largest margin (mm): the plausible range of a length (a margin beyond any scene is a typo,
+#: and FCL's geometry fails numerically long before 1e300).
+MAX_MARGIN_MM = 5000.0
 
 
 @dataclass(frozen=True)
@@ -161,8 +164,9 @@ class CollisionWorld:
             self.margin_profile: ErrorProfile | None = margin_mm
             self.margin_mm = margin_mm.peak_mm
         else:
-            if not (np.isfinite(margin_mm) and margin_mm >= 0):
-                raise InputError("margin_mm", "", f"must be a finite number >= 0, got {margin_mm}")
+            if not (np.isfinite(margin_mm) and 0 <= margin_mm <= MAX_MARGIN_MM):
+                raise InputError("margin_mm", "", f"must be a number of mm in [0, {MAX_MARGIN_MM:g}], "
+                                 f"got {margin_mm:.4g}")
             self.margin_profile = None
             self.margin_mm = float(margin_mm)
         if not (np.isfinite(curvature_per_mm) and curvature_per_mm >= 0):
