@@ -243,8 +243,11 @@ class _MeshGrid:
         ext = np.maximum(hi - lo, 1e-9)
         tri = self.v[self.f[: min(len(self.f), 100_000)]]
         size = float(np.median(tri.max(axis=1) - tri.min(axis=1)))
-        # cells about two triangles wide, but no more than MAX_CELLS of them
+        # cells about two triangles wide, but no more than MAX_CELLS of them (a flat mesh has
+        # one layer of cells: grow the cell until the count fits)
         c = max(2.0 * size, float(np.prod(ext) / MAX_CELLS) ** (1.0 / 3.0), 1e-6)
+        while np.prod(np.maximum(np.ceil((ext + 2e-9) / c), 1.0)) > MAX_CELLS:
+            c *= 1.25
         self.lo = lo - 1e-9
         self.c = c
         self.dims = np.maximum(np.ceil((ext + 2e-9) / c).astype(np.int64), 1)
