@@ -130,7 +130,7 @@ def run(quick: bool = False, sizes: tuple[float, ...] | None = None, baseline: s
             row["cached"] = timed_check(folder, configs, tmp / "v2.csv", cache, [])
             if baseline:       # another checkout (e.g. before this work), same scene, same run
                 row["baseline_first"] = timed_check(folder, configs, tmp / "vb.csv",
-                                                    tmp / f"cache_b{mtri}", ["--max-mb", "1e6"],
+                                                    tmp / f"cache_b{mtri}", ["--max-mb", "8000"],
                                                     Path(baseline))
             if row["first"]["rc"] == 0 and row["cached"]["rc"] == 0:
                 row["same_verdicts"] = (tmp / "v1.csv").read_bytes() == (tmp / "v2.csv").read_bytes()
