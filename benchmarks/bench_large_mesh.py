@@ -134,6 +134,10 @@ def run(quick: bool = False, sizes: tuple[float, ...] | None = None, baseline: s
                                                     Path(baseline))
             if row["first"]["rc"] == 0 and row["cached"]["rc"] == 0:
                 row["same_verdicts"] = (tmp / "v1.csv").read_bytes() == (tmp / "v2.csv").read_bytes()
+                if baseline and row["baseline_first"]["rc"] == 0:   # collides column
+                    ours = np.loadtxt(tmp / "v1.csv", delimiter=",", skiprows=1, usecols=0)
+                    theirs = np.loadtxt(tmp / "vb.csv", delimiter=",", skiprows=1, usecols=0)
+                    row["baseline_same_collides"] = bool(np.array_equal(ours, theirs))
                 row["collide"] = int(np.loadtxt(tmp / "v1.csv", delimiter=",", skiprows=1,
                                                 usecols=0).sum())
             out["sizes"].append(row)
