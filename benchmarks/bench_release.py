@@ -23,7 +23,8 @@ import time
 FIELD_PREP = r"""
 import json, resource, sys, time
 import numpy as np, trimesh
-from ctrplan.collision.field import FieldConfig, field_for, surface_samples
+from ctrplan.collision.field import FieldConfig, surface_samples
+from ctrplan.collision.field_cache import field_for
 cyl = trimesh.creation.cylinder(radius=20.0, height=400.0, sections=64)
 t0 = time.perf_counter()
 f = field_for(cyl, FieldConfig(), cache=sys.argv[1])

@@ -259,7 +259,16 @@ def read_bytes(path: str | os.PathLike, kind: str = "text") -> bytes:
     cap = max_input_bytes(kind)
     try:
         with open(path, "rb") as fh:
-            data = fh.read(cap + 1)
+            # in blocks: read(cap + 1) would allocate the whole cap up front (a MemoryError
+            # for --max-mb 1e6)
+            blocks, total = [], 0
+            while total <= cap:
+                block = fh.read(min(1 << 24, cap + 1 - total))
+                if not block:
+                    break
+                blocks.append(block)
+                total += len(block)
+            data = b"".join(blocks)
     except OSError as exc:
         raise InputError(str(path), "", f"cannot read file ({exc.strerror or exc.__class__.__name__})") from None
     if len(data) > cap:

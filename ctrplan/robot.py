@@ -171,20 +171,32 @@ class Robot:
         return lo, hi
 
     def retracted(self) -> np.ndarray:
-        """A valid 'retracted' start configuration ``(2n,)``: all alpha 0, tubes pulled back
-        as far as the constraints allow (the innermost tube's tip as close to the plane as
-        possible while still nested)."""
-        lo, _ = self.beta_bounds()
+        """A valid 'retracted' start configuration ``(2n,)``: all alpha 0, every tube pulled
+        back as far as the constraints allow.
+
+        The joint constraints on beta are all of the form ``beta_j - beta_i <= c`` or bounds
+        (a system of difference constraints), so the valid betas, when there are any, have a
+        least element: each beta at its smallest valid value at once. It is found by raising
+        every beta from its lower bound to what the constraints demand, until nothing changes
+        (at most n + 1 rounds, as in Bellman-Ford); if that exceeds an upper bound, no valid
+        configuration exists. (Retracting the outermost tube first and fitting the inner ones
+        to it, as before, can end outside the constraints, e.g. when an outer tube's straight
+        section is longer than an inner tube's.)
+        """
+        lo, hi = self.beta_bounds()
         L = self.lengths
-        beta = np.zeros(self.n)
-        # Outermost first: fully retracted, then each inner tube as far back as allowed while
-        # reaching at least as far as the tube around it.
-        beta[-1] = max(lo[-1], -L[-1])
-        for i in range(self.n - 2, -1, -1):
-            beta[i] = max(lo[i], beta[i + 1] + L[i + 1] - L[i])
-            beta[i] = min(beta[i], beta[i + 1])
-        q = np.concatenate([np.zeros(self.n), beta])
-        if not self.is_valid(q[None])[0]:
+        n = self.n
+        beta = lo.copy()
+        beta[-1] = max(beta[-1], -L[-1])                      # the outermost tube leaves the plane
+        for _ in range(n + 1):
+            before = beta.copy()
+            for i in range(n - 1):
+                beta[i + 1] = max(beta[i + 1], beta[i])                       # beta_i <= beta_i+1
+                beta[i] = max(beta[i], beta[i + 1] + L[i + 1] - L[i])         # inner reaches further
+            if np.array_equal(beta, before):
+                break
+        q = np.concatenate([np.zeros(n), beta])
+        if np.any(beta > hi + CONSTRAINT_TOL_MM) or not self.is_valid(q[None])[0]:
             raise InputError(self.source, "tubes", "the joint constraints admit no configuration")
         return q
 

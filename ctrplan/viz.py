@@ -34,10 +34,17 @@ def scene_meshes(scene) -> list[ViewMesh]:
             for m in scene.meshes]
 
 
-def _pick_frames(k: int, count: int) -> np.ndarray:
+#: States drawn along a plan: in the HTML view and in the PNG.
+HTML_FRAMES = 12
+PNG_FRAMES = 8
+
+
+def pick_frames(k: int, count: int) -> np.ndarray:
+    """Indices of ``count`` states spread evenly over ``k`` (the first and the last included)."""
     if k <= count:
         return np.arange(k)
     return np.unique(np.linspace(0, k - 1, count).round().astype(int))
+
 
 
 def plan_html(
@@ -47,7 +54,7 @@ def plan_html(
     tip_path: np.ndarray | None = None,
     target: np.ndarray | None = None,
     title: str = "ctrplan",
-    frames: int = 12,
+    frames: int = HTML_FRAMES,
 ) -> None:
     """Write an interactive, self-contained HTML view.
 
@@ -68,7 +75,7 @@ def plan_html(
             showlegend=True, flatshading=True, hoverinfo="name",
         ))
     backbones = np.asarray(backbones, dtype=float).reshape(-1, backbones.shape[-2], 3)
-    idx = _pick_frames(len(backbones), frames)
+    idx = pick_frames(len(backbones), frames)
     for n_shown, k in enumerate(idx):
         last = bool(k == len(backbones) - 1)
         b = backbones[k]
@@ -127,7 +134,7 @@ def plan_png(
     tip_path: np.ndarray | None = None,
     target: np.ndarray | None = None,
     title: str = "ctrplan",
-    frames: int = 8,
+    frames: int = PNG_FRAMES,
     crop_mm: float = 40.0,
 ) -> None:
     """Write a static PNG: anatomy near the robot (cropped), shapes along the path, target."""
@@ -141,6 +148,8 @@ def plan_png(
 
     backbones = np.asarray(backbones, dtype=float)
     pts = backbones.reshape(-1, 3)
+    if tip_path is not None and len(tip_path):
+        pts = np.vstack([pts, np.asarray(tip_path, dtype=float).reshape(-1, 3)])
     if target is not None:
         pts = np.vstack([pts, np.asarray(target, dtype=float).reshape(1, 3)])
     lo = pts.min(axis=0) - crop_mm
@@ -156,7 +165,7 @@ def plan_png(
                                                         0.22 if mesh.role == "wall" else 0.6),
                                 edgecolor="none")
         ax.add_collection3d(poly)
-    for k in _pick_frames(len(backbones), frames):
+    for k in pick_frames(len(backbones), frames):
         last = bool(k == len(backbones) - 1)
         b = backbones[k]
         ax.plot(b[:, 0], b[:, 1], b[:, 2], color=ROBOT_COLOUR, lw=3 if last else 1,

@@ -52,10 +52,14 @@ faces = np.concatenate([np.stack([a, b, a + len(phi)], -1).reshape(-1, 3),
 lumen = trimesh.Trimesh(rings.reshape(-1, 3), faces, process=True)
 lumen.export(work / "lumen.stl")
 
-# 3. The scene: the robot base at the lumen's entry, +z along it; one target.
+# 3. The scene: the robot base at the lumen's entry, +z along it; one target. The tube is open
+#    at both ends (where a segmentation would leave the image): declared under open_ends, the
+#    openings are capped, so a backbone leaving through them collides instead of reading free.
 (work / "scene.yaml").write_text(yaml.safe_dump({
     "name": "my_lumen", "units": "mm",
     "meshes": [{"name": "lumen", "file": "lumen.stl", "role": "wall"}],
+    "open_ends": [{"mesh": "lumen", "position": centre[0].tolist(), "radius": 10.0},
+                  {"mesh": "lumen", "position": centre[-1].tolist(), "radius": 10.0}],
     "base_pose": {"position": [0.0, 0.0, 0.0], "quaternion": [1.0, 0.0, 0.0, 0.0]},
     "targets": [],
     "source": "synthetic example lumen (examples/custom_robot_and_mesh.py)", "licence": "CC0",

@@ -73,6 +73,39 @@ def _scene(i: Path, o: Path, yaml_text: str, mesh=None) -> list[str]:
             str(_w(i / "c.csv", f"{HEADER}\n{GOOD}\n")), "--out", str(o / "v.csv")]
 
 
+def _holed_cylinder():
+    """The scene's wall cylinder (radius 10 mm) with a hole about 12 mm across in its side."""
+    m = trimesh.creation.cylinder(radius=10.0, height=100.0, sections=32)
+    v, f = trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=2.0)
+    m = trimesh.Trimesh(v, f, process=True)
+    keep = np.linalg.norm(m.triangles_center - [10.0, 0.0, 0.0], axis=1) > 6.0
+    return trimesh.Trimesh(m.vertices, m.faces[keep], process=False)
+
+
+def _cylinder_bytes(kind: str) -> bytes:
+    m = trimesh.creation.cylinder(radius=10.0, height=100.0, sections=16)
+    return m.export(file_type=kind)
+
+
+def _cylinder_obj(zero: bool = False) -> str:
+    """The wall cylinder as OBJ; ``zero``: its first face refers to vertex 0 (its own first
+    vertex read 0-based, which OBJ does not allow)."""
+    m = trimesh.creation.cylinder(radius=10.0, height=100.0, sections=16)
+    faces = m.faces + 1
+    if zero:
+        faces = faces.copy()
+        faces[0] = m.faces[0]
+        faces[0, 0] = 0
+    return ("".join(f"v {x:g} {y:g} {z:g}\n" for x, y, z in m.vertices)
+            + "".join(f"f {a} {b} {c}\n" for a, b, c in faces))
+
+
+def _mesh_file_scene(i: Path, o: Path, name: str, data: bytes) -> list[str]:
+    argv = _scene(i, o, SCENE_OK % (name, ""))
+    _w(i / "scene" / name, data)
+    return argv
+
+
 def _design(o: Path, *extra: str) -> list[str]:
     argv = {"--scene": "design_bend", "--targets": "t01"}
     for k, v in zip(extra[::2], extra[1::2]):
@@ -202,6 +235,13 @@ MAKERS = {
         i, o, SCENE_OK % ("wall.stl", ""), trimesh.creation.cylinder(radius=0.01, height=0.1, sections=16)),
     "scene-base-outside": lambda i, o: _scene(
         i, o, (SCENE_OK % ("wall.stl", "")).replace("[0, 0, -40]", "[50, 0, -40]")),
+    "scene-mesh-hole": lambda i, o: _scene(i, o, SCENE_OK % ("wall.stl", ""), _holed_cylinder()),
+    "scene-open-end-unmatched": lambda i, o: _scene(i, o, SCENE_OK % (
+        "wall.stl", "open_ends:\n  - {mesh: wall, position: [0, 0, 200], radius: 5}\n")),
+    "mesh-obj-index-zero": lambda i, o: _mesh_file_scene(i, o, "wall.obj", _cylinder_obj(zero=True).encode()),
+    "mesh-stl-size": lambda i, o: _mesh_file_scene(i, o, "wall.stl", _cylinder_bytes("stl")[:-7]),
+    "mesh-ply-truncated": lambda i, o: _mesh_file_scene(i, o, "wall.ply", _cylinder_bytes("ply")[:-30]),
+    "cost-mesh": lambda i, o: _scene(i, o, SCENE_OK % ("wall.stl", "")) + ["--max-mb", "100"],
     "labels-not-nifti": lambda i, o: _from_labels(i, o, _w(i / "seg.nii.gz", "not an image\n")),
     "labels-float": lambda i, o: _from_labels(
         i, o, _nifti(i / "ct.nii.gz", np.random.default_rng(0).normal(size=(20, 20, 20)).astype(np.float32))),
@@ -227,6 +267,10 @@ MAKERS = {
     "points-view": lambda i, o: ["view", str(_w(i / "plan.json", "{}")), "--points", "0",
                                  "--out", str(o / "v.html")],
     "points-shape": lambda i, o: _shape(i, o, f"{HEADER}\n{GOOD}\n", "--points", "1"),
+    "target-implausible": lambda i, o: ["plan", "--scene", "airway", "--target", "1e200,0,0",
+                                        "--out", str(o / "p.json")],
+    "margin-implausible": lambda i, o: ["plan", "--scene", "airway", "--target", "carina",
+                                        "--margin", "1e300", "--out", str(o / "p.json")],
     "target-malformed": lambda i, o: ["plan", "--scene", "airway", "--target", "1,2",
                                       "--out", str(o / "p.json")],
     "model-unknown": lambda i, o: _shape(i, o, f"{HEADER}\n{GOOD}\n", "--model", "nope"),

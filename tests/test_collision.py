@@ -9,7 +9,8 @@ import trimesh
 import yaml
 
 from ctrplan.collision.build_scenes import sample_reach
-from ctrplan.collision.field import FieldConfig, build_field, field_for, point_bounds
+from ctrplan.collision.field import FieldConfig, build_field, point_bounds
+from ctrplan.collision.field_cache import field_for
 from ctrplan.collision.scene import SHIPPED_SCENES, Scene, load_scene
 from ctrplan.collision.world import CollisionWorld
 from ctrplan.errors import InputError
@@ -112,23 +113,22 @@ def test_field_bounds_hold_at_random_points():
     assert (side != 0).mean() > 0.5
 
 
-def test_splat_gives_the_nearest_sample_within_the_radius():
-    """The slab-parallel splat against brute force: every node within the radius of some
-    sample holds the squared distance to its nearest sample; the others stay inf."""
-    from ctrplan.collision.field import _splat
+def test_refinement_gives_the_nearest_sample_within_the_radius():
+    """The band refinement (k-d tree over the samples) against brute force: every node within
+    the radius of some sample gets the distance to its nearest sample; the others inf."""
+    from ctrplan.collision.field import _nearest_sample
 
     rng = np.random.default_rng(5)
     samples = rng.uniform(0.0, 6.0, size=(400, 3))
-    samples = samples[np.argsort(samples[:, 0], kind="stable")]
     lo, h, radius, shape = np.array([-1.0, -0.5, -1.2]), 0.37, 1.3, (22, 21, 23)
-    near = np.full(shape, np.inf)
-    _splat(samples, lo, h, radius, near)
+    flat = np.arange(int(np.prod(shape)))
+    near = _nearest_sample(samples, flat, shape, h, lo, radius).reshape(shape)
     nodes = np.stack(np.meshgrid(*[np.arange(k) for k in shape], indexing="ij"), axis=-1) * h + lo
     d2 = ((nodes.reshape(-1, 1, 3) - samples[None]) ** 2).sum(axis=2).min(axis=1).reshape(shape)
     within = d2 <= radius ** 2
     assert within.sum() > 1000 and (~within).sum() > 1000
-    np.testing.assert_allclose(near[within], d2[within], rtol=1e-12, atol=1e-12)
-    assert np.all(np.isinf(near[~within]) | (near[~within] > radius ** 2 - 1e-9))
+    np.testing.assert_allclose(near[within] ** 2, d2[within], rtol=1e-12, atol=1e-12)
+    assert np.all(np.isinf(near[~within]) | (near[~within] ** 2 > radius ** 2 - 1e-9))
 
 
 def test_field_cache_roundtrip(tmp_path):

@@ -413,6 +413,123 @@ def test_fuzz_scene(files, yml, ply, how):
         assert np.all(np.isfinite(s.target_positions()))
 
 
+# ---------------------------------------------------------------------- mesh files
+def _mesh_seeds() -> dict[str, list[bytes]]:
+    """Valid files of each format: a closed box (OBJ, ASCII and binary PLY and STL)."""
+    import trimesh
+
+    box = trimesh.creation.box(extents=(40.0, 40.0, 80.0))
+    obj = "".join(f"v {x:g} {y:g} {z:g}\n" for x, y, z in box.vertices)
+    obj += "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in box.faces)
+    rel = obj.split("f ")[0] + "".join(f"f {a - 8} {b - 8} {c - 8}\n" for a, b, c in box.faces)
+    return {
+        ".obj": [obj.encode(), rel.encode()],
+        ".ply": [trimesh.exchange.ply.export_ply(box, encoding="ascii"),
+                 trimesh.exchange.ply.export_ply(box, encoding="binary")],
+        ".stl": [trimesh.exchange.stl.export_stl(box), trimesh.exchange.stl.export_stl_ascii(box).encode()],
+    }
+
+
+MESH_SEEDS = _mesh_seeds()
+
+
+@st.composite
+def obj_edits(draw) -> bytes:
+    """An OBJ with its statements edited by the format's rules: face indices replaced (0,
+    negative within and beyond the vertices, past the end, huge, not integers, v/vt/vn forms),
+    polygons of 1-6 vertices, vertex lines with missing or odd coordinates, lines dropped or
+    repeated."""
+    lines = draw(st.sampled_from(MESH_SEEDS[".obj"])).decode().splitlines()
+    idx = st.one_of(st.integers(-12, 12), st.sampled_from([0, 2 ** 63, -(2 ** 40), 10 ** 30]))
+    for _ in range(draw(st.integers(1, 6))):
+        if not lines:
+            break
+        k = draw(st.integers(0, len(lines) - 1))
+        op = draw(st.sampled_from(["index", "polygon", "vertex", "drop", "dup", "form"]))
+        if op == "index" and lines[k].startswith("f ") and len(lines[k].split()) > 1:
+            tok = lines[k].split()
+            tok[draw(st.integers(1, len(tok) - 1))] = str(draw(idx))
+            lines[k] = " ".join(tok)
+        elif op == "polygon":
+            lines.insert(k, "f " + " ".join(str(draw(idx)) for _ in range(draw(st.integers(1, 6)))))
+        elif op == "vertex":
+            lines.insert(k, "v " + " ".join(draw(st.lists(numberish(), min_size=0, max_size=5))))
+        elif op == "drop":
+            del lines[k]
+        elif op == "dup":
+            lines.insert(k, lines[k])
+        elif op == "form" and lines[k].startswith("f "):
+            tok = lines[k].split()
+            lines[k] = " ".join([tok[0]] + [t + draw(st.sampled_from(["/1", "//1", "/1/1", "/", "/x"]))
+                                            for t in tok[1:]])
+    return ("\n".join(lines) + "\n").encode()
+
+
+@st.composite
+def ply_edits(draw) -> bytes:
+    """A PLY with its header edited (element counts off by a little or a lot, the format,
+    property types and names, lines dropped) and/or its body cut or extended."""
+    data = draw(st.sampled_from(MESH_SEEDS[".ply"]))
+    end = data.index(b"end_header")
+    head, body = data[:end].decode().splitlines(), data[end:]
+    for _ in range(draw(st.integers(1, 4))):
+        k = draw(st.integers(1, len(head) - 1))
+        tok = head[k].split()
+        op = draw(st.sampled_from(["count", "format", "type", "drop", "dup"]))
+        if len(tok) < 3 and op in ("count", "format", "type"):
+            continue
+        if op == "count" and tok[0] == "element":
+            tok[2] = str(draw(st.one_of(st.integers(-2, 40), st.sampled_from([2 ** 31, 2 ** 40, 10 ** 20]))))
+        elif op == "format" and tok[0] == "format":
+            tok[1] = draw(st.sampled_from(["ascii", "binary_little_endian", "binary_big_endian", "text"]))
+        elif op == "type" and tok[0] == "property":
+            tok[1 if tok[1] != "list" else draw(st.integers(2, 3))] = draw(
+                st.sampled_from(["uchar", "int", "float", "double", "int64", "list"]))
+        elif op == "drop":
+            tok = []
+        elif op == "dup":
+            tok = tok + ["\n" + head[k]]
+        head[k] = " ".join(tok)
+    if draw(st.booleans()):
+        cut = draw(st.integers(0, len(body)))
+        body = body[:cut] + draw(st.binary(max_size=64))
+    return ("\n".join(h for h in head if h) + "\n").encode() + body
+
+
+@st.composite
+def stl_edits(draw) -> bytes:
+    """A binary STL with its triangle count replaced and/or its body cut at triangle
+    boundaries or anywhere; or an ASCII STL with its keywords mutated."""
+    data = bytearray(draw(st.sampled_from(MESH_SEEDS[".stl"])))
+    if data.startswith(b"solid") and draw(st.booleans()):
+        return draw(mutated([bytes(data)]))
+    if draw(st.booleans()) and len(data) >= 84:
+        data[80:84] = draw(st.integers(0, 2 ** 32 - 1)).to_bytes(4, "little")
+    if draw(st.booleans()):
+        n = draw(st.integers(0, len(data) // 50 + 1))
+        data = data[:draw(st.sampled_from([84 + 50 * n, draw(st.integers(0, len(data)))]))]
+    return bytes(data)
+
+
+@FUZZ
+@given(kind_data=st.one_of(
+    st.tuples(st.just(".obj"), st.one_of(obj_edits(), mutated(MESH_SEEDS[".obj"]))),
+    st.tuples(st.just(".ply"), st.one_of(ply_edits(), mutated(MESH_SEEDS[".ply"]))),
+    st.tuples(st.just(".stl"), st.one_of(stl_edits(), mutated(MESH_SEEDS[".stl"])))))
+def test_fuzz_mesh_files(files, kind_data):
+    """Mesh files (OBJ, PLY, STL; format-aware edits and byte mutations): load_mesh returns
+    finite vertices and in-range triangles, or one line naming the file."""
+    from ctrplan.collision.scene import load_mesh
+
+    kind, data = kind_data
+    path = files.write("mesh" + kind, data)
+    m = check_reader(lambda: load_mesh(path), path)
+    if m is not None:
+        v, f = np.asarray(m.vertices), np.asarray(m.faces)
+        assert v.ndim == 2 and v.shape[1] == 3 and np.all(np.isfinite(v))
+        assert f.ndim == 2 and f.shape[1] == 3 and len(f) and f.min() >= 0 and f.max() < len(v)
+
+
 # ---------------------------------------------------------------------- calibrated model YAML
 def _calibrated_yaml() -> bytes:
     from ctrplan.shape.effects import MODEL_KIND, EffectModel

@@ -135,6 +135,8 @@ def test_wall_and_obstacle_within_half_a_voxel_of_the_analytic_surfaces(oracle):
     wall, obst = res.scene.mesh("lumen").mesh, res.scene.mesh("polyp").mesh
     assert wall.is_watertight and obst.is_watertight
     assert wall.volume > 0 and obst.volume > 0          # outward normals on a left-handed grid
+    # the written scene passes the load-time closure check as it is: no hole filled, nothing capped
+    assert all(m.closed and m.closures == () for m in res.scene.collision_meshes)
     # mesh -> analytic surface
     p = mesh_points(wall)
     err_wall = np.minimum(np.abs(centreline_distance(p) - R), np.abs(np.linalg.norm(p - SPHERE, axis=1) - RS))

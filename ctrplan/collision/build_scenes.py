@@ -109,6 +109,20 @@ def cap_small_holes(mesh, max_radius: float):
     return out
 
 
+def wall_open_ends(walls: list[tuple[str, object]], margin_mm: float = 1.0) -> list[dict]:
+    """The boundary loops of wall meshes taken together (seams between them are closed), each
+    as an ``open_ends`` entry ``{mesh, position, radius}``: the loop's centre and the largest
+    distance from it to the loop's vertices plus ``margin_mm``, rounded up to 0.5 mm."""
+    from ctrplan.collision.closure import Part, boundary_loops
+
+    parts = [Part(n, n, np.asarray(m.vertices, float), np.asarray(m.faces)) for n, m in walls]
+    ends = []
+    for name, centre, radius in boundary_loops(parts):
+        ends.append({"mesh": name, "position": [round(float(x), 4) for x in centre],
+                     "radius": float(np.ceil((radius + margin_mm) * 2.0) / 2.0)})
+    return ends
+
+
 def sample_reach(robot, n: int, max_reach_mm: float, seed: int) -> np.ndarray:
     """``n`` valid configurations whose tip arc length is at most ``max_reach_mm``."""
     rng = np.random.default_rng(seed)
@@ -173,8 +187,10 @@ def pick_targets(scene: Scene, count: int = 12, seed: int = 0, samples: int = 20
 def write_scene(folder: Path, name: str, meshes: list[tuple[str, str, object, str]],
                 base_pose: np.ndarray, source: str, licence: str, frame: str, description: str,
                 generator: str, notice: Path | None = None, targets: int = 12, seed: int = 0,
-                max_reach_mm: float = 400.0, target_filter=None) -> Scene:
-    """Write meshes (binary PLY) and scene.yaml; pick targets; copy the NOTICE."""
+                max_reach_mm: float = 400.0, target_filter=None,
+                open_ends: list[dict] | None = None) -> Scene:
+    """Write meshes (binary PLY) and scene.yaml (with ``open_ends``: the declared openings of
+    the walls, see :func:`wall_open_ends`); pick targets; copy the NOTICE."""
     folder.mkdir(parents=True, exist_ok=True)
     entries = []
     scene_meshes = []
@@ -193,6 +209,7 @@ def write_scene(folder: Path, name: str, meshes: list[tuple[str, str, object, st
     doc = {
         "name": name, "units": "mm", "frame": frame, "description": description,
         "meshes": entries,
+        **({"open_ends": open_ends} if open_ends else {}),
         "base_pose": {"position": [round(float(x), 4) for x in base_pose[:3, 3]],
                       "quaternion": [round(float(x), 8) for x in matrix_to_quaternion(base_pose[:3, :3])]},
         "targets": [{"name": t.name, "position": [round(float(x), 4) for x in t.position],
@@ -220,6 +237,13 @@ _Dumper.add_representer(list, _represent_list)
 
 
 # ---------------------------------------------------------------------------- scenes
+#: The trachea's upper end: its mesh is double-walled (an inner and an outer surface joined at
+#: the rim), so its lumen opens upward without any boundary loop. A ball over the mouth plugs
+#: it (found by casting rays from the base: with it none of 400 escapes; 6 mm above the base,
+#: away from the robot, which enters downward).
+TRACHEA_MOUTH = {"mesh": "trachea", "position": [-1.4, 656.0, 37.6], "radius": 10.0, "shape": "ball"}
+
+
 def build_airway(src: Path, out: Path) -> Scene:
     """Trachea + main bronchi (HRA CCF, male), metres -> mm, body frame (y superior)."""
     import trimesh
@@ -251,7 +275,9 @@ def build_airway(src: Path, out: Path) -> Scene:
         description="Transoral/tracheal entry: robot base in the upper trachea on the lumen "
                     "centreline, +z pointing down the trachea toward the carina and main bronchi.",
         generator="python -m ctrplan.collision.build_scenes airway",
-        notice=hra / "NOTICE.md", seed=1, max_reach_mm=160.0)
+        notice=hra / "NOTICE.md", seed=1, max_reach_mm=160.0,
+        open_ends=wall_open_ends([("trachea", trachea), ("left_main_bronchus", left),
+                                  ("right_main_bronchus", right)]) + [TRACHEA_MOUTH])
 
 
 def _lumen_centre(mesh, y: float) -> np.ndarray:

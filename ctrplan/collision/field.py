@@ -28,26 +28,24 @@ that starts inside a closed wall (or outside a closed obstacle) and has an axis 
 lie outside it (inside the obstacle) must cross the surface, so it provably collides.
 Anything else goes to FCL.
 
-Fields are cached on disk (``$CTRPLAN_CACHE`` or ``~/.cache/ctrplan``), keyed by a hash of the
-mesh and the field parameters.
+Fields are cached on disk, verified on load (:mod:`ctrplan.collision.field_cache`).
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
-import os
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numba as nb
 import numpy as np
 
+from ctrplan.collision.sampling import TRI_CHUNK, surface_samples  # noqa: F401 (re-exported)
+
 log = logging.getLogger("ctrplan")
 
-FIELD_VERSION = 4
+FIELD_VERSION = 5
 #: Safety added to every decision threshold (mm): covers float32 storage and FCL's tolerance.
 EPS_MM = 1e-3
 
@@ -87,53 +85,6 @@ class DistanceField:
     build_s: float = 0.0    # seconds it took to build (0 when read from the cache)
 
 
-def cache_dir() -> Path:
-    """Folder for cached fields: ``$CTRPLAN_CACHE`` or ``~/.cache/ctrplan``."""
-    env = os.environ.get("CTRPLAN_CACHE")
-    return Path(env) if env else Path.home() / ".cache" / "ctrplan"
-
-
-def mesh_key(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig) -> str:
-    """Hash of a mesh and the field parameters (the cache key)."""
-    h = hashlib.sha256()
-    h.update(f"v{FIELD_VERSION}:{config}".encode())
-    h.update(np.ascontiguousarray(vertices, dtype=np.float64).tobytes())
-    h.update(np.ascontiguousarray(faces, dtype=np.int64).tobytes())
-    return h.hexdigest()[:32]
-
-
-def field_for(mesh, config: FieldConfig = FieldConfig(), cache: bool | Path = True) -> DistanceField:
-    """The distance field of a trimesh mesh, from the disk cache when present."""
-    v = np.asarray(mesh.vertices, dtype=float)
-    f = np.asarray(mesh.faces, dtype=np.int64)
-    folder = None
-    if cache:
-        folder = cache_dir() if cache is True else Path(cache)
-        path = folder / f"field-{mesh_key(v, f, config)}.npz"
-        if path.is_file():
-            try:
-                with np.load(path) as z:
-                    return DistanceField(origin=z["origin"], h=float(z["h"]), lb=z["lb"], ub=z["ub"],
-                                         box_lo=z["box_lo"], box_hi=z["box_hi"], rho=float(z["rho"]),
-                                         side=z["side"], watertight=bool(z["watertight"]))
-            except (OSError, ValueError, KeyError) as exc:  # a corrupt cache entry is rebuilt
-                log.warning("ignoring unreadable field cache %s (%s)", path, exc)
-    log.info("preparing the distance field of a %d-triangle mesh (once; cached in %s)",
-             len(f), folder if folder is not None else "memory only")
-    field = build_field(v, f, config, watertight=bool(mesh.is_watertight), progress=True)
-    if folder is not None:
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
-            np.savez(tmp, origin=field.origin, h=field.h, lb=field.lb, ub=field.ub,
-                     box_lo=field.box_lo, box_hi=field.box_hi, rho=field.rho, side=field.side,
-                     watertight=field.watertight)
-            os.replace(tmp, path)
-        except OSError as exc:  # a read-only cache only costs time
-            log.warning("could not write field cache in %s (%s)", folder, exc)
-    return field
-
-
 def build_field(vertices: np.ndarray, faces: np.ndarray, config: FieldConfig = FieldConfig(),
                 watertight: bool = False, progress: bool = False) -> DistanceField:
     """Build the bounds grid of one mesh (see the module docstring). ``progress``: a bar over
@@ -167,227 +118,93 @@ def _build_field(vertices, faces, config, watertight, pbar, ndimage) -> Distance
     rep = sv[first]
     grid = np.ones(shape, dtype=bool)
     grid.flat[marked] = False
+    del node, flat
     # exact Euclidean distance transform: for every node, the nearest marked node
     dist, idx = ndimage.distance_transform_edt(grid, sampling=h, return_indices=True)
+    del grid
     pbar.update(1)
-    near = np.ravel_multi_index(idx.reshape(3, -1), shape)
-    del idx
-    rep_near = rep[np.searchsorted(marked, near)]
-    nodes = np.stack(np.unravel_index(np.arange(len(near)), shape), axis=1) * h + lo
-    # upper bound: distance to a true surface point (the sample held by the nearest marked node)
-    ub = np.linalg.norm(nodes - rep_near, axis=1).reshape(shape).astype(np.float32)
-    del nodes, rep_near
+    # upper bound: distance to a true surface point (the sample held by the nearest marked
+    # node); computed in chunks of nodes so memory stays O(chunk)
+    ub = _upper_bounds(idx.reshape(3, -1), shape, h, lo, marked, rep)
+    del idx, marked, rep
     # lower bound: the nearest surface point x has a sample within rho, whose node is within
     # h*sqrt(3)/2 of it, so dist <= d + rho + h*sqrt(3)/2
     lb = np.maximum(dist - rho - h * math.sqrt(3.0) / 2.0, 0.0).astype(np.float32)
     pbar.update(1)
     # Near the surface, where verdicts are decided, replace both bounds by the exact distance
-    # to the nearest sample (lb then loses only rho, not the snapping term): every sample
-    # visits the nodes within refine_mm of it (numba); a node whose nearest visiting sample is
-    # within refine_mm has found its true nearest sample.
-    near = np.full(shape, np.inf, dtype=np.float64)
-    _splat(sv[np.argsort(sv[:, 0], kind="stable")], lo, h, float(config.refine_mm), near)
-    np.sqrt(near, out=near)
+    # to the nearest sample (lb then loses only rho, not the snapping term). A node within
+    # refine_mm of a sample has a marked node within refine_mm + h sqrt(3)/2 (the sample's),
+    # so only those nodes are asked for their nearest sample (a k-d tree over the samples).
+    refine = refine_radius(config.refine_mm, len(sv), len(f), h)
+    cand = np.flatnonzero(dist.ravel() <= refine + h * math.sqrt(3.0) / 2.0)
+    del dist
+    near = _nearest_sample(sv, cand, shape, h, lo, refine)
     pbar.update(1)
-    band = near <= config.refine_mm
-    lb[band] = np.maximum(lb[band], np.maximum(near[band] - rho, 0.0))
-    ub[band] = np.minimum(ub[band], near[band])
-    del near, band
+    band = near <= refine
+    cand, near = cand[band], near[band]
+    lbf, ubf = lb.reshape(-1), ub.reshape(-1)
+    lbf[cand] = np.maximum(lbf[cand], np.maximum(near - rho, 0.0))
+    ubf[cand] = np.minimum(ubf[cand], near)
+    del near, band, cand
     side = _sides(lb, h, lo, v, f) if watertight else np.zeros(shape, dtype=np.int8)
     pbar.update(1)
     field = DistanceField(origin=lo, h=float(h), lb=lb, ub=ub, box_lo=box_lo, box_hi=box_hi,
                           rho=rho, side=side, watertight=watertight,
                           build_s=time.perf_counter() - t0)
-    log.debug("distance field: %s nodes, h %.3f mm, %d samples, rho %.3f mm, %.2f s",
-              shape, h, len(sv), rho, field.build_s)
+    log.debug("distance field: %s nodes, h %.3f mm, %d samples, rho %.3f mm, refined within "
+              "%.2f mm, %.2f s", shape, h, len(sv), rho, refine, field.build_s)
     return field
 
 
-#: A triangle is sampled by a grid in its plane (cost ~ area) instead of the barycentric
-#: lattice (cost ~ longest edge squared) when the lattice would need this many times more points.
-LATTICE_EXCESS = 16.0
+#: Nodes per chunk of the bounds computation.
+NODE_CHUNK = 1 << 20
+#: Meshes above this many triangles (large: a fine segmentation; every shipped mesh has fewer
+#: than 50,000) get a refinement radius capped by REFINE_WORK.
+LARGE_TRIANGLES = 250_000
+#: Largest refinement work, samples x (radius / h)^3 (about 25 s on one core of the reference
+#: machine; the shipped brain surface needs 1.4e8 at 4 mm).
+REFINE_WORK = 1.5e8
 
 
-def surface_samples(v: np.ndarray, f: np.ndarray, max_edge: float) -> tuple[np.ndarray, float]:
-    """Points covering a mesh so that every surface point lies within ``rho = e / sqrt(3)`` of
-    one, returned as (points (S, 3), ``e``); ``e <= max_edge`` where every triangle is
-    well-shaped, ``e = sqrt(2) max_edge`` where some are long and thin. Cost follows surface
-    area, not triangle shape.
-
-    A well-shaped triangle gets the lattice ``(i a + j b + k c) / n`` with ``n = ceil(longest
-    edge / max_edge)``: its sub-triangles are copies of the triangle scaled by ``1 / n``. A long
-    thin triangle (whose lattice would need more than ``LATTICE_EXCESS`` times the points its area
-    needs) gets a square grid of spacing ``g = max_edge`` in its own plane instead (and then,
-    as the covering radius is set by those, every triangle gets whichever of a lattice with
-    sub-edges up to ``g sqrt(2)`` or the grid needs fewer points): the grid
-    nodes inside it, the points where its edges cross grid lines, and its corners. Each grid
-    cell cuts the triangle into a convex polygon whose corners are all samples and whose
-    diameter is at most ``g sqrt(2)``; triangulated from its corners, every point lies within
-    (longest edge) / sqrt(3) of a corner, so ``e = g sqrt(2)`` bounds the covering radius.
-    """
-    tri = np.ascontiguousarray(v[f], dtype=float)
-    if len(tri) == 0:
-        return np.empty((0, 3)), 0.0
-    edges = np.stack([np.linalg.norm(tri[:, i] - tri[:, (i + 1) % 3], axis=1) for i in range(3)], axis=1)
-    longest = edges.max(axis=1)
-    n = np.maximum(np.ceil(longest / max_edge), 1).astype(np.int64)
-    lattice = (n + 1) * (n + 2) // 2
-    g = max_edge
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    by_area = area / g**2 + 2.0 * edges.sum(axis=1) / g + 3.0
-    thin = lattice > LATTICE_EXCESS * by_area
-    if thin.any():
-        # the grid triangles set the covering radius (e = g sqrt(2)): sample the others with
-        # lattice sub-edges up to that too, and each triangle by whichever needs fewer points
-        n = np.maximum(np.ceil(longest / (g * math.sqrt(2.0))), 1).astype(np.int64)
-        lattice = (n + 1) * (n + 2) // 2
-        thin |= lattice > by_area
-    counts = np.where(thin, 0, lattice)
-    if thin.any():
-        counts[thin] = _grid_samples(tri[thin], g, np.empty((0, 3)), np.zeros(1, np.int64), False)
-    offsets = np.concatenate([[0], np.cumsum(counts)])
-    out = np.empty((int(offsets[-1]), 3))
-    fat = ~thin
-    if fat.any():
-        sel = np.flatnonzero(fat)
-        _lattice_at(tri, n, offsets, sel, out)
-    if thin.any():
-        _grid_samples(tri[thin], g, out, offsets[:-1][thin], True)
-    e = float((longest[fat] / n[fat]).max()) if fat.any() else 0.0
-    if thin.any():
-        e = max(e, g * math.sqrt(2.0))
-    return out, e
+def refine_radius(refine_mm: float, samples: int, triangles: int, h: float) -> float:
+    """The refinement radius: ``refine_mm``, except for a mesh of more than LARGE_TRIANGLES
+    triangles, where it shrinks so that samples x (radius / h)^3 stays within REFINE_WORK (the
+    nearest-sample search costs in proportion; 2.5 million samples at h 0.5 mm give 1.8 mm).
+    Bounds stay valid either way: only nodes within the radius are tightened."""
+    if triangles <= LARGE_TRIANGLES or samples == 0:
+        return float(refine_mm)
+    return float(min(refine_mm, h * (REFINE_WORK / samples) ** (1.0 / 3.0)))
 
 
-@nb.njit(cache=True)
-def _lattice_at(tri, n, offsets, sel, out):
-    for s in range(sel.shape[0]):
-        t = sel[s]
-        m = n[t]
-        o = offsets[t]
-        for i in range(m + 1):
-            for j in range(m + 1 - i):
-                k = m - i - j
-                for d in range(3):
-                    out[o, d] = (i * tri[t, 0, d] + j * tri[t, 1, d] + k * tri[t, 2, d]) / m
-                o += 1
+def _upper_bounds(idx: np.ndarray, shape: tuple, h: float, lo: np.ndarray, marked: np.ndarray,
+                  rep: np.ndarray) -> np.ndarray:
+    """(shape) float32: distance from every node to the sample held by its nearest marked node
+    (``idx`` (3, N): the distance transform's nearest-node indices)."""
+    n = int(np.prod(shape))
+    ub = np.empty(n, dtype=np.float32)
+    for s in range(0, n, NODE_CHUNK):
+        e = min(s + NODE_CHUNK, n)
+        held = rep[np.searchsorted(marked, np.ravel_multi_index(idx[:, s:e], shape))]
+        nodes = np.stack(np.unravel_index(np.arange(s, e), shape), axis=1) * h + lo
+        ub[s:e] = np.linalg.norm(nodes - held, axis=1)
+    return ub.reshape(shape)
 
 
-@nb.njit(cache=True)
-def _grid_samples(tri, g, out, offsets, write):
-    """Grid samples of each triangle (see :func:`surface_samples`). With ``write`` False only
-    counts them (returns (T,) counts); with ``write`` True fills ``out`` from ``offsets``."""
-    T = tri.shape[0]
-    counts = np.zeros(T, dtype=np.int64)
-    for t in range(T):
-        # in-plane frame: U along the longest edge a->b, W perpendicular toward c
-        q0 = 0
-        best = -1.0
-        for q in range(3):
-            dd = 0.0
-            for d in range(3):
-                dd += (tri[t, (q + 1) % 3, d] - tri[t, q, d]) ** 2
-            if dd > best:
-                best = dd
-                q0 = q
-        a = tri[t, q0]
-        b = tri[t, (q0 + 1) % 3]
-        c = tri[t, (q0 + 2) % 3]
-        ab = b - a
-        L = math.sqrt(ab[0] ** 2 + ab[1] ** 2 + ab[2] ** 2)
-        U = ab / L if L > 0.0 else np.zeros(3)
-        ac = c - a
-        cu = ac[0] * U[0] + ac[1] * U[1] + ac[2] * U[2]
-        wv = ac - cu * U
-        cw = math.sqrt(wv[0] ** 2 + wv[1] ** 2 + wv[2] ** 2)
-        W = wv / cw if cw > 0.0 else np.zeros(3)
-        P = np.array([[0.0, 0.0], [L, 0.0], [cu, cw]])
-        o = offsets[t] if write else 0
-        k = 0
-        # corners
-        for q in range(3):
-            if write:
-                for d in range(3):
-                    out[o + k, d] = tri[t, q, d]
-            k += 1
-        # edge crossings with the grid lines u = i g and w = j g (corners excluded)
-        for q in range(3):
-            p0u = P[q, 0]
-            p0w = P[q, 1]
-            p1u = P[(q + 1) % 3, 0]
-            p1w = P[(q + 1) % 3, 1]
-            for axis in range(2):
-                x0 = p0u if axis == 0 else p0w
-                x1 = p1u if axis == 0 else p1w
-                if x0 == x1:
-                    continue
-                lo = min(x0, x1)
-                hi = max(x0, x1)
-                i0 = int(math.floor(lo / g)) + 1
-                i1 = int(math.ceil(hi / g)) - 1
-                for i in range(i0, i1 + 1):
-                    s = (i * g - x0) / (x1 - x0)
-                    if s <= 0.0 or s >= 1.0:
-                        continue
-                    if write:
-                        pu = p0u + s * (p1u - p0u)
-                        pw = p0w + s * (p1w - p0w)
-                        for d in range(3):
-                            out[o + k, d] = a[d] + pu * U[d] + pw * W[d]
-                    k += 1
-        # grid nodes strictly inside
-        for i in range(1, int(math.ceil(L / g))):
-            u = i * g
-            for j in range(1, int(math.ceil(cw / g))):
-                w = j * g
-                # inside: w > 0, left of b->c and of c->a
-                e1 = (cu - L) * (w - 0.0) - (cw - 0.0) * (u - L)
-                e2 = (0.0 - cu) * (w - cw) - (0.0 - cw) * (u - cu)
-                if e1 > 0.0 and e2 > 0.0:
-                    if write:
-                        for d in range(3):
-                            out[o + k, d] = a[d] + u * U[d] + w * W[d]
-                    k += 1
-        counts[t] = k
-    return counts
+def _nearest_sample(samples: np.ndarray, flat: np.ndarray, shape: tuple, h: float,
+                    lo: np.ndarray, radius: float) -> np.ndarray:
+    """(len(flat),) distance from each node (flat indices) to its nearest sample, inf where
+    none lies within ``radius``."""
+    from scipy.spatial import cKDTree
 
-
-@nb.njit(cache=True, parallel=True)
-def _splat(samples, lo, h, radius, near):
-    """``near`` (inf on entry) gets, at every node within ``radius`` of a sample, the squared
-    distance to the nearest such sample; the caller takes the root. ``samples`` must be sorted
-    by x: each x-slab of the grid (one per thread at a time, so no two threads write the same
-    node) visits only the samples within ``radius`` of it, and its nodes stay in cache."""
-    nx, ny, nz = near.shape
-    r2 = radius * radius
-    xs = samples[:, 0]
-    for i in nb.prange(nx):
-        xi = lo[0] + i * h
-        p0 = np.searchsorted(xs, xi - radius, side="left")
-        p1 = np.searchsorted(xs, xi + radius, side="right")
-        for p in range(p0, p1):
-            dx = xi - samples[p, 0]
-            rx = r2 - dx * dx
-            if rx < 0.0:
-                continue
-            y = samples[p, 1]
-            z = samples[p, 2]
-            ry = math.sqrt(rx)
-            j0 = max(int(math.ceil((y - ry - lo[1]) / h)), 0)
-            j1 = min(int(math.floor((y + ry - lo[1]) / h)), ny - 1)
-            for j in range(j0, j1 + 1):
-                dy = lo[1] + j * h - y
-                rz2 = rx - dy * dy
-                if rz2 < 0.0:
-                    continue
-                rz = math.sqrt(rz2)
-                k0 = max(int(math.ceil((z - rz - lo[2]) / h)), 0)
-                k1 = min(int(math.floor((z + rz - lo[2]) / h)), nz - 1)
-                dxy = dx * dx + dy * dy
-                row = near[i, j]
-                for k in range(k0, k1 + 1):
-                    dz = lo[2] + k * h - z
-                    row[k] = min(row[k], dxy + dz * dz)
+    out = np.full(len(flat), np.inf)
+    if len(flat) == 0 or len(samples) == 0:
+        return out
+    tree = cKDTree(samples, leafsize=16, balanced_tree=False, compact_nodes=False)
+    for s in range(0, len(flat), NODE_CHUNK):
+        nodes = np.stack(np.unravel_index(flat[s:s + NODE_CHUNK], shape), axis=1) * h + lo
+        d, _ = tree.query(nodes, k=1, distance_upper_bound=radius * (1.0 + 1e-12), workers=1)
+        out[s:s + NODE_CHUNK] = d
+    return out
 
 
 def _sides(lb: np.ndarray, h: float, lo: np.ndarray, v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -397,10 +214,12 @@ def _sides(lb: np.ndarray, h: float, lo: np.ndarray, v: np.ndarray, f: np.ndarra
     comes near (each half lies in a surface-free ball), so the connected components of such
     nodes (6-connectivity) each lie on one side. A component touching the grid's border is
     outside (the border is outside the mesh's bounding box); every other component takes the
-    side of one of its nodes by trimesh's ray-parity containment test.
+    side of one of its nodes by ray parity (:func:`ctrplan.collision._raycast.odd_parity`: exact
+    for a closed surface, memory only the mesh).
     """
-    import trimesh
     from scipy import ndimage
+
+    from ctrplan.collision._raycast import odd_parity
 
     safe = lb > h / 2.0
     labels, n = ndimage.label(safe)
@@ -415,8 +234,7 @@ def _sides(lb: np.ndarray, h: float, lo: np.ndarray, v: np.ndarray, f: np.ndarra
         order = np.argsort(flat, kind="stable")
         starts = np.searchsorted(flat[order], rest)
         reps = np.stack(np.unravel_index(order[starts], labels.shape), axis=1) * h + lo
-        mesh = trimesh.Trimesh(v, f, process=False)
-        side_of[rest] = np.where(mesh.contains(reps), -1, 1)
+        side_of[rest] = np.where(odd_parity(v, f, reps), -1, 1)
     side_of[0] = 0
     return side_of[labels]
 
@@ -613,3 +431,4 @@ def point_bounds(field: DistanceField, points: np.ndarray) -> tuple[np.ndarray, 
     _point_bounds(p, field.lb, field.ub, field.side, field.origin, field.h, field.box_lo,
                   field.box_hi, lo, up, sd)
     return lo, up, sd
+

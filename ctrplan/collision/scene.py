@@ -3,8 +3,10 @@
 A scene is a folder with ``scene.yaml`` (format in docs/conventions.md) and its mesh files. Everything is
 in the scene frame, in mm. Roles:
 
-- ``wall``: the lumen surface the robot must stay inside; touching it is a collision. A wall may
-  be open where the lumen continues beyond the model (the distal ends of the bronchi).
+- ``wall``: the lumen surface the robot must stay inside; touching it is a collision. The walls
+  together must be closed (:mod:`ctrplan.collision.closure`): small holes are filled on load,
+  larger ones refuse the scene, and where the lumen continues beyond the model (the distal
+  ends of the bronchi) the scene declares the opening under ``open_ends``, which is capped.
 - ``obstacle``: a structure the robot must not touch (vessel, nerve).
 - ``landmark``: drawn and used to pick targets (e.g. the ventricles the robot enters), never
   collision-checked.
@@ -21,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ctrplan.collision.closure import DEFAULT_MAX_HOLE_MM
 from ctrplan.errors import InputError
 from ctrplan.io import load_yaml
 
@@ -32,7 +35,7 @@ MIN_EXTENT_MM = 0.5
 MAX_EXTENT_MM = 2000.0
 
 _SCENE_KEYS = {"name", "units", "frame", "description", "meshes", "base_pose", "targets",
-               "source", "licence", "generator"}
+               "source", "licence", "generator", "open_ends", "max_hole_mm"}
 _MESH_KEYS = {"name", "file", "role", "description"}
 
 
@@ -44,6 +47,16 @@ class SceneMesh:
     role: str
     mesh: object  # trimesh.Trimesh (kept untyped so importing this module stays light)
     file: str = ""
+    #: closed on its own (after the fills and caps of :mod:`ctrplan.collision.closure`); None:
+    #: not known (a mesh not loaded by :func:`load_scene`: trimesh's ``is_watertight`` decides)
+    closed: bool | None = field(default=None, compare=False)
+    #: the holes filled and open ends capped on load
+    closures: tuple = field(default=(), compare=False)
+
+    @property
+    def is_closed(self) -> bool:
+        """Whether the mesh alone is a closed surface (inside/outside defined by ray parity)."""
+        return bool(self.mesh.is_watertight) if self.closed is None else self.closed
 
 
 @dataclass(frozen=True)
@@ -82,6 +95,10 @@ class Scene:
     licence: str = ""
     frame: str = ""
     description: str = field(default="", compare=False)
+    #: the declared open ends (:class:`ctrplan.collision.closure.OpenEnd`), capped on load
+    open_ends: tuple = field(default=(), compare=False)
+    #: whether the walls together are closed (True for every scene :func:`load_scene` returns)
+    walls_closed: bool = field(default=False, compare=False)
 
     def to_scene(self, points: np.ndarray) -> np.ndarray:
         """Points (..., 3) mm from the robot base frame to the scene frame."""
@@ -182,7 +199,30 @@ def scene_from_dict(data: object, yml: Path) -> Scene:
     raw_meshes = data.get("meshes")
     if not isinstance(raw_meshes, list) or not raw_meshes:
         raise InputError(src, "meshes", "an empty scene: list at least one mesh")
-    meshes = []
+    entries = _parse_mesh_entries(raw_meshes, yml, src)
+    ends = _parse_open_ends(data.get("open_ends"), entries, src)
+    max_hole = _parse_max_hole(data.get("max_hole_mm", DEFAULT_MAX_HOLE_MM), src)
+    meshes = _load_meshes(entries, ends, max_hole, src)
+    base_pose = _parse_pose(data.get("base_pose"), src)
+    targets = _parse_targets(data.get("targets") or [], src)
+    if yml.parent.resolve() == (anatomy_dir() / name).resolve():  # a shipped scene
+        from ctrplan.collision.target_names import anatomical_name
+
+        targets = tuple(replace(t, label=anatomical_name(name, t.name)) for t in targets)
+    scene = Scene(name=name, path=str(yml.parent), meshes=tuple(meshes), base_pose=base_pose,
+                  targets=targets, source=str(data.get("source", "")),
+                  licence=str(data.get("licence", "")), frame=str(data.get("frame", "")),
+                  description=str(data.get("description", "")), open_ends=tuple(ends),
+                  walls_closed=True)
+    if not scene.collision_meshes:
+        raise InputError(src, "meshes", "no wall or obstacle mesh: nothing to check collisions against")
+    check_base_inside(scene, src)
+    return scene
+
+
+def _parse_mesh_entries(raw_meshes: list, yml: Path, src: str) -> list[tuple[str, str, str, Path]]:
+    """(name, role, file, path) of each ``meshes`` entry, checked."""
+    out = []
     seen = set()
     for k, entry in enumerate(raw_meshes):
         where = f"meshes[{k}]"
@@ -202,21 +242,78 @@ def scene_from_dict(data: object, yml: Path) -> Scene:
         if role not in ROLES:
             raise InputError(src, f"{where}.role", f"unknown role {role!r} (choose from {', '.join(ROLES)})")
         path = _mesh_path(yml, str(entry["file"]), src, f"{where}.file")
-        meshes.append(SceneMesh(name=mname, role=role, mesh=load_mesh(path), file=str(entry["file"])))
-    base_pose = _parse_pose(data.get("base_pose"), src)
-    targets = _parse_targets(data.get("targets") or [], src)
-    if yml.parent.resolve() == (anatomy_dir() / name).resolve():  # a shipped scene
-        from ctrplan.collision.target_names import anatomical_name
+        out.append((mname, role, str(entry["file"]), path))
+    return out
 
-        targets = tuple(replace(t, label=anatomical_name(name, t.name)) for t in targets)
-    scene = Scene(name=name, path=str(yml.parent), meshes=tuple(meshes), base_pose=base_pose,
-                  targets=targets, source=str(data.get("source", "")),
-                  licence=str(data.get("licence", "")), frame=str(data.get("frame", "")),
-                  description=str(data.get("description", "")))
-    if not scene.collision_meshes:
-        raise InputError(src, "meshes", "no wall or obstacle mesh: nothing to check collisions against")
-    check_base_inside(scene, src)
-    return scene
+
+def _parse_open_ends(raw: object, entries: list, src: str) -> list:
+    """``open_ends``: a list of ``{mesh, position: [x, y, z], radius, shape: loop|ball}``
+    naming wall or obstacle meshes."""
+    from ctrplan.collision.closure import OpenEnd
+
+    if raw is None:
+        return []
+    if not isinstance(raw, list):
+        raise InputError(src, "open_ends", "expected a list of {mesh, position, radius}")
+    names = {e[0] for e in entries if e[1] in ("wall", "obstacle")}
+    out = []
+    for k, e in enumerate(raw):
+        where = f"open_ends[{k}]"
+        if not isinstance(e, dict) or not {"mesh", "position", "radius"} <= set(e):
+            raise InputError(src, where, "expected {mesh, position: [x, y, z], radius}")
+        bad = sorted(set(e) - {"mesh", "position", "radius", "shape"}, key=str)
+        if bad:
+            raise InputError(src, f"{where}.{bad[0]}", "unknown key")
+        if str(e["mesh"]) not in names:
+            raise InputError(src, f"{where}.mesh", f"{str(e['mesh'])[:60]!r} is not a wall or "
+                             "obstacle mesh of this scene")
+        radius = _vector([e["radius"]], 1, src, f"{where}.radius")[0]
+        if not 0 < radius <= MAX_EXTENT_MM:
+            raise InputError(src, f"{where}.radius", f"must be in (0, {MAX_EXTENT_MM:g}] mm")
+        shape = e.get("shape", "loop")
+        if shape not in ("loop", "ball"):
+            raise InputError(src, f"{where}.shape", "must be 'loop' (cap the boundary loops within "
+                             "the radius) or 'ball' (also plug the opening with the ball)")
+        out.append(OpenEnd(str(e["mesh"]), _vector(e["position"], 3, src, f"{where}.position"),
+                           float(radius), shape))
+    return out
+
+
+def _parse_max_hole(raw: object, src: str) -> float:
+    v = _vector([raw], 1, src, "max_hole_mm")[0] if not isinstance(raw, bool) else -1.0
+    if not 0 <= v <= MAX_EXTENT_MM:
+        raise InputError(src, "max_hole_mm", f"must be a number of mm in [0, {MAX_EXTENT_MM:g}]")
+    return float(v)
+
+
+def _load_meshes(entries: list, ends: list, max_hole: float, src: str) -> list[SceneMesh]:
+    """Read every mesh (after the work estimate), close the walls together and each obstacle
+    alone (:func:`ctrplan.collision.closure.close_group`)."""
+    import trimesh
+
+    from ctrplan.collision.budget import check_scene_budget
+    from ctrplan.collision.closure import Part, close_group
+
+    check_scene_budget([(e[3], e[1]) for e in entries], src)
+    parts = {name: Part(name, str(path), *read_mesh_file(path, edges=role == "landmark"))
+             for name, role, _, path in entries}
+    groups = [[e[0] for e in entries if e[1] == "wall"]]
+    groups += [[e[0]] for e in entries if e[1] == "obstacle"]
+    closed = {}
+    for group in groups:
+        if group:
+            for cp in close_group([parts[n] for n in group], ends, max_hole, src):
+                closed[cp.name] = cp
+    out = []
+    for name, role, file, _ in entries:
+        if name in closed:
+            cp = closed[name]
+            mesh = trimesh.Trimesh(cp.vertices, cp.faces, process=False)
+            out.append(SceneMesh(name, role, mesh, file, closed=cp.closed, closures=cp.closures))
+        else:
+            p = parts[name]
+            out.append(SceneMesh(name, role, trimesh.Trimesh(p.vertices, p.faces, process=False), file))
+    return out
 
 
 def _mesh_path(yml: Path, file: str, src: str, fieldname: str) -> Path:
@@ -237,9 +334,13 @@ def _mesh_path(yml: Path, file: str, src: str, fieldname: str) -> Path:
     return path
 
 
-def load_mesh(path: str | os.PathLike):
-    """Load a triangle mesh (mm) with trimesh and validate it; errors name the file."""
-    import trimesh
+def read_mesh_file(path: str | os.PathLike, edges: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices (V, 3) mm, faces (F, 3)) of a mesh file, read by the rules of its format
+    (:mod:`ctrplan.collision.meshio`) and validated (``edges``: the non-manifold check too,
+    which :mod:`ctrplan.collision.closure` makes anyway on the welded mesh); errors name the
+    file."""
+    from ctrplan.collision.meshio import read_mesh
+    from ctrplan.io import read_bytes
 
     path = Path(path)
     try:
@@ -248,24 +349,31 @@ def load_mesh(path: str | os.PathLike):
         found = False
     if not found:
         raise InputError(str(path), "", "mesh file not found")
-    from ctrplan.io import check_input_file
+    v, f = read_mesh(path, read_bytes(path, "mesh"))
+    validate_arrays(v, f, str(path), edges=edges)
+    return v, f
 
-    check_input_file(path, "mesh")
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many types for unreadable files
-        raise InputError(str(path), "", f"unreadable mesh ({exc.__class__.__name__}: {exc})") from None
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise InputError(str(path), "", "not a triangle mesh")
-    validate_mesh(mesh, str(path))
-    return mesh
+
+def load_mesh(path: str | os.PathLike):
+    """Load a triangle mesh (mm) as a trimesh object and validate it; errors name the file.
+    (Scenes close their meshes on top of this: :func:`load_scene`.)"""
+    import trimesh
+
+    return trimesh.Trimesh(*read_mesh_file(path), process=False)
 
 
 def validate_mesh(mesh, source: str) -> None:
     """Raise :class:`InputError` for an empty, non-finite, non-manifold or absurd-scale mesh."""
-    v = np.asarray(mesh.vertices, dtype=float)
-    f = np.asarray(mesh.faces)
-    if len(v) == 0 or len(f) == 0:
+    validate_arrays(np.asarray(mesh.vertices), np.asarray(mesh.faces), source)
+
+
+def validate_arrays(v: np.ndarray, f: np.ndarray, source: str, chunk: int = 1 << 20,
+                    edges: bool = True) -> None:
+    """:func:`validate_mesh` on arrays (vertices (V, 3), faces (F, 3)); memory O(F).
+    ``edges``: check for non-manifold edges too."""
+    v = np.asarray(v, dtype=float)
+    f = np.asarray(f)
+    if len(v) == 0 or len(f) == 0 or f.ndim != 2 or f.shape[1] != 3:
         raise InputError(source, "faces", "empty mesh (no triangles)")
     if not np.all(np.isfinite(v)):
         raise InputError(source, "vertices", "non-finite vertex coordinates")
@@ -275,14 +383,20 @@ def validate_mesh(mesh, source: str) -> None:
     if not MIN_EXTENT_MM <= extent <= MAX_EXTENT_MM:
         raise InputError(source, "vertices", f"largest extent {extent:.4g} mm is outside "
                          f"[{MIN_EXTENT_MM}, {MAX_EXTENT_MM}] mm: is the mesh in mm?")
-    area = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
-    if not np.any(area > 0):
+    if not any(np.any(_areas(v, f[s:s + chunk]) > 0) for s in range(0, len(f), chunk)):
         raise InputError(source, "faces", "all triangles are degenerate")
-    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
-    if np.any(counts > 2):
-        raise InputError(source, "faces", f"non-manifold: {int((counts > 2).sum())} edges shared "
-                         "by more than two triangles")
+    if not edges:
+        return
+    from ctrplan.collision.closure import count_edges
+
+    bad = count_edges(f, len(v)).non_manifold
+    if bad:
+        raise InputError(source, "faces", f"non-manifold: {bad} edges shared by more than two "
+                         "triangles")
+
+
+def _areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
 
 
 def _parse_pose(raw: object, src: str) -> np.ndarray:
@@ -353,28 +467,47 @@ def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
     return q if w >= 0 else -q
 
 
-#: Fixed ray directions for the inside test (a Fibonacci sphere).
-def _directions(n: int = 96) -> np.ndarray:
-    k = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * k / n)
-    theta = np.pi * (1 + 5**0.5) * k
-    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
-
-
 def inside_walls(scene: Scene, points: np.ndarray, min_hit_fraction: float = 0.7) -> np.ndarray:
     """(P,) bool: whether each point (P, 3) mm, scene frame, lies inside the scene's walls.
 
-    A closed (watertight) wall uses trimesh's exact containment. An open wall (a lumen that
-    continues beyond the model) has no inside in the strict sense; a point counts as inside when
-    at least ``min_hit_fraction`` of 96 rays from it hit the walls (inside a tube only the rays
-    along the axis escape; outside a convex-ish tube at most half of them can hit it).
-    """
-    import trimesh
+    Walls closed together (every scene :func:`load_scene` returns): a point inside by ray
+    parity (an odd number of crossings, :mod:`ctrplan.collision._raycast`) is inside; a point
+    of even parity (the lumen of a double-layered wall, such as the airway's trachea, whose
+    mesh has an inner and an outer surface) is inside when every one of 96 rays from it meets
+    the walls (one that escapes proves the point outside).
 
-    walls = [m.mesh for m in scene.meshes if m.role == "wall"]
+    Open walls (meshes not closed by the loader, e.g. while :mod:`build_scenes` builds a
+    scene): a watertight wall uses trimesh's containment; otherwise a point counts as inside
+    when at least ``min_hit_fraction`` of 96 rays from it hit the walls.
+    """
+    walls = [m for m in scene.meshes if m.role == "wall"]
     points = np.atleast_2d(np.asarray(points, dtype=float))
     if not walls:
         return np.ones(len(points), dtype=bool)
+    if scene.walls_closed:
+        from ctrplan.collision._raycast import enclosed, odd_parity
+
+        v, f = _union(walls)
+        inside = odd_parity(v, f, points)
+        for i in np.flatnonzero(~inside):
+            inside[i] = enclosed(v, f, points[i])
+        return inside
+    return _inside_open_walls([m.mesh for m in walls], points, min_hit_fraction)
+
+
+def _union(meshes) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of several scene meshes together."""
+    vs = [np.asarray(m.mesh.vertices, dtype=float) for m in meshes]
+    offsets = np.cumsum([0] + [len(v) for v in vs])
+    fs = [np.asarray(m.mesh.faces, dtype=np.int64) + o for m, o in zip(meshes, offsets[:-1])]
+    return np.vstack(vs), np.vstack(fs)
+
+
+def _inside_open_walls(walls: list, points: np.ndarray, min_hit_fraction: float) -> np.ndarray:
+    import trimesh
+
+    from ctrplan.collision._raycast import fibonacci_directions
+
     inside = np.zeros(len(points), dtype=bool)
     for w in walls:
         if w.is_watertight:
@@ -382,7 +515,7 @@ def inside_walls(scene: Scene, points: np.ndarray, min_hit_fraction: float = 0.7
     open_walls = [w for w in walls if not w.is_watertight]
     if open_walls:
         merged = trimesh.util.concatenate(open_walls)
-        dirs = _directions()
+        dirs = fibonacci_directions()
         for i, p in enumerate(points):
             if inside[i]:
                 continue
@@ -391,12 +524,28 @@ def inside_walls(scene: Scene, points: np.ndarray, min_hit_fraction: float = 0.7
     return inside
 
 
+def inside_mesh(m: SceneMesh, points: np.ndarray) -> np.ndarray:
+    """(P,) bool: whether points (P, 3) mm lie inside a closed scene mesh (ray parity; all
+    False for a mesh that is not closed: it has no inside)."""
+    points = np.atleast_2d(np.asarray(points, dtype=float))
+    closed = getattr(m, "is_closed", None)
+    if not (closed if closed is not None else getattr(m.mesh, "is_watertight", False)):
+        return np.zeros(len(points), dtype=bool)
+    from ctrplan.collision._raycast import odd_parity
+
+    return odd_parity(np.asarray(m.mesh.vertices), np.asarray(m.mesh.faces), points)
+
+
 def check_base_inside(scene: Scene, src: str) -> None:
     """Raise :class:`InputError` if the base pose lies outside the scene's walls or inside a
     closed obstacle."""
     base = scene.base_pose[:3, 3][None]
+    for k, end in enumerate(scene.open_ends):
+        if end.shape == "ball" and np.linalg.norm(base[0] - end.position) <= end.radius:
+            raise InputError(src, "base_pose.position", f"lies inside the ball of open_ends[{k}] "
+                             "(a plug the robot may not enter)")
     for m in scene.meshes:
-        if m.role == "obstacle" and m.mesh.is_watertight and m.mesh.contains(base)[0]:
+        if m.role == "obstacle" and inside_mesh(m, base)[0]:
             raise InputError(src, "base_pose.position", f"lies inside the obstacle {m.name!r}")
     if any(m.role == "wall" for m in scene.meshes) and not inside_walls(scene, base)[0]:
         raise InputError(src, "base_pose.position", "lies outside the wall meshes: the robot "

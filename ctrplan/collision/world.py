@@ -1,7 +1,8 @@
 """CollisionWorld: batched whole-shape collision checks of robot backbones against a scene.
 
-Verdicts are exact FCL verdicts (capsule chains vs the wall and obstacle meshes). The
-prefilter (:mod:`ctrplan.collision.field`) only skips FCL where a distance bound proves the
+Verdicts are exact (capsule chains vs the wall and obstacle meshes): FCL's, or for meshes of
+millions of triangles those of a lean grid of triangle lists (:mod:`ctrplan.collision._grid`,
+``exact=``). The prefilter (:mod:`ctrplan.collision.field`) only skips FCL where a distance bound proves the
 answer; everything it cannot prove goes to FCL, so the verdicts with and without it are equal.
 
 Clearances (``clearance_mm``) are conservative: for a free configuration a lower bound of the
@@ -18,13 +19,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from ctrplan.collision.capsules import Capsules, capsules_from_shape
-from ctrplan.collision.field import EPS_MM, FieldConfig, capsule_bounds, field_for
+from ctrplan.collision.field import EPS_MM, FieldConfig, capsule_bounds
+from ctrplan.collision.field_cache import field_for
 from ctrplan.collision.scene import Scene, load_scene
 from ctrplan.errors import InputError
+from ctrplan.objcache import Bounded
 from ctrplan.shape.base import Shape
 
 #: contact value of a configuration whose shape model failed (ok=False)
 MODEL_FAILED = "model"
+#: Largest margin (mm): the plausible range of a length (a margin beyond any scene is a typo,
+#: and FCL's geometry fails numerically long before 1e300).
+MAX_MARGIN_MM = 5000.0
 
 
 @dataclass(frozen=True)
@@ -43,6 +49,67 @@ class CollisionReport:
 
     def __len__(self) -> int:
         return int(self.collides.shape[0])
+
+
+#: Above this many triangles (all collision meshes together) exact verdicts come from the
+#: grid backend (:mod:`ctrplan.collision._grid`: about 10 bytes per triangle) instead of FCL
+#: (about 600 bytes and 9 us to build per triangle).
+GRID_ABOVE_TRIANGLES = 250_000
+EXACT_BACKENDS = ("auto", "fcl", "grid")
+
+
+def exact_backend(exact: str, triangles: int) -> str:
+    """The exact-geometry backend for ``exact`` ("auto", "fcl" or "grid") and a triangle count."""
+    if exact not in EXACT_BACKENDS:
+        raise InputError("exact", "", f"must be one of {', '.join(EXACT_BACKENDS)}, got {exact!r}")
+    if exact == "auto":
+        return "grid" if triangles > GRID_ABOVE_TRIANGLES else "fcl"
+    return exact
+
+
+class WorldGeometry:
+    """What a :class:`CollisionWorld` builds from a scene's collision meshes: the exact-geometry
+    models (FCL), the distance fields (built or read from the cache on first use) and ``memo``,
+    a dict for results that depend on them (e.g. the planner's start). It holds the meshes, not
+    the scene, so a scene can cache it (and worlds over it) without a reference cycle: it is
+    freed with the scene."""
+
+    def __init__(self, meshes, field_config: FieldConfig, cache=True, exact: str = "auto"):
+        self.meshes = tuple(meshes)
+        self.field_config = field_config
+        self.cache = cache
+        self.backend = exact_backend(exact, sum(len(m.mesh.faces) for m in self.meshes))
+        if self.backend == "fcl":
+            from ctrplan.collision._fcl import FclMeshes
+
+            self.exact = FclMeshes([m.mesh for m in self.meshes])
+        else:
+            from ctrplan.collision._grid import GridMeshes
+
+            self.exact = GridMeshes([m.mesh for m in self.meshes])
+        self._fields = None
+        self.memo: dict = Bounded(256)
+
+    def bad_sides(self, base: np.ndarray) -> list[int]:
+        """Per mesh, the side whose points prove a collision of a chain starting at ``base``
+        (field module): for a mesh closed on its own, the other ray parity than the base's
+        (+1: outside a closed wall that contains the base; -1: inside a closed obstacle); 0
+        for a mesh that is not closed. Cached per base."""
+        from ctrplan.collision.scene import inside_mesh
+
+        key = ("bad_sides", tuple(np.asarray(base, dtype=float).tolist()))
+        if key not in self.memo:
+            b = np.asarray(base, dtype=float)[None]
+            self.memo[key] = [(1 if inside_mesh(m, b)[0] else -1) if m.is_closed else 0
+                              for m in self.meshes]
+        return self.memo[key]
+
+    @property
+    def fields(self):
+        if self._fields is None:
+            self._fields = [field_for(m.mesh, self.field_config, self.cache, m.is_closed)
+                            for m in self.meshes]
+        return self._fields
 
 
 class CollisionWorld:
@@ -74,11 +141,18 @@ class CollisionWorld:
         Use the conservative distance-field prefilter (same verdicts, faster).
     field_config : FieldConfig
         Distance-field parameters. cache : bool or folder for the field cache.
+    geometry : WorldGeometry, optional
+        Reuse the exact models and fields of another world of the same scene meshes.
+    exact : "auto" (default), "fcl" or "grid"
+        Where exact verdicts come from: FCL, or the lean grid of triangle lists
+        (:mod:`ctrplan.collision._grid`) that "auto" picks above
+        :data:`GRID_ABOVE_TRIANGLES` triangles. Both are exact; they differ in memory.
     """
 
     def __init__(self, scene: Scene | str, margin_mm=0.0, prefilter: bool = True,
                  field_config: FieldConfig | None = None, cache=True,
-                 curvature_per_mm: float = 0.0, padding: str = "auto", motion_mm: float = 0.0):
+                 curvature_per_mm: float = 0.0, padding: str = "auto", motion_mm: float = 0.0,
+                 geometry: WorldGeometry | None = None, exact: str = "auto"):
         from ctrplan.collision.capsules import PADDINGS
         from ctrplan.shape.error_bounds import ErrorProfile
 
@@ -90,8 +164,9 @@ class CollisionWorld:
             self.margin_profile: ErrorProfile | None = margin_mm
             self.margin_mm = margin_mm.peak_mm
         else:
-            if not (np.isfinite(margin_mm) and margin_mm >= 0):
-                raise InputError("margin_mm", "", f"must be a finite number >= 0, got {margin_mm}")
+            if not (np.isfinite(margin_mm) and 0 <= margin_mm <= MAX_MARGIN_MM):
+                raise InputError("margin_mm", "", f"must be a number of mm in [0, {MAX_MARGIN_MM:g}], "
+                                 f"got {margin_mm:.4g}")
             self.margin_profile = None
             self.margin_mm = float(margin_mm)
         if not (np.isfinite(curvature_per_mm) and curvature_per_mm >= 0):
@@ -106,21 +181,18 @@ class CollisionWorld:
         self.names = np.array([m.name for m in meshes] + [""], dtype=object)
         self.prefilter = bool(prefilter)
         self.field_config = field_config or FieldConfig()
-        from ctrplan.collision._fcl import FclMeshes
-
-        self._fcl = FclMeshes([m.mesh for m in meshes])
-        self._fields = None
-        self._cache = cache
+        if geometry is None or geometry.field_config != self.field_config or tuple(
+                m.mesh for m in geometry.meshes) != tuple(m.mesh for m in meshes) or (
+                exact != "auto" and geometry.backend != exact):
+            geometry = WorldGeometry(meshes, self.field_config, cache, exact)
+        #: what is built from the meshes (exact-geometry models, distance fields), shareable
+        #: between the worlds of one scene (:func:`ctrplan.planning.plan.world_for`)
+        self.geometry = geometry
+        self._fcl = geometry.exact
         #: configurations sent to FCL by the last check/collides call (for benchmarks)
         self.last_fcl_calls = 0
         self.pose = np.asarray(self.scene.base_pose, dtype=float)
-        # Side proofs (field module): a point outside a closed wall that contains the base, or
-        # inside a closed obstacle, proves a collision of the chain that starts at the base.
-        base = self.pose[:3, 3][None]
-        self._bad_side = [
-            (1 if m.role == "wall" and m.mesh.is_watertight and bool(m.mesh.contains(base)[0])
-             else -1 if m.role == "obstacle" and m.mesh.is_watertight else 0)
-            for m in meshes]
+        self._bad_side = geometry.bad_sides(self.pose[:3, 3])
 
     # ------------------------------------------------------------------ geometry
     def capsules(self, shape: Shape) -> Capsules:
@@ -146,10 +218,16 @@ class CollisionWorld:
     @property
     def fields(self):
         """Distance fields of the meshes (built or read from the cache on first use)."""
-        if self._fields is None:
-            self._fields = [field_for(m.mesh, self.field_config, self._cache)
-                            for m in self.scene.collision_meshes]
-        return self._fields
+        return self.geometry.fields
+
+    def params_key(self) -> tuple:
+        """What a verdict depends on besides the geometry: margin, curvature bound, padding,
+        motion padding, prefilter (hashable)."""
+        from ctrplan.shape.error_bounds import margin_key
+
+        margin = self.margin_profile if self.margin_profile is not None else self.margin_mm
+        return (margin_key(margin), self.curvature_per_mm, self.padding, self.motion_mm,
+                self.prefilter)
 
     # ------------------------------------------------------------------ queries
     def check(self, shape: Shape) -> CollisionReport:

@@ -44,6 +44,11 @@ def parse_margin(text) -> float | None:
         raise InputError("--margin", "", f"must be a number (mm) or auto, got {excerpt(text)}") from None
     if not (math.isfinite(v) and v >= 0):
         raise InputError("--margin", "", f"must be a number >= 0 (mm) or auto, got {excerpt(text)}")
+    from ctrplan.robot import PLAUSIBLE
+
+    if v > PLAUSIBLE["length"][1]:      # (FCL's geometry breaks down long before 1e300 mm)
+        raise InputError("--margin", "", f"{v:.4g} mm is outside the plausible range "
+                         f"[0, {PLAUSIBLE['length'][1]:g}] mm")
     return v
 
 

@@ -17,6 +17,8 @@ log = logging.getLogger("ctrplan")
 
 #: Largest plan.json read (bytes); a plan of 10,000 states is about 2 MB.
 MAX_PLAN_BYTES = 64 << 20
+#: States per shape call when a plan's tip path is recomputed.
+TIP_CHUNK = 10_000
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -162,17 +164,26 @@ def render_plan(plan: dict, out: Path, points: int = 40, source: str = "plan") -
     check_config_plausible(q, robot, source, row_offset=0, row_word="path state")
     scene = load_scene(check_scene_field(plan["scene"], source))
     model = load_model(check_model_field(plan["model"], source), robot)
-    backbones = scene.to_scene(model.backbone(q, points=points))
-    tip_path = np.asarray(plan.get("tip_path") or backbones[:, -1], dtype=float)
+    # Only the drawn states get whole backbones (a plan may have 100,000 states; --points
+    # 1000 of each would take gigabytes); the tip path, when the plan lacks it, is computed in
+    # chunks with two points per state.
+    html = out.suffix.lower() == ".html"
+    drawn = viz.pick_frames(len(q), viz.HTML_FRAMES if html else viz.PNG_FRAMES)
+    backbones = scene.to_scene(model.backbone(q[drawn], points=points))
+    tip_path = plan.get("tip_path")
+    if tip_path is None:
+        tip_path = np.concatenate([scene.to_scene(model.shape(q[k:k + TIP_CHUNK], points=2).tip)
+                                   for k in range(0, len(q), TIP_CHUNK)])
+    tip_path = np.asarray(tip_path, dtype=float)
     target = plan.get("target")
     target = np.asarray(target, dtype=float) if target is not None else None
     status = plan.get("status", "")
     title = f"{robot.name} in {scene.name}: {status}".strip().rstrip(":") + plan_notes(plan)
     meshes = viz.scene_meshes(scene)
-    if out.suffix.lower() == ".html":
-        viz.plan_html(out, meshes, backbones, tip_path, target, title=title)
+    if html:
+        viz.plan_html(out, meshes, backbones, tip_path, target, title=title, frames=len(drawn))
     else:
-        viz.plan_png(out, meshes, backbones, tip_path, target, title=title)
+        viz.plan_png(out, meshes, backbones, tip_path, target, title=title, frames=len(drawn))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -50,22 +50,14 @@ class EvalSettings:
 
 
 # ------------------------------------------------------------------ per-process context
-_CTX: dict = {}
-
-
 def context(scene_spec, settings: EvalSettings):
-    """(scene, world) for this process: the scene (cached) and one CollisionWorld padded for
-    the largest curvature any design may have (conservative for every design)."""
+    """(scene, world) for this process: the scene (cached by name) and one CollisionWorld padded
+    for the largest curvature any design may have (conservative for every design), cached on
+    the scene object (:func:`ctrplan.planning.plan.world_for`), so nothing outlives the scene."""
     from ctrplan.planning.plan import scene_by_name, world_for
 
-    key = (str(scene_spec) if not hasattr(scene_spec, "meshes") else id(scene_spec),
-           settings.margin_mm or 0.0, settings.curvature_bound)
-    hit = _CTX.get(key)
-    if hit is None:
-        scene = scene_spec if hasattr(scene_spec, "meshes") else scene_by_name(scene_spec)
-        world = world_for(scene, settings.margin_mm or 0.0, settings.curvature_bound)
-        hit = _CTX[key] = (scene, world)
-    return hit
+    scene = scene_spec if hasattr(scene_spec, "meshes") else scene_by_name(scene_spec)
+    return scene, world_for(scene, settings.margin_mm or 0.0, settings.curvature_bound)
 
 
 def _shape(model, q, points):

@@ -21,11 +21,12 @@ from ctrplan.robot import Robot
 def target_blocked(scene, world, target_scene: np.ndarray, tip_radius_mm: float) -> str:
     """Why the tip cannot be at the target ("" if it can): inside a (closed) obstacle mesh, or
     closer to anatomy than the tip's radius."""
+    from ctrplan.collision.scene import inside_mesh
     from ctrplan.shape.base import Shape
 
     p = np.asarray(target_scene, dtype=float)[None]
     for m in getattr(scene, "meshes", ()):
-        if m.role == "obstacle" and getattr(m.mesh, "is_watertight", False) and bool(m.mesh.contains(p)[0]):
+        if m.role == "obstacle" and bool(inside_mesh(m, p)[0]):
             return f"the target lies inside {m.name!r}"
     # A probe as thick as the tip, at the target: does it touch anything?
     pb = scene.to_base(p)[0]
@@ -56,8 +57,6 @@ def target_outside_lumen(scene, target_scene: np.ndarray) -> bool:
 
 
 # ---------------------------------------------------------------------- start
-_STARTS: dict[tuple, tuple[weakref.ref, weakref.ref, np.ndarray, bool]] = {}
-
 def retracted_start(robot: Robot, validator: BatchValidator, world, samples: int = 512,
                     seed: int = 0) -> tuple[np.ndarray, bool]:
     """The retracted configuration (``robot.retracted()``), with its tube rotations changed
@@ -67,15 +66,19 @@ def retracted_start(robot: Robot, validator: BatchValidator, world, samples: int
 
     Returns (q (2n,), adjusted). If no rotation is free, the plain retracted configuration.
     """
-    key = (id(validator.model), id(world), robot, samples, seed)
-    hit = _STARTS.get(key)
-    if hit is not None and hit[0]() is validator.model and hit[1]() is world:
-        return hit[2].copy(), hit[3]
+    # cached with the world's geometry (shared by the worlds of one scene, freed with it)
+    cache = getattr(getattr(world, "geometry", None), "memo", None)
+    key = (("retracted_start", id(validator.model), world.params_key(), robot, samples, seed)
+           if cache is not None else None)
+    hit = cache.get(key) if cache is not None else None
+    if hit is not None and hit[0]() is validator.model:
+        return hit[1].copy(), hit[2]
     q, adjusted = _retracted_start(robot, validator, world, samples, seed)
-    try:
-        _STARTS[key] = (weakref.ref(validator.model), weakref.ref(world), q.copy(), adjusted)
-    except TypeError:  # objects without weak references: no caching
-        pass
+    if cache is not None:
+        try:
+            cache[key] = (weakref.ref(validator.model), q.copy(), adjusted)
+        except TypeError:  # a model without weak references: no caching
+            pass
     return q, adjusted
 
 

@@ -37,7 +37,6 @@ import logging
 import math
 import os
 import time
-import weakref
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Any
@@ -45,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from ctrplan.errors import InputError
+from ctrplan.objcache import Bounded, owned
 from ctrplan.planning import hints as _hints
 from ctrplan.planning import ik as _ik
 from ctrplan.planning import optimize as _opt
@@ -343,13 +343,17 @@ def _num(v: float) -> float | None:
 
 
 # ---------------------------------------------------------------------- caches
-_MODELS: dict[tuple, Any] = {}
-_SCENES: dict[str, Any] = {}
-_WORLDS: dict[tuple, tuple[weakref.ref, Any]] = {}
+# Nothing here keeps alive what the caller dropped (a long-running service loads scenes per
+# request): models and scenes looked up by name are kept in small LRU caches, and what is
+# derived from an object (its world, its planning model) is cached on that object
+# (:mod:`ctrplan.objcache`), freed with it.
+_MODELS = Bounded(8)
+_SCENES = Bounded(4)
 
 
 def resolve_model(spec, robot: Robot):
-    """A shape model for ``spec`` (name, file or object), cached per (robot, name)."""
+    """A shape model for ``spec`` (name, file or object), cached per (robot, name) (the 8 most
+    recently used)."""
     from ctrplan.shape.models import load_model
 
     if not isinstance(spec, (str, os.PathLike)):
@@ -363,7 +367,8 @@ def resolve_model(spec, robot: Robot):
 
 
 def scene_by_name(spec: str | os.PathLike):
-    """``load_scene(spec)``, cached per name/path in this process (meshes load slowly)."""
+    """``load_scene(spec)``, cached per name/path in this process (meshes load slowly; the 4
+    most recently used)."""
     from ctrplan.collision.scene import load_scene
 
     key = str(spec)
@@ -374,17 +379,20 @@ def scene_by_name(spec: str | os.PathLike):
 
 
 def world_for(scene, margin_mm=0.0, curvature_per_mm: float = 0.0):
-    """The CollisionWorld of a scene (cached per scene object, margin and curvature bound).
+    """A CollisionWorld of a scene with this margin and curvature bound, over the scene's exact
+    models and distance fields (built once per scene object and cached on it).
     margin_mm : a number or an ErrorProfile (:func:`ctrplan.shape.error_bounds.auto_margin`)."""
     from ctrplan.collision.world import CollisionWorld
-    from ctrplan.shape.error_bounds import margin_key
 
-    key = (id(scene), margin_key(margin_mm), float(curvature_per_mm))
-    hit = _WORLDS.get(key)
-    if hit is not None and hit[0]() is scene:
-        return hit[1]
-    world = CollisionWorld(scene, margin_mm=margin_mm, curvature_per_mm=curvature_per_mm)
-    _WORLDS[key] = (weakref.ref(scene), world)
+    # The scene caches the geometry (exact models, fields), not the world: a world refers to
+    # its scene, and a scene -> world -> scene cycle would keep both (and their memory) alive
+    # until a full garbage collection. Worlds themselves are cheap.
+    cache = owned(scene)
+    geometry = cache.get("world_geometry") if cache is not None else None
+    world = CollisionWorld(scene, margin_mm=margin_mm, curvature_per_mm=curvature_per_mm,
+                           geometry=geometry)
+    if cache is not None:
+        cache["world_geometry"] = world.geometry
     return world
 
 
@@ -413,17 +421,15 @@ class _RowwiseModel:
         return self.shape(q, points).points
 
 
-_PLANNING_MODELS: dict[int, tuple[weakref.ref | None, Any]] = {}
-
-
 def planning_model_of(model):
     """The model fit for collision checking: ``model.planning_model()`` when it has one (no
     sensor registration, friction a pure function of q and the direction of motion); for a
     calibrated model without it, the same effects without ``registration`` and with each row
-    its own motion; otherwise the model itself. Cached per model object."""
-    hit = _PLANNING_MODELS.get(id(model))
-    if hit is not None and (hit[0] is None or hit[0]() is model):
-        return hit[1]
+    its own motion; otherwise the model itself. Cached on the model object."""
+    cache = owned(model)
+    hit = cache.get("planning_model") if cache is not None else None
+    if hit is not None:
+        return model if hit is _SAME else hit
     make = getattr(model, "planning_model", None)
     if callable(make):
         pm = make()
@@ -440,12 +446,12 @@ def planning_model_of(model):
             pm.error_bound = getattr(model, "error_bound", None)
             if "friction" in effects:
                 pm = _RowwiseModel(pm)
-    try:
-        ref = weakref.ref(model)
-    except TypeError:
-        ref = None
-    _PLANNING_MODELS[id(model)] = (ref, pm)
+    if cache is not None:    # (the model itself is not stored in its own cache: no cycle)
+        cache["planning_model"] = _SAME if pm is model else pm
     return pm
+
+
+_SAME = object()
 
 
 def _scene_label(spec, scene) -> str:
@@ -477,7 +483,14 @@ def check_target(target) -> np.ndarray:
         raise InputError("--target", "", f"must be three numbers X,Y,Z (mm), got {t.size}")
     if not np.all(np.isfinite(t)):
         raise InputError("--target", "", "must be finite numbers (mm)")
+    if np.max(np.abs(t)) > MAX_TARGET_MM:    # (also keeps the distances below finite)
+        raise InputError("--target", "", f"{float(np.max(np.abs(t))):.4g} mm is outside the plausible "
+                         f"range of a scene coordinate (|X|, |Y|, |Z| <= {MAX_TARGET_MM:g} mm)")
     return t
+
+
+#: Largest target coordinate (mm) accepted: scenes are at most 2 m across.
+MAX_TARGET_MM = 1e6
 
 
 def _check_args(time_limit: float, tolerance_mm: float, seed: int) -> None:
