@@ -61,6 +61,12 @@ def joint_delta(q0: np.ndarray, q1: np.ndarray, n: int) -> np.ndarray:
     return d
 
 
+def edge_direction(q0: np.ndarray, q1: np.ndarray, n: int) -> np.ndarray:
+    """(2n,) int8 direction of motion along the edge q0 -> q1 (rotations along the shorter
+    arc): +1, -1, or 0 where the joint does not move."""
+    return np.sign(joint_delta(q0, q1, n)).astype(np.int8)
+
+
 def _metric(dq: np.ndarray, n: int, w: float) -> np.ndarray:
     return w * np.abs(dq[..., :n]).sum(-1) + np.linalg.norm(dq[..., n:], axis=-1)
 

@@ -146,7 +146,7 @@ class BranchTracker:
     # ---------------------------------------------------------------- edges
     def edge_valid(self, validator, q0: np.ndarray, q1: np.ndarray) -> bool:
         """The edge q0 -> q1 checked as a motion (module docstring)."""
-        from ctrplan.planning.validator import edge_direction
+        from ctrplan.planning.motion import edge_direction
 
         states = validator.edge_states(q0, q1)
         # the robot moves q0 -> q1 whichever end the continuation starts from

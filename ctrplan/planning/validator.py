@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ctrplan.planning.motion import check_motion, joint_delta
+from ctrplan.planning.motion import check_motion, edge_direction, joint_delta
 from ctrplan.robot import Robot
 from ctrplan.shape.base import Shape, needs_direction
 from ctrplan.shape.branches import DEFAULT_STABILITY_MARGIN
@@ -114,12 +114,6 @@ def motion_mm(q0: np.ndarray, q1: np.ndarray, n: int, alpha_weight_mm: float) ->
     """Estimated backbone motion (mm) between configurations. q0, q1 : (..., 2n) -> (...)."""
     d = joint_delta(q0, q1, n)
     return alpha_weight_mm * np.abs(d[..., :n]).sum(-1) + np.linalg.norm(d[..., n:], axis=-1)
-
-
-def edge_direction(q0: np.ndarray, q1: np.ndarray, n: int) -> np.ndarray:
-    """(2n,) int8 direction of motion along the edge q0 -> q1 (rotations along the shorter
-    arc): +1, -1, or 0 where the joint does not move."""
-    return np.sign(joint_delta(q0, q1, n)).astype(np.int8)
 
 
 def unwrap_path(path: np.ndarray, n: int) -> np.ndarray:

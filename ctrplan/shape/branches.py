@@ -39,7 +39,6 @@ convention, not a theorem).
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -140,22 +139,22 @@ def settle(model, q: np.ndarray, uz0: np.ndarray, points: int,
     return solve(model, q, points, direction, uz_init=uz0, chain=np.ones(B, dtype=bool))
 
 
-_PROBING: dict[int, tuple[weakref.ref, object]] = {}
-
-
 def _probing(model):
-    """``model`` with ``probe_bistable`` on (cached per model object)."""
+    """``model`` with ``probe_bistable`` on (cached on the model object: freed with it)."""
+    from ctrplan.objcache import owned
     from ctrplan.shape.effects import EffectModel
 
-    hit = _PROBING.get(id(model))
-    if hit is not None and hit[0]() is model:
-        return hit[1]
+    cache = owned(model)
+    hit = None if cache is None else cache.get("probing")
+    if hit is not None:
+        return hit
     if isinstance(model, EffectModel):
         pm = EffectModel(model.robot, model.base, model.effects,
                          replace(model.config, probe_bistable=True), pure=model.pure)
     else:
         pm = model.with_config(probe_bistable=True)
-    _PROBING[id(model)] = (weakref.ref(model), pm)
+    if cache is not None:
+        cache["probing"] = pm
     return pm
 
 
