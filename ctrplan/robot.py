@@ -16,6 +16,13 @@ from typing import Any
 
 import numpy as np
 
+from ctrplan.actuators import (
+    ACTUATOR_RANGES,
+    DEFAULT_ACTUATOR,
+    Actuator,
+    actuators_from_yaml,
+    actuators_to_yaml,
+)
 from ctrplan.errors import InputError
 from ctrplan.io import load_yaml, write_csv_atomic
 
@@ -97,6 +104,7 @@ PLAUSIBLE: dict[str, tuple[float, float]] = {
     "poisson_ratio": (0.0, 0.5),        # dimensionless, 0.5 itself excluded (incompressible)
     "density": (100.0, 25000.0),        # kg/m^3: foams to tungsten/osmium
     "angle": (-1.0e4, 1.0e4),           # rad: unwrapped tube rotations (~1600 turns)
+    **ACTUATOR_RANGES,                  # actuator speed and acceleration limits (actuators.py)
 }
 
 
@@ -125,18 +133,29 @@ class Robot:
     """A set of concentric tubes, innermost first, with joint limits.
 
     ``beta_min`` optionally narrows each tube's translation range (mm, <= 0); by default a tube
-    may be retracted until its curved section starts at the constraint plane.
+    may be retracted until its curved section starts at the constraint plane. ``actuators``
+    optionally gives each tube's speed and acceleration limits (:class:`~ctrplan.actuators.
+    Actuator`, one per tube, innermost first); None means the defaults for every tube (a tuple
+    of defaults is stored as None, so equal limits make equal robots).
     """
 
     name: str
     tubes: tuple[Tube, ...]
     beta_min: tuple[float, ...] | None = None
     source: str = field(default="<memory>", compare=False)
+    actuators: tuple[Actuator, ...] | None = None
 
     def __post_init__(self) -> None:
         _validate_tubes(self.tubes, self.source)
         if self.beta_min is not None and len(self.beta_min) != len(self.tubes):
             raise InputError(self.source, "beta_min", f"needs {len(self.tubes)} values, one per tube")
+        if self.actuators is not None:
+            acts = tuple(self.actuators)
+            if len(acts) != len(self.tubes) or not all(isinstance(a, Actuator) for a in acts):
+                raise InputError(self.source, "actuators", f"needs {len(self.tubes)} actuators, "
+                                                           "one per tube")
+            object.__setattr__(self, "actuators",
+                               None if all(a == DEFAULT_ACTUATOR for a in acts) else acts)
 
     # ------------------------------------------------------------------ basic properties
     @property
@@ -161,6 +180,14 @@ class Robot:
     def column_names(self) -> list[str]:
         """Configuration column names ``alpha1..alphaN, beta1..betaN`` (files are 1-based)."""
         return [f"alpha{i + 1}" for i in range(self.n)] + [f"beta{i + 1}" for i in range(self.n)]
+
+    def joint_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-joint ``(max_speed, max_accel)``, each ``(2n,)`` in the order of ``q``: the
+        rotations (rad/s, rad/s^2) then the translations (mm/s, mm/s^2)."""
+        acts = self.actuators or (DEFAULT_ACTUATOR,) * self.n
+        joints = [a.rotation for a in acts] + [a.translation for a in acts]
+        return (np.array([j.max_speed for j in joints], dtype=float),
+                np.array([j.max_accel for j in joints], dtype=float))
 
     def beta_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Per-tube box bounds ``(lo, hi)`` on beta implied by the constraints (mm)."""
@@ -282,6 +309,8 @@ class Robot:
         }
         if self.beta_min is not None:
             d["beta_min"] = [float(b) for b in self.beta_min]
+        if self.actuators is not None:     # written only when not the defaults (stable digests)
+            d["actuators"] = actuators_to_yaml(self.actuators)
         return d
 
     def save(self, path: str | os.PathLike) -> None:
@@ -292,6 +321,7 @@ class Robot:
 
         text = (
             "# ctrplan robot: lengths mm, curvature 1/mm, youngs_modulus MPa, density kg/m^3; "
+            "actuators rad/s, rad/s^2 (rotation), mm/s, mm/s^2 (translation); "
             "tubes innermost first\n"
             + yaml.safe_dump(self.to_dict(), sort_keys=False)
         )
@@ -299,7 +329,8 @@ class Robot:
 
 
 def robot_digest(spec: dict[str, Any]) -> str:
-    """sha256 (hex) of a robot's tube values (:meth:`Robot.to_dict`) in canonical JSON: the
+    """sha256 (hex) of a robot's values (:meth:`Robot.to_dict`: tubes, and the actuator limits
+    where they are not the defaults) in canonical JSON: the
     ``robot_sha256`` field of plan.json (equal digests = the same robot, whatever its name or
     file)."""
     import hashlib
@@ -399,7 +430,7 @@ def robot_from_dict(data: Any, source: str = "<memory>") -> Robot:
     """Build a :class:`Robot` from parsed YAML; unknown keys are errors."""
     if not isinstance(data, dict):
         raise InputError(source, "", "expected a mapping with 'name' and 'tubes'")
-    unknown = set(data) - {"name", "tubes", "beta_min", "units", "notes", "source"}
+    unknown = set(data) - {"name", "tubes", "beta_min", "actuators", "units", "notes", "source"}
     if unknown:
         raise InputError(source, sorted(unknown, key=str)[0], "unknown key")
     name = data.get("name", Path(source).stem)
@@ -442,7 +473,10 @@ def robot_from_dict(data: Any, source: str = "<memory>") -> Robot:
         for i, b in enumerate(beta_min):
             check_plausible(-b, "length", source, f"beta_min[{i}]", "mm (as a retraction)")
         beta_min = tuple(float(b) for b in beta_min)
-    return Robot(name=name, tubes=tuple(tubes), beta_min=beta_min, source=source)
+    actuators = (actuators_from_yaml(data["actuators"], len(tubes), source)
+                 if "actuators" in data else None)
+    return Robot(name=name, tubes=tuple(tubes), beta_min=beta_min, source=source,
+                 actuators=actuators)
 
 
 def load_robot(name_or_path: str | os.PathLike | Robot) -> Robot:
