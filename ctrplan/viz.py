@@ -37,6 +37,23 @@ def scene_meshes(scene) -> list[ViewMesh]:
 #: States drawn along a plan: in the HTML view and in the PNG.
 HTML_FRAMES = 12
 PNG_FRAMES = 8
+#: Frames of the HTML view's animation along a trajectory (backbones computed only for them).
+ANIMATION_FRAMES = 60
+MOVING_COLOUR = "#7b2cbf"
+
+
+@dataclass(frozen=True)
+class Animation:
+    """The robot along its trajectory: t (F,) s, backbones (F, m, 3) mm scene frame, tips
+    (F, 3) mm; ``duration_s`` the trajectory's (t[-1])."""
+
+    t: np.ndarray
+    backbones: np.ndarray
+    tips: np.ndarray
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.t[-1])
 
 
 def pick_frames(k: int, count: int) -> np.ndarray:
@@ -55,11 +72,13 @@ def plan_html(
     target: np.ndarray | None = None,
     title: str = "ctrplan",
     frames: int = HTML_FRAMES,
+    animation: Animation | None = None,
 ) -> None:
     """Write an interactive, self-contained HTML view.
 
     backbones : (K, m, 3) mm, scene frame — robot shapes along the path (a subset is drawn,
-    the final one bold). tip_path : (K, 3) mm. target : (3,) mm.
+    the final one bold). tip_path : (K, 3) mm. target : (3,) mm. animation : the robot along
+    its trajectory, played in real time with a time slider (plotly frames).
     """
     import plotly.graph_objects as go
 
@@ -101,9 +120,49 @@ def plan_html(
                             "zaxis_title": "z (mm)"},
         margin={"l": 0, "r": 0, "t": 40, "b": 0}, legend={"itemsizing": "constant"},
     )
+    if animation is not None:
+        _animate(fig, animation)
     # include_plotlyjs=True embeds the whole library: the file works offline and loads no URL.
     html = fig.to_html(include_plotlyjs=True, full_html=True, config={"displaylogo": False})
     write_text_atomic(path, html)
+
+
+def _moving(go, b: np.ndarray, tip: np.ndarray, t: float) -> list:
+    """The robot and its tip at one time of the animation."""
+    return [go.Scatter3d(x=b[:, 0], y=b[:, 1], z=b[:, 2], mode="lines",
+                         line={"color": MOVING_COLOUR, "width": 8}, name="robot at t"),
+            go.Scatter3d(x=[tip[0]], y=[tip[1]], z=[tip[2]], mode="markers",
+                         marker={"size": 4, "color": MOVING_COLOUR}, name=f"tip at t = {t:.2f} s",
+                         showlegend=False)]
+
+
+def _animate(fig, anim: Animation) -> None:
+    """Add the moving robot, one plotly frame per sample of ``anim``, a play button (real
+    time) and a time slider."""
+    import plotly.graph_objects as go
+
+    first = len(fig.data)
+    fig.add_traces(_moving(go, anim.backbones[0], anim.tips[0], float(anim.t[0])))
+    idx = [first, first + 1]
+    fig.frames = [go.Frame(data=_moving(go, b, tip, float(t)), traces=idx, name=str(k))
+                  for k, (t, b, tip) in enumerate(zip(anim.t, anim.backbones, anim.tips))]
+    step_ms = 1000.0 * anim.duration_s / max(1, len(anim.t) - 1)
+
+    def args(names, ms):
+        return [names, {"frame": {"duration": ms, "redraw": True}, "mode": "immediate",
+                        "transition": {"duration": 0}, "fromcurrent": True}]
+
+    fig.update_layout(
+        updatemenus=[{"type": "buttons", "showactive": False, "x": 0.02, "y": 0.02,
+                      "xanchor": "left", "yanchor": "bottom", "buttons": [
+                          {"label": "play", "method": "animate",
+                           "args": args(None, max(20.0, step_ms))},
+                          {"label": "pause", "method": "animate", "args": args([None], 0)}]}],
+        sliders=[{"active": 0, "x": 0.15, "len": 0.8, "y": 0.02, "yanchor": "bottom",
+                  "currentvalue": {"prefix": "t = ", "suffix": " s"},
+                  "steps": [{"label": f"{t:.2f}", "method": "animate",
+                             "args": args([str(k)], 0)} for k, t in enumerate(anim.t)]}],
+    )
 
 
 def _crop_faces(v: np.ndarray, f: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_faces: int) -> np.ndarray:

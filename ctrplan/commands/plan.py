@@ -6,6 +6,7 @@ import argparse
 import logging
 import math
 import re
+from pathlib import Path
 
 from ctrplan.commands._common import POSITIVE, SEED, add_model_arg, output_path
 from ctrplan.commands._vocab import DEFAULT_OUT
@@ -96,7 +97,17 @@ def summary_line(plan: dict, model: str, robot: str) -> str:
     text = (f"{head}{moved}{',' if plan.get('success') else ';'} closest approach "
             f"{'n/a' if clear is None else f'{clear:.2f}'} mm to the anatomy (objective "
             f"{plan.get('objective', '?')})")
-    return text + _relative_to(plan, model, robot) + _start_note(plan)
+    return text + _relative_to(plan, model, robot) + _start_note(plan) + _motion_note(plan)
+
+
+def _motion_note(plan: dict) -> str:
+    """The trajectory's duration (``duration_s``) and the file it was written to."""
+    duration = plan.get("duration_s")
+    if duration is None:
+        return ""
+    traj = plan.get("trajectory") or {}
+    where = f" -> {traj['file']}" if traj.get("file") else ""
+    return f"; the motion takes {duration:.2f} s within the actuator limits{where}"
 
 
 def _start_note(plan: dict) -> str:
@@ -183,6 +194,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_planning_args(p)
     p.add_argument("--seed", type=SEED, default=0, help="random seed (default 0)")
     p.add_argument("--out", default=DEFAULT_OUT["plan"], help=f"output plan .json (default {DEFAULT_OUT['plan']})")
+    p.add_argument("--trajectory", default=None, metavar="TRAJECTORY.csv",
+                   help="also write the time-parameterised trajectory along the path: "
+                        "t,alpha1..alphaN,beta1..betaN (s, rad, mm) at --rate, within the robot's "
+                        "actuator limits (robot YAML 'actuators'), stopping at every corner of "
+                        "the path; plan.json gives its duration_s either way")
+    p.add_argument("--rate", default=None, metavar="HZ",
+                   help="trajectory sampling rate, Hz (default 100)")
     allow_negative_values(p)
     p.set_defaults(func=run)
 
@@ -269,6 +287,49 @@ def one_thread() -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
+def parse_rate(text) -> float:
+    """``--rate``: a sampling rate in Hz (the default when None)."""
+    from ctrplan.planning.trajectory import DEFAULT_RATE_HZ, RATE_RANGE, check_rate
+
+    if text is None:
+        return DEFAULT_RATE_HZ
+    try:
+        v = strict_float(text)
+    except ValueError:
+        v = math.nan
+    if not math.isfinite(v):
+        raise InputError("--rate", "", f"must be a sampling rate in [{RATE_RANGE[0]:g}, "
+                                       f"{RATE_RANGE[1]:g}] Hz, got {excerpt(text)}")
+    return check_rate(v, "--rate")
+
+
+def add_trajectory(plan: dict, result, robot, rate: float, csv_path, plan_path) -> dict:
+    """plan.json's ``duration_s`` and ``trajectory`` (rate, samples, time-optimal duration,
+    stops, the CSV written, relative to plan.json's folder where it lies inside it, and its
+    sha256) for a plan with a path; the CSV is written to ``csv_path`` (atomically) when given.
+    A plan without a path gets ``duration_s`` null."""
+    from ctrplan.planning.trajectory import file_sha256, plan_trajectory, trajectory_duration
+
+    if not plan.get("path"):
+        plan["duration_s"], plan["trajectory"] = None, None
+        return plan
+    if csv_path is None:          # the duration alone: no samples made (any length)
+        duration, optimal = trajectory_duration(robot, result.path, rate)
+        plan["duration_s"] = duration
+        plan["trajectory"] = {"rate_hz": rate, "time_optimal_s": optimal, "file": None}
+        return plan
+    traj = plan_trajectory(result, rate, robot=robot)
+    traj.write_csv(csv_path, robot)
+    plan["duration_s"] = traj.duration_s
+    where = Path(csv_path).resolve()
+    try:
+        name = str(where.relative_to(Path(plan_path).resolve().parent))
+    except ValueError:
+        name = str(where)
+    plan["trajectory"] = {**traj.record(), "file": name, "sha256": file_sha256(csv_path)}
+    return plan
+
+
 def run(args: argparse.Namespace) -> int:
     one_thread()
     from ctrplan.io import write_json_atomic
@@ -277,6 +338,9 @@ def run(args: argparse.Namespace) -> int:
     from ctrplan.robot import load_robot
 
     out = output_path(args.out, (".json",))
+    traj_out = (output_path(args.trajectory, (".csv",), "--trajectory")
+                if args.trajectory is not None else None)
+    rate = parse_rate(args.rate)
     check_planner(args.planner)
     objective = parse_objective(args.objective)
     if args.seed < 0:
@@ -300,6 +364,7 @@ def run(args: argparse.Namespace) -> int:
     if name:  # the anatomical name where the scene has one; target_id is t01..
         t = scene.find_target(name)
         plan["target_name"], plan["target_id"] = (t.label or t.name), t.name
+    add_trajectory(plan, result, robot, rate, traj_out, out)
     write_json_atomic(out, plan)
     log.info("planned in %.2f s (%d states) -> %s", result.planning_time_s, len(plan["path"]),
              out)

@@ -29,6 +29,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("plan", help="plan.json written by 'ctrplan plan'")
     p.add_argument("--out", default=DEFAULT_OUT["view"], help=f"output .html or .png (default {DEFAULT_OUT['view']})")
     p.add_argument("--points", type=POINTS, default=40, help="points per drawn backbone (default 40)")
+    p.add_argument("--trajectory", default=None, metavar="TRAJECTORY.csv",
+                   help="animate the robot along this trajectory (from 'plan --trajectory'); by "
+                        "default the one the plan recorded (plan.json 'trajectory') or "
+                        "trajectory.csv beside plan.json, when it is the file the plan wrote "
+                        "(same sha256); HTML only")
     p.set_defaults(func=run)
 
 
@@ -150,7 +155,51 @@ def plan_notes(plan: dict) -> str:
     return out
 
 
-def render_plan(plan: dict, out: Path, points: int = 40, source: str = "plan") -> None:
+def find_trajectory(plan: dict, source: str, given: str | None) -> Path | None:
+    """The trajectory CSV to animate: ``given`` (``--trajectory``), else the file the plan
+    recorded (``trajectory.file``, relative to plan.json's folder) or ``trajectory.csv``
+    beside plan.json when its sha256 is the recorded one (a warning and no animation when it
+    is not: a stale file of another plan). None when there is none."""
+    if given is not None:
+        return Path(given)
+    record = plan.get("trajectory")
+    if not isinstance(record, dict):
+        return None
+    folder = Path(source).parent
+    name = record.get("file")
+    names = ([name] if isinstance(name, str) and name else []) + ["trajectory.csv"]
+    for cand in dict.fromkeys(folder / n for n in names):
+        if cand.is_file():
+            from ctrplan.planning.trajectory import file_sha256
+
+            if file_sha256(cand) == record.get("sha256"):
+                return cand
+            log.warning("%s is not the trajectory %s wrote (sha256 differs): not animated",
+                        cand, source)
+            return None
+    return None
+
+
+def trajectory_animation(path: Path, plan: dict, robot, model, scene, points: int, source: str):
+    """The view's animation (:class:`ctrplan.viz.Animation`) of a trajectory CSV: backbones
+    of :data:`~ctrplan.viz.ANIMATION_FRAMES` samples only. The trajectory must start and end
+    at the plan's first and last path states."""
+    from ctrplan import viz
+    from ctrplan.planning.trajectory import read_trajectory
+
+    t, q, _ = read_trajectory(path, robot, viz.ANIMATION_FRAMES)
+    q_plan = plan["_q"]
+    for row, want, what in ((0, q_plan[0], "start"), (-1, q_plan[-1], "end")):
+        if not np.allclose(q[row], want, rtol=0.0, atol=1e-6):
+            raise InputError(str(path), "", f"does not {what} at the {what} of the plan's path "
+                                            f"in {source}: a trajectory of another plan?")
+    shape = model.shape(q, points=points)
+    return viz.Animation(t=t, backbones=scene.to_scene(shape.points),
+                         tips=scene.to_scene(shape.tip))
+
+
+def render_plan(plan: dict, out: Path, points: int = 40, source: str = "plan",
+                trajectory: str | None = None) -> None:
     """Recompute the backbones of a plan's path with its model and render them."""
     from ctrplan import viz
     from ctrplan.collision.scene import load_scene
@@ -180,8 +229,16 @@ def render_plan(plan: dict, out: Path, points: int = 40, source: str = "plan") -
     status = plan.get("status", "")
     title = f"{robot.name} in {scene.name}: {status}".strip().rstrip(":") + plan_notes(plan)
     meshes = viz.scene_meshes(scene)
+    if trajectory is not None and not html:
+        log.warning("--trajectory is animated in an HTML view only: %s is a PNG", out)
+    traj = find_trajectory(plan, source, trajectory) if html else None
+    anim = (trajectory_animation(traj, plan, robot, model, scene, points, source)
+            if traj is not None else None)
+    if anim is not None:
+        title += f"; trajectory {anim.duration_s:.2f} s"
     if html:
-        viz.plan_html(out, meshes, backbones, tip_path, target, title=title, frames=len(drawn))
+        viz.plan_html(out, meshes, backbones, tip_path, target, title=title, frames=len(drawn),
+                      animation=anim)
     else:
         viz.plan_png(out, meshes, backbones, tip_path, target, title=title, frames=len(drawn))
 
@@ -191,6 +248,6 @@ def run(args: argparse.Namespace) -> int:
     if args.points < 2:
         raise InputError("--points", "", f"must be >= 2 (base and tip), got {args.points}")
     plan = read_plan(args.plan)
-    render_plan(plan, out, args.points, source=args.plan)
+    render_plan(plan, out, args.points, source=args.plan, trajectory=args.trajectory)
     log.info("wrote %s", out)
     return 0

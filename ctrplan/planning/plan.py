@@ -228,6 +228,9 @@ class PlanResult:
         0 at a fold; :mod:`ctrplan.shape.branches`), of the planning model, or of the reference
         model where only that one is compliant mechanics; None when neither is (rigid,
         learned, loaded).
+    duration_s : the duration (s) of the time-parameterised trajectory along ``path`` within
+        the robot's actuator limits (:func:`ctrplan.planning.trajectory.plan_trajectory`);
+        nan (null in plan.json) until one is made.
     """
 
     success: bool
@@ -272,6 +275,7 @@ class PlanResult:
     start_rotated: bool = False
     branch: list | None = None
     stability: list | None = None
+    duration_s: float = math.nan
 
     def to_json(self) -> dict[str, Any]:
         """The plan.json fields of docs/conventions.md (plus diagnostics), JSON-ready (no NaN: null instead)."""
@@ -296,6 +300,8 @@ class PlanResult:
             "requested_planner": self.requested_planner,
             "objective": self.objective,
             "objective_value": _num(self.objective_value),
+            # the trajectory's duration (ctrplan.planning.trajectory), null when none was made
+            "duration_s": _num(self.duration_s),
             "clearance_profile": [_num(v) for v in np.asarray(self.clearance_profile, dtype=float)],
             # per path state: the equilibrium branch and its stability (None: not tracked)
             "branch": list(self.branch) if self.branch is not None else [None] * len(self.path),
