@@ -38,6 +38,8 @@ _EXPORTS = {
     "PlanResult": "ctrplan.planning.plan",
     "PlanStatus": "ctrplan.planning.plan",
     "PlanConfig": "ctrplan.planning.plan",
+    "plan_trajectory": "ctrplan.planning.trajectory",
+    "Trajectory": "ctrplan.planning.trajectory",
     "diagnose": "ctrplan.calibration.diagnose",
     "design": "ctrplan.design",
     "DesignConfig": "ctrplan.design",

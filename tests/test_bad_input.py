@@ -295,6 +295,17 @@ MAKERS = {
     "view-robot-device": lambda i, o: _view(i, o, robot="/dev/zero"),
     "view-scene-arbitrary": lambda i, o: _view(i, o, scene=str(_w(i / "notes.txt", "hello\n"))),
     "view-target-malformed": lambda i, o: _view(i, o, target=[1.0, 2.0]),
+    "robot-actuator-unknown-key": lambda i, o: _robot(
+        i, o, _one_tube() + "actuators: {rotation: {max_sped: 1}}\n"),
+    "robot-actuator-implausible": lambda i, o: _robot(
+        i, o, _one_tube() + "actuators: {translation: {max_speed: 1.0e9}}\n"),
+    "robot-actuator-count": lambda i, o: _robot(i, o, _one_tube() + "actuators: [{}, {}]\n"),
+    "plan-rate": lambda i, o: ["plan", "--scene", "airway", "--target", "carina", "--rate", "0",
+                               "--trajectory", str(o / "t.csv"), "--out", str(o / "p.json")],
+    "view-trajectory-other-plan": lambda i, o: [*_view(i, o), "--trajectory", str(_w(
+        i / "t.csv", f"t,{HEADER}\n0,0,0,0,-150,-100,-50\n0.01,0.1,0.2,0.3,-150,-100,-50\n"))],
+    "view-trajectory-time": lambda i, o: [*_view(i, o), "--trajectory", str(_w(
+        i / "t.csv", f"t,{HEADER}\n0,{GOOD}\n0,{GOOD}\n"))],
     "scene-mesh-symlink": lambda i, o: _symlinked_mesh_scene(i, o),
     "batch-job-edited": lambda i, o: _edited_job(i, o),
     # branch bound: bounded resources, strict numbers, options

@@ -252,9 +252,17 @@ def _robot():
 
 
 ROBOT_SEEDS = [p.read_bytes() for p in sorted((DATA / "robots").glob("*.yaml"))]
+# robots with actuator limits: one block for every tube, and a list of one per tube
+ROBOT_SEEDS += [
+    ROBOT_SEEDS[0] + b"actuators:\n  rotation: {max_speed: 1.5, max_accel: 6}\n"
+                     b"  translation: {max_speed: 8, max_accel: 40}\n",
+    ROBOT_SEEDS[0] + b"actuators:\n  - {rotation: {max_speed: 2}}\n  - {}\n"
+                     b"  - translation: {max_accel: 30.5}\n",
+]
 ROBOT_DICTS = [yaml.safe_load(b) for b in ROBOT_SEEDS]
 ROBOT_KEYS = ["name", "tubes", "beta_min", "units", "notes", "source", "od", "id", "straight_length",
-              "curved_length", "curvature", "youngs_modulus", "poisson_ratio", "density"]
+              "curved_length", "curvature", "youngs_modulus", "poisson_ratio", "density",
+              "actuators", "rotation", "translation", "max_speed", "max_accel"]
 
 
 def _config_csv() -> bytes:
@@ -351,6 +359,9 @@ def _valid_robot(robot) -> None:
             assert math.isfinite(getattr(t, k)), k
         assert 0 <= t.id < t.od
     assert robot.n >= 1
+    speed, accel = robot.joint_limits()
+    assert speed.shape == accel.shape == (robot.dof,)
+    assert np.all(np.isfinite(speed) & (speed > 0)) and np.all(np.isfinite(accel) & (accel > 0))
 
 
 @FUZZ

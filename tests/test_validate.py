@@ -60,7 +60,10 @@ def test_the_documented_ranges_are_the_enforced_ones():
     doc = _doc_ranges()
     names = {"diameter": "diameter", "length": "length", "curvature": "curvature",
              "Young's modulus": "youngs_modulus", "shear modulus": "shear_modulus",
-             "Poisson ratio": "poisson_ratio", "density": "density", "angle": "angle"}
+             "Poisson ratio": "poisson_ratio", "density": "density", "angle": "angle",
+             "rotation speed": "rotation_speed", "rotation acceleration": "rotation_accel",
+             "translation speed": "translation_speed",
+             "translation acceleration": "translation_accel"}
     assert set(doc) == set(names), doc
     for label, key in names.items():
         assert doc[label] == PLAUSIBLE[key], label

@@ -180,10 +180,9 @@ def find_trajectory(plan: dict, source: str, given: str | None) -> Path | None:
     return None
 
 
-def trajectory_animation(path: Path, plan: dict, robot, model, scene, points: int, source: str):
-    """The view's animation (:class:`ctrplan.viz.Animation`) of a trajectory CSV: backbones
-    of :data:`~ctrplan.viz.ANIMATION_FRAMES` samples only. The trajectory must start and end
-    at the plan's first and last path states."""
+def trajectory_frames(path: Path, plan: dict, robot, source: str):
+    """``(t (F,), q (F, 2n))``: :data:`~ctrplan.viz.ANIMATION_FRAMES` samples of a trajectory
+    CSV, checked; it must start and end at the plan's first and last path states."""
     from ctrplan import viz
     from ctrplan.planning.trajectory import read_trajectory
 
@@ -193,9 +192,7 @@ def trajectory_animation(path: Path, plan: dict, robot, model, scene, points: in
         if not np.allclose(q[row], want, rtol=0.0, atol=1e-6):
             raise InputError(str(path), "", f"does not {what} at the {what} of the plan's path "
                                             f"in {source}: a trajectory of another plan?")
-    shape = model.shape(q, points=points)
-    return viz.Animation(t=t, backbones=scene.to_scene(shape.points),
-                         tips=scene.to_scene(shape.tip))
+    return t, q
 
 
 def render_plan(plan: dict, out: Path, points: int = 40, source: str = "plan",
@@ -211,12 +208,16 @@ def render_plan(plan: dict, out: Path, points: int = 40, source: str = "plan",
     if q.shape[1] != robot.dof:
         raise InputError(source, "path", f"configurations have {q.shape[1]} values, robot needs {robot.dof}")
     check_config_plausible(q, robot, source, row_offset=0, row_word="path state")
+    html = out.suffix.lower() == ".html"
+    if trajectory is not None and not html:
+        log.warning("--trajectory is animated in an HTML view only: %s is a PNG", out)
+    traj = find_trajectory(plan, source, trajectory) if html else None
+    frames = trajectory_frames(traj, plan, robot, source) if traj is not None else None
     scene = load_scene(check_scene_field(plan["scene"], source))
     model = load_model(check_model_field(plan["model"], source), robot)
     # Only the drawn states get whole backbones (a plan may have 100,000 states; --points
     # 1000 of each would take gigabytes); the tip path, when the plan lacks it, is computed in
     # chunks with two points per state.
-    html = out.suffix.lower() == ".html"
     drawn = viz.pick_frames(len(q), viz.HTML_FRAMES if html else viz.PNG_FRAMES)
     backbones = scene.to_scene(model.backbone(q[drawn], points=points))
     tip_path = plan.get("tip_path")
@@ -229,12 +230,11 @@ def render_plan(plan: dict, out: Path, points: int = 40, source: str = "plan",
     status = plan.get("status", "")
     title = f"{robot.name} in {scene.name}: {status}".strip().rstrip(":") + plan_notes(plan)
     meshes = viz.scene_meshes(scene)
-    if trajectory is not None and not html:
-        log.warning("--trajectory is animated in an HTML view only: %s is a PNG", out)
-    traj = find_trajectory(plan, source, trajectory) if html else None
-    anim = (trajectory_animation(traj, plan, robot, model, scene, points, source)
-            if traj is not None else None)
-    if anim is not None:
+    anim = None
+    if frames is not None:           # backbones of the animation's frames only
+        shape = model.shape(frames[1], points=points)
+        anim = viz.Animation(t=frames[0], backbones=scene.to_scene(shape.points),
+                             tips=scene.to_scene(shape.tip))
         title += f"; trajectory {anim.duration_s:.2f} s"
     if html:
         viz.plan_html(out, meshes, backbones, tip_path, target, title=title, frames=len(drawn),
