@@ -123,7 +123,9 @@ def plan_html(
     if animation is not None:
         _animate(fig, animation)
     # include_plotlyjs=True embeds the whole library: the file works offline and loads no URL.
-    html = fig.to_html(include_plotlyjs=True, full_html=True, config={"displaylogo": False})
+    # auto_play=False: an animation starts with its play button (real time), not on load
+    html = fig.to_html(include_plotlyjs=True, full_html=True, config={"displaylogo": False},
+                       auto_play=False)
     write_text_atomic(path, html)
 
 

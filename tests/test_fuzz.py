@@ -743,7 +743,7 @@ COMMANDS = [
      ["--sim", "--real-sim", "--width", "--depth", "--terms", "--epochs", "--fine-epochs",
       "--patience", "--lr", "--batch-size", "--points", "--seed", "--workers", "--threads"]),
     (["plan", "--robot", f"{MISSING}.yaml", "--scene", "airway", "--target", "1,2,3",
-      "--out", "{out}/p.json"], ["--time", "--tolerance", "--seed", "--margin"]),
+      "--out", "{out}/p.json"], ["--time", "--tolerance", "--seed", "--margin", "--rate"]),
     (["plan-batch", "--robot", f"{MISSING}.yaml", "--targets", f"{MISSING}.csv", "--out", "{out}/b"],
      ["--seeds", "--workers", "--time", "--tolerance", "--margin"]),
     (["view", f"{MISSING}.json", "--out", "{out}/v.html"], ["--points"]),

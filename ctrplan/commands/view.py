@@ -168,15 +168,20 @@ def find_trajectory(plan: dict, source: str, given: str | None) -> Path | None:
     folder = Path(source).parent
     name = record.get("file")
     names = ([name] if isinstance(name, str) and name else []) + ["trajectory.csv"]
-    for cand in dict.fromkeys(folder / n for n in names):
-        if cand.is_file():
-            from ctrplan.planning.trajectory import file_sha256
+    from ctrplan.planning.trajectory import file_sha256
 
-            if file_sha256(cand) == record.get("sha256"):
-                return cand
-            log.warning("%s is not the trajectory %s wrote (sha256 differs): not animated",
-                        cand, source)
-            return None
+    for cand in dict.fromkeys(folder / n for n in names):
+        try:
+            if not cand.is_file():
+                continue
+            same = file_sha256(cand) == record.get("sha256")
+        except (OSError, ValueError):     # a name the file system refuses (too long, NUL)
+            continue
+        if same:
+            return cand
+        log.warning("%s is not the trajectory %s wrote (sha256 differs): not animated",
+                    cand, source)
+        return None
     return None
 
 
