@@ -306,3 +306,51 @@ def test_view_refuses_a_trajectory_of_another_plan(planned, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "\n" not in err and "does not end at the end of the plan" in err
     assert not (tmp_path / "v.html").exists()
+
+
+# ---------------------------------------------------------------------------- real browser
+def _colour_columns(png: Path, rgb_hex: str, tol: int = 45) -> np.ndarray:
+    """Pixel columns (x) of the pixels within ``tol`` of a colour."""
+    import matplotlib.image as mpimg
+
+    img = mpimg.imread(str(png))[..., :3]
+    if img.dtype != np.uint8:
+        img = (img * 255).round().astype(int)
+    rgb = np.array([int(rgb_hex[i:i + 2], 16) for i in (1, 3, 5)])
+    return np.nonzero(np.all(np.abs(img.astype(int) - rgb) <= tol, axis=-1))[1]
+
+
+def test_animated_view_plays_offline_in_a_real_browser(tmp_path):
+    """The animated HTML view in headless Chromium, made to jump to its last frame by Plotly's
+    own animate call: it loads nothing from the network, and the moving robot (drawn at the
+    first frame's place, where the static robot stands) is drawn 60 mm away along x, over a
+    hundred pixels across the screen from the static one."""
+    import trimesh
+
+    from ctrplan import viz
+    from tests.browser import find_chromium, screenshot
+
+    chromium = find_chromium()
+    if chromium is None:
+        pytest.skip("no Chromium installed")
+    tube = trimesh.creation.cylinder(radius=40.0, height=120.0, sections=24)
+    meshes = [viz.ViewMesh("lumen", "wall", np.asarray(tube.vertices), np.asarray(tube.faces))]
+    s = np.linspace(0, 1, 20)
+    xs = np.linspace(-30.0, 30.0, 10)
+    moving = np.stack([np.stack([x + 0 * s, 0 * s, -50 + 100 * s], axis=1) for x in xs])
+    anim = viz.Animation(t=np.linspace(0, 4.5, 10), backbones=moving, tips=moving[:, -1])
+    html = tmp_path / "view.html"
+    viz.plan_html(html, meshes, moving[[0]], None, None, title="animated", animation=anim)
+    text = html.read_text(encoding="utf-8")
+    assert text.count("robot at t") == 11
+    jump = ("<script>window.addEventListener('load', function () { setTimeout(function () {"
+            "Plotly.animate(document.querySelector('.plotly-graph-div'), ['9'], {frame: "
+            "{duration: 0, redraw: true}, transition: {duration: 0}, mode: 'immediate'});"
+            "}, 1000); });</script></body>")
+    (tmp_path / "last.html").write_text(text.replace("</body>", jump), encoding="utf-8")
+    last = tmp_path / "last.png"
+    assert screenshot(tmp_path / "last.html", last, chromium, budget_ms=4000) == []
+    still = _colour_columns(last, viz.ROBOT_COLOUR)
+    moved = _colour_columns(last, viz.MOVING_COLOUR)
+    assert len(still) > 50 and len(moved) > 50, "a robot is not drawn"
+    assert abs(np.median(moved) - np.median(still)) > 100, (np.median(still), np.median(moved))

@@ -93,10 +93,17 @@ class Trajectory:
     def write_csv(self, path: Any, robot: Robot) -> None:
         """Write ``trajectory.csv`` atomically: header ``t,alpha1..alphaN,beta1..betaN``, one
         row per sample (s, rad, mm; floats written exactly, as ``repr``)."""
-        from ctrplan.io import write_csv_atomic
+        from ctrplan.io import atomic_path
 
-        rows = (np.concatenate([[tk], qk]).tolist() for tk, qk in zip(self.t, self.q))
-        write_csv_atomic(path, ["t", *robot.column_names], rows)
+        with atomic_path(path) as tmp:
+            try:
+                with open(tmp, "w", encoding="utf-8", newline="") as fh:
+                    fh.write(",".join(["t", *robot.column_names]) + "\n")
+                    for k in range(0, self.samples, 10_000):      # a block of rows at a time
+                        block = np.column_stack([self.t[k:k + 10_000], self.q[k:k + 10_000]])
+                        fh.write("".join(",".join(map(repr, r)) + "\n" for r in block.tolist()))
+            except OSError as exc:
+                raise InputError(str(path), "", f"cannot write ({exc.strerror})") from None
 
     def record(self) -> dict[str, Any]:
         """The plan.json fields of a trajectory (besides ``duration_s``)."""
