@@ -223,6 +223,25 @@ def test_actuators_round_trip_and_defaults():
     assert with_actuators(robot, [{}, {}, {}]) == robot
 
 
+def test_plan_trajectory_uses_the_recorded_robot_and_refuses_a_result_without_a_path():
+    """The Python API: the limits of the robot recorded in the result (its robot_spec)."""
+    from types import SimpleNamespace
+
+    import ctrplan
+
+    robot = with_actuators(load_robot("seed1"), {"translation": {"max_speed": 2.0}})
+    q0 = robot.retracted()
+    path = np.stack([q0, q0 + np.r_[0, 0, 0, 40.0, 30.0, 20.0]])
+    result = SimpleNamespace(path=path, robot_spec=robot.to_dict(), status="SUCCESS")
+    traj = ctrplan.plan_trajectory(result, rate_hz=50)
+    assert isinstance(traj, ctrplan.Trajectory)
+    # 40 mm at 2 mm/s (the recorded limit, not the default 10 mm/s) plus the ramps
+    assert traj.time_optimal_s == pytest.approx(40.0 / 2.0 + 2.0 / 50.0, rel=1e-9)
+    with pytest.raises(ctrplan.InputError, match="no path"):
+        ctrplan.plan_trajectory(SimpleNamespace(path=np.zeros((0, 6)), robot_spec=robot.to_dict(),
+                                                status="TIMEOUT"))
+
+
 @pytest.mark.parametrize("acts,field,says", [
     ({"rotation": {"max_sped": 1.0}}, "actuators.rotation.max_sped", "unknown key"),
     ({"spin": {}}, "actuators.spin", "unknown key"),
