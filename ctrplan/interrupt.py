@@ -233,6 +233,14 @@ def ignore_in_child() -> None:
     parent (Linux ``PR_SET_PDEATHSIG``) so that no worker outlives a parent killed with SIGKILL."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    # tqdm guards its bars with a multiprocessing RLock, a named semaphore registered with the
+    # parent's resource tracker; a worker killed mid-job never unregisters it, and the tracker
+    # then prints "leaked semaphore objects" after the command's last line. A worker's bars (all
+    # disabled) need only a thread lock.
+    with contextlib.suppress(ImportError):
+        from tqdm import tqdm
+
+        tqdm.set_lock(threading.RLock())
     if sys.platform.startswith("linux"):
         import ctypes
 
