@@ -33,7 +33,7 @@ import ompl.geometric as og
 import ompl.util as ou
 
 from ctrplan import interrupt
-from ctrplan.errors import InputError
+from ctrplan.errors import ArgumentError
 from ctrplan.robot import Robot
 
 log = logging.getLogger("ctrplan")
@@ -64,12 +64,12 @@ UNSAFE_PLANNERS["prmstar"] = UNSAFE_PLANNERS["prm"]
 
 
 def check_planner(name: str) -> str:
-    """Normalise a planner name (case-insensitive) or raise :class:`InputError`."""
+    """Normalise a planner name (case-insensitive) or raise ArgumentError (``planner``)."""
     key = str(name).strip().lower()
     if key in UNSAFE_PLANNERS:
-        raise InputError("--planner", "", f"{name!r}: {UNSAFE_PLANNERS[key]}")
+        raise ArgumentError("planner", f"{name!r}: {UNSAFE_PLANNERS[key]}")
     if key not in PLANNERS:
-        raise InputError("--planner", "", f"unknown planner {name!r} (choose from {', '.join(PLANNERS)})")
+        raise ArgumentError("planner", f"unknown planner {name!r} (choose from {', '.join(PLANNERS)})")
     return key
 
 

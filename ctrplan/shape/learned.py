@@ -60,7 +60,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ctrplan.errors import InputError
+from ctrplan.errors import ArgumentError, InputError
 from ctrplan.io import jsonable
 from ctrplan.robot import Robot, load_robot, robot_from_dict
 from ctrplan.shape import basis
@@ -1111,7 +1111,7 @@ def default_model_for(robot: Robot | str, device: str | torch.device = "cpu") ->
     robot = load_robot(robot)
     p = shipped_model_path(robot.name)
     if p is None:
-        raise InputError("--model", "learned",
-                         f"no shipped learned model for robot {robot.name!r}; train one with "
-                         f"'ctrplan train --robot {robot.name} --out model.pt' and pass the file")
+        raise ArgumentError("model", f"no shipped learned model for robot {robot.name!r}; train "
+                                     f"one with 'ctrplan train --robot {robot.name} --out model.pt' "
+                                     f"and pass the file")
     return LearnedModel.load(p, robot=robot, device=device)
