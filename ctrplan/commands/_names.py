@@ -54,11 +54,12 @@ _CONFIG = "ctrplan.planning.planner:PlannerConfig"
 PLANNING: tuple[Name, ...] = (
     Name("--robot", "plan, plan-batch", "robot", _PLANNER, "robot", "plan.json",
          "the tube values themselves: robot_spec"),
-    Name("--scene", "plan, plan-batch", "scene", _PLANNER, "scene", "plan.json"),
+    Name("--scene", "plan", "scene", _PLANNER, "scene", "plan.json"),
     Name("--model", "plan, plan-batch", "model", _PLANNER, "model", "plan.json",
          "physics, rigid, learned or a model file"),
     Name("--margin", "plan, plan-batch", "margin_mm", _CONFIG, "margin_mm", "plan.json",
-         "auto on the command line is None in Python; plan.json: the margin used and margin_auto"),
+         "auto on the command line is None in Python; plan.json: the margin used and margin_auto; "
+         "a plan-batch job's field margin (auto or mm, as text)"),
     Name("--stability-margin", "plan", "stability_margin",
          "ctrplan.planning.validator:ValidatorConfig", "", "plan.json",
          "PlannerConfig(validator=ValidatorConfig(stability_margin=...)); plan.json: stability per state"),
@@ -75,7 +76,12 @@ PLANNING: tuple[Name, ...] = (
          "seconds"),
     Name("--tolerance", "plan, plan-batch", "tolerance_mm", _PLAN, "tolerance_mm", "plan.json", "mm"),
     Name("--objective", "plan, plan-batch", "objective", _PLAN, "objective", "plan.json"),
-    Name("--targets", "plan-batch", "targets", "ctrplan.planning.batch:read_targets", "", "plan.json"),
+    Name("--targets", "plan-batch", "targets", "ctrplan.planning.batch:read_targets", "", "plan.json",
+         "a CSV (x,y,z[,scene,name]) or examples"),
+    Name("--scene", "plan-batch", "scenes", "ctrplan.planning.batch:read_targets", "scene",
+         "plan.json", "the scenes whose targets are planned"),
+    Name("--seeds", "plan-batch", "seeds", "ctrplan.planning.batch:make_jobs", "seed", "plan.json",
+         "K on the command line: seeds 0..K-1"),
     Name("--workers", "plan-batch", "workers", "ctrplan.planning.batch:run_batch", "", "plan.json"),
     Name("--ray", "plan-batch", "ray_address", "ctrplan.planning.batch:run_batch", "", "plan.json"),
     Name("--out", "plan, plan-batch", "out", "ctrplan.planning.batch:run_batch", "", "plan.json",
@@ -98,10 +104,11 @@ def flag_of(argument: str) -> str:
 
 def for_command_line(exc: InputError) -> InputError:
     """The error as the command line shows it: an ArgumentError's argument and every
-    backticked argument of its message as their flags; any other error as it is."""
+    backticked argument of its message as their flags (a name without a flag stays as it is);
+    any other error as it is."""
     if not isinstance(exc, ArgumentError):
         return exc
-    message = _TICKED.sub(lambda m: flag_of(m.group(1)), exc.message)
+    message = _TICKED.sub(lambda m: FLAGS.get(m.group(1), m.group(0)), exc.message)
     return InputError(flag_of(exc.argument), exc.field, message)
 
 
