@@ -289,7 +289,9 @@ class Planner:
         """The plan's working state, its arguments checked."""
         from ctrplan.planning.space import check_planner
 
-        t_call = time.perf_counter()
+        # the plan's clock starts with the setup not billed yet (the planner's preparation):
+        # timings' total = setup + the stages
+        t_call, self._unbilled = time.perf_counter() - self._unbilled, 0.0
         check_plan_args(time_limit, tolerance_mm, seed)
         requested = check_planner(planner)
         target = check_target(target)
@@ -311,8 +313,7 @@ class Planner:
                   cfg=cfg, planner=requested, seed=int(seed), tolerance_mm=float(tolerance_mm),
                   time_limit=float(time_limit), t_call=t_call, margin_mm=self.margin_mm,
                   margin_auto=self.margin_auto, curvature=self.curvature, meta=meta)
-        setup, self._unbilled = time.perf_counter() - t_call + self._unbilled, 0.0
-        run.timings = {"setup": setup, "checks": 0.0, "ik": 0.0, "planning": 0.0,
+        run.timings = {"setup": time.perf_counter() - t_call, "checks": 0.0, "ik": 0.0, "planning": 0.0,
                        "simplification": 0.0, "optimization": 0.0, "verification": 0.0,
                        "total": 0.0}
         return run
