@@ -2,7 +2,7 @@
 
 :func:`design` searches curvature, curved length, straight length and stock size of each tube
 (:mod:`ctrplan.design.space`) for the design that reaches the most targets by a verified
-collision-free plan from the scene's entry (:func:`ctrplan.planning.plan_to_target`, physics
+collision-free plan from the scene's entry (a :class:`ctrplan.planning.Planner` per design, physics
 model, the planning model's margin), then has the most clearance along those plans, then is
 the simplest (fewer, less curved, shorter tubes). Hard constraints (named in the results when
 they bind): nitinol's recoverable strain, nesting with a radial gap, length and stroke limits,
