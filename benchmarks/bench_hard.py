@@ -5,7 +5,7 @@
         [--out benchmarks/results/hard]
 
 Each problem of ``benchmarks/hard/<scene>.json`` (start, target; the straight edge cannot reach
-it) is planned with ``plan_to_target`` (IK goals, search, simplification, verification on the
+it) is planned with a :class:`ctrplan.Planner` per scene, model and objective (IK goals, search, simplification, verification on the
 planning model and the physics re-check, margin auto, capsules padded by the sagitta bound)
 with each planner, planning model and objective (``clearance``, the default, optimises the path
 away from the anatomy; ``first`` is the first solution, simplified), ``--time`` seconds as the
@@ -76,34 +76,30 @@ def path_length(path: np.ndarray, n: int, alpha_weight_mm: float) -> float:
     return float(motion_mm(path[:-1], path[1:], n, alpha_weight_mm).sum())
 
 
-def run_one(problem, model: str, planner: str, seed: int, time_limit: float,
-            margin: float | None = None, objective: str = "clearance", recheck: bool = True) -> dict:
-    from ctrplan.planning.plan import resolve_model, scene_by_name
-    from ctrplan.robot import load_robot
+def prepared(problem, model: str, margin: float | None, objective: str, planners=None):
+    """The Planner of a problem's scene, a model, margin and objective, from ``planners`` (a
+    :class:`ctrplan.planning.planner.Planners`: kept for the whole run; None: a new one)."""
+    from ctrplan.planning.planner import PlannerConfig, Planners
 
-    robot = load_robot(ROBOT)
-    scene = scene_by_name(problem.scene)
-    m = resolve_model(model, robot)
-    patched = model == "learned" and margin is None and getattr(m, "error_quantiles", None) is None
-    if patched:
-        m.error_quantiles = {"p99": LEARNED_P99_MM}
-    try:
-        return _run_one(problem, model, planner, seed, time_limit, margin, robot, scene, objective,
-                        recheck)
-    finally:
-        if patched:
-            m.error_quantiles = None
-
-
-def _run_one(problem, model, planner, seed, time_limit, margin, robot, scene, objective,
-             recheck: bool = True) -> dict:
-    from ctrplan.planning import PlanConfig, plan_to_target
-
+    planners = planners if planners is not None else Planners(size=1)
     # the planners are what is measured: no straight start-goal shortcut (for the learned model
     # the straight edge to its own IK goals can be free where the physics one is not)
-    cfg = PlanConfig(try_direct=False, margin_mm=margin, objective=objective)
-    r = plan_to_target(robot, scene, problem.target, model=model, planner=planner,
-                       time_limit=time_limit, seed=seed, start=problem.start, config=cfg)
+    cfg = PlannerConfig(try_direct=False, margin_mm=margin, objective=objective)
+    planner = planners.get(ROBOT, problem.scene, model, cfg)
+    if model == "learned" and margin is None and planner.model.error_quantiles is None:
+        planner = planners.get(ROBOT, problem.scene, model, PlannerConfig(
+            try_direct=False, margin_mm=LEARNED_P99_MM, objective=objective))
+    return planner
+
+
+def run_one(problem, model: str, planner: str, seed: int, time_limit: float,
+            margin: float | None = None, objective: str = "clearance", recheck: bool = True,
+            planners=None) -> dict:
+    """One plan of a hard problem (and its independent re-check), with the run's planners."""
+    prep = prepared(problem, model, margin, objective, planners)
+    robot, scene, cfg = prep.robot, prep.scene, prep.config
+    r = prep.plan(problem.target, seed=seed, start=problem.start, planner=planner,
+                  time_limit=time_limit)
     ok = bool(r.success and r.planning_time_s <= time_limit)
     rec = {"problem": problem.name, "scene": problem.scene,
            "model": model if margin is None else f"{model} margin {margin:g}", "planner": planner,
@@ -230,21 +226,24 @@ def run(models, planners, runs: int, time_limit: float, per_scene: int | None, o
     import numba
 
     numba.set_num_threads(1)
-    from ctrplan.planning.plan import scene_by_name
+    from ctrplan.planning.planner import Planners
 
     records: list[dict] = []
     problems = [p for s in (scene_list or scenes()) for p in load_problems(s)[:per_scene]]
-    for s in {p.scene for p in problems}:
-        scene_by_name(s)
+    # every planner of the run (scenes, models, worlds, workspace tables): prepared once
+    kept = Planners(size=len({p.scene for p in problems}) * len(objectives) + 1)
     for model in models:
         # warm-up (model, scene, world, workspace table, JIT): not counted
         for s in sorted({p.scene for p in problems}):
             warm = [p for p in problems if p.scene == s][0]
-            run_one(warm, model, "rrtconnect", 999, time_limit, margin, objectives[0])
+            for objective in objectives:
+                prepared(warm, model, margin, objective, kept)
+            run_one(warm, model, "rrtconnect", 999, time_limit, margin, objectives[0], planners=kept)
         for prob in problems:
             for objective in objectives:
                 t0 = time.perf_counter()
-                recs = [run_one(prob, model, planner, seed, time_limit, margin, objective)
+                recs = [run_one(prob, model, planner, seed, time_limit, margin, objective,
+                                planners=kept)
                         for planner in planners for seed in range(runs)]
                 records += recs
                 tag = model if objective == "clearance" else f"{model}_{objective}"

@@ -1,4 +1,4 @@
-"""Planning benchmark: plan_to_target on every example target of every shipped scene.
+"""Planning benchmark: a Planner per scene and model plans to every example target of every shipped scene.
 
     .venv/bin/python benchmarks/bench_planning.py [--quick] [--out planning.json]
 
@@ -8,8 +8,9 @@ targets per scene, one seed. Reports per scene and model the success rate (every
 is reachable: it is the tip of a collision-free configuration) and the median / 90th percentile
 planning time per plan: wall time (what a user waits) and the calling thread's CPU time (its
 cost on one core, steadier on a shared machine; OMPL, the models and FCL all run in that
-thread), plus the median time of each stage. One warm-up plan per scene and model (model,
-scene, collision world, workspace table and JIT caches) is timed separately and not counted.
+thread), plus the median time of each stage. One warm-up plan per scene and model (preparing the
+Planner: model, scene, collision world, workspace table, retracted start; and JIT caches) is
+timed separately and not counted.
 """
 
 from __future__ import annotations
@@ -30,8 +31,8 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ctrplan.collision.scene import list_scenes  # noqa: E402
-from ctrplan.planning.plan import plan_to_target, scene_by_name  # noqa: E402
+from ctrplan.collision.scene import list_scenes, load_scene  # noqa: E402
+from ctrplan.planning.planner import Planner  # noqa: E402
 
 ROBOT = "seed1"
 MODELS = ("learned", "physics")
@@ -59,18 +60,17 @@ def run(quick: bool = False, recheck: bool = False) -> dict:
     plans: list[dict] = []
     warmup: dict[str, float] = {}
     for scene_name in scenes:
-        scene = scene_by_name(scene_name)
+        scene = load_scene(scene_name)
         targets = scene.targets[:2] if quick else scene.targets
         for model in MODELS:
             t0 = time.perf_counter()
-            plan_to_target(ROBOT, scene, targets[0].position, model=model, planner=PLANNER,
-                           time_limit=TIME_LIMIT, seed=99)
+            planner = Planner(ROBOT, scene, model)
+            planner.plan(targets[0].position, seed=99, planner=PLANNER, time_limit=TIME_LIMIT)
             warmup[f"{scene_name}/{model}"] = time.perf_counter() - t0
             for t in targets:
                 for seed in seeds:
                     c0 = time.thread_time()
-                    r = plan_to_target(ROBOT, scene, t.position, model=model, planner=PLANNER,
-                                       time_limit=TIME_LIMIT, seed=seed)
+                    r = planner.plan(t.position, seed=seed, planner=PLANNER, time_limit=TIME_LIMIT)
                     cpu = time.thread_time() - c0
                     free = None
                     if recheck and r.success:

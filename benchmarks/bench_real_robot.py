@@ -13,9 +13,9 @@ independent re-check (:mod:`tests.foreign.recheck`: foreign mechanics with the t
 
 * **calibrate-then-plan**: ~320 rows of back-and-forth sweeps measured on the truth (noise
   0.08 mm), ``ctrplan diagnose --model physics`` (the CLI, as a user runs it), then
-  ``plan_to_target`` with ``calibrated.yaml`` and ``--margin auto`` to the first ``--targets``
+  a ``Planner`` with ``calibrated.yaml`` and ``--margin auto`` to the first ``--targets``
   example targets of each of the four shipped scenes;
-* **default**: ``plan_to_target`` with the defaults (nominal physics model, no calibration).
+* **default**: a ``Planner`` with the defaults (nominal physics model, no calibration).
 
 Per plan: success, status, planning time, re-checked states, states in contact with the truth,
 states penetrating deeper than 0.05 mm, deepest penetration, smallest clearance on the truth,
@@ -148,18 +148,18 @@ def replay(scene: str, path: np.ndarray, target: np.ndarray, effects: dict) -> d
 
 def plan_flow(flow: str, model, margin, targets: int, time_limit: float, effects: dict,
               objective: str | None = None) -> list[dict]:
-    from ctrplan.planning import PlanConfig, plan_to_target
-    from ctrplan.planning.plan import scene_by_name
+    from ctrplan.collision.scene import load_scene
+    from ctrplan.planning import Planner, PlannerConfig
 
+    cfg = PlannerConfig() if margin == "default" else PlannerConfig(margin_mm=margin)
+    if objective is not None:
+        cfg = replace(cfg, objective=objective)
     rows = []
     for s in SCENES:
-        sc = scene_by_name(s)
+        sc = load_scene(s)
+        planner = Planner(ROBOT, sc, model, cfg)     # one per scene: prepared once
         for t in sc.targets[:targets]:
-            cfg = PlanConfig() if margin == "default" else PlanConfig(margin_mm=margin)
-            if objective is not None:
-                cfg = replace(cfg, objective=objective)
-            r = plan_to_target(ROBOT, sc, t.position, model=model, time_limit=time_limit, seed=0,
-                               config=cfg)
+            r = planner.plan(t.position, seed=0, time_limit=time_limit)
             row = {"flow": flow, "scene": s, "target": t.name, "success": bool(r.success),
                    "status": r.status.value, "planning_time_s": r.planning_time_s,
                    "time_cap_hit": bool(r.time_cap_hit), "margin_mm": r.margin_mm,

@@ -79,27 +79,28 @@ def verify_path(robot, scene, path: np.ndarray, factor: int = 8, clearance: bool
 
 def search(scene_name: str, count: int = 5, samples: int = 60000, seed: int = 0,
            have: list[dict] | None = None) -> dict:
-    from ctrplan.collision.capsules import curvature_bound
-    from ctrplan.planning import PlanConfig, plan_to_target
-    from ctrplan.planning.goals import retracted_start
-    from ctrplan.planning.plan import resolve_model, scene_by_name, world_for
+    from ctrplan.collision.scene import load_scene
+    from ctrplan.collision.world import world_for
+    from ctrplan.planning import Planner, PlannerConfig
     from ctrplan.planning.validator import BatchValidator
     from ctrplan.robot import load_robot
+    from ctrplan.shape.models import load_model
+    from ctrplan.shape.planning_model import planning_model
 
     robot = load_robot(ROBOT)
-    scene = scene_by_name(scene_name)
-    physics = resolve_model("physics", robot)
-    learned = resolve_model("learned", robot)
-    world = world_for(scene, 0.0, curvature_bound(physics))
-    v = BatchValidator(robot, physics, world)
-    start, _ = retracted_start(robot, v, world)
+    scene = load_scene(scene_name)
+    physics = load_model("physics", robot)
+    learned = load_model("learned", robot)
+    planner = Planner(robot, scene, physics, PlannerConfig(max_states=1_000_000))
+    v = BatchValidator(robot, planner.model, planner.world)
+    start, _ = planner.retracted_start()
     rng = np.random.default_rng([seed, 99])
     q = robot.sample(samples, seed=rng)
     free = q[v.states_valid(q)]
     tips = physics.shape(free, points=2).tip
     # deepest first (farthest tips from the base), so the set is not only trivial near-base goals
     order = np.argsort(-np.linalg.norm(tips, axis=1), kind="stable")
-    lv = BatchValidator(robot, learned, world_for(scene, 0.0, curvature_bound(learned)))
+    lv = BatchValidator(robot, learned, world_for(scene, 0.0, planning_model(learned).curvature_bound))
     problems, tried = list(have or []), 0
     for i in order:
         if len(problems) >= count:
@@ -111,8 +112,7 @@ def search(scene_name: str, count: int = 5, samples: int = 60000, seed: int = 0,
         if any(np.linalg.norm(target - np.array(p["target"])) < 10.0 for p in problems):
             continue
         tried += 1
-        r = plan_to_target(robot, scene, target, model=physics, seed=seed, time_limit=20.0,
-                           start=start, config=PlanConfig(max_states=1_000_000))
+        r = planner.plan(target, seed=seed, start=start, time_limit=20.0)
         if not r.success or r.counts.get("direct", 0):
             continue
         ok, clearance = verify_path(robot, scene, r.path)

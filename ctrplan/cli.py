@@ -2,7 +2,8 @@
 
 Each sub-command lives in :mod:`ctrplan.commands` as a module with ``register(subparsers)``,
 which adds its parser and sets ``func(args) -> int``. Bad input raises
-:class:`~ctrplan.errors.InputError`; here it becomes one line on stderr and exit code 2.
+:class:`~ctrplan.errors.InputError`; here it becomes one line on stderr and exit code 2 (an
+error about a Python argument named with its flag: :mod:`ctrplan.commands._names`).
 SIGINT / SIGTERM end any command with one line on stderr and exit 130 / 143
 (:mod:`ctrplan.interrupt`).
 """
@@ -149,7 +150,9 @@ def _main(argv: list[str] | None = None) -> int:
     except InputError as exc:
         if interrupt.signalled():
             return _stopped(args.command)
-        print(f"ctrplan {args.command}: error: {exc}", file=sys.stderr)
+        from ctrplan.commands._names import for_command_line  # the library's names -> flags
+
+        print(f"ctrplan {args.command}: error: {for_command_line(exc)}", file=sys.stderr)
         return 2
     except (MemoryError, RecursionError) as exc:
         print(f"ctrplan {args.command}: error: the input is too large or too deeply nested "

@@ -1,7 +1,9 @@
 """Error types shared by every stage.
 
-Bad user input raises :class:`InputError`, which always names the file (or "<argument>")
-and the field that is wrong. The command line turns it into a one-line message and exit code 2.
+Bad user input raises :class:`InputError`, which always names the file (or the argument) and
+the field that is wrong; a bad value of a Python argument raises its subclass
+:class:`ArgumentError`, named as the Python caller wrote it. The command line turns either into
+a one-line message (with its own flag names) and exit code 2.
 """
 
 from __future__ import annotations
@@ -58,3 +60,25 @@ class InputError(CtrplanError, ValueError):
         self.message = excerpt(shorten(message))
         where = self.source if not self.field else f"{self.source}: {self.field}"
         super().__init__(f"{where}: {self.message}")
+
+
+class ArgumentError(InputError):
+    """A bad value of a Python argument: the library's errors name the argument as the caller
+    wrote it (``time_limit``, ``seed``, ``tolerance_mm``, ``start``, ...), never a command-line
+    flag. Other arguments the message names are written between backticks (`` `branch` ``).
+
+    The command line shows the same error with its own names (``--time``, ``--branch``):
+    :func:`ctrplan.commands._names.for_command_line` maps ``argument`` and every backticked
+    name through the table of names (docs/conventions.md, "Names").
+
+    Parameters
+    ----------
+    argument : str
+        The argument (or config field) whose value is bad.
+    message : str
+        What is wrong, in one line.
+    """
+
+    def __init__(self, argument: str, message: str):
+        self.argument = str(argument)
+        super().__init__(self.argument, "", message)

@@ -346,7 +346,10 @@ def test_unstable_only_when_only_a_fold_leads_to_the_goal():
     import trimesh
 
     from ctrplan.collision.scene import Scene, SceneMesh
-    from ctrplan.planning import plan as P
+    from ctrplan.planning import stages
+    from ctrplan.planning.planner import Planner, PlannerConfig
+    from ctrplan.planning.result import PlanStatus
+    from ctrplan.planning.run import Stop
 
     robot = _fixed_pair()
     model = PhysicsModel(robot)
@@ -355,19 +358,19 @@ def test_unstable_only_when_only_a_fold_leads_to_the_goal():
     cyl = trimesh.creation.cylinder(radius=67.0, segment=[(0, 0, -50), (0, 0, 150)], sections=96)
     scene = Scene(name="cylinder", path="<memory>", meshes=(SceneMesh("wall", "wall", cyl),),
                   base_pose=np.eye(4), targets=())
-    run = P._prepare(robot, scene, model.shape(goal[None], 2).tip[0], model, "rrtconnect", 60.0,
-                     0, 1.0, P.PlanConfig(max_states=5_000), None)
-    start = P._stage_checks(run, start)
+    planner = Planner(robot, scene, model, PlannerConfig(max_states=5_000))
+    run = planner._run(model.shape(goal[None], 2).tip[0], 0, "rrtconnect", 60.0, 1.0, None)
+    start = stages.checks(run, start)
     assert run.validator.states_valid(np.stack([start, goal])).all()
     assert not run.validator.states_valid(np.array([[0.0, 0.0, 0.0, 0.0]]))[0]   # the way up
     run.validator.anchor(goal[None])
     source = SimpleNamespace(goals=[goal], next=lambda: np.zeros((0, 4)), rounds=1, reaching=1,
                              evaluations=0)
-    assert P._relaxed(run).edge_valid(start, goal)
-    with pytest.raises(P._Stop) as stop:
-        P._stage_planning(run, start, source, goal[None])
+    assert stages.relaxed(run).edge_valid(start, goal)
+    with pytest.raises(Stop) as stop:
+        stages.search(run, start, source, goal[None])
     res = stop.value.result
-    assert res.status is P.PlanStatus.UNSTABLE_ONLY and "fold" in res.message
+    assert res.status is PlanStatus.UNSTABLE_ONLY and "fold" in res.message
     assert run.validator.tracker.counters.folds > 0 and res.counts["unstable_only_check"] == 1
 
 

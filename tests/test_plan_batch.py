@@ -124,7 +124,8 @@ def test_bad_job_is_recorded_not_fatal(tmp_path):
     from ctrplan.planning.batch import run_job
 
     res = run_job(Job("airway", "far", (0.0, 0.0, float("nan")), model="learned"))
-    assert res.status is PlanStatus.INPUT_ERROR and not res.success and "--target" in res.message
+    # (the job's field, as the Python argument: job files name no command-line flag)
+    assert res.status is PlanStatus.INPUT_ERROR and not res.success and res.message.startswith("target: ")
     assert res.plan is None and res.to_json()["status"] == "INPUT_ERROR"
 
 

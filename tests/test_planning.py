@@ -300,7 +300,7 @@ def test_bad_planner_scene_and_time_raise_input_error(robot, airway):
         plan_to_target(robot, airway, [0, 0, 0], planner="dijkstra")
     with pytest.raises(InputError):
         plan_to_target(robot, "no_such_scene", [0, 0, 0])
-    with pytest.raises(InputError, match="--time"):
+    with pytest.raises(InputError, match="^time_limit: "):      # the Python argument's name
         plan_to_target(robot, airway, [0, 0, 0], time_limit=0)
 
 
@@ -332,7 +332,7 @@ def test_cli_plan_bad_input_exits_2(tmp_path, capsys, args, needle):
 
 
 def test_a_segment_that_fails_the_fine_check_is_replanned(robot, physics):
-    from ctrplan.planning.plan import _repair
+    from ctrplan.planning.verify import repair
 
     start, goal, _, world = sphere_problem(robot, physics)
     coarse = BatchValidator(robot, physics, world, ValidatorConfig(resolution_mm=400.0))
@@ -340,7 +340,7 @@ def test_a_segment_that_fails_the_fine_check_is_replanned(robot, physics):
     fine = BatchValidator(robot, physics, world)
     bad = fine.check_path(np.stack([start, goal]), 0.5)
     assert not bad.ok and bad.bad_segments == [0]
-    fixed = _repair(robot, physics, world, np.stack([start, goal]), bad.bad_segments, PlanConfig(),
+    fixed = repair(robot, physics, world, np.stack([start, goal]), bad.bad_segments, PlanConfig(),
                     seed=1, resolution_mm=0.5, budget=10.0)
     assert fixed is not None and np.allclose(fixed[0], start) and np.allclose(fixed[-1], goal)
     assert fine.check_path(fixed, 0.5).ok

@@ -389,7 +389,7 @@ def test_resume_with_a_valid_job_file_skips_the_job(tmp_path, monkeypatch):
     job, data = _job_and_result()
     (tmp_path / "jobs").mkdir()
     (tmp_path / "jobs" / f"{job.id}.json").write_text(json.dumps(data))
-    monkeypatch.setattr(batch, "run_job", lambda j: pytest.fail("a done job ran again"))
+    monkeypatch.setattr(batch, "run_job", lambda j, *planners: pytest.fail("a done job ran again"))
     summary = batch.run_batch([job], tmp_path)
     assert (summary.skipped, summary.ran) == (1, 0)
 
@@ -484,7 +484,7 @@ def test_plan_batch_on_a_full_disk_says_one_line_exit_2_nothing_written(tmp_path
     from ctrplan.planning import batch
     from ctrplan.planning.plan import PlanStatus
 
-    monkeypatch.setattr(batch, "run_job", lambda job: batch.JobResult(job, PlanStatus.TIMEOUT, "t"))
+    monkeypatch.setattr(batch, "run_job", lambda job, *planners: batch.JobResult(job, PlanStatus.TIMEOUT, "t"))
     targets = tmp_path / "t.csv"
     targets.write_text("scene,name,x,y,z\nairway,a,0,0,0\nairway,b,1,0,0\n")
     out = tmp_path / "out"

@@ -23,7 +23,7 @@ from ctrplan.collision.field import EPS_MM, FieldConfig, capsule_bounds
 from ctrplan.collision.field_cache import field_for
 from ctrplan.collision.scene import Scene, load_scene
 from ctrplan.errors import InputError
-from ctrplan.objcache import Bounded
+from ctrplan.objcache import Bounded, owned
 from ctrplan.shape.base import Shape
 
 #: contact value of a configuration whose shape model failed (ok=False)
@@ -186,7 +186,7 @@ class CollisionWorld:
                 exact != "auto" and geometry.backend != exact):
             geometry = WorldGeometry(meshes, self.field_config, cache, exact)
         #: what is built from the meshes (exact-geometry models, distance fields), shareable
-        #: between the worlds of one scene (:func:`ctrplan.planning.plan.world_for`)
+        #: between the worlds of one scene (:func:`world_for`)
         self.geometry = geometry
         self._fcl = geometry.exact
         #: configurations sent to FCL by the last check/collides call (for benchmarks)
@@ -390,3 +390,19 @@ class CollisionWorld:
         self.last_fcl_calls = len(todo)
         return CollisionReport(collides=collides, clearance_mm=clearance, contact=contact,
                                fcl_calls=len(todo))
+
+
+def world_for(scene: Scene, margin_mm=0.0, curvature_per_mm: float = 0.0) -> CollisionWorld:
+    """A CollisionWorld of a scene with this margin and curvature bound, over the scene's exact
+    models and distance fields (built once per scene object and kept on it, freed with it).
+    margin_mm : a number or an ErrorProfile (:func:`ctrplan.shape.error_bounds.auto_margin`)."""
+    # The scene keeps the geometry (exact models, fields), not the world: a world refers to its
+    # scene, and a scene -> world -> scene cycle would keep both (and their memory) alive until
+    # a full garbage collection. Worlds themselves are cheap.
+    cache = owned(scene)
+    geometry = cache.get("world_geometry") if cache is not None else None
+    world = CollisionWorld(scene, margin_mm=margin_mm, curvature_per_mm=curvature_per_mm,
+                           geometry=geometry)
+    if cache is not None:
+        cache["world_geometry"] = world.geometry
+    return world

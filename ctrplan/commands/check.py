@@ -48,22 +48,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ctrplan.collision.capsules import curvature_bound
     from ctrplan.collision.world import CollisionWorld
     from ctrplan.commands.plan import parse_margin
     from ctrplan.io import iter_configs, write_csv_atomic
-    from ctrplan.planning.plan import planning_model_of
     from ctrplan.planning.validator import BatchValidator
     from ctrplan.progress import bar
     from ctrplan.robot import load_robot
-    from ctrplan.shape.error_bounds import (
-        MEASURED_SLACK_MM,
-        auto_margin,
-        error_bound_kind,
-        margin_peak,
-        outside_measured,
-    )
+    from ctrplan.shape.error_bounds import MEASURED_SLACK_MM, margin_peak, outside_measured
     from ctrplan.shape.models import load_model
+    from ctrplan.shape.planning_model import planning_model
 
     out = output_path(args.out, (".csv",))
     margin = parse_margin(args.margin)
@@ -71,14 +64,14 @@ def run(args: argparse.Namespace) -> int:
     # the file's header and first rows are checked before the scene is prepared
     configs = iter_configs(args.configs, robot, chunk_rows=CHUNK)
     first = next(configs)
-    model = planning_model_of(load_model(args.model, robot))
+    model = planning_model(load_model(args.model, robot))   # fit for collision checking
     auto = margin is None
     if auto:
         try:
-            margin = auto_margin(model)
+            margin = model.auto_margin()
         except ValueError as exc:
             raise InputError("--margin", "", f"auto: {exc}") from None
-    world = CollisionWorld(args.scene, margin_mm=margin, curvature_per_mm=curvature_bound(model))
+    world = CollisionWorld(args.scene, margin_mm=margin, curvature_per_mm=model.curvature_bound)
     world.fields  # noqa: B018 (prepare the distance fields first: progress shown per mesh)
     # Rows are independent configurations: a direction-aware model gets both directions
     # (worst case), so every verdict is a pure function of its row.
@@ -86,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     # streamed in chunks: bounded memory whatever the file's size, a progress bar on a
     # terminal, Ctrl-C between chunks; the output is written atomically at the end
     counts = [0, 0, 0]
-    measured = getattr(model, "measured_insertion", None)
+    measured = model.measured_insertion
 
     def rows():
         with bar(total=None, desc="check", unit="config") as pbar:
@@ -108,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         log.warning("%d of %d configurations insert a tube beyond the insertions the model's "
                     "error bound was measured on (more than %g mm): the model and its bound are "
                     "extrapolated there", counts[2], counts[0], MEASURED_SLACK_MM)
-    kind = error_bound_kind(model)
+    kind = model.error_bound
     if auto and kind == "surrogate":
         log.info("the margin is the model's surrogate error (its deviation from the simulated "
                  "model it imitates), not a bound measured on the robot: verdicts are relative "

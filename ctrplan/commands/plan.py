@@ -72,7 +72,7 @@ def add_planning_args(p: argparse.ArgumentParser) -> None:
 
 def parse_objective(text) -> str:
     """``--objective``: clearance, length or first (InputError otherwise)."""
-    from ctrplan.planning.plan import check_objective
+    from ctrplan.planning.arguments import check_objective
 
     return check_objective(text)
 
@@ -332,8 +332,10 @@ def add_trajectory(plan: dict, result, robot, rate: float, csv_path, plan_path) 
 
 def run(args: argparse.Namespace) -> int:
     one_thread()
+    from ctrplan.collision.scene import load_scene
     from ctrplan.io import write_json_atomic
-    from ctrplan.planning.plan import PlanConfig, PlanStatus, plan_to_target, scene_by_name
+    from ctrplan.planning.planner import Planner, PlannerConfig
+    from ctrplan.planning.result import PlanStatus
     from ctrplan.planning.space import check_planner
     from ctrplan.robot import load_robot
 
@@ -346,18 +348,18 @@ def run(args: argparse.Namespace) -> int:
     if args.seed < 0:
         raise InputError("--seed", "", f"must be >= 0, got {args.seed}")
     robot = load_robot(args.robot)
-    scene = scene_by_name(args.scene)
+    scene = load_scene(args.scene)
     target, name = parse_target(args.target, scene)
     start = parse_start(args.start, robot, args.branch)
-    config = PlanConfig(margin_mm=parse_margin(args.margin), objective=objective)
+    config = PlannerConfig(margin_mm=parse_margin(args.margin), objective=objective)
     stability = parse_stability_margin(args.stability_margin)
     if stability is not None:
         from dataclasses import replace
 
         config = replace(config, validator=replace(config.validator, stability_margin=stability))
-    result = plan_to_target(robot, scene, target, model=args.model, planner=args.planner,
-                            time_limit=args.time, seed=args.seed, tolerance_mm=args.tolerance,
-                            config=config, start=start)
+    planner = Planner(robot, scene, args.model, config)
+    result = planner.plan(target, seed=args.seed, start=start, planner=args.planner,
+                          time_limit=args.time, tolerance_mm=args.tolerance)
     plan = result.to_json()
     plan["scene"] = args.scene
     plan["robot"] = str(args.robot)   # the name or path given; robot_spec holds the robot itself

@@ -2,7 +2,7 @@
 
 :func:`design` searches curvature, curved length, straight length and stock size of each tube
 (:mod:`ctrplan.design.space`) for the design that reaches the most targets by a verified
-collision-free plan from the scene's entry (:func:`ctrplan.planning.plan_to_target`, physics
+collision-free plan from the scene's entry (a :class:`ctrplan.planning.Planner` per design, physics
 model, the planning model's margin), then has the most clearance along those plans, then is
 the simplest (fewer, less curved, shorter tubes). Hard constraints (named in the results when
 they bind): nitinol's recoverable strain, nesting with a radial gap, length and stroke limits,
@@ -268,9 +268,9 @@ def _ruled_out(anatomy, cfg: DesignConfig, stock, fixed, designed: int) -> bool:
 def read_anatomy(scene, names, pts: np.ndarray, cfg: DesignConfig, stock, curvature_bound: float):
     """The anatomy read (:func:`ctrplan.design.anatomy.analyse`) and the design space derived
     from it (:func:`ctrplan.design.derive.derive`) for ``cfg``'s bounds."""
+    from ctrplan.collision.world import world_for
     from ctrplan.design.anatomy import analyse
     from ctrplan.design.derive import derive
-    from ctrplan.planning.plan import world_for
 
     world = world_for(scene, 0.0, curvature_bound)      # only its distance fields are used
     radii = np.array([od / 2 for od, _ in stock])

@@ -12,10 +12,11 @@ Stages (timed separately, ``timings``):
    FCL for the uncertain ones); the collision-free tips are the sampled tip workspace.
 3. **screen_ik** — per target, the nearest free sampled tips seed a batched IK; a target
    passes the screen when a collision-free IK solution is within ``screen_tolerance_mm``.
-4. **plans** — (promising designs only) :func:`ctrplan.planning.plan_to_target` from the
-   retracted start for each target that passed the screen, physics model, the planning
-   model's margin (auto unless set); in the search the first path found (objective ``first``,
-   cheap), for the chosen design the clearance objective (where plan_to_target has objectives).
+4. **plans** — (promising designs only) one :class:`~ctrplan.planning.planner.Planner` per
+   design (physics model, the settings' margin, auto unless set, and state budget), a plan
+   from the retracted start for each target that passed the screen (:func:`plan_target`, the
+   one place design plans); in the search the first path found (objective ``first``, cheap),
+   for the chosen design the clearance objective.
 5. **stability** — every successful path is interpolated densely (``stability_step_mm`` /
    ``stability_step_rad``) and solved by the compliant model with the bistability probe: a
    state with two stable equilibria (snapping) or none stable fails the plan (``stability``).
@@ -49,14 +50,17 @@ class EvalSettings:
     curvature_bound: float = 0.1
 
 
-# ------------------------------------------------------------------ per-process context
-def context(scene_spec, settings: EvalSettings):
-    """(scene, world) for this process: the scene (cached by name) and one CollisionWorld padded
-    for the largest curvature any design may have (conservative for every design), cached on
-    the scene object (:func:`ctrplan.planning.plan.world_for`), so nothing outlives the scene."""
-    from ctrplan.planning.plan import scene_by_name, world_for
+# ------------------------------------------------------------------ a job's context
+def context(scene_spec, settings: EvalSettings, planners=None):
+    """(scene, world): the scene (``planners`` keeps scenes loaded by name: the Runner's own,
+    or the worker process's, :func:`~ctrplan.planning.planner.worker_planners`) and one
+    CollisionWorld padded for the largest curvature any design may have (conservative for every
+    design), over the geometry kept on the scene object
+    (:func:`ctrplan.collision.world.world_for`), so nothing outlives the scene."""
+    from ctrplan.collision.world import world_for
+    from ctrplan.planning.planner import worker_planners
 
-    scene = scene_spec if hasattr(scene_spec, "meshes") else scene_by_name(scene_spec)
+    scene = (planners if planners is not None else worker_planners()).scene(scene_spec)
     return scene, world_for(scene, settings.margin_mm or 0.0, settings.curvature_bound)
 
 
@@ -157,17 +161,21 @@ def stable_along(robot: Robot, path: np.ndarray, settings: EvalSettings) -> tupl
     return bool(ok.all()), int(len(states))
 
 
-def plan_target(robot: Robot, scene, target: np.ndarray, settings: EvalSettings, seed: int,
-                objective: str):
-    """The one place design plans: a PlanResult for ``robot`` from the retracted start to
-    ``target`` (scene frame), physics model, the settings' margin, tolerance, state budget and
-    time cap, the path ``objective`` (``first`` in the search, ``clearance`` for the chosen
-    design). A prepared planner shared by every design would replace this body only."""
-    from ctrplan.planning.plan import PlanConfig, plan_to_target
+def design_planner(robot: Robot, scene, settings: EvalSettings):
+    """The Planner of one design: physics model, the settings' margin and state budget."""
+    from ctrplan.planning.planner import Planner, PlannerConfig
 
-    cfg = PlanConfig(max_states=settings.plan_states, margin_mm=settings.margin_mm)
-    return plan_to_target(robot, scene, target, model="physics", seed=seed, time_limit=settings.plan_time_s,
-                          tolerance_mm=settings.tolerance_mm, config=cfg, objective=objective)
+    cfg = PlannerConfig(max_states=settings.plan_states, margin_mm=settings.margin_mm)
+    return Planner(robot, scene, "physics", cfg)
+
+
+def plan_target(planner, target: np.ndarray, settings: EvalSettings, seed: int, objective: str):
+    """The one place design plans: a PlanResult of the design's ``planner``
+    (:func:`design_planner`) from the retracted start to ``target`` (scene frame) with the
+    settings' tolerance and time cap and the path ``objective`` (``first`` in the search,
+    ``clearance`` for the chosen design)."""
+    return planner.plan(target, seed=seed, time_limit=settings.plan_time_s,
+                        tolerance_mm=settings.tolerance_mm, objective=objective)
 
 
 def plans(robot: Robot, scene, targets_scene: np.ndarray, todo: list[int], settings: EvalSettings,
@@ -186,9 +194,10 @@ def plans(robot: Robot, scene, targets_scene: np.ndarray, todo: list[int], setti
            "tip_error_mm": [None] * T, "stable": [None] * T, "results": [None] * T,
            "stability_states": 0}
     t_plan = t_stab = 0.0
+    planner = design_planner(robot, scene, settings) if todo else None
     for j in todo:
         t0 = time.perf_counter()
-        r = plan_target(robot, scene, targets_scene[j], settings, seed, objective)
+        r = plan_target(planner, targets_scene[j], settings, seed, objective)
         t_plan += time.perf_counter() - t0
         out["status"][j] = r.status.value
         if keep:
@@ -219,16 +228,17 @@ def plans(robot: Robot, scene, targets_scene: np.ndarray, todo: list[int], setti
     return out
 
 
-def evaluate_job(job: dict) -> dict:
+def evaluate_job(job: dict, planners=None) -> dict:
     """Worker entry point: ``job`` has ``robot`` (dict), ``scene`` (spec), ``targets`` (T, 3
     scene frame), ``settings`` (dict), ``seed``, ``stage`` ("screen", "plan" or "final": the
     chosen design's plans with the clearance objective, PlanResults kept) and, for plans,
-    ``todo``. Returns a JSON-ready dict (with PlanResults for "final")."""
+    ``todo``. ``planners`` : what keeps the scene (None: this worker process's). Returns a
+    JSON-ready dict (with PlanResults for "final")."""
     from ctrplan.robot import robot_from_dict
 
     settings = EvalSettings(**job["settings"])
     robot = robot_from_dict(job["robot"], "<design>")
-    scene, world = context(job["scene"], settings)
+    scene, world = context(job["scene"], settings, planners)
     targets = np.asarray(job["targets"], dtype=float)
     if job["stage"] == "screen":
         return screen(robot, scene, world, scene.to_base(targets), settings, int(job["seed"]))

@@ -61,10 +61,14 @@ class Runner:
     :mod:`ctrplan.planning.ray_pool`); results always come back in the order of the jobs."""
 
     def __init__(self, workers: int, ray_address: str | None = None):
+        from ctrplan.planning.planner import Planners
+
         self.workers = int(workers)
         self.ray_address = ray_address
         self._ex = None
         self._ray = None
+        #: the scenes of the jobs run in this process (the workers keep their own)
+        self._planners = Planners()
 
     def __enter__(self) -> Runner:
         if self.ray_address:
@@ -103,7 +107,7 @@ class Runner:
 
             return ray_map(evaluate_job, jobs)
         if self._ex is None:
-            return [evaluate_job(j) for j in jobs]
+            return [evaluate_job(j, self._planners) for j in jobs]
         from ctrplan import interrupt
 
         with interrupt.spawning():   # workers start on demand, SIGINT ignored (Ctrl-C: parent stops them)

@@ -1,15 +1,18 @@
 """Batch planning over many scenes and targets: jobs, resumable runs, pools, Ray, summaries.
 
-A job is one :func:`~ctrplan.planning.plan.plan_to_target` call. Its id is readable
+A job is one plan (:meth:`Planner.plan <ctrplan.planning.planner.Planner.plan>`). Its id is readable
 (``<scene>__<target>__s<seed>``) plus a short hash of everything that defines it, so a rerun
 with the same settings skips jobs whose JSON already exists and a changed setting makes new
 jobs. Results go to ``<out>/jobs/<id>.json`` (written atomically by the driver as each job
 finishes), ``<out>/jobs.csv`` (one row per job) and ``<out>/summary.csv`` (success rate and
 planning-time percentiles per scene, then all scenes).
 
-Workers: in-process (``workers=1``), a local process pool (``workers>1``, spawned processes,
-each caching its models, scenes and collision worlds), or Ray (``ray_address``: a cluster
-address, or ``"local"`` to start a local instance).
+Workers: in-process (``workers=1``), a local process pool (``workers>1``, spawned processes),
+or Ray (``ray_address``: a cluster address, or ``"local"`` to start a local instance). Whoever
+runs jobs keeps :class:`~ctrplan.planning.planner.Planners` (one Planner per robot, scene, model
+and settings, the scenes by name): the in-process run its own, each worker process its own
+(:func:`~ctrplan.planning.planner.worker_planners`). A plan does not depend on the plans made before it, so a job's result
+does not depend on which worker ran it.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from ctrplan.errors import InputError
+from ctrplan.errors import ArgumentError, InputError
 
 log = logging.getLogger("ctrplan")
 
@@ -85,10 +88,10 @@ def check_scene_spec(spec: str) -> str:
                                f"({', '.join(list_scenes()) or 'none found'})")
 
 
-def read_targets(path: str, scenes: Sequence[str] = ()) -> list[tuple[str, str, tuple[float, float, float]]]:
+def read_targets(targets: str, scenes: Sequence[str] = ()) -> list[tuple[str, str, tuple[float, float, float]]]:
     """Targets as (scene, name, (x, y, z)).
 
-    ``path`` is a CSV with columns ``x,y,z`` (mm, scene frame) and optionally ``scene`` and
+    ``targets`` is a CSV with columns ``x,y,z`` (mm, scene frame) and optionally ``scene`` and
     ``name``, or ``"examples"`` for the example targets of the shipped scenes. ``scenes``
     restricts the examples / CSV rows to those scenes, and supplies the scene of CSV rows
     without a ``scene`` column (each target then goes to every listed scene).
@@ -98,13 +101,14 @@ def read_targets(path: str, scenes: Sequence[str] = ()) -> list[tuple[str, str, 
     for s in scenes:
         check_scene_spec(s)
     out: list[tuple[str, str, tuple[float, float, float]]] = []
+    path = targets
     if path == EXAMPLES:
         for s in scenes or list_scenes():
             scene = load_scene(s)
             for t in scene.targets:
                 out.append((s, t.name, tuple(float(v) for v in t.position)))
         if not out:
-            raise InputError("--targets", "", "no example targets found (no shipped scenes?)")
+            raise ArgumentError("targets", "no example targets found (no shipped scenes?)")
         return out
     from ctrplan.io import read_csv_table
 
@@ -157,7 +161,7 @@ def make_jobs(targets: Iterable[tuple[str, str, tuple[float, float, float]]], se
 class JobResult:
     """What one job produced.
 
-    job : the Job. status : a :class:`~ctrplan.planning.plan.PlanStatus` (``INPUT_ERROR`` when
+    job : the Job. status : a :class:`~ctrplan.planning.result.PlanStatus` (``INPUT_ERROR`` when
     the job's input was bad: one bad row does not stop a batch). message : why.
     plan : the plan.json fields (:meth:`PlanResult.to_json`), or None for bad input.
     """
@@ -183,29 +187,37 @@ class JobResult:
         return out
 
 
-def run_job(job: Job | dict) -> JobResult:
-    """Run one job (in any process). Bad input becomes status ``INPUT_ERROR`` with the message."""
-    from ctrplan.planning.plan import PlanConfig, PlanStatus, plan_to_target, scene_by_name
+def run_job(job: Job | dict, planners=None) -> JobResult:
+    """Run one job (in any process) with a planner from ``planners`` (a
+    :class:`~ctrplan.planning.planner.Planners`; None: a new one, kept for this job only).
+    Bad input becomes status ``INPUT_ERROR`` with the message (naming the Job's field)."""
+    from ctrplan.planning.planner import PlannerConfig, Planners
+    from ctrplan.planning.result import PlanStatus
 
     if isinstance(job, dict):
         job = Job(**{**job, "target": tuple(job["target"])})
     try:
         margin = None if str(job.margin).strip().lower() == "auto" else float(job.margin)
     except ValueError:
-        return JobResult(job, PlanStatus.INPUT_ERROR, f"--margin: must be a number or auto, got {job.margin!r}")
+        return JobResult(job, PlanStatus.INPUT_ERROR, f"margin: must be a number or auto, got {job.margin!r}")
+    planners = planners if planners is not None else Planners(size=1)
     try:
-        scene = scene_by_name(job.scene)
-        result = plan_to_target(job.robot, scene, job.target, model=job.model, planner=job.planner,
-                                time_limit=job.time_limit, seed=job.seed, tolerance_mm=job.tolerance_mm,
-                                config=PlanConfig(margin_mm=margin, objective=job.objective))
+        config = PlannerConfig(margin_mm=margin, objective=job.objective)
+        planner = planners.get(job.robot, job.scene, job.model, config)
+        result = planner.plan(job.target, seed=job.seed, planner=job.planner,
+                              time_limit=job.time_limit, tolerance_mm=job.tolerance_mm)
     except InputError as exc:
         return JobResult(job, PlanStatus.INPUT_ERROR, str(exc))
     return JobResult(job, result.status, result.message, result.to_json())
 
 
 def _run_job_json(job: dict) -> dict:
-    """run_job for worker processes: the JSON-ready dict crosses the process boundary."""
-    return run_job(job).to_json()
+    """run_job in a worker process (pool or Ray) with the worker's planners
+    (:func:`~ctrplan.planning.planner.worker_planners`): the JSON-ready dict crosses the
+    process boundary."""
+    from ctrplan.planning.planner import worker_planners
+
+    return run_job(job, worker_planners()).to_json()
 
 
 # ---------------------------------------------------------------------- a batch
@@ -293,9 +305,11 @@ def run_batch(jobs: Sequence[Job], out: str | os.PathLike, workers: int = 1,
                 _run_ray(todo, ray_address, workers, record)
             elif workers <= 1:
                 from ctrplan import interrupt
+                from ctrplan.planning.planner import Planners
 
+                planners = Planners()      # this run's, dropped with it
                 for job in todo:
-                    record(run_job(job).to_json())
+                    record(run_job(job, planners).to_json())
                     interrupt.check()
             else:
                 _run_pool(todo, workers, record)
@@ -353,7 +367,7 @@ def _folder_lock(out: Path):
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
             os.close(fd)
-            raise InputError("--out", "", f"another plan-batch is writing to {str(out)!r} "
+            raise ArgumentError("out", f"another plan-batch is writing to {str(out)!r} "
                                           f"(wait for it, or use another folder)") from None
         try:   # the file may have been removed by the run that held it: lock the one there now
             if os.stat(path).st_ino == os.fstat(fd).st_ino:

@@ -1,12 +1,11 @@
 """Start and goal configurations: target checks, the retracted start, IK goal rounds.
 
-Used by :func:`ctrplan.planning.plan.plan_to_target`; numpy only (no OMPL).
+Used by the plan's stages (:mod:`ctrplan.planning.stages`); numpy only (no OMPL).
 """
 
 from __future__ import annotations
 
 import math
-import weakref
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -57,32 +56,18 @@ def target_outside_lumen(scene, target_scene: np.ndarray) -> bool:
 
 
 # ---------------------------------------------------------------------- start
-def retracted_start(robot: Robot, validator: BatchValidator, world, samples: int = 512,
+def retracted_start(robot: Robot, validator: BatchValidator, world=None, samples: int = 512,
                     seed: int = 0) -> tuple[np.ndarray, bool]:
     """The retracted configuration (``robot.retracted()``), with its tube rotations changed
     only if it collides: then the rotations (same translations) with the largest clearance
     among ``samples`` fixed random ones are used (the pre-curved tubes partly cancel when turned
     against each other, which straightens the retracted robot inside a narrow lumen).
 
+    A pure function of the robot and the validator's model and world (``world`` is not used:
+    the validator's is; kept for callers that pass one). A
+    :class:`~ctrplan.planning.planner.Planner` computes it once, with a validator of its own.
     Returns (q (2n,), adjusted). If no rotation is free, the plain retracted configuration.
     """
-    # cached with the world's geometry (shared by the worlds of one scene, freed with it)
-    cache = getattr(getattr(world, "geometry", None), "memo", None)
-    key = (("retracted_start", id(validator.model), world.params_key(), robot, samples, seed)
-           if cache is not None else None)
-    hit = cache.get(key) if cache is not None else None
-    if hit is not None and hit[0]() is validator.model:
-        return hit[1].copy(), hit[2]
-    q, adjusted = _retracted_start(robot, validator, world, samples, seed)
-    if cache is not None:
-        try:
-            cache[key] = (weakref.ref(validator.model), q.copy(), adjusted)
-        except TypeError:  # a model without weak references: no caching
-            pass
-    return q, adjusted
-
-
-def _retracted_start(robot, validator, world, samples, seed) -> tuple[np.ndarray, bool]:
     q0 = robot.retracted()
     if validator.states_valid(q0[None])[0]:
         return q0, False
@@ -109,7 +94,7 @@ class GoalSource:
     table: _ik.WorkspaceTable
     target_base: np.ndarray
     tolerance_mm: float
-    config: Any  # PlanConfig
+    config: Any  # PlannerConfig
     rng: np.random.Generator
     #: optional score of goal configurations (G, 2n) -> (G,): each round's goals (the same
     #: ones) are handed out highest first (e.g. their clearance); None keeps the order of

@@ -1,11 +1,10 @@
 """What a plan tells its user about its labels and goals (issue 35, item 4).
 
-The messages :func:`ctrplan.planning.plan.plan_to_target` gives when the margin is what makes
-the start collide, and when a verified path's tip ends beyond the tolerance (status
-``OUTSIDE_TOLERANCE``: SUCCESS means the tip within ``tolerance_mm`` of the target asked for,
-not of a goal moved off the wall to keep the tip's margin). ``run`` is the plan's working state
-(``ctrplan.planning.plan._Run``): its margin, model labels (``meta``), scene and validator
-settings.
+The messages a plan gives when the margin is what makes the start collide, and when a verified
+path's tip ends beyond the tolerance (status ``OUTSIDE_TOLERANCE``: SUCCESS means the tip within
+``tolerance_mm`` of the target asked for, not of a goal moved off the wall to keep the tip's
+margin). ``run`` is the plan's working state (:class:`ctrplan.planning.run.Run`): its margin,
+model labels (``meta``), scene and validator settings.
 """
 
 from __future__ import annotations

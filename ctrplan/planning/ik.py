@@ -4,7 +4,8 @@ Many seeds are refined together: every iteration makes ONE batched model call fo
 Jacobians of all active seeds. A model with ``tip_and_jacobian(q) -> (tip (B,3), J (B,3,2n))``
 (the learned model, exact gradients through torch) is used directly; for any other shape model
 the Jacobian comes from forward differences, all perturbed configurations stacked into the same
-single shape call.
+single shape call. (What the model offers is read from its
+:class:`~ctrplan.shape.planning_model.PlanningModel`: ``exact_jacobian``.)
 
 Units: q in rad and mm, tips in mm, robot base frame. Steps are taken in scaled coordinates in
 which one unit of rotation counts as ``alpha_weight_mm`` mm, so rotations and translations are
@@ -13,13 +14,13 @@ damped alike; every iterate is projected back onto the joint constraints.
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
 
 from ctrplan.planning.validator import project_joints
 from ctrplan.robot import Robot
+from ctrplan.shape.planning_model import PlanningModel, planning_model
 
 
 @dataclass(frozen=True)
@@ -81,7 +82,8 @@ def tip_and_jacobian(model, q: np.ndarray, config: IKConfig | None = None) -> tu
     q = np.atleast_2d(np.asarray(q, dtype=float))
     B, d = q.shape
     c = config or IKConfig()
-    if c.jacobian != "fd" and hasattr(model, "tip_and_jacobian"):
+    model = planning_model(model, fit=False)
+    if c.jacobian != "fd" and model.exact_jacobian:
         tip, J = model.tip_and_jacobian(q)
         tip = np.asarray(tip, dtype=float)
         J = np.asarray(J, dtype=float)
@@ -98,8 +100,8 @@ def tip_and_jacobian(model, q: np.ndarray, config: IKConfig | None = None) -> tu
     return tips[:, 0, :], J, ok
 
 
-def _evaluations_per_row(model, q_dim: int, config: IKConfig) -> int:
-    return 1 if config.jacobian != "fd" and hasattr(model, "tip_and_jacobian") else q_dim + 1
+def _evaluations_per_row(model: PlanningModel, q_dim: int, config: IKConfig) -> int:
+    return 1 if config.jacobian != "fd" and model.exact_jacobian else q_dim + 1
 
 
 def solve_ik(model, robot: Robot, target: np.ndarray, q0: np.ndarray,
@@ -111,6 +113,7 @@ def solve_ik(model, robot: Robot, target: np.ndarray, q0: np.ndarray,
     when all seeds stopped, or when ``config.enough`` seeds are below ``stop_mm``.
     """
     c = config or IKConfig()
+    model = planning_model(model, fit=False)
     target = np.asarray(target, dtype=float).reshape(3)
     n = robot.n
     d = 2 * n
@@ -178,31 +181,22 @@ class WorkspaceTable:
         return float(np.min(np.linalg.norm(self.tips - np.asarray(target, dtype=float)[None], axis=1)))
 
 
-_TABLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
 def max_reach_mm(robot: Robot) -> float:
     """Upper bound (mm) on the tip's distance from the base origin: arc length >= chord."""
     return float(np.max(robot.lengths))
 
 
 def workspace_table(model, size: int = 4096, seed: int = 12345) -> WorkspaceTable:
-    """A table of ``size`` uniformly sampled valid configurations and their tips (cached per model)."""
-    cached = _TABLES.get(model)
-    if cached is not None and len(cached.q) >= size:
-        return cached
+    """A table of ``size`` uniformly sampled valid configurations and their tips (a pure
+    function of the model, size and seed: a :class:`~ctrplan.planning.planner.Planner` builds
+    it once and keeps it)."""
     robot = model.robot
     q = robot.sample(size, seed=seed)
     shape = model.shape(q, points=2)
     ok = np.asarray(shape.ok, dtype=bool)
     q, tips = q[ok], shape.tip[ok]
     radial = float(np.max(np.linalg.norm(tips[:, :2], axis=1))) if len(tips) else 0.0
-    table = WorkspaceTable(q=q, tips=tips, max_reach_mm=max_reach_mm(robot), radial_max_mm=radial)
-    try:
-        _TABLES[model] = table
-    except TypeError:  # a model that cannot be weakly referenced: no caching
-        pass
-    return table
+    return WorkspaceTable(q=q, tips=tips, max_reach_mm=max_reach_mm(robot), radial_max_mm=radial)
 
 
 def seeds_for(table: WorkspaceTable, robot: Robot, target: np.ndarray, count: int,

@@ -33,7 +33,7 @@ MAX_TEXT = 4000
 def validate_job_file(path: str | Path, data: Any, job: Any) -> dict:
     """``data`` (the parsed job file at ``path``) when it is a trustworthy result of ``job`` (a
     :class:`~ctrplan.planning.batch.Job`); InputError naming the file and field otherwise."""
-    from ctrplan.planning.plan import PlanStatus
+    from ctrplan.planning.result import PlanStatus
 
     src = str(path)
     hint = "(delete the file to run the job again)"

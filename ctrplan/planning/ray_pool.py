@@ -19,18 +19,19 @@ import contextlib
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
-from ctrplan.errors import InputError
+from ctrplan.errors import ArgumentError
 
 #: ``--ray local``: start a Ray instance on this machine instead of joining a cluster.
 LOCAL = "local"
 
 
 def require_ray():
-    """The ``ray`` module, or InputError naming ``--ray`` when it is not installed."""
+    """The ``ray`` module, or ArgumentError naming ``ray_address`` (``--ray`` on the command
+    line) when it is not installed."""
     try:
         import ray
     except ImportError:
-        raise InputError("--ray", "", "ray is not installed (pip install 'ctrplan[ray]')") from None
+        raise ArgumentError("ray_address", "ray is not installed (pip install 'ctrplan[ray]')") from None
     return ray
 
 
@@ -69,7 +70,7 @@ def ray_session(address: str, num_cpus: int | None = None) -> Iterator[Any]:
                     ray.init(address=address, log_to_driver=False, configure_logging=False,
                              runtime_env=env)
                 except Exception as exc:  # ray raises ConnectionError, RuntimeError, ValueError...
-                    raise InputError("--ray", "", f"cannot connect to Ray at {address!r}: {exc}") from None
+                    raise ArgumentError("ray_address", f"cannot connect to Ray at {address!r}: {exc}") from None
             restore()
             interrupt.check()
         yield ray

@@ -33,7 +33,7 @@ import ompl.geometric as og
 import ompl.util as ou
 
 from ctrplan import interrupt
-from ctrplan.errors import InputError
+from ctrplan.errors import ArgumentError
 from ctrplan.robot import Robot
 
 log = logging.getLogger("ctrplan")
@@ -64,12 +64,12 @@ UNSAFE_PLANNERS["prmstar"] = UNSAFE_PLANNERS["prm"]
 
 
 def check_planner(name: str) -> str:
-    """Normalise a planner name (case-insensitive) or raise :class:`InputError`."""
+    """Normalise a planner name (case-insensitive) or raise ArgumentError (``planner``)."""
     key = str(name).strip().lower()
     if key in UNSAFE_PLANNERS:
-        raise InputError("--planner", "", f"{name!r}: {UNSAFE_PLANNERS[key]}")
+        raise ArgumentError("planner", f"{name!r}: {UNSAFE_PLANNERS[key]}")
     if key not in PLANNERS:
-        raise InputError("--planner", "", f"unknown planner {name!r} (choose from {', '.join(PLANNERS)})")
+        raise ArgumentError("planner", f"unknown planner {name!r} (choose from {', '.join(PLANNERS)})")
     return key
 
 
@@ -339,8 +339,38 @@ def solve(
 
 def _solve(js: JointSpace, link: _Link, start, goals, planner, time_limit, range_mm, more_goals,
            slices, simplify, simplify_rounds, optimize, max_states) -> OmplOutcome:
+    pdef, goal_set, all_goals, pl = _problem(js, link, start, goals, planner, range_mm, optimize)
+    t0 = time.perf_counter()
+    s0 = _states_of(link.checker)
+    status, cap_hit = _run_slices(js, link, pdef, goal_set, all_goals, pl, t0, time_limit,
+                                  more_goals, slices, optimize, max_states)
+    planning_s = time.perf_counter() - t0
+    if link.exc is not None:
+        raise link.exc
+    if not pdef.hasExactSolution():
+        approx = pdef.hasApproximateSolution()
+        log.debug("planner %s: %s after %.2f s", planner, status, planning_s)
+        return OmplOutcome("approximate" if approx else "timeout", None, -1, planning_s, 0.0,
+                           len(all_goals), _states_of(link.checker) - s0, cap_hit)
+    path = pdef.getSolutionPath()
+    t1 = time.perf_counter()
+    if simplify and path.getStateCount() > 2:
+        _simplify(js, link, path, simplify_rounds)
+    simplification_s = time.perf_counter() - t1
+    q = np.array([js.to_q(s) for s in path.getStates()])
+    end_q = q[-1]
+    dists = [float(np.max(np.abs(_wrapdiff(g, end_q, js.n)))) for g in all_goals]
+    goal_index = int(np.argmin(dists)) if dists else -1
+    if goal_index >= 0 and dists[goal_index] < 1e-6:
+        q[-1] = all_goals[goal_index]  # exact goal values (no round trip through the state)
+    return OmplOutcome("exact", q, goal_index, planning_s, simplification_s, len(all_goals),
+                       _states_of(link.checker) - s0, cap_hit)
+
+
+def _problem(js: JointSpace, link: _Link, start, goals, planner, range_mm, optimize):
+    """The space's checkers and sampler, the problem (start, goal states, objective) and the
+    planner, set up. Returns (problem definition, goal set, goals (list), planner)."""
     si = js.si
-    checker = link.checker
     si.setStateValidityChecker(_StateChecker(si, link))
     si.setMotionValidator(_MotionValidator(si, link))
     si.setValidStateSamplerAllocator(lambda si_: _BatchSampler(si_, link))
@@ -372,8 +402,14 @@ def _solve(js: JointSpace, link: _Link, start, goals, planner, time_limit, range
     pl = make_planner(planner, si, range_mm)
     pl.setProblemDefinition(pdef)
     pl.setup()
+    return pdef, goal_set, all_goals, pl
 
-    t0 = time.perf_counter()
+
+def _run_slices(js: JointSpace, link: _Link, pdef, goal_set, all_goals: list, pl, t0: float,
+                time_limit, more_goals, slices, optimize, max_states):
+    """Solve in slices of the state budget (or of the time), adding goals between slices.
+    Returns (OMPL's last status, whether the wall-clock cap stopped the run)."""
+    checker = link.checker
     s0 = _states_of(checker)
     deadline = t0 + float(time_limit)
     fractions = list(slices) or [1.0]
@@ -418,40 +454,24 @@ def _solve(js: JointSpace, link: _Link, start, goals, planner, time_limit, range
                     all_goals.append(np.asarray(g, dtype=float))
                     goal_set.addState(js.new_state(g))
                 log.debug("planner: added %d goal states after slice %d", len(extra), k + 1)
-    planning_s = time.perf_counter() - t0
-    if link.exc is not None:
-        raise link.exc
+    return status, cap_hit
 
-    if not pdef.hasExactSolution():
-        approx = pdef.hasApproximateSolution()
-        log.debug("planner %s: %s after %.2f s", planner, status, planning_s)
-        return OmplOutcome("approximate" if approx else "timeout", None, -1, planning_s, 0.0,
-                           len(all_goals), _states_of(checker) - s0, cap_hit)
 
-    path = pdef.getSolutionPath()
-    t1 = time.perf_counter()
-    if simplify and path.getStateCount() > 2:
-        ps = og.PathSimplifier(si)
-        # Why not simplifyMax: its B-spline smoothing validates single states outside our
-        # batched edge checks. These two steps only use checkMotion on few edges; a fixed
-        # number of rounds (not a time) keeps the result independent of the machine's speed.
-        for _ in range(max(0, int(simplify_rounds))):
-            changed = ps.reduceVertices(path)
-            changed |= ps.collapseCloseVertices(path)
-            if link.exc is not None:
-                raise link.exc
-            interrupt.check()
-            if not changed:
-                break
-    simplification_s = time.perf_counter() - t1
-    q = np.array([js.to_q(s) for s in path.getStates()])
-    end_q = q[-1]
-    dists = [float(np.max(np.abs(_wrapdiff(g, end_q, js.n)))) for g in all_goals]
-    goal_index = int(np.argmin(dists)) if dists else -1
-    if goal_index >= 0 and dists[goal_index] < 1e-6:
-        q[-1] = all_goals[goal_index]  # exact goal values (no round trip through the state)
-    return OmplOutcome("exact", q, goal_index, planning_s, simplification_s, len(all_goals),
-                       _states_of(checker) - s0, cap_hit)
+def _simplify(js: JointSpace, link: _Link, path, rounds: int) -> None:
+    """Simplify an OMPL path in place: a fixed number of rounds of vertex reduction and
+    collapsing close vertices with the same validator."""
+    ps = og.PathSimplifier(js.si)
+    # Why not simplifyMax: its B-spline smoothing validates single states outside our
+    # batched edge checks. These two steps only use checkMotion on few edges; a fixed
+    # number of rounds (not a time) keeps the result independent of the machine's speed.
+    for _ in range(max(0, int(rounds))):
+        changed = ps.reduceVertices(path)
+        changed |= ps.collapseCloseVertices(path)
+        if link.exc is not None:
+            raise link.exc
+        interrupt.check()
+        if not changed:
+            break
 
 
 def _wrapdiff(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:

@@ -1,6 +1,6 @@
 """The plan's side of elastic stability: the start's branch, UNSTABLE_ONLY, the path's labels.
 
-Used by :func:`ctrplan.planning.plan.plan_to_target` (the validator's side is
+Used by the plan's stages (:mod:`ctrplan.planning.stages`; the validator's side is
 :mod:`ctrplan.planning.tracking`, the model's :mod:`ctrplan.shape.branches`).
 
 - :class:`Start` : a start configuration with the branch the robot is on there. Where the model
@@ -19,9 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ctrplan.errors import InputError
+from ctrplan.errors import ArgumentError, InputError
 from ctrplan.planning.validator import motion_mm
 from ctrplan.shape import branches as _br
+from ctrplan.shape.planning_model import planning_model
 
 #: accepted ``branch`` values of a start (plan.json's labels)
 BRANCHES = (-1, 0, 1)
@@ -37,8 +38,9 @@ class Start:
     branch: int | None = None
 
 
-def check_branch(value, source: str = "--branch", field: str = "") -> int | None:
-    """A branch label (-1, 0, +1, or None) or InputError."""
+def check_branch(value, source: str = "branch", field: str = "") -> int | None:
+    """A branch label (-1, 0, +1, or None) or InputError (naming the argument ``branch``, or
+    ``source`` and ``field``: a file's)."""
     if value is None:
         return None
     try:
@@ -46,8 +48,10 @@ def check_branch(value, source: str = "--branch", field: str = "") -> int | None
     except (TypeError, ValueError):
         b = None
     if b not in BRANCHES or isinstance(value, bool) or (isinstance(value, float) and value != b):
-        raise InputError(source, field, f"must be -1, 0 or +1 (the branch plan.json records), "
-                                        f"got {str(value)[:40]!r}")
+        why = f"must be -1, 0 or +1 (the branch plan.json records), got {str(value)[:40]!r}"
+        if source == "branch" and not field:
+            raise ArgumentError("branch", why)
+        raise InputError(source, field, why)
     return b
 
 
@@ -82,30 +86,31 @@ def start_from_plan(path: str | os.PathLike, robot) -> Start:
     return Start(q=q[-1].copy(), branch=branch)
 
 
-def resolve_start(model, q: np.ndarray, branch: int | None, what: str = "--start") -> np.ndarray:
+def resolve_start(model, q: np.ndarray, branch: int | None) -> np.ndarray:
     """The equilibrium (uz0 (n,), 1/mm) the robot is on at the start q (2n,) for a model that
     tracks branches. Where the model finds two stable equilibria, ``branch`` picks one (None
-    or 0: InputError, the plan does not guess); where it finds one, ``branch`` must be None or
-    0."""
-    first, second = _br.stable_equilibria(model, q[None])
+    or 0: ArgumentError naming ``start``, the plan does not guess); where it finds one,
+    ``branch`` must be None or 0."""
+    model = planning_model(model, fit=False)
+    first, second = model.stable_equilibria(q[None])
     if not np.all(np.isfinite(first)):
-        raise InputError(what, "", "the model finds no stable equilibrium at the start "
-                                   "configuration")
+        raise ArgumentError("start", "the model finds no stable equilibrium at the start "
+                                     "configuration")
     if not np.all(np.isfinite(second)):
         if branch not in (None, 0):
-            raise InputError(what, "", f"branch {branch:+d} given, but the model finds one stable "
-                                       f"equilibrium at the start (its branch is 0)")
+            raise ArgumentError("start", f"`branch` {branch:+d} given, but the model finds one "
+                                         f"stable equilibrium at the start (its branch is 0)")
         return first[0]
     labels = _br.label_of(np.concatenate([first, second]), np.concatenate([first, second]),
                           np.concatenate([second, first]), model.robot)
     if branch in (None, 0):
-        tips = _br.settle(model, np.repeat(q[None], 2, axis=0), np.concatenate([first, second]), 2)
+        tips = model.settle(np.repeat(q[None], 2, axis=0), np.concatenate([first, second]), 2)
         gap = float(np.linalg.norm(tips.shape.tip[0] - tips.shape.tip[1]))
-        raise InputError(what, "", f"the start is bistable (two stable equilibria, tips "
-                                   f"{gap:.1f} mm apart): the robot's shape depends on how it "
-                                   f"got there; give its branch (--branch +1 or -1, as plan.json "
-                                   f"records it), or --start with the plan.json that brought "
-                                   f"it there")
+        raise ArgumentError("start", f"the start is bistable (two stable equilibria, tips "
+                                     f"{gap:.1f} mm apart): the robot's shape depends on how it "
+                                     f"got there; give its `branch` (+1 or -1, as plan.json "
+                                     f"records it), or the `start` of the plan.json that "
+                                     f"brought it there")
     return (first if labels[0] == branch else second)[0]
 
 
@@ -129,8 +134,9 @@ def output_equilibria(model, path_states: np.ndarray, checked: np.ndarray, check
     x0 = np.full((2 * K, checked_uz.shape[1]), np.nan)
     x0[0::2] = checked_uz[j]
     d = None if direction is None else np.repeat(direction, 2, axis=0)
-    t = _br.solve(model, rows, points, d, uz_init=x0, chain=starts)[1::2]
-    labels = _br.branch_labels(model, path_states, t.uz0, direction)
+    model = planning_model(model, fit=False)
+    t = model.solve(rows, points, d, uz_init=x0, chain=starts)[1::2]
+    labels = model.branch_labels(path_states, t.uz0, direction)
     return t, labels
 
 

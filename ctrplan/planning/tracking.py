@@ -71,7 +71,8 @@ def _wrapped(q: np.ndarray, n: int) -> np.ndarray:
 class BranchTracker:
     """Equilibria of the states reached, and the margin (see the module docstring).
 
-    model : the (planning) model, one that :func:`~ctrplan.shape.branches.tracks_branches`.
+    model : the planning model (:class:`~ctrplan.shape.planning_model.PlanningModel`), one
+        that tracks branches.
     margin : smallest stability (det J) of a valid state.
     """
 
@@ -82,6 +83,9 @@ class BranchTracker:
     _anchors: list = field(default_factory=list)
 
     def __post_init__(self) -> None:
+        from ctrplan.shape.planning_model import planning_model
+
+        self.model = planning_model(self.model, fit=False)
         self.n = self.model.robot.n
 
     # ---------------------------------------------------------------- equilibria of states
@@ -121,9 +125,9 @@ class BranchTracker:
         """The model's own equilibria of q (B, 2n) (or those reached from ``uz0``), with
         ``shape.ok`` False below the margin."""
         if uz0 is None:
-            t = _br.solve(self.model, q, points, direction)
+            t = self.model.solve(q, points, direction)
         else:
-            t = _br.settle(self.model, q, uz0, points, direction)
+            t = self.model.settle(q, uz0, points, direction)
         good = self.margin_ok(t)
         self.counters.below_margin += int(np.sum(np.asarray(t.shape.ok, bool) & ~good))
         return replace(t, shape=replace(t.shape, ok=np.asarray(t.shape.ok, bool) & good))
@@ -132,7 +136,7 @@ class BranchTracker:
               direction=None) -> tuple[_br.Tracked, np.ndarray]:
         """Continue the rows of q (B, 2n) (chains begin at ``starts`` from ``uz_init``).
         Returns the tracked shapes (``ok`` False where failing) and why each row fails."""
-        t = _br.solve(self.model, q, points, direction, uz_init=uz_init, chain=starts)
+        t = self.model.solve(q, points, direction, uz_init=uz_init, chain=starts)
         why = np.full(len(q), "", dtype=object)
         with np.errstate(invalid="ignore"):
             low = t.continued & ~(t.stability >= self.margin)
@@ -190,8 +194,8 @@ class BranchTracker:
                 continue
             if first < 0 and (uz_end is not None or end_default):
                 ref = uz_end if uz_end is not None else \
-                    _br.solve(self.model, qs[-1:], 2, None if d is None else d[-1:]).uz0[0]
-                at = _br.settle(self.model, qs[-1:], ref[None], 2, None if d is None else d[-1:])
+                    self.model.solve(qs[-1:], 2, None if d is None else d[-1:]).uz0[0]
+                at = self.model.settle(qs[-1:], ref[None], 2, None if d is None else d[-1:])
                 if not (at.continued[0] and self.same(at.uz0[0], t.uz0[-1])):
                     self.counters.branch_mismatch += 1
                     first = k0 - 1
@@ -260,8 +264,8 @@ class BranchTracker:
             if wk[end] == "":
                 reg = self.lookup(path[-1]) if W > 1 else None
                 ref = reg if reg is not None else \
-                    _br.solve(self.model, states[-1:], 2, None if dd is None else dd[-1:]).uz0[0]
-                at = _br.settle(self.model, states[-1:], ref[None], 2, None if dd is None else dd[-1:])
+                    self.model.solve(states[-1:], 2, None if dd is None else dd[-1:]).uz0[0]
+                at = self.model.settle(states[-1:], ref[None], 2, None if dd is None else dd[-1:])
                 if not (at.continued[0] and self.same(at.uz0[0], tk.uz0[end])):
                     wk[end] = BRANCH
                     self.counters.branch_mismatch += 1

@@ -5,7 +5,7 @@ trustworthy backbone, and the backbone (swept by the tube radii) does not touch 
 Validity is a pure function of q: nothing here changes the world.
 
 Direction of motion. For a model whose shape depends on the direction of the last motion
-(``needs_direction(model)``: friction), validity stays a pure function of q and the motion: a
+(``PlanningModel.needs_direction``: friction), validity stays a pure function of q and the motion: a
 state on an edge is evaluated with the edge's direction (sign of ``q1 - q0`` per joint); where a
 joint's direction is unknown (a joint that does not move on the edge, a single state) both
 ``+1`` and ``-1`` are checked and the state is valid only if both are (the worst case of the
@@ -39,8 +39,9 @@ import numpy as np
 
 from ctrplan.planning.motion import check_motion, edge_direction, joint_delta
 from ctrplan.robot import Robot
-from ctrplan.shape.base import Shape, needs_direction
+from ctrplan.shape.base import Shape
 from ctrplan.shape.branches import DEFAULT_STABILITY_MARGIN
+from ctrplan.shape.planning_model import planning_model
 
 #: Slack (mm) on the joint constraints for interpolated states (round-off only).
 JOINT_TOL_MM = 1e-7
@@ -225,7 +226,9 @@ class BatchValidator:
     Parameters
     ----------
     robot : Robot
-    model : ShapeModel (``shape(q, points) -> Shape``)
+    model : a ShapeModel (``shape(q, points) -> Shape``), used as it is, or a
+        :class:`~ctrplan.shape.planning_model.PlanningModel` (what a planner passes: the model
+        fit for collision checking)
     world : CollisionWorld-like (``collides``, ``first_collision``, ``check_exact`` on a Shape in
         the robot base frame; shapes with ``ok=False`` count as colliding)
     config : ValidatorConfig
@@ -238,9 +241,10 @@ class BatchValidator:
     def __init__(self, robot: Robot, model, world, config: ValidatorConfig | None = None,
                  tracking=True):
         self.robot = robot
-        self.model = model
+        #: what planning needs from the model (a model given as it is: fit=False)
+        self.model = planning_model(model, fit=False)
         #: the model takes the direction of motion (then unknown directions are checked both ways)
-        self.directional = needs_direction(model)
+        self.directional = self.model.needs_direction
         self.world = world
         self.config = config or ValidatorConfig()
         #: the world of planning-time checks (states, edges): capsules grown by the motion floor
@@ -251,14 +255,13 @@ class BatchValidator:
         self.counters = Counters()
         self._cache: OrderedDict[bytes, bool] = OrderedDict()
         from ctrplan.planning.tracking import BranchTracker
-        from ctrplan.shape.branches import tracks_branches
 
         #: the equilibria of reached states and the stability margin, or None
         self.tracker: BranchTracker | None = None
         if isinstance(tracking, BranchTracker):
             self.tracker = tracking
-        elif tracking and tracks_branches(model):
-            self.tracker = BranchTracker(model, self.config.stability_margin)
+        elif tracking and self.model.tracks_branches:
+            self.tracker = BranchTracker(self.model, self.config.stability_margin)
 
     # ------------------------------------------------------------------ batches of states
     def joint_valid(self, q: np.ndarray) -> np.ndarray:
@@ -286,9 +289,7 @@ class BatchValidator:
             d = np.ascontiguousarray(np.broadcast_to(np.asarray(direction, dtype=np.int8), q.shape))
         if self.tracker is not None:
             return self.tracker.states(q, points, d, uz0).shape
-        if d is not None:
-            return self.model.shape(q, points=points, direction=d)
-        return self.model.shape(q, points=points)
+        return self.model.shape(q, points=points, direction=d)
 
     def anchor(self, q: np.ndarray) -> None:
         """Remember the model's own equilibria of states q (B, 2n) as the ones the robot is

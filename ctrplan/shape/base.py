@@ -70,7 +70,12 @@ class Shape:
 
 @runtime_checkable
 class ShapeModel(Protocol):
-    """Anything that turns configurations into backbones (physics or learned)."""
+    """Anything that turns configurations into backbones (physics or learned).
+
+    What planning needs beyond these four (the direction of motion, an error bound, a curvature
+    bound, ...) is optional; :func:`ctrplan.shape.planning_model.planning_model` reads it once
+    into a typed :class:`~ctrplan.shape.planning_model.PlanningModel` (its docstring lists the
+    optional attributes)."""
 
     robot: Robot
     name: str

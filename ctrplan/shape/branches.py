@@ -5,8 +5,9 @@ rotation, two stable equilibria at the same configuration (bistable). The physic
 on the one it is on as it moves (its equilibrium is continued: deformed continuously with the
 configuration) until that branch ends at a fold, where it snaps to the other. A shape model that
 picks an equilibrium per configuration cannot say which one the robot is in; this module is the
-small interface through which planning asks the model about motions instead. (It is meant to
-move, with the rest of the planning concerns of a model, into a typed planning model.)
+small interface through which the model is asked about motions instead. Planning asks it
+through :class:`~ctrplan.shape.planning_model.PlanningModel` (``tracks_branches``, ``solve``,
+``settle``, ``stable_equilibria``, ``branch_labels``), which calls the functions here.
 
 - :func:`tracks_branches` : whether a model's shape can depend on the motion's history at all:
   the torsionally compliant, unloaded mechanics (a :class:`~ctrplan.shape.physics.PhysicsModel`

@@ -60,7 +60,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ctrplan.errors import InputError
+from ctrplan.errors import ArgumentError, InputError
 from ctrplan.io import jsonable
 from ctrplan.robot import Robot, load_robot, robot_from_dict
 from ctrplan.shape import basis
@@ -530,7 +530,7 @@ class LearnedModel:
         pad = None
         if want_pad:
             fit = out if points > self.terms else self._net_points(q, self.terms + 1, d, nets)
-            pad = polynomial_pad(fit, points, self.terms)
+            pad = polynomial_pad(fit, points, self.terms, memo=_owned_memo(self, "pad_maps"))
         ok = None
         if rest is not None:
             if _needs_direction(rest) and d is not None:
@@ -893,12 +893,19 @@ def _bernstein_second_derivative(fit_points: int, points: int, terms: int):
     return idx, out
 
 
-_PAD_MAPS: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
+def _owned_memo(obj, name: str) -> dict | None:
+    """A dict kept on ``obj`` (freed with it; :mod:`ctrplan.objcache`), or None."""
+    from ctrplan.objcache import owned
+
+    cache = owned(obj)
+    return None if cache is None else cache.setdefault(name, {})
+
+
 #: allowance (mm) for the float32 round-off of evaluated backbone points in the padding
 POINT_ROUNDOFF_MM = 1e-4
 
 
-def polynomial_pad(fit: np.ndarray, points: int, terms: int) -> np.ndarray:
+def polynomial_pad(fit: np.ndarray, points: int, terms: int, memo: dict | None = None) -> np.ndarray:
     """(B, points - 1) exact bound (mm) of the distance between a polynomial backbone and its
     chords between ``points`` even samples (the learned model's continuity padding).
 
@@ -909,15 +916,18 @@ def polynomial_pad(fit: np.ndarray, points: int, terms: int) -> np.ndarray:
     direction), and ``|p''|`` is at most the largest norm of the Bernstein control points of
     ``p''`` on the segment (convex hull property): an exact polynomial bound, no sampling. This
     also bounds the curvature's effect without any curvature bound: the network may bend the
-    backbone beyond the tubes' precurvature."""
+    backbone beyond the tubes' precurvature. ``memo`` : a dict keeping the per-sampling maps
+    (the model's own, freed with it), or None."""
     fit = np.asarray(fit, dtype=float)
     B, mf, _ = fit.shape
     if terms < 2 or points < 2:
         return np.zeros((B, max(points - 1, 0)))
     key = (mf, int(points), int(terms))
-    hit = _PAD_MAPS.get(key)
-    if hit is None:
-        hit = _PAD_MAPS[key] = _bernstein_second_derivative(mf, points, terms)
+    hit = None if memo is None else memo.get(key)
+    if hit is None:   # (kept in ``memo``: the model's own, one entry per sampling it was asked for)
+        hit = _bernstein_second_derivative(mf, points, terms)
+        if memo is not None:
+            memo[key] = hit
     idx, A = hit
     k, r, mi = A.shape
     # one matrix product for the whole batch: (K (d + 1), mi) @ (mi, B * 3)
@@ -1111,7 +1121,7 @@ def default_model_for(robot: Robot | str, device: str | torch.device = "cpu") ->
     robot = load_robot(robot)
     p = shipped_model_path(robot.name)
     if p is None:
-        raise InputError("--model", "learned",
-                         f"no shipped learned model for robot {robot.name!r}; train one with "
-                         f"'ctrplan train --robot {robot.name} --out model.pt' and pass the file")
+        raise ArgumentError("model", f"no shipped learned model for robot {robot.name!r}; train "
+                                     f"one with 'ctrplan train --robot {robot.name} --out model.pt' "
+                                     f"and pass the file")
     return LearnedModel.load(p, robot=robot, device=device)

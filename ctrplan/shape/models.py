@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ctrplan.errors import InputError
+from ctrplan.errors import ArgumentError
 from ctrplan.robot import Robot, load_robot
 from ctrplan.shape.base import ShapeModel
 from ctrplan.shape.physics import PhysicsModel
@@ -34,7 +34,7 @@ def load_model(spec: str | os.PathLike | ShapeModel, robot: Robot | str) -> Shap
         return default_model_for(robot)
     path = Path(s)
     if not path.exists():
-        raise InputError("--model", "", f"{s!r} is not a model name ({', '.join(MODEL_NAMES)}) or an existing file")
+        raise ArgumentError("model", f"{s!r} is not a model name ({', '.join(MODEL_NAMES)}) or an existing file")
     check_model_file(path)
     from ctrplan.shape.effects import EffectModel, is_effect_model_file
 
