@@ -100,6 +100,7 @@ from ctrplan.measured import MeasuredData
 from ctrplan.robot import Robot
 from ctrplan.shape.base import direction_from_rows
 from ctrplan.shape.effects import EffectModel
+from ctrplan.split import HeldOut
 
 __all__ = ["diagnose", "DiagnoseReport", "DiagnoseStatus", "Step", "Candidate", "split_sweeps",
            "split_three", "row_ranges", "headline", "NUISANCES", "CHI3_MEAN", "MIN_SWEEPS_WHOLE",
@@ -112,7 +113,8 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
              screen_iter: int = 8, fit_iter: int = 25, refit_top: int = 3, max_effects: int = 6,
              max_remainder: float = 0.5, keep_gain: float = 0.02, min_configurations: int = 20,
              nuisances: bool = True, learned_residual: bool = True,
-             out: str | os.PathLike | None = None) -> DiagnoseReport:
+             out: str | os.PathLike | None = None,
+             heldout: HeldOut | None = None) -> DiagnoseReport:
     """Run the workflow (module docstring) and return a :class:`DiagnoseReport`.
 
     robot : Robot or shipped name / YAML path. data : MeasuredData or measured CSV path.
@@ -124,15 +126,19 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     the held-out error, see :mod:`ctrplan.calibration.residual`).
     out : when given, write report.json, report.md, plots and calibrated model files there
     (as a set: see :func:`ctrplan.calibration.report.write_report`).
+    heldout : the rows' split made beforehand by :func:`ctrplan.split.split` (``diagnose
+    --best`` passes the one it compares its candidates on); default: split here with
+    ``holdout`` and ``seed``.
     """
     t0 = time.perf_counter()
     cfg = SelectConfig(bic_threshold, min_gain, keep_gain, ambiguity_bic, screen_iter, fit_iter,
                        refit_top, max_effects)
     inp = check_inputs(robot, data, base, candidates)
     robot, data = inp.robot, inp.data
-    split = split_rows(data, holdout, seed)
+    split = split_rows(data, holdout, seed, heldout)
     # selection problem: parameters fitted on the fit rows, effects chosen on validation rows
-    prob = Problem(EffectModel(robot, inp.base), data, split.fit, split.val)
+    # (of a long recording, every k-th: see selection_rows)
+    prob = Problem(EffectModel(robot, inp.base), data, *selection_rows(split))
     base_score = prob.score({}, k=0)
     base_pred = prob.predict_many([{}])[0]
     evd = ev.gather(robot, data, split, base_pred, inp.candidates, min_configurations)
@@ -150,7 +156,8 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
         sel = trimmed
         fit = final_fit(prob, split.train, split.test, sel.effects, sel.free, fit_iter, base_pred)
     ev_after = ev.collect(robot, data.q, fit.pred[:, -1], data.tip, split.sweeps, data.time,
-                          split.ordered, noise=evd.before["noise"]) if fit.effects else evd.before
+                          split.ordered, noise=evd.before["noise"],
+                          rows=split.train) if fit.effects else evd.before
     if nuisances and not evd.insufficient:
         nuis = screen_nuisances(robot, prob, data, split, fit.pred, base_pred, fit.effects,
                                 sel.named, min_gain)
@@ -164,7 +171,7 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
         from ctrplan.calibration.residual import learned_residual as _lr
 
         learned = _lr(robot, data.q, split.sweeps, data.tip, fit.pred[:, -1], split.train,
-                      split.test, split.ordered)
+                      split.test, split.ordered, groups=split.units)
     settings = _settings(holdout, seed, max_remainder, cfg, inp, split, evd, sel, prob.evals)
     rep = _report(inp, split, evd, sel, fit, nuis, verdict, base_pred, ev_after, settings,
                   learned)
@@ -174,6 +181,31 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
 
         write_report(rep, data, out, base_pred=base_pred, final_pred=fit.pred, test=split.test)
     return rep
+
+
+#: the selection (screens, forward and joint models) fits at most about this many fit rows: a
+#: longer recording's fit and validation rows are thinned to every k-th row for it (its rows a
+#: few apart are nearly copies of each other: the motion's autocorrelation length is tens of
+#: rows, so thinning loses little of what the rows tell), and only the final fit uses them all.
+#: 1,300-row recordings (650 fit rows) are not thinned; 5,000 rows are thinned by 2-3, which
+#: keeps diagnose within its time budget (benchmarks/bench_diagnose.py, ``real_5000``)
+SELECT_FIT_ROWS = 1200
+
+
+def selection_rows(split: Split) -> tuple[np.ndarray, np.ndarray]:
+    """(fit, validation) rows of the selection: every k-th fit and validation row, k the
+    smallest step that leaves at most :data:`SELECT_FIT_ROWS` fit rows (k = 1 for shorter
+    data)."""
+    k = max(1, -(-int(split.fit.sum()) // SELECT_FIT_ROWS))
+    if k == 1:
+        return split.fit, split.val
+    out = []
+    for m in (split.fit, split.val):
+        idx = np.flatnonzero(m)[::k]
+        t = np.zeros_like(m)
+        t[idx] = True
+        out.append(t)
+    return out[0], out[1]
 
 
 def _settings(holdout: float, seed: int, max_remainder: float, cfg: SelectConfig, inp: Inputs,
@@ -186,6 +218,7 @@ def _settings(holdout: float, seed: int, max_remainder: float, cfg: SelectConfig
             "keep_gain": cfg.keep_gain, "ambiguity_bic": cfg.ambiguity_bic,
             "max_remainder": max_remainder, "candidates": list(evd.candidates),
             "rows": len(data), "fit_rows": int(split.fit.sum()),
+            "selection_fit_rows": int(selection_rows(split)[0].sum()),
             "validation_rows": int(split.val.sum()), "test_rows": int(split.test.sum()),
             "train_rows": int(split.train.sum()), "shapes_measured": data.points is not None,
             "rows_in_order_of_motion": split.ordered,
