@@ -61,6 +61,7 @@ decisions:
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from collections.abc import Sequence
@@ -69,6 +70,8 @@ import numpy as np
 
 from ctrplan.calibration import evidence as ev
 from ctrplan.calibration.binned import residual_diagnostics
+from ctrplan.calibration.confound import confounded
+from ctrplan.calibration.confound import describe as describe_confounded
 from ctrplan.calibration.data import (
     MIN_SWEEPS_WHOLE,
     Inputs,
@@ -93,14 +96,17 @@ from ctrplan.calibration.select import (
     Selection,
     drop_partials_at_bounds,
     name_by_signature,
+    no_worse_than_base,
     select,
 )
-from ctrplan.calibration.verdict import Verdict, conclude, errors
+from ctrplan.calibration.verdict import HeldoutChoice, Verdict, conclude, errors, heldout_choice
 from ctrplan.measured import MeasuredData
 from ctrplan.robot import Robot
 from ctrplan.shape.base import direction_from_rows
 from ctrplan.shape.effects import EffectModel
 from ctrplan.split import HeldOut
+
+log = logging.getLogger("ctrplan")
 
 __all__ = ["diagnose", "DiagnoseReport", "DiagnoseStatus", "Step", "Candidate", "split_sweeps",
            "split_three", "row_ranges", "headline", "NUISANCES", "CHI3_MEAN", "MIN_SWEEPS_WHOLE",
@@ -143,18 +149,9 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     base_pred = prob.predict_many([{}])[0]
     evd = ev.gather(robot, data, split, base_pred, inp.candidates, min_configurations)
     prob.robust = evd.robust_scale
-    if evd.insufficient:
-        sel = Selection({}, base_score, {}, [], {})
-    else:
-        sel = select(prob, robot, inp.base, evd.candidates, cfg, evd.e_noise, base_score)
-        if split.ordered:
-            sel = name_by_signature(prob, sel, split.train,
-                                    direction_from_rows(data.q, split.sweeps), evd.noise_sd, cfg)
-    fit = final_fit(prob, split.train, split.test, sel.effects, sel.free, fit_iter, base_pred)
-    trimmed = drop_partials_at_bounds(prob, robot, inp.base, sel, fit.effects, cfg)
-    if trimmed is not None:
-        sel = trimmed
-        fit = final_fit(prob, split.train, split.test, sel.effects, sel.free, fit_iter, base_pred)
+    sel, fit = _select_and_fit(prob, inp, split, evd, cfg, base_score, base_pred)
+    log.info("diagnose: final fit done (%.0f s); nuisances, conclusion and report",
+             time.perf_counter() - t0)
     ev_after = ev.collect(robot, data.q, fit.pred[:, -1], data.tip, split.sweeps, data.time,
                           split.ordered, noise=evd.before["noise"],
                           rows=split.train) if fit.effects else evd.before
@@ -163,7 +160,10 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
                                 sel.named, min_gain)
     else:
         nuis = Nuisances([], [], sel.named)
-    err = errors(prob.errors(base_pred), fit, split.val, split.test, evd.noise_sd)
+    base_err = prob.errors(base_pred)
+    choice = heldout_choice(base_err, fit.err, split.test, split.units)
+    err = errors(base_err, fit, split.val, split.test, evd.noise_sd, choice.err)
+    conf = confounded(prob, fit.effects, sel.free, prob.train) if not evd.insufficient else []
     verdict = conclude(robot, inp.base, sel, nuis, fit, err, ev_after, evd.insufficient,
                        max_remainder, split.train, split.test)
     learned = None
@@ -175,6 +175,9 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     settings = _settings(holdout, seed, max_remainder, cfg, inp, split, evd, sel, prob.evals)
     rep = _report(inp, split, evd, sel, fit, nuis, verdict, base_pred, ev_after, settings,
                   learned)
+    rep.confounded = conf
+    rep.warnings += describe_confounded(conf)
+    _apply_choice(rep, choice, fit)
     rep.elapsed_s = time.perf_counter() - t0
     if out is not None:
         from ctrplan.calibration.report import write_report
@@ -206,6 +209,49 @@ def selection_rows(split: Split) -> tuple[np.ndarray, np.ndarray]:
         t[idx] = True
         out.append(t)
     return out[0], out[1]
+
+
+def _select_and_fit(prob: Problem, inp: Inputs, split: Split, evd: ev.Evidence,
+                    cfg: SelectConfig, base_score, base_pred: np.ndarray
+                    ) -> tuple[Selection, FinalFit]:
+    """Stages 3 and 4: the selection (with friction's signature and the fallback to a model no
+    worse than the base on the validation rows), the final fit on fit + validation rows, and
+    the partial effects at a bound left out."""
+    robot, data = inp.robot, inp.data
+    if evd.insufficient:
+        sel = Selection({}, base_score, {}, [], {})
+    else:
+        sel = select(prob, robot, inp.base, evd.candidates, cfg, evd.e_noise, base_score)
+        if split.ordered:
+            sel = name_by_signature(prob, sel, split.train,
+                                    direction_from_rows(data.q, split.sweeps), evd.noise_sd, cfg)
+    sel = no_worse_than_base(prob, sel)
+    fit = final_fit(prob, split.train, split.test, sel.effects, sel.free, cfg.fit_iter,
+                    base_pred)
+    trimmed = drop_partials_at_bounds(prob, robot, inp.base, sel, fit.effects, cfg)
+    if trimmed is not None:
+        sel = trimmed
+        fit = final_fit(prob, split.train, split.test, sel.effects, sel.free, cfg.fit_iter,
+                        base_pred)
+    return sel, fit
+
+
+def _apply_choice(rep: DiagnoseReport, choice: HeldoutChoice, fit: FinalFit) -> None:
+    """The held-out comparison in the report; the base model as the default output (the fit
+    kept as ``fit_effects``, written as calibrated_fit.yaml) when the fit is worse than the
+    base on the test rows' mean or p99."""
+    rep.heldout_comparison = choice.info
+    rep.fit_effects = fit.effects
+    if choice.output == "fit" or not fit.effects:
+        return
+    rep.model_effects = {}
+    b, f = choice.info["base"], choice.info["fit"]
+    rep.warnings.append(
+        f"the fitted model ({', '.join(fit.effects)}) is not the default output: on the test "
+        f"rows its tip error is mean {f['mean_mm']:.3f} mm, p99 {f['p99_mm']:.3f} mm against "
+        f"the base model's {b['mean_mm']:.3f} / {b['p99_mm']:.3f} mm (a model worse than the "
+        "base on the mean or the tail is not the default); calibrated.yaml is the base model "
+        "with the error bound measured, the fit is in calibrated_fit.yaml")
 
 
 def _settings(holdout: float, seed: int, max_remainder: float, cfg: SelectConfig, inp: Inputs,
@@ -255,7 +301,7 @@ def _report(inp: Inputs, split: Split, evd: ev.Evidence, sel: Selection, fit: Fi
         learned_residual=learned, partial_values=verdict.partial_values,
         outliers=verdict.outliers,
         nuisance_tests=[{k: v for k, v in o.items() if k != "features"} for o in nuis.tests],
-        measured_insertion=measured,
+        measured_insertion=measured, error_quantiles_before=verdict.quantiles_before,
     )
 
 

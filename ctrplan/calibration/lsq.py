@@ -180,7 +180,7 @@ class Problem:
         if start:
             for eff, vals in start.items():
                 base.setdefault(eff, {}).update(vals)
-        scale = np.array([_scale(p) for _, p in specs])
+        scale = np.array([param_scale(p) for _, p in specs])
         offv = np.array([p.off for _, p in specs])
         lo = (np.array([p.lo for _, p in specs]) - offv) / scale
         hi = (np.array([p.hi for _, p in specs]) - offv) / scale
@@ -292,7 +292,7 @@ def _same_mechanics(a: Mapping[str, Mapping[str, float]], b: Mapping[str, Mappin
     return ka == kb and all(a[k] == b[k] for k in ka)
 
 
-def _scale(p: Param) -> float:
+def param_scale(p: Param) -> float:
     """A typical magnitude of a parameter (the unit of the optimiser's variable)."""
     # m/s^2 (load: gravity): light tubes sag little per m/s^2; a finer finite-difference step
     # at load off would compare the loaded kernel with the unloaded one, whose discretisations
