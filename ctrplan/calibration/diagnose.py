@@ -239,9 +239,15 @@ def _select_and_fit(prob: Problem, inp: Inputs, split: Split, evd: ev.Evidence,
 def _apply_choice(rep: DiagnoseReport, choice: HeldoutChoice, fit: FinalFit) -> None:
     """The held-out comparison in the report; the base model as the default output (the fit
     kept as ``fit_effects``, written as calibrated_fit.yaml) when the fit is worse than the
-    base on the test rows' mean or p99."""
+    base on the test rows' mean or p99 (the report's after-errors are then the base's)."""
     rep.heldout_comparison = choice.info
     rep.fit_effects = fit.effects
+    if not choice.info["stable"] and fit.effects:
+        rep.warnings.append(
+            "the fitted model and the base model compare differently on the two halves of the "
+            f"test units (no worse on the mean and p99: {choice.info['per_fold'][0]} on one, "
+            f"{choice.info['per_fold'][1]} on the other): the choice of the default output "
+            "rests on few units; record more sweeps")
     if choice.output == "fit" or not fit.effects:
         return
     rep.model_effects = {}

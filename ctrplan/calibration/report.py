@@ -137,10 +137,10 @@ def _heldout_md(rep: DiagnoseReport) -> list[str]:
                         f"{sp['autocorrelation_rows']} rows)" if sp.get("kind") == "blocks"
                         else "") + ".")
     if hc:
-        b, f, c = hc["base"], hc["fit"], hc["crossfit"]
+        b, f = hc["base"], hc["fit"]
         lines += ["", "| model on the test rows | mean (mm) | p99 (mm) | max (mm) |",
                   "|---|---|---|---|"]
-        for name, x in (("base", b), ("fitted", f), ("reported (cross-fitted)", c)):
+        for name, x in (("base", b), ("fitted", f)):
             lines.append(f"| {name} | {_fmt(x['mean_mm'])} | {_fmt(x['p99_mm'])} | "
                          f"{_fmt(x['max_mm'])} |")
         lines += ["", f"Default output: the {'fitted' if hc['output'] == 'fit' else 'base'} "
