@@ -177,6 +177,12 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
                   learned)
     rep.confounded = conf
     rep.warnings += describe_confounded(conf)
+    named_conf = [c for c in conf if set(c["effects"]) & set(rep.effects)]
+    if named_conf:
+        # the evidence singled one effect out by its fit; the conclusion says what it is
+        # confounded with (report.json ``confounded``)
+        rep.conclusion += "; " + "; ".join(
+            f"{a} confounded with {b}" for a, b in (c["effects"] for c in named_conf))
     _apply_choice(rep, choice, fit)
     rep.elapsed_s = time.perf_counter() - t0
     if out is not None:
