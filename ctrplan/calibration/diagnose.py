@@ -28,12 +28,15 @@ decisions:
 1. Data check: enough distinct configurations, a measurable noise floor below what any effect
    can change, an error the vocabulary can reach at all. Otherwise the report says that the data
    cannot support a diagnosis and what experiment would (status ``insufficient data``).
-2. Split (:func:`split_three`): fit / validation / test rows. With ``MIN_SWEEPS_WHOLE`` sweeps
-   or more, whole sweeps; with fewer, contiguous blocks of every sweep (named in the report,
-   with a warning that they neighbour fit rows). Parameters are fitted on the fit rows, effects
-   and forms chosen on the validation rows; the test rows choose nothing and give the reported
-   errors. The model is always evaluated on all rows in order (friction depends on the history).
-3. Evidence from the data alone (:mod:`ctrplan.calibration.evidence`).
+2. Split (the one held-out splitter, :func:`ctrplan.split.split`): fit / validation / test
+   rows. With ``MIN_SWEEPS_WHOLE`` sweeps or more, whole sweeps; with fewer, contiguous blocks
+   of every sweep, the rows within the motion's autocorrelation length of a test block left out
+   (the report says how many independent test blocks the numbers rest on). Parameters are
+   fitted on the fit rows, effects and forms chosen on the validation rows; the test rows make
+   one choice only (step 9) and give the reported errors. Friction's history comes from all
+   rows in order (the commanded motion).
+3. Evidence from the data alone (:mod:`ctrplan.calibration.evidence`), on the fit and
+   validation rows only.
 4. Forward selection (:func:`ctrplan.calibration.select.forward`): every form of every
    candidate effect is fitted alone on top of the current model (robust soft-L1 loss, see :meth:`Problem.fit`); the leading ones are
    refitted jointly with the effects already in. A candidate enters the model when it lowers the
@@ -57,6 +60,17 @@ decisions:
    validation error above the noise floor, nothing is named and ``unexplained`` says what the
    residual still correlates with and how much is left; ``unexplained`` is also reported
    (without un-naming) whenever the residual stays clearly above the noise floor.
+9. Never worse than the base: before the final fit, a selected model worse than the base on
+   the validation mean or p99 falls back to the largest smaller model (or the base) that is not
+   (:func:`ctrplan.calibration.select.no_worse_than_base`); after it, the fitted model is the
+   default output only when its test-row mean and p99 are no worse than the base's
+   (:func:`ctrplan.calibration.verdict.heldout_choice`; otherwise the base model, with the fit
+   in ``calibrated_fit.yaml``). Effects the rows cannot tell apart are reported as
+   ``confounded`` (:mod:`ctrplan.calibration.confound`).
+
+Long recordings: the selection fits every k-th fit and validation row (at most about
+:data:`SELECT_FIT_ROWS` fit rows); the final fit uses them all. Progress and an estimate of
+the time left are logged (stderr, INFO).
 """
 
 from __future__ import annotations

@@ -2,7 +2,9 @@
 
 Stage 2 of the calibration pipeline (:mod:`ctrplan.calibration.diagnose`): data-only
 statistical tests whose results feed the data check, the screening and the conclusion (the
-descriptive binned statistics of the report are :mod:`ctrplan.calibration.binned`).
+descriptive binned statistics of the report are :mod:`ctrplan.calibration.binned`). They run on
+the fit and validation rows only (:func:`gather`, ``collect(rows=...)``): the test rows stay
+untouched; directions of motion come from all rows in order (the commanded history).
 
 Every test works on the tip residual ``r = predicted - measured`` (B, 3) of a model and on the
 configurations, directions of motion and times of the rows:

@@ -16,6 +16,11 @@ Signature (:func:`name_by_signature`): friction kept in the model below the shar
 when the residual without it shows significant hysteresis that it removes (the one effect
 whose shapes depend on the direction of motion).
 
+Never worse than the base (:func:`no_worse_than_base`): the selected model, fitted on the fit
+rows, is used only when its validation mean and p99 tip error are no worse than the base
+model's; otherwise the largest smaller model the selection passed through that is no worse, or
+the base.
+
 Parameters are fitted on the fit rows (``prob.train``), effects and forms chosen on the
 validation rows (``prob.test``).
 """

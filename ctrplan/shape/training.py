@@ -627,8 +627,9 @@ def _concat(a: ShapeData, b: ShapeData) -> ShapeData:
 
 #: ``variant="auto"``: train the candidate variants and keep the best on the validation sweeps
 AUTO = "auto"
-SELECTION_METRIC = ("mean over the validation rows (whole sweeps when the data has sweep ids; "
-                    "not used to fit the weights) of the max deviation along the shaft, mm")
+SELECTION_METRIC = ("mean over the validation rows (whole sweeps, or blocks of a continuous "
+                    "recording, by the one held-out splitter; not used to fit the weights) of "
+                    "the max deviation along the shaft, mm")
 
 
 def has_motion(data: ShapeData) -> bool:
@@ -792,7 +793,8 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
     ones over ``residual_base``, default physics) and keep the best on the validation part
     (:func:`select_variant`); the table is stored in the metadata under ``selection``.
 
-    Each data set is split 80/10/10 (seeded; measured data with sweeps by whole sweeps);
+    Each data set is split 80/10/10 (seeded; by :func:`split`: measured data by whole sweeps
+    or blocks with gaps);
     validation drives early stopping, the test parts are evaluated and stored in the metadata,
     with the error quantiles and the training domain of the last data set trained on.
     ``base``: start from this trained model instead of pre-training (its normalisation is
@@ -923,7 +925,7 @@ def sweep(robot: Robot | str, sim: ShapeData, real: ShapeData,
           variants: Sequence[str] = VARIANTS, refit: bool = False) -> SweepResult:
     """Sim-only, and Real-only and Sim+Real for each variant (pure, direction-aware, residual,
     residual + direction), for each architecture, all evaluated on the same held-out part of
-    ``real`` (whole sweeps when it has sweep ids), next to the physics model. Residual
+    ``real`` (:func:`split`: whole sweeps, or blocks with gaps), next to the physics model. Residual
     variants: Real-only learns the difference to physics, Sim+Real the difference to the
     Sim-only model. Returns a :class:`SweepResult` (per-configuration errors for the plots)."""
     from ctrplan.shape.physics import PhysicsModel
