@@ -132,3 +132,28 @@ def test_selection_progress_says_the_time_so_far_and_an_estimate(caplog):
         _progress(2, 5, 3, clock)
     msg = caplog.records[-1].getMessage()
     assert "step 3" in msg and "30 s so far" in msg and "about 45 s more" in msg
+
+
+def test_glitches_are_the_rows_whose_measurement_jumped():
+    """A smooth residual (a slowly varying model error along the motion) plus noise, and
+    glitches of 3-15 mm on known rows: exactly those rows are flagged, in every role's own runs
+    (rows of another role are never used as neighbours)."""
+    from ctrplan.calibration.evidence import glitches
+
+    rng = np.random.default_rng(2)
+    n = 1200
+    t = np.linspace(0, 6 * np.pi, n)
+    res = np.stack([3 * np.sin(t), 2 * np.cos(0.7 * t), np.sin(0.3 * t)], axis=1)
+    res += rng.normal(0, 0.08, res.shape)
+    bad = np.sort(rng.choice(np.arange(5, n - 5), 24, replace=False))
+    v = rng.normal(size=(24, 3))
+    res[bad] += v / np.linalg.norm(v, axis=1, keepdims=True) * rng.uniform(3, 15, (24, 1))
+    sweep = np.zeros(n, dtype=object)
+    rows = np.ones(n, dtype=bool)
+    got = np.flatnonzero(glitches(res, sweep, rows))
+    edge = set(bad[np.isin(bad + 1, bad) | np.isin(bad - 1, bad)])   # adjacent pairs: ambiguous
+    assert set(bad) - edge <= set(got) and set(got) <= set(bad)
+    half = np.arange(n) < n // 2
+    only = glitches(res, sweep, half)
+    assert not only[~half].any() and set(np.flatnonzero(only)) <= set(bad)
+    assert not glitches(res - 0.0, sweep, np.zeros(n, dtype=bool)).any()

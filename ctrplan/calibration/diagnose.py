@@ -163,7 +163,8 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     base_pred = prob.predict_many([{}])[0]
     evd = ev.gather(robot, data, split, base_pred, inp.candidates, min_configurations)
     prob.robust = evd.robust_scale
-    sel, fit = _select_and_fit(prob, inp, split, evd, cfg, base_score, base_pred)
+    glitch = _glitches(data, split, base_pred)
+    sel, fit = _select_and_fit(prob, inp, split, evd, cfg, base_score, base_pred, glitch)
     log.info("diagnose: final fit done (%.0f s); nuisances, conclusion and report",
              time.perf_counter() - t0)
     ev_after = ev.collect(robot, data.q, fit.pred[:, -1], data.tip, split.sweeps, data.time,
@@ -175,7 +176,7 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     else:
         nuis = Nuisances([], [], sel.named)
     base_err = prob.errors(base_pred)
-    choice = heldout_choice(base_err, fit.err, split.test, split.units)
+    choice = heldout_choice(base_err, fit.err, split.test, split.units, glitch)
     err = errors(base_err, fit, split.val, split.test, evd.noise_sd, choice.err)
     conf = confounded(prob, fit.effects, sel.free, prob.train) if not evd.insufficient else []
     verdict = conclude(robot, inp.base, sel, nuis, fit, err, ev_after, evd.insufficient,
@@ -231,8 +232,18 @@ def selection_rows(split: Split) -> tuple[np.ndarray, np.ndarray]:
     return out[0], out[1]
 
 
+def _glitches(data: MeasuredData, split: Split, base_pred: np.ndarray) -> np.ndarray:
+    """(B,) rows of the validation and the test rows whose measurement jumped
+    (:func:`ctrplan.calibration.evidence.glitches`, each role on its own runs of rows); none
+    for rows that are independent samples."""
+    if not split.ordered:
+        return np.zeros(len(data), dtype=bool)
+    res = base_pred[:, -1] - data.tip
+    return ev.glitches(res, split.sweeps, split.val) | ev.glitches(res, split.sweeps, split.test)
+
+
 def _select_and_fit(prob: Problem, inp: Inputs, split: Split, evd: ev.Evidence,
-                    cfg: SelectConfig, base_score, base_pred: np.ndarray
+                    cfg: SelectConfig, base_score, base_pred: np.ndarray, glitch: np.ndarray
                     ) -> tuple[Selection, FinalFit]:
     """Stages 3 and 4: the selection (with friction's signature and the fallback to a model no
     worse than the base on the validation rows), the final fit on fit + validation rows, and
@@ -245,7 +256,7 @@ def _select_and_fit(prob: Problem, inp: Inputs, split: Split, evd: ev.Evidence,
         if split.ordered:
             sel = name_by_signature(prob, sel, split.train,
                                     direction_from_rows(data.q, split.sweeps), evd.noise_sd, cfg)
-    sel = no_worse_than_base(prob, sel)
+    sel = no_worse_than_base(prob, sel, glitch)
     fit = final_fit(prob, split.train, split.test, sel.effects, sel.free, cfg.fit_iter,
                     base_pred)
     trimmed = drop_partials_at_bounds(prob, robot, inp.base, sel, fit.effects, cfg)

@@ -412,6 +412,38 @@ def collect(robot: Robot, q: np.ndarray, pred_tip: np.ndarray, meas_tip: np.ndar
     }
 
 
+#: a row is a measurement glitch when its residual jumps from the mean of its two neighbours'
+#: by more than this many robust sd of such jumps (and by more than its neighbours do)
+GLITCH_SD = 8.0
+
+
+def glitches(res: np.ndarray, sweep: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(B,) bool: rows of ``rows`` whose measurement jumped (a tracker glitch), from the
+    residual ``res`` (B, 3) of any smooth model (the base model's): the second difference
+    ``r_k - (r_(k-1) + r_(k+1)) / 2`` along contiguous runs of ``rows`` within a sweep exceeds
+    :data:`GLITCH_SD` robust sd (the MAD of those differences, per axis) and is the largest of
+    its neighbours'. A smooth model error barely changes from one row to the next of a slow
+    motion; a glitch of a few mm stands out by orders of magnitude. Rows at the ends of a run,
+    and unordered data (pass ``rows`` all False), are never flagged."""
+    res = np.asarray(res, dtype=float)
+    out = np.zeros(len(res), dtype=bool)
+    runs = contiguous_runs(np.asarray(rows, dtype=bool), sweep)
+    inner = np.zeros(len(res), dtype=bool)
+    inner[1:-1] = (runs[1:-1] >= 0) & (runs[:-2] == runs[1:-1]) & (runs[2:] == runs[1:-1])
+    idx = np.flatnonzero(inner & np.all(np.isfinite(res), axis=1))
+    if len(idx) < 10:
+        return out
+    d = res[idx] - 0.5 * (res[idx - 1] + res[idx + 1])
+    d = np.where(np.isfinite(d), d, 0.0)
+    scale = np.median(np.abs(d - np.median(d, axis=0)), axis=0) * 1.4826
+    size = np.linalg.norm(d / np.maximum(scale, 1e-9), axis=1)
+    big = np.zeros(len(res))
+    big[idx] = size
+    peak = (big[idx] >= big[idx - 1]) & (big[idx] >= big[idx + 1])
+    out[idx[(size > GLITCH_SD) & peak]] = True
+    return out
+
+
 def contiguous_runs(rows: np.ndarray, sweep: np.ndarray) -> np.ndarray:
     """(B,) int label of the contiguous run of selected ``rows`` within a sweep each row is in
     (a new run after every unselected row and at every sweep change; unselected rows: -1)."""

@@ -203,18 +203,23 @@ def drop_partials_at_bounds(prob: Problem, robot: Robot, base: str, sel: Selecti
 TAIL_PERCENTILE = 99.0
 
 
-def no_worse_than_base(prob: Problem, sel: Selection) -> Selection:
+def no_worse_than_base(prob: Problem, sel: Selection,
+                       glitch: np.ndarray | None = None) -> Selection:
     """The selection, or the largest of the smaller models it passed through
     (``sel.nested``), or the base model: the first whose validation mean AND p99
     (:data:`TAIL_PERCENTILE`) tip error are no worse than the base model's, every model fitted
-    on the fit rows (the test rows choose nothing). The check is in ``settings["tail_check"]``;
-    a fallback is said in the warnings (which effects left and why)."""
+    on the fit rows (the test rows choose nothing). ``glitch`` (B,) bool: rows whose
+    measurement jumped (:func:`ctrplan.calibration.evidence.glitches`), left out of the
+    comparison (a tracker glitch of several mm sets the p99 of any model, at random). The check
+    is in ``settings["tail_check"]``; a fallback is said in the warnings (which effects left
+    and why)."""
     if not sel.effects:
         return sel
     models = list(sel.nested)
     if not models or models[-1][0] != sel.effects:
         models.append((sel.effects, sel.free))
-    errs = [prob.errors(p)[prob.test]
+    rows = prob.test & ~glitch if glitch is not None else prob.test
+    errs = [prob.errors(p)[rows]
             for p in prob.predict_many([{}] + [m[0] for m in models], prob.test)]
     stats = [(float(e.mean()), float(np.percentile(e, TAIL_PERCENTILE)), float(e.max()))
              for e in errs]
@@ -222,7 +227,8 @@ def no_worse_than_base(prob: Problem, sel: Selection) -> Selection:
     ok = [i for i, st in enumerate(stats[1:]) if st[0] <= b[0] and st[1] <= b[1]]
     pick = max(ok) if ok else -1
     last = stats[-1]
-    check = {"percentile": TAIL_PERCENTILE, "rows": int(prob.test.sum()),
+    check = {"percentile": TAIL_PERCENTILE, "rows": int(rows.sum()),
+             "glitch_rows_left_out": int(prob.test.sum() - rows.sum()),
              "validation_mean_mm": [b[0], last[0]], "validation_p99_mm": [b[1], last[1]],
              "validation_max_mm": [b[2], last[2]], "passed": pick == len(models) - 1}
     settings = {**sel.settings, "tail_check": check}

@@ -92,14 +92,19 @@ def _no_worse(fit_e: np.ndarray, base_e: np.ndarray) -> bool:
 
 
 def heldout_choice(base_err: np.ndarray, fit_err: np.ndarray, test: np.ndarray,
-                   units: np.ndarray) -> HeldoutChoice:
+                   units: np.ndarray, glitch: np.ndarray | None = None) -> HeldoutChoice:
     """Never worse than the base on the held-out rows: the fitted model is the default output
     when its test-row mean AND p99 tip error are no worse than the base model's, otherwise the
     base model is (a choice between two fixed models, the fit's parameters and effects having
     been chosen without these rows; the report gives both models' numbers). The same rule on
     each of two folds of the test units (sweeps or blocks, alternating; one unit: its halves)
     says whether the choice holds across them (``stable``); where it does not, the warnings
-    say so."""
+    say so. ``glitch`` (B,) bool: rows whose measurement jumped, left out of the comparison
+    (not of the reported errors): a tracker glitch of several mm sets the p99 of either model,
+    at random."""
+    full = np.flatnonzero(test)
+    if glitch is not None:
+        test = test & ~glitch
     idx = np.flatnonzero(test)
     u = np.asarray(units)[idx]
     names = list(dict.fromkeys(u.tolist()))
@@ -115,6 +120,7 @@ def heldout_choice(base_err: np.ndarray, fit_err: np.ndarray, test: np.ndarray,
                     f"p{TAIL_PERCENTILE:g} tip error are no worse than the base model's",
             "output": output, "per_fold": per_fold, "stable": per_fold[0] == per_fold[1],
             "folds": [idx[fold == f].tolist() for f in (0, 1)],
+            "glitch_rows_left_out": [int(i) + 1 for i in sorted(set(full) - set(idx))],
             "base": _summary(be), "fit": _summary(fe)}
     return HeldoutChoice(output, err, info)
 
