@@ -95,6 +95,12 @@ def study(seed: int = 0, validation_seed: int | None = None, out: Path | None = 
             "effects": rep.effects, "forms": rep.forms, "headline": rep.headline(),
             "traditional_mean_mm": float(et_all.mean()), "improved_mean_mm": float(ei_all.mean()),
             "traditional_max_mm": float(et_all.max()), "improved_max_mm": float(ei_all.max()),
+            "traditional_p99_mm": float(np.percentile(et_all, 99)),
+            "improved_p99_mm": float(np.percentile(ei_all, 99)),
+            # the diagnosis's own held-out rows (test sweeps of the calibration run)
+            "heldout_mean_mm": [rep.error_before_mm, rep.error_after_mm],
+            "heldout_p99_mm": [(rep.error_quantiles_before or {}).get("p99"),
+                               (rep.error_quantiles or {}).get("p99")],
             "table": table, "parameters": rep.parameters}
 
 

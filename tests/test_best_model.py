@@ -22,6 +22,28 @@ from ctrplan.shape.models import load_model
 torch.set_num_threads(1)
 
 
+def _crossfit(devs, folds):
+    """Independent recomputation of the winner's cross-fitted deviations: the rows of fold f
+    take the deviations of the candidate with the lowest mean on the other fold (ties: the
+    simpler, in the table's order)."""
+    order = ["nominal", "calibrated", "calibrated+learned", "learned"]
+    out = np.full_like(next(iter(devs.values())), np.nan)
+    for f in (0, 1):
+        other = folds != f
+        pick = min(devs, key=lambda k: (devs[k][other].max(axis=1).mean(), order.index(k)))
+        out[folds == f] = devs[pick][folds == f]
+    return out
+
+
+def _alternating_folds(units):
+    """Fold of each test row: its unit's place among the test units (first seen first),
+    alternating; one unit: its two halves."""
+    names = list(dict.fromkeys(units))
+    if len(names) < 2:
+        return (np.arange(len(units)) >= len(units) // 2).astype(int)
+    return np.array([names.index(u) % 2 for u in units])
+
+
 def _deviations(model, q, direction, points):
     """(B, m) distances between a loaded model's backbone points and measured points."""
     m = points.shape[1]
@@ -53,25 +75,35 @@ def test_best_model_is_the_candidate_with_the_lowest_recomputed_test_error(best_
     table = json.loads((out / "best_model.json").read_text())
     test = np.asarray(table["split"]["test_row_indices"])
     assert 0.1 * len(d) <= len(test) <= 0.3 * len(d) and len(set(test.tolist())) == len(test)
-    # the diagnosis never saw the test rows
+    # the diagnosis fitted and chose on the other rows of the same split
     rep = json.loads((out / "report.json").read_text())
-    assert rep["settings"]["rows"] == len(d) - len(test)
+    assert rep["settings"]["rows"] == len(d) and rep["settings"]["test_rows"] == len(test)
+    rep_test = np.concatenate([np.arange(int(a) - 1, int(b)) for a, b in
+                               (r.split()[1].split("-") for r in rep["split"]["test_row_ranges"])])
+    np.testing.assert_array_equal(np.sort(rep_test), np.sort(test))
     q, pts, dirs = d.q[test], np.asarray(d.points)[test], np.asarray(d.direction)[test]
     means, devs = {}, {}
+    models = {}
     for name, rel in table["files"].items():
         if name == "best_model":
             continue
-        model = load_model(str(out / rel), "seed1")
-        devs[name] = _deviations(model, q, dirs, pts)
+        models[name] = load_model(str(out / rel), "seed1")
+        devs[name] = _deviations(models[name], q, dirs, pts)
         means[name] = devs[name].max(axis=1).mean()
         assert table["candidates"][name]["mean_mm"] == pytest.approx(means[name], rel=1e-6)
-        # each candidate file carries its own test quantiles
-        for k, p in (("p50", 50), ("p99", 99), ("max", 100)):
-            assert model.error_quantiles[k] == pytest.approx(np.percentile(devs[name].max(axis=1), p), rel=1e-6)
     assert set(means) == {"nominal", "calibrated", "calibrated+learned", "learned"}
     winner = min(means, key=means.get)
     assert table["winner"] == winner
-    # the written best model is the winner, with its test quantiles and profile
+    for name, model in models.items():          # each candidate file carries its own quantiles
+        if name != winner:
+            for k, p in (("p50", 50), ("p99", 99), ("max", 100)):
+                assert model.error_quantiles[k] == pytest.approx(
+                    np.percentile(devs[name].max(axis=1), p), rel=1e-6)
+    # the written best model is the winner, with its error bound cross-fitted over two folds of
+    # the test units (independent rows here: alternate test rows), each fold's deviations
+    # those of the candidate the other fold chooses
+    folds = _alternating_folds([f"row{i}" for i in test])
+    assert table["split"]["crossfit"]["folds"] == [test[folds == f].tolist() for f in (0, 1)]
     best = load_model(str(out / table["files"]["best_model"]), "seed1")
     # every bound here was measured on the robot's test rows: calibrated, learned ones too
     from ctrplan.shape.error_bounds import is_calibrated
@@ -80,12 +112,13 @@ def test_best_model_is_the_candidate_with_the_lowest_recomputed_test_error(best_
                                        for rel in table["files"].values())
     dev = _deviations(best, q, dirs, pts)
     np.testing.assert_allclose(dev, devs[winner], atol=1e-6)
-    mx = dev.max(axis=1)
+    cf = _crossfit(devs, folds)
+    mx = cf.max(axis=1)
     prof = best.error_profile
     np.testing.assert_allclose(prof["fractions"], np.linspace(0, 1, 20))
     for k, p in (("p50", 50), ("p95", 95), ("p99", 99), ("max", 100)):
         assert best.error_quantiles[k] == pytest.approx(np.percentile(mx, p), rel=1e-6)
-        np.testing.assert_allclose(prof[k], np.percentile(dev, p, axis=0), rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(prof[k], np.percentile(cf, p, axis=0), rtol=1e-6, atol=1e-9)
     assert (out / "best_model.md").read_text().startswith(f"# Best model: {winner}")
 
 
@@ -132,7 +165,14 @@ def test_best_with_tip_only_data_extends_the_tip_bound(tmp_path):
     dev = _deviations(best, md.q[test], np.asarray(d.direction)[test], target)
     assert np.all(dev[:, 0] < 1e-9)                                # the base point stays put
     assert table["candidates"][res.winner]["mean_mm"] == pytest.approx(dev[:, 1].mean(), rel=1e-6)
-    assert best.error_quantiles["max"] == pytest.approx(dev[:, 1].max(), rel=1e-6)
+    # the bound: cross-fitted over the two test sweeps (each from the other's choice)
+    devs = {}
+    for name, rel in table["files"].items():
+        if name != "best_model":
+            devs[name] = _deviations(load_model(str(tmp_path / rel), "seed1"), md.q[test],
+                                     np.asarray(d.direction)[test], target)
+    folds = _alternating_folds(np.asarray(d.sweep)[test].tolist())
+    assert best.error_quantiles["max"] == pytest.approx(_crossfit(devs, folds)[:, 1].max(), rel=1e-6)
 
 
 def test_registration_is_inverted_into_the_robot_frame():
@@ -173,16 +213,35 @@ def test_test_split_holds_out_whole_sweeps_or_contiguous_blocks():
         assert np.all(np.diff(idx) == 1)
 
 
+@pytest.mark.parametrize("flag", ["--holdout", "--test-fraction"])
 @pytest.mark.parametrize("frac", ["0", "1.5"])
-def test_bad_test_fraction_exits_2_without_output(tmp_path, capsys, frac):
+def test_bad_holdout_exits_2_without_output(tmp_path, capsys, frac, flag):
     from tests.foreign import generate
 
     d = generate(robot="seed1", design="uniform", n=30, effects={}, noise_mm=0.2, seed=1)
     d.write_csv(tmp_path / "m.csv")
     out = tmp_path / "out"
     assert main(["-q", "diagnose", "--robot", "seed1", "--data", str(tmp_path / "m.csv"), "--best",
-                 "--test-fraction", frac, "--out", str(out)]) == 2
-    assert "--test-fraction" in capsys.readouterr().err and not out.exists()
+                 flag, frac, "--out", str(out)]) == 2
+    assert flag in capsys.readouterr().err and not out.exists()
+
+
+def test_test_fraction_is_a_deprecated_alias_of_holdout():
+    import argparse
+
+    from ctrplan.commands import diagnose as cmd
+
+    p = argparse.ArgumentParser()
+    cmd.register(p.add_subparsers())
+    import contextlib
+    import io
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        args = p.parse_args(["diagnose", "--robot", "seed1", "--data", "x.csv",
+                             "--test-fraction", "0.3"])
+    assert args.holdout == 0.3
+    assert err.getvalue().strip() == "ctrplan: --test-fraction is deprecated; use --holdout"
 
 
 def test_error_profile_round_trips_through_the_calibrated_yaml_and_bad_ones_are_refused(tmp_path):

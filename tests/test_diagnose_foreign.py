@@ -24,6 +24,10 @@ measured shortfall (marked KNOWN SHORTFALL):
 - a real-robot-like recording (the real-robot scenario, one continuous trajectory of 1,300
   rows, tracker registration; 2 % glitched rows): held-out mean below 1 % of the robot's
   length in 4 of 4 seeds; without glitches, a lower held-out maximum in 2 of 2 seeds;
+- on every seed of every case above and below: the calibrated model's held-out mean and p99
+  tip error no worse than the base model's (issue 36, see ``assert_no_worse``);
+- a 5,000-row continuous recording of the real-robot scenario: held-out mean below 1 % of the
+  robot's length on test blocks kept apart by the motion's autocorrelation length, 2 of 2 seeds;
 - the three-effect study (seeds 0, 1, 2): exactly clearance, friction and torsion named, and the
   calibrated model leaves <= 30 % of the traditional model's mean tip error on a fresh study run
   (another seed) over all three experiments, <= 20 % in each experiment, and a lower maximum in
@@ -69,6 +73,21 @@ def run(effects, seed):
     return rep, cut
 
 
+def assert_no_worse(rep, what: str) -> int:
+    """Issue 36: on every case, the calibrated model (the default output) has a held-out
+    (test-row) mean and p99 tip error no worse than the base model's. The rule that makes it so
+    picks between the fit and the base on these rows (``heldout_comparison``); the fit itself
+    is checked against the base on the validation rows before (``settings.tail_check``), and
+    how often the test rows overrule that is printed in the STAT lines."""
+    qb, qa = rep.error_quantiles_before, rep.error_quantiles
+    assert rep.error_after_mm <= rep.error_before_mm + 1e-9, (
+        f"{what}: held-out mean {rep.error_before_mm:.4f} -> {rep.error_after_mm:.4f} mm; "
+        f"{rep.heldout_comparison}")
+    assert qa["p99"] <= qb["p99"] + 1e-9, (
+        f"{what}: held-out p99 {qb['p99']:.4f} -> {qa['p99']:.4f} mm; {rep.heldout_comparison}")
+    return int(rep.heldout_comparison.get("output") == "base" and bool(rep.fit_effects))
+
+
 #: every vocabulary effect at the generator's default (friction: the study's end moment), and
 #: friction's two other forms
 SINGLE = [e for e in foreign.VOCAB_EFFECTS] + ["friction:coulomb_lag", "friction:presliding"]
@@ -93,39 +112,44 @@ STUDY_NAMED_MIN = 3
 def test_single_foreign_effect_named_and_halved(case):
     name, _, form = case.partition(":")
     params = {"form": form} if form else {}
-    lines, cuts, good = [], [], 0
+    lines, cuts, good, overruled = [], [], 0, 0
     for seed in SEEDS:
         rep, cut = run({name: params}, seed)
+        overruled += assert_no_worse(rep, f"{case} seed {seed}")
         ok = rep.effects == [name] and cut >= 0.5      # exactly this effect, nothing else
         good += ok
         cuts.append(100 * cut)
         lines.append(f"seed {seed}: {rep.conclusion}; cut {100 * cut:.0f} % "
                      f"({rep.error_before_mm:.3f} -> {rep.error_after_mm:.3f} mm)")
     print(f"\nSTAT single {case}: named and halved {good}/10; cut min {min(cuts):.0f} % "
-          f"median {np.median(cuts):.0f} %")
+          f"median {np.median(cuts):.0f} %; base kept over a worse fit {overruled}/10")
     need = MEASURED_MIN.get(case, 9)
     assert good >= need, f"{case}: {good}/10 (need {need})\n" + "\n".join(lines)
 
 
 def test_no_effect_names_nothing():
-    named = []
+    named, overruled = [], 0
     for seed in range(200, 220):
         rep, _ = run({}, seed)
+        overruled += assert_no_worse(rep, f"none seed {seed}")
         if rep.effects:
             named.append(f"seed {seed}: {rep.conclusion}")
-    print(f"\nSTAT none: nothing named {20 - len(named)}/20 {named}")
+    print(f"\nSTAT none: nothing named {20 - len(named)}/20 {named}; base kept over a worse "
+          f"fit {overruled}/20")
     assert len(named) <= 1, named
 
 
 @pytest.mark.parametrize("name", list(foreign.OUTSIDE_EFFECTS))
 def test_outside_effect_never_named_and_reported_unexplained(name):
-    lines, good = [], 0
+    lines, good, overruled = [], 0, 0
     for seed in SEEDS:
         rep, _ = run({name: {}}, seed)
+        overruled += assert_no_worse(rep, f"{name} seed {seed}")
         ok = rep.effects == [] and rep.unexplained is not None
         good += ok
         lines.append(f"seed {seed}: {rep.status.value}: {rep.conclusion}")
-    print(f"\nSTAT outside {name}: not named + unexplained {good}/10")
+    print(f"\nSTAT outside {name}: not named + unexplained {good}/10; base kept over a worse "
+          f"fit {overruled}/10")
     need = MEASURED_MIN.get(name, 9)
     assert good >= need, f"{name}: {good}/10 (need {need})\n" + "\n".join(lines)
 
@@ -149,6 +173,10 @@ def test_three_effect_study():
         if sorted(res["effects"]) == ["clearance", "friction", "torsion"]:
             named_all.append(seed)
         assert res["improved_mean_mm"] <= 0.3 * res["traditional_mean_mm"], res
+        # never worse than the base: on the fresh run and on the diagnosis's own test sweeps
+        assert res["improved_p99_mm"] <= res["traditional_p99_mm"], res
+        assert res["heldout_mean_mm"][1] <= res["heldout_mean_mm"][0], res
+        assert res["heldout_p99_mm"][1] <= res["heldout_p99_mm"][0], res
         for row in res["table"]:        # the README's study table, per experiment
             assert row["improved_mean_mm"] <= 0.2 * row["traditional_mean_mm"], row
             assert row["improved_max_mm"] < row["traditional_max_mm"], row
@@ -160,12 +188,14 @@ def test_three_effect_study():
 PROXY_ROWS = 1300
 
 
-def _proxy(seed: int, outliers: float):
+def _proxy(seed: int, outliers: float, rows: int = PROXY_ROWS):
     from tests.foreign.scenarios import real_robot
 
     rr = real_robot(seed=seed, registration=True, outliers=outliers)
-    d = rr.measure(n=PROXY_ROWS, sweeps=1, seed=seed)
-    return diagnose(load_robot(ROBOT), measured(d), seed=seed)
+    d = rr.measure(n=rows, sweeps=1, seed=seed)
+    rep = diagnose(load_robot(ROBOT), measured(d), seed=seed)
+    assert_no_worse(rep, f"real-robot proxy seed {seed}, {rows} rows, outliers {outliers}")
+    return rep
 
 
 def test_real_robot_like_recording_is_calibrated_below_one_percent_of_its_length():
@@ -191,3 +221,73 @@ def test_real_robot_like_recording_is_calibrated_below_one_percent_of_its_length
                      f"{rep.max_after_mm:.2f} mm")
         assert rep.max_after_mm < rep.max_before_mm, "\n".join(lines)
     print("\nSTAT real-robot proxy:\n" + "\n".join(lines))
+
+
+#: the long continuous recording of issue 36 (benchmarks/bench_diagnose.py times it): 5,000
+#: rows of the real-robot scenario in one sweep, tracker registration, 2 % glitched rows
+LONG_ROWS = 5000
+
+
+@pytest.mark.xdist_group("long_recording")
+def test_long_continuous_recording_is_calibrated_below_one_percent_on_gapped_test_blocks():
+    """Issue 36: a 5,000-row continuous recording with hysteresis (presliding friction),
+    registration and 2 % outliers is calibrated to a held-out mean below 1 % of the robot's
+    length, on test blocks kept apart from the fit and validation rows by at least the
+    motion's autocorrelation length (recomputed here from the commanded configurations with
+    numpy, independently of ctrplan.split), in 2 of 2 seeds; the held-out numbers rest on at
+    least 2 independent test blocks (more where the motion decorrelates faster: 5,000 rows
+    get 8-32 blocks, each at least 4 autocorrelation lengths long). The time is measured by
+    the benchmark, not here."""
+    from tests.foreign.scenarios import real_robot
+
+    length = float(np.max(load_robot(ROBOT).lengths))
+    lines = []
+    for seed in (3, 4):
+        d = real_robot(seed=seed, registration=True, outliers=0.02).measure(
+            n=LONG_ROWS, sweeps=1, seed=seed)
+        rep = diagnose(load_robot(ROBOT), measured(d), seed=seed)
+        assert_no_worse(rep, f"long recording seed {seed}")
+        sp = rep.split
+        lines.append(f"seed {seed}: {rep.conclusion}; mean {rep.error_before_mm:.2f} -> "
+                     f"{rep.error_after_mm:.2f} mm, max {rep.max_before_mm:.2f} -> "
+                     f"{rep.max_after_mm:.2f} mm; {sp['independent_test_blocks']} test blocks, "
+                     f"gap {sp['gap_rows']} rows; {rep.elapsed_s:.0f} s")
+        assert rep.error_after_mm < 0.01 * length, "\n".join(lines)
+        assert sp["kind"] == "blocks" and sp["independent_test_blocks"] >= 2, sp
+        test = _rows_of(sp["test_row_ranges"], LONG_ROWS)
+        train = _rows_of(sp["fit_rows"], LONG_ROWS) | _rows_of(sp["validation_rows"], LONG_ROWS)
+        gap = _nearest(test, train)
+        assert gap > _autocorrelation_length(np.asarray(d.q, float)), (gap, sp)
+    print("\nSTAT long recording:\n" + "\n".join(lines))
+
+
+def _rows_of(ranges, n):
+    """(n,) mask of report row ranges ("rows a-b", 1-based)."""
+    m = np.zeros(n, dtype=bool)
+    for r in ranges:
+        a, b = r.split()[1].split("-")
+        m[int(a) - 1:int(b)] = True
+    return m
+
+
+def _nearest(a, b):
+    """Smallest row distance between a row of mask a and a row of mask b."""
+    ia, ib = np.flatnonzero(a), np.flatnonzero(b)
+    pos = np.searchsorted(ib, ia)
+    left = np.abs(ia - ib[np.clip(pos - 1, 0, len(ib) - 1)])
+    right = np.abs(ib[np.clip(pos, 0, len(ib) - 1)] - ia)
+    return int(min(left.min(), right.min()))
+
+
+def _autocorrelation_length(q):
+    """First lag where the sample autocorrelation of the configuration (cos/sin of the
+    rotations, standardised insertions; direct sums, no FFT) falls below 1/e."""
+    n = q.shape[1] // 2
+    b = q[:, n:]
+    x = np.hstack([np.cos(q[:, :n]), np.sin(q[:, :n]), b / b.std(axis=0)])
+    x = x - x.mean(axis=0)
+    c0 = (x * x).sum() / len(x)
+    for k in range(1, len(x) // 2):
+        if (x[:-k] * x[k:]).sum() / (len(x) - k) / c0 < np.exp(-1.0):
+            return k
+    return len(x) // 2

@@ -268,20 +268,28 @@ def test_device_path_agrees_for_direction_and_residual_models(shipped):
 
 def test_split_of_one_ordered_trajectory_is_by_contiguous_blocks():
     """Rows in order of motion without sweeps: held-out rows come in contiguous blocks (not
-    random rows, which would be neighbours of training rows)."""
+    random rows, which would be neighbours of training rows), and the rows next to the test
+    block are in no part (a gap: here the whole motion is one slow ramp, so the gap is as long
+    as the splitter allows, half a block)."""
     r = load_robot("seed1")
     N = 500
     q = np.tile(r.sample(1, seed=0), (N, 1))
     q[:, 0] += np.linspace(0, 3, N)                        # one continuous motion
     data = T.ShapeData(q, np.zeros((N, 5, 3)), "traj", direction=direction_from_rows(q))
     tr, va, te = T.split(data, seed=2)
-    assert len(tr) + len(va) + len(te) == N and 30 <= len(te) <= 80 and 30 <= len(va) <= 80
+    assert 30 <= len(te) <= 80 and 30 <= len(va) <= 80
     rows = {round(float(a), 9): k for k, a in enumerate(q[:, 0])}
-    for part in (va, te):
-        idx = np.sort([rows[round(float(a), 9)] for a in part.q[:, 0]])
-        assert np.all(np.diff(idx) == 1)                   # one block each
-        assert T.split_kind(part) == "contiguous blocks"
-    assert not ({round(float(a), 9) for a in te.q[:, 0]} & {round(float(a), 9) for a in tr.q[:, 0]})
+    idx = {}
+    for name, part in (("tr", tr), ("va", va), ("te", te)):
+        idx[name] = np.sort([rows[round(float(a), 9)] for a in part.q[:, 0]])
+    for name in ("va", "te"):
+        assert np.all(np.diff(idx[name]) == 1)             # one block each
+        assert T.split_kind({"va": va, "te": te}[name]) == "contiguous blocks"
+    assert not set(idx["te"]) & set(idx["tr"])
+    left_out = sorted(set(range(N)) - set(idx["tr"]) - set(idx["va"]) - set(idx["te"]))
+    assert len(tr) + len(va) + len(te) + len(left_out) == N and len(left_out) >= 10
+    nearest = min(abs(int(t) - int(k)) for t in idx["te"] for k in idx["tr"])
+    assert nearest > len(left_out) // 2                    # the gap separates test and training
     sim = T.ShapeData(q, np.zeros((N, 5, 3)), "sim")       # no order known: random rows
     _, _, te2 = T.split(sim, seed=2)
     idx = np.sort([rows[round(float(a), 9)] for a in te2.q[:, 0]])

@@ -79,7 +79,10 @@ def test_quick_sweep_writes_tables_and_plots(tmp_path):
     for r in res["runs"]:
         assert len(r["per_position"]) == 20 and len(r["per_config_max"]) == r["n"]
         assert r["max_dev_mean"] > 0 and r["mse_mean"] > 0 and r["sum_dev_mean"] > 0
-    assert res["physics"]["n"] == 15
+    # about 10 % of the 150 "real" rows are test rows (held out in blocks, the rows next to
+    # them in no part), the same rows for physics and every learned model
+    assert 10 <= res["physics"]["n"] <= 20
+    assert all(r["n"] == res["physics"]["n"] for r in res["runs"])
     assert "hidden_effects" in res["data"]
     md = (out / "results.md").read_text()
     assert "Sim+Real" in md and "physics" in md and "±" in md

@@ -4,6 +4,7 @@
 stages, one module each, each returning a frozen dataclass; no stage imports a later one:
 
 1. :mod:`~ctrplan.calibration.data`      data checks and the fit / validation / test split
+   (the one held-out splitter of diagnose, ``--best`` and train: :mod:`ctrplan.split`)
 2. :mod:`~ctrplan.calibration.evidence`  data-only tests (noise floor, hysteresis, harmonics ...)
 3. :mod:`~ctrplan.calibration.select`    screening and selection of effects (forward, joint)
 4. :mod:`~ctrplan.calibration.fit`       the final refit on fit + validation rows
@@ -15,6 +16,7 @@ Beside them: :mod:`~ctrplan.calibration.result` (the typed public result, ``Diag
 :mod:`~ctrplan.calibration.lsq` (the least-squares engine of stages 3 and 4),
 :mod:`~ctrplan.calibration.binned` (the report's descriptive binned statistics),
 :mod:`~ctrplan.calibration.residual` (the optional learned residual),
+:mod:`~ctrplan.calibration.confound` (effects the rows cannot tell apart),
 :mod:`~ctrplan.calibration.best` (``diagnose --best``), :mod:`~ctrplan.calibration.simulate`
 (simulated measurements).
 """

@@ -2,32 +2,34 @@
 
 Procedure (:func:`best_model`):
 
-1. **Untouched test rows.** Before anything is fitted, whole sweeps are held out for testing
-   (``test_fraction`` of the sweeps, at least one, leaving at least three). Data with fewer than
-   4 sweeps is cut into contiguous blocks (about 10 in all), and evenly spaced blocks are held
-   out; the other blocks become separate sweeps of the development data, so nothing treats the
-   gap left by a test block as a motion. Directions of motion are taken from the row order of
-   the whole data set (the commanded history, not the measurements).
-2. **Calibrated physics**: :func:`ctrplan.calibration.diagnose.diagnose` on the development
-   rows only (it splits them again for its own choices); its calibrated model
-   (:meth:`DiagnoseReport.model`) is a candidate, next to the nominal model.
+1. **One split** (:func:`ctrplan.split.split`, the one held-out splitter of diagnose and train):
+   fit / validation / test rows, ``holdout`` of the sweeps (or of the blocks of a continuous
+   recording, with gaps) for test and as many for validation. Directions of motion are taken
+   from the row order of the whole data set (the commanded history, not the measurements).
+2. **Calibrated physics**: :func:`ctrplan.calibration.diagnose.diagnose` with that split
+   (parameters fitted on the fit rows, effects chosen on the validation rows, refitted on
+   both); its calibrated model (:meth:`DiagnoseReport.model`) is a candidate, next to the
+   nominal model.
 3. **Learned residual over the calibrated model** (:mod:`ctrplan.shape.training`): the network
-   learns the difference between the measured shapes and the calibrated model's; the
-   direction-aware form competes when the rows show motion with reversals (chosen on a
-   validation part of the development sweeps, :func:`ctrplan.shape.training.select_variant`).
-   With tip-only data the residual has one basis term (a correction growing linearly along the
-   shaft: the data say nothing about its shape between base and tip).
+   learns the difference between the measured shapes and the calibrated model's on the fit
+   rows; the direction-aware form competes when the rows show motion with reversals (chosen on
+   the validation rows, :func:`ctrplan.shape.training.select_variant`). With tip-only data the
+   residual has one basis term (a correction growing linearly along the shaft: the data say
+   nothing about its shape between base and tip).
 4. **Learned alone** (shapes measured only): the robot's shipped network fine-tuned on the
    measured shapes (or a new network where no shipped one fits the robot), pure or
    direction-aware, chosen the same way.
 5. **Comparison on the test rows**: every candidate's max deviation along the shaft per test
    configuration (tip deviation where only tips are measured), on the rows every candidate
    answers (a row where a model's solver fails is counted in its ``failed_rows``; only the
-   candidates with the fewest failed rows may win); the one with the lowest mean wins (ties: the simpler, in the order above). The winner is written with the quantiles of
-   that deviation (``error_quantiles``) and, where shapes are measured, the ``error_profile``
-   per arc-length fraction (docs/conventions.md). The choice among a handful of candidates on
-   the same rows that give its error makes that error slightly optimistic; nothing was fitted
-   or chosen on them before.
+   candidates with the fewest failed rows may win); the one with the lowest mean wins (ties:
+   the simpler, in the order above).
+6. **The winner's error bound from rows that did not choose it** (cross-fitting): the test
+   units (sweeps or blocks) are dealt into two folds; each fold's deviations are those of the
+   candidate the *other* fold chooses by the same rule, and the winner is written with the
+   quantiles of these deviations (``error_quantiles``) and, where shapes are measured, the
+   ``error_profile`` per arc-length fraction (docs/conventions.md). When both folds choose the
+   winner these are its own test deviations; otherwise the bound covers the choice as well.
 
 Frames: a calibrated ``registration`` (tracker to robot) is not part of the robot. When the
 calibrated model has one, the measured points are mapped into the robot base frame with it,
@@ -48,9 +50,9 @@ from typing import Any
 
 import numpy as np
 
-from ctrplan.calibration.data import row_ranges
 from ctrplan.measured import MeasuredData, read_measured
 from ctrplan.robot import Robot, load_robot
+from ctrplan.split import HeldOut, is_ordered, row_ranges, split
 
 log = logging.getLogger("ctrplan")
 
@@ -88,54 +90,43 @@ class BestResult:
                 "candidates": self.candidates, "split": self.split, "files": self.files,
                 "elapsed_s": self.elapsed_s,
                 "note": "all candidates evaluated on the same test rows, which no fit and no "
-                        "choice saw before this comparison; the winner's error is slightly "
-                        "optimistic because it was chosen on them"}
+                        "choice saw before this comparison; the winner's error bound "
+                        "(error_quantiles of best_model) is cross-fitted: each fold of the test "
+                        "units contributes the deviations of the candidate the other fold "
+                        "chooses"}
 
 
 # ---------------------------------------------------------------------------------- split
-def _ordered(sw: np.ndarray) -> bool:
-    """Rows are in order of motion unless every row is its own sweep (independent samples)."""
-    return len(set(sw.tolist())) < max(2, len(sw) // 2)
+def holdout_split(data: MeasuredData, test_fraction: float = 0.25,
+                  seed: int = 0) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """(test mask, unit labels (B,) object, description) of the one held-out splitter
+    (:func:`ctrplan.split.split` with ``test_fraction`` for test and as many for validation):
+    labels are the sweep ids, ``"<sweep>#block<k>"`` for the blocks of a continuous recording,
+    or ``"row<k>"`` for independent samples."""
+    h = _heldout(data, test_fraction, seed)
+    return h.test, h.labels, _describe(h, data)
 
 
-def holdout_split(data: MeasuredData, test_fraction: float = 0.2, seed: int = 0,
-               blocks: int = 10) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-    """(test mask, development sweep labels (B,) object, description) - see the module
-    docstring. Development labels are the sweep ids, or ``"<sweep>#<block>"`` when the data
-    had to be cut into blocks; test rows get their label too (unused)."""
-    sw = np.asarray(data.sweeps()).astype(str)
-    names = list(dict.fromkeys(sw.tolist()))
-    N = len(sw)
-    if len(names) >= 4 and _ordered(sw):
-        k = min(len(names) - 3, max(1, int(round(test_fraction * len(names)))))
-        rng = np.random.default_rng(seed)
-        held = sorted(rng.choice(np.array(names, dtype=object), size=k, replace=False).tolist())
-        test = np.isin(sw, held)
-        desc = {"method": "whole sweeps held out", "test_sweeps": held}
-        return test, sw.astype(object), desc
-    if not _ordered(sw):                         # independent samples: every row its own sweep
-        rng = np.random.default_rng(seed)
-        idx = rng.permutation(N)
-        nb = max(2, min(blocks, N))
-        lab = np.empty(N, dtype=object)
-        for b, part in enumerate(np.array_split(idx, nb)):
-            lab[part] = f"random#{b}"
-        k = max(1, int(round(test_fraction * nb)))
-        held = [f"random#{b}" for b in range(k)]
-        test = np.isin(lab.astype(str), held)
-        return test, lab, {"method": "random rows held out (rows are independent samples)",
-                           "test_rows": int(test.sum())}
-    from ctrplan.shape.training import block_labels
+def _heldout(data: MeasuredData, holdout: float, seed: int) -> HeldOut:
+    return split(data.sweep, len(data), holdout, holdout, seed, q=data.q,
+                 ordered=is_ordered(data.sweeps(), len(data)))
 
-    lab = block_labels(sw, N, blocks)
-    order = list(dict.fromkeys(lab.tolist()))
-    L = len(order)
-    k = min(max(1, int(round(test_fraction * L))), max(1, L - 3))
-    held = sorted({order[min(L - 1, int((i + 0.5) * L / k))] for i in range(k)})
-    test = np.isin(lab.astype(str), held)
-    return test, lab, {"method": f"contiguous blocks held out ({len(held)} of {L}; fewer than 4 "
-                                 "sweeps); the other blocks are separate development sweeps",
-                       "test_blocks": held, "test_rows": row_ranges(test)}
+
+def _describe(h: HeldOut, data: MeasuredData) -> dict[str, Any]:
+    """best_model.json ``split``: how the rows were held out."""
+    if h.kind == "whole sweeps":
+        desc: dict[str, Any] = {"method": "whole sweeps held out",
+                                "test_sweeps": sorted(set(np.asarray(data.sweeps())[h.test]
+                                                          .astype(str).tolist()))}
+    elif h.kind == "rows":
+        desc = {"method": "random rows held out (rows are independent samples)",
+                "test_rows": int(h.test.sum())}
+    else:
+        blocks = sorted(set(h.labels[h.test].tolist()))
+        desc = {"method": f"contiguous blocks held out ({len(blocks)}; fewer than 8 sweeps), "
+                          f"{h.gap_rows} rows left out on each side",
+                "test_blocks": blocks, "test_rows": row_ranges(h.test)}
+    return {**desc, **h.describe()}
 
 
 def to_robot_frame(effects: dict, points: np.ndarray) -> np.ndarray:
@@ -183,75 +174,84 @@ def _metrics(dev: np.ndarray, common: np.ndarray, shapes: bool) -> dict[str, Any
 # ---------------------------------------------------------------------------------- main
 @dataclass(frozen=True)
 class _Rows:
-    """The measured rows and how :func:`best_model` splits them: ``test`` (B,) mask of the
-    untouched test rows, ``labels`` development sweep labels, ``direction`` (B, 2n) of motion
-    (zeros when rows are independent samples), ``dev_data`` the development rows."""
+    """The measured rows and how :func:`best_model` splits them (``heldout``: fit, validation,
+    test and gap rows, unit labels), ``direction`` (B, 2n) of motion (zeros when rows are
+    independent samples) and the split's description."""
 
     data: MeasuredData
     shapes: bool
     ordered: bool
     direction: np.ndarray
-    test: np.ndarray
-    labels: np.ndarray
+    heldout: HeldOut
     split: dict[str, Any]
-    dev_data: MeasuredData
+
+    @property
+    def test(self) -> np.ndarray:
+        return self.heldout.test
 
     @property
     def dev(self) -> np.ndarray:
-        return ~self.test
+        """Development rows (fit | validation)."""
+        return self.heldout.dev
 
 
-def _split_rows(data: MeasuredData, test_fraction: float, seed: int) -> _Rows:
+def _split_rows(data: MeasuredData, holdout: float, seed: int) -> _Rows:
     from ctrplan.shape.base import direction_from_rows
 
     sw = np.asarray(data.sweeps()).astype(str)
-    ordered = _ordered(sw)
+    ordered = is_ordered(sw, len(data))
     direction = (direction_from_rows(data.q, sw) if ordered else np.zeros(data.q.shape, dtype=np.int8))
-    test, labels, split = holdout_split(data, test_fraction, seed)
-    dev = ~test
-    split.update({"rows": len(data), "test_rows_count": int(test.sum()), "dev_rows": int(dev.sum()),
-                  "test_row_indices": np.flatnonzero(test).tolist(),
+    h = _heldout(data, holdout, seed)
+    split = _describe(h, data)
+    split.update({"rows": len(data), "test_rows_count": int(h.test.sum()),
+                  "dev_rows": int(h.dev.sum()), "fit_rows": int(h.fit.sum()),
+                  "validation_rows": int(h.val.sum()),
+                  "test_row_indices": np.flatnonzero(h.test).tolist(),
                   "row_index_note": "0-based data rows of the measured CSV (header excluded)"})
-    dev_data = MeasuredData(q=data.q[dev], tip=data.tip[dev],
-                            time=None if data.time is None else data.time[dev],
-                            sweep=np.asarray(labels[dev], dtype=object),
-                            points=None if data.points is None else data.points[dev])
-    return _Rows(data, data.points is not None, ordered, direction, test, labels, split, dev_data)
+    return _Rows(data, data.points is not None, ordered, direction, h, split)
 
 
 def best_model(robot: Robot | str, data: MeasuredData | str | os.PathLike, out: str | os.PathLike | None = None,
-               base: str = "rigid", test_fraction: float = 0.2, seed: int = 0,
+               base: str = "rigid", holdout: float = 0.25, seed: int = 0,
                diagnose_kwargs: dict[str, Any] | None = None, epochs: int = 300, patience: int = 20,
-               width: int = 30, depth: int = 3, learned: bool = True) -> BestResult:
+               width: int = 30, depth: int = 3, learned: bool = True,
+               test_fraction: float | None = None) -> BestResult:
     """Calibrate, learn, compare on untouched test rows, write the winner (module docstring).
 
     robot : Robot or name / YAML. data : MeasuredData or measured CSV path. out : folder for
-    diagnose's files (of the development rows) and ``best_model.{yaml,pt}``,
-    ``best_model.json`` / ``.md`` (the comparison) and ``best_candidates/<name>.{yaml,pt}``
-    (every candidate, each with its own test quantiles). diagnose_kwargs : passed to
-    :func:`diagnose` (candidates, holdout, bic_threshold, ...). epochs / patience / width /
-    depth : the learned networks' training. learned : False = physics candidates only.
+    diagnose's files and ``best_model.{yaml,pt}``, ``best_model.json`` / ``.md`` (the
+    comparison) and ``best_candidates/<name>.{yaml,pt}`` (every candidate, each with its own
+    test quantiles). holdout : fraction of the sweeps (blocks) held out for test, and as many
+    for validation (the one split, :func:`ctrplan.split.split`). diagnose_kwargs : passed to
+    :func:`diagnose` (candidates, bic_threshold, ...). epochs / patience / width / depth : the
+    learned networks' training. learned : False = physics candidates only. test_fraction :
+    deprecated name of ``holdout`` (one release).
     """
     t0 = time.perf_counter()
+    if test_fraction is not None:
+        import warnings
+
+        warnings.warn("best_model(test_fraction=...) is deprecated; use holdout=",
+                      DeprecationWarning, stacklevel=2)
+        holdout = test_fraction
     robot = load_robot(robot)
     if not isinstance(data, MeasuredData):
         data = read_measured(data, robot)
-    if not 0.0 < test_fraction < 1.0:
+    if not 0.0 < holdout < 1.0:
         from ctrplan.errors import InputError
 
-        raise InputError("--test-fraction", "", f"must be in (0, 1), got {test_fraction}")
-    rows = _split_rows(data, test_fraction, seed)
+        raise InputError("holdout", "", f"must be in (0, 1), got {holdout}")
+    rows = _split_rows(data, holdout, seed)
+    net = dict(epochs=epochs, patience=patience, width=width, depth=depth)
     if out is None:
-        res = _best(robot, rows, None, base, seed, diagnose_kwargs, learned,
-                    dict(epochs=epochs, patience=patience, width=width, depth=depth), t0)
+        res = _best(robot, rows, None, base, seed, diagnose_kwargs, learned, net, t0)
     else:
         # diagnose's report and the comparison are one set: written beside ``out`` and
         # swapped in whole (a full disk leaves the previous set complete)
         from ctrplan.calibration.report import REPORT_FILES, output_set
 
         with output_set(out, REPORT_FILES + BEST_FILES) as stage:
-            res = _best(robot, rows, stage, base, seed, diagnose_kwargs, learned,
-                        dict(epochs=epochs, patience=patience, width=width, depth=depth), t0)
+            res = _best(robot, rows, stage, base, seed, diagnose_kwargs, learned, net, t0)
     log.info("best model: %s (test mean max deviation %.3f mm)", res.winner,
              res.candidates[res.winner]["mean_mm"])
     return res
@@ -266,12 +266,13 @@ def _best(robot: Robot, rows: _Rows, out: Path | None, base: str, seed: int,
     from ctrplan.shape.effects import EffectModel
 
     data, shapes, split = rows.data, rows.shapes, rows.split
-    log.info("best model: %d test rows held out (%s), diagnose on %d rows", int(rows.test.sum()),
-             split["method"], int(rows.dev.sum()))
-    dkw = dict(diagnose_kwargs or {})
+    log.info("best model: %d test rows held out (%s), %d fit and %d validation rows",
+             int(rows.test.sum()), split["method"], int(rows.heldout.fit.sum()),
+             int(rows.heldout.val.sum()))
+    dkw = {k: v for k, v in (diagnose_kwargs or {}).items() if k != "holdout"}
     if "learned_residual" in inspect.signature(diagnose).parameters:
         dkw.setdefault("learned_residual", False)   # superseded by the candidates below
-    rep = diagnose(robot, rows.dev_data, base=base, seed=seed, out=out, **dkw)
+    rep = diagnose(robot, data, base=base, seed=seed, out=out, heldout=rows.heldout, **dkw)
     calibrated = rep.model()
     effects = {k: dict(v) for k, v in calibrated.effects.items()}
     frame_effects = {k: v for k, v in effects.items() if k != "registration"}
@@ -291,8 +292,9 @@ def _best(robot: Robot, rows: _Rows, out: Path | None, base: str, seed: int,
                 f" ({', '.join(frame_effects)})" if frame_effects else " (no effect kept: nominal)")}
     selections: dict[str, Any] = {}
     skipped = None
-    if learned and int(rows.dev.sum()) < MIN_LEARNED_ROWS:
-        skipped = f"learned candidates skipped: {int(rows.dev.sum())} development rows (< {MIN_LEARNED_ROWS})"
+    n_dev = int(rows.dev.sum())
+    if learned and (n_dev < MIN_LEARNED_ROWS or not rows.heldout.val.any()):
+        skipped = f"learned candidates skipped: {n_dev} development rows (< {MIN_LEARNED_ROWS})"
         log.info("best model: %s", skipped)
         learned = False
     if learned:
@@ -326,9 +328,11 @@ def _learned_candidates(robot: Robot, rows: _Rows, target: np.ndarray, models: d
     torch_threads = torch.get_num_threads()
     sdata = T.ShapeData(data.q, target, source=str(getattr(data, "source", "measured")),
                         direction=rows.direction.astype(float) if ordered else None,
-                        sweep=rows.labels, measured=True)
+                        sweep=rows.heldout.labels, measured=True)
     dv = sdata.subset(np.flatnonzero(rows.dev))
-    tr, va = _train_val(dv, seed)
+    # weights fitted on the fit rows, variants chosen on the validation rows of the one split
+    tr = sdata.subset(np.flatnonzero(rows.heldout.fit))
+    va = sdata.subset(np.flatnonzero(rows.heldout.val))
     motion = ordered and T.has_motion(dv)
     cfg = T.TrainConfig(epochs=net["epochs"], patience=net["patience"], batch_size=128, seed=seed,
                         progress=False, label="train (real)")
@@ -360,7 +364,8 @@ def _learned_candidates(robot: Robot, rows: _Rows, target: np.ndarray, models: d
 
 def _compare(models: dict[str, Any], desc: dict[str, str], selections: dict[str, Any],
              rows: _Rows, target: np.ndarray) -> tuple[dict[str, dict[str, Any]], str]:
-    """Every candidate on the same test rows: (table, winner); attaches each model's bound."""
+    """Every candidate on the same test rows: (table, winner); attaches each model's bound
+    (the winner's cross-fitted, :func:`crossfit`)."""
     data, test, split, shapes = rows.data, rows.test, rows.split, rows.shapes
     qt, dt, yt = data.q[test], rows.direction[test], target[test]
     table: dict[str, dict[str, Any]] = {}
@@ -373,10 +378,52 @@ def _compare(models: dict[str, Any], desc: dict[str, str], selections: dict[str,
             table[name]["variant_selection"] = selections[name]
         log.info("best model: %-18s test mean max deviation %.3f mm", name, table[name]["mean_mm"])
     winner = choose_winner(table)
+    folds = fold_of_test_rows(rows.heldout.labels[test])
+    cf_dev, chosen = crossfit(devs, folds, shapes)
+    split["crossfit"] = {
+        "folds": [np.flatnonzero(test)[folds == f].tolist() for f in (0, 1)],
+        "chosen_by_other_fold": chosen,
+        "note": "0-based rows of each fold of the test units; each fold's deviations come "
+                "from the candidate the other fold chose (the winner's error bound)"}
     for name, model in models.items():
-        _attach_bound(model, table[name], shapes, split)
+        row = table[name]
+        if name == winner:
+            ok = np.isfinite(cf_dev.max(axis=1))
+            row = {**row, **_metrics(cf_dev, ok, shapes)}
+            table[name]["crossfit_error_quantiles"] = row["error_quantiles"]
+        _attach_bound(model, row, shapes, split, crossfitted=name == winner)
         table[name]["winner"] = name == winner
     return table, winner
+
+
+def fold_of_test_rows(units: np.ndarray) -> np.ndarray:
+    """(T,) fold 0 / 1 of each test row: its unit's place among the test units, alternating
+    (one unit: its first and second half)."""
+    names = list(dict.fromkeys(np.asarray(units).tolist()))
+    if len(names) >= 2:
+        place = {nm: k % 2 for k, nm in enumerate(names)}
+        return np.array([place[u] for u in np.asarray(units).tolist()], dtype=int)
+    T = len(units)
+    return (np.arange(T) >= T // 2).astype(int)
+
+
+def crossfit(devs: dict[str, np.ndarray], folds: np.ndarray,
+             shapes: bool) -> tuple[np.ndarray, list[str]]:
+    """Cross-fitted deviations (T, m): the rows of fold f take the deviations of the candidate
+    chosen (:func:`choose_winner`) on the other fold's rows; and those two choices."""
+    out = np.full_like(next(iter(devs.values())), np.nan)
+    chosen = []
+    for f in (0, 1):
+        other = folds != f
+        if not other.any() or not (folds == f).any():
+            chosen.append("")
+            continue
+        sub = {name: d[other] for name, d in devs.items()}
+        common = np.all([np.isfinite(d.max(axis=1)) for d in sub.values()], axis=0)
+        pick = choose_winner({name: _metrics(d, common, shapes) for name, d in sub.items()})
+        out[folds == f] = devs[pick][folds == f]
+        chosen.append(pick)
+    return out, chosen
 
 
 def choose_winner(table: dict[str, dict[str, Any]]) -> str:
@@ -385,19 +432,6 @@ def choose_winner(table: dict[str, dict[str, Any]]) -> str:
     fewest = min(row["failed_rows"] for row in table.values())
     return min((k for k, row in table.items() if row["failed_rows"] == fewest),
                key=lambda k: (table[k]["mean_mm"], CANDIDATES.index(k)))
-
-
-def _train_val(dv, seed: int):
-    """Training / validation parts of the development rows by whole (development) sweeps:
-    about 15 % of the sweeps, at least one, for validation."""
-    ids = list(dict.fromkeys(np.asarray(dv.sweep).astype(str).tolist()))
-    if len(ids) < 2:
-        raise ValueError("need at least 2 development sweeps for training and validation")
-    rng = np.random.default_rng(seed + 17)
-    k = max(1, int(round(0.15 * len(ids))))
-    val = set(rng.choice(np.array(ids, dtype=object), size=k, replace=False).tolist())
-    is_val = np.isin(np.asarray(dv.sweep).astype(str), list(val))
-    return dv.subset(np.flatnonzero(~is_val)), dv.subset(np.flatnonzero(is_val))
 
 
 def _shipped(robot: Robot):
@@ -413,12 +447,14 @@ def _shipped(robot: Robot):
         return None
 
 
-def _attach_bound(model: Any, row: dict[str, Any], shapes: bool, split: dict[str, Any]) -> None:
+def _attach_bound(model: Any, row: dict[str, Any], shapes: bool, split: dict[str, Any],
+                  crossfitted: bool = False) -> None:
     """Store a candidate's test quantiles (and profile where shapes are measured) in it."""
     eq = row.get("error_quantiles")
     model.error_quantiles = dict(eq) if eq else None
     prof = row.get("error_profile") if shapes else None
-    src = {"part": "best-model test rows (" + split["method"] + ")",
+    src = {"part": "best-model test rows (" + split["method"] + ")"
+           + ("; cross-fitted over two folds of the test units" if crossfitted else ""),
            "rows": row["rows"], "metric": METRIC}
     extended = False
     if not prof and eq:   # tip-only: the bound along the shaft by the documented extension rule
@@ -475,6 +511,14 @@ def markdown(res: BestResult) -> str:
         vals = " | ".join(f"{eq[k]:.3f}" if k in eq else "-" for k in ("p50", "p95", "p99", "max"))
         lines.append(f"| {name}: {row['description']} | {row['mean_mm']:.3f} | {vals} | "
                      f"{'yes' if row.get('winner') else ''} |")
+    cf = res.candidates[res.winner].get("crossfit_error_quantiles") or {}
+    if cf:
+        chosen = res.split.get("crossfit", {}).get("chosen_by_other_fold", [])
+        lines += ["", "Error bound written with the winner (cross-fitted: each of two folds of "
+                  "the test units takes the deviations of the candidate the other fold chooses"
+                  + (f": {' / '.join(chosen)}" if chosen else "") + "): "
+                  + ", ".join(f"{k} {cf[k]:.3f} mm" for k in ("p50", "p95", "p99", "max")
+                              if k in cf) + "."]
     lines += ["", f"Use it with `--model {res.files.get('best_model', 'best_model')}` in plan, "
                   "shape and check.", ""]
     return "\n".join(lines)

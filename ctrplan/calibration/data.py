@@ -2,7 +2,8 @@
 
 :func:`check_inputs` loads the robot and the data and validates the options (one-line
 :class:`~ctrplan.errors.InputError` naming the field); :func:`split_rows` cuts the rows into fit /
-validation / test (:func:`split_three`); :func:`data_check` says when the data cannot support a
+validation / test (the one
+splitter of :mod:`ctrplan.split`); :func:`data_check` says when the data cannot support a
 diagnosis (after the evidence stage has measured the noise floor) and what experiment would.
 """
 
@@ -19,6 +20,7 @@ from ctrplan.errors import InputError
 from ctrplan.measured import MeasuredData, read_measured
 from ctrplan.robot import Robot, load_robot
 from ctrplan.shape.effects import EFFECT_NAMES, effect_params, effect_variants
+from ctrplan.split import MIN_SWEEPS_WHOLE, HeldOut, is_ordered, row_ranges, split
 
 
 @dataclass(frozen=True)
@@ -34,9 +36,10 @@ class Inputs:
 
 @dataclass(frozen=True)
 class Split:
-    """Fit / validation / test rows (boolean (B,) masks; ``train`` = fit | validation) and how
-    they were cut. ``info`` is report.json's ``split`` (without the errors added later);
-    ``warnings`` / ``experiment`` say what the split limits (few sweeps)."""
+    """Fit / validation / test rows (boolean (B,) masks; ``train`` = fit | validation; ``gap``:
+    rows left out between test blocks and the others) and how they were cut (``heldout``, the
+    one splitter's result, :mod:`ctrplan.split`). ``info`` is report.json's ``split`` (without
+    the errors added later); ``warnings`` / ``experiment`` say what the split limits."""
 
     fit: np.ndarray
     val: np.ndarray
@@ -49,6 +52,14 @@ class Split:
     test_sweeps: list[str]
     warnings: tuple[str, ...] = ()
     experiment: tuple[str, ...] = ()
+    gap: np.ndarray | None = None
+    heldout: HeldOut | None = None
+
+    @property
+    def units(self) -> np.ndarray:
+        """(B,) the held-out unit of each row (sweep, or ``<sweep>#block<k>``): contiguous
+        runs of development rows never straddle a test block or a gap within one unit."""
+        return self.heldout.labels if self.heldout is not None else self.sweeps
 
 
 def check_inputs(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: str,
@@ -69,25 +80,38 @@ def check_inputs(robot: Robot | str, data: MeasuredData | str | os.PathLike, bas
     return Inputs(robot, data, base, tuple(cands))
 
 
-def split_rows(data: MeasuredData, holdout: float, seed: int) -> Split:
-    """Fit / validation / test masks (:func:`split_three`) with the report's description."""
+def split_rows(data: MeasuredData, holdout: float, seed: int,
+               heldout: HeldOut | None = None) -> Split:
+    """Fit / validation / test masks by the one splitter (:func:`ctrplan.split.split`:
+    ``holdout`` of the sweeps or blocks for test and as many for validation) with the report's
+    description; ``heldout``: a split made beforehand (``diagnose --best`` passes its own)."""
     sw = data.sweeps()
     names = list(dict.fromkeys(sw.tolist()))
-    fit_rows, val, test = split_three(data, holdout, seed)
+    h = heldout if heldout is not None else split(
+        data.sweep, len(data), holdout, holdout, seed, q=data.q, ordered=ordered(data))
+    fit_rows, val, test = h.fit, h.val, h.test
     train = fit_rows | val
     warnings, experiment = [], []
-    if len(names) < MIN_SWEEPS_WHOLE:
+    if h.kind == "blocks":
         what = "the single sweep" if len(names) < 2 else f"each of the {len(names)} sweeps"
-        info = {"method": f"contiguous blocks of {what} (of 8 blocks: 2 and 6 validation, "
-                "4 and 8 test)", "test_rows": row_ranges(test),
-                "validation_rows": row_ranges(val), "fit_rows": row_ranges(fit_rows)}
+        info = {"method": f"contiguous blocks of {what} (validation and test blocks evenly "
+                f"spaced; {h.gap_rows} rows left out on each side of a test block, the "
+                f"motion's autocorrelation length {h.autocorrelation_rows} rows)",
+                "test_rows": row_ranges(test), "validation_rows": row_ranges(val),
+                "fit_rows": row_ranges(fit_rows), "gap_rows_ranges": row_ranges(h.gap)}
         train_sw = [f"{nm} ({', '.join(row_ranges(train & (sw == nm)))})" for nm in names]
         test_sw = [f"{nm} ({', '.join(row_ranges(test & (sw == nm)))})" for nm in names]
         val_sw = [f"{nm} ({', '.join(row_ranges(val & (sw == nm)))})" for nm in names]
         warnings.append(("one sweep only" if len(names) < 2 else f"only {len(names)} sweeps")
-                        + ": the held-out rows are contiguous blocks of the same motion, next "
-                        "to training rows, so the held-out error is optimistic; record at least "
-                        f"{MIN_SWEEPS_WHOLE} separate sweeps")
+                        + f": the held-out rows are {h.test_units} blocks of the same motion "
+                        "as the training rows (separated from them by a gap of "
+                        f"{h.gap_rows} rows), so the held-out error may be optimistic; record "
+                        f"at least {MIN_SWEEPS_WHOLE} separate sweeps")
+        if h.capped:
+            warnings.append(f"the sweeps are too short for a gap of the motion's "
+                            f"autocorrelation length ({h.autocorrelation_rows} rows): the "
+                            f"gap is {h.gap_rows} rows, so test rows are correlated with fit "
+                            "rows")
         experiment.append(f"record at least {MIN_SWEEPS_WHOLE} separate sweeps (whole sweeps "
                           "are then held out)")
     else:
@@ -97,69 +121,26 @@ def split_rows(data: MeasuredData, holdout: float, seed: int) -> Split:
         test_sw = sorted(set(sw[test].tolist()))
         val_sw = sorted(set(sw[val].tolist()))
     info.update({"test_row_ranges": row_ranges(test), "validation_sweeps": val_sw,
-                 "fit_sweeps": sorted(set(sw[fit_rows].tolist()))})
+                 "fit_sweeps": sorted(set(sw[fit_rows].tolist())), **h.describe()})
     return Split(fit_rows, val, test, train, sw, ordered(data), info, train_sw, test_sw,
-                 tuple(warnings), tuple(experiment))
+                 tuple(warnings), tuple(experiment), h.gap, h)
 
 
 def split_sweeps(data: MeasuredData, holdout: float = 0.25, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Boolean (fit + validation) / test masks holding out whole sweeps (see
-    :func:`split_three`)."""
+    """Boolean (fit + validation) / test masks (see :func:`split_three`)."""
     fit, val, test = split_three(data, holdout, seed)
     return fit | val, test
 
 
-#: fewer sweeps than this: every sweep is cut into blocks (each role sees every sweep)
-MIN_SWEEPS_WHOLE = 8
-
-
 def split_three(data: MeasuredData, holdout: float = 0.25,
                 seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Boolean fit / validation / test masks.
-
-    At least ``MIN_SWEEPS_WHOLE`` sweeps: whole sweeps, ``round(holdout * sweeps)`` test sweeps
-    and as many validation sweeps (drawn with ``seed``), the rest fit. Fewer sweeps (a few
-    experiments of one kind each would otherwise leave the fit rows without, e.g., any
-    rotation): every sweep is cut into 8 contiguous blocks; blocks 4 and 8 are test rows,
-    blocks 2 and 6 validation rows (neighbours of fit rows: optimistic, and warned about).
-    The test rows choose nothing: they only report the error of the model chosen on the others.
-    """
-    sw = data.sweeps()
-    B = len(data)
-    names = list(dict.fromkeys(sw.tolist()))
-    if len(names) < MIN_SWEEPS_WHOLE:
-        b = np.zeros(B, dtype=int)
-        for nm in names:
-            idx = np.nonzero(sw == nm)[0]
-            b[idx] = np.minimum((np.arange(len(idx)) * 8) // max(len(idx), 1), 7)
-        test = b % 4 == 3
-        val = b % 4 == 1
-        return ~test & ~val, val, test
-    rng = np.random.default_rng(seed)
-    order = [names[i] for i in rng.permutation(len(names))]
-    k = max(1, min(int(round(holdout * len(names))), (len(names) - 1) // 2))
-    held = set(order[:k])
-    valn = set(order[k:2 * k])
-    test = np.array([s in held for s in sw.tolist()])
-    val = np.array([s in valn for s in sw.tolist()])
-    return ~test & ~val, val, test
-
-
-def row_ranges(mask: np.ndarray) -> list[str]:
-    """1-based data-row ranges ("rows a-b") of the rows a boolean mask selects."""
-    idx = np.nonzero(mask)[0]
-    if not len(idx):
-        return []
-    out = []
-    start = prev = int(idx[0])
-    for i in idx[1:]:
-        i = int(i)
-        if i != prev + 1:
-            out.append(f"rows {start + 1}-{prev + 1}")
-            start = i
-        prev = i
-    out.append(f"rows {start + 1}-{prev + 1}")
-    return out
+    """Boolean fit / validation / test masks of the one splitter
+    (:func:`ctrplan.split.split`, ``holdout`` for test and as many for validation): whole
+    sweeps with at least ``MIN_SWEEPS_WHOLE`` sweeps, else blocks of every sweep with the rows
+    next to a test block left out (in no mask). The test rows choose nothing: they only
+    report the error of the model chosen on the others."""
+    h = split(data.sweep, len(data), holdout, holdout, seed, q=data.q, ordered=ordered(data))
+    return h.fit, h.val, h.test
 
 
 def fitted_names(effect: str, robot: Robot, base: str) -> list[str]:
@@ -168,8 +149,7 @@ def fitted_names(effect: str, robot: Robot, base: str) -> list[str]:
 
 def ordered(data: MeasuredData) -> bool:
     """Rows are in order of motion unless every row is its own sweep (independent samples)."""
-    sw = data.sweeps()
-    return len(set(sw.tolist())) < max(2, len(sw) // 2)
+    return is_ordered(data.sweeps(), len(data))
 
 
 def data_check(robot: Robot, data: MeasuredData, evb: dict, pred_tip: np.ndarray,
@@ -178,8 +158,9 @@ def data_check(robot: Robot, data: MeasuredData, evb: dict, pred_tip: np.ndarray
     reasons, todo = [], []
     distinct = evb["distinct_configurations"]
     if distinct < min_configurations:
-        reasons.append(f"only {distinct} distinct configuration(s) in {len(data)} rows "
-                       f"(at least {min_configurations} needed)")
+        reasons.append(f"only {distinct} distinct configuration(s) in the {evb['rows']} fit "
+                       f"and validation rows of {len(data)} (at least {min_configurations} "
+                       "needed)")
         todo.append("move every joint over its range: at least 20 (better 200+) distinct "
                     "configurations in several sweeps; repeats of a few of them give the noise "
                     "floor")

@@ -28,12 +28,15 @@ decisions:
 1. Data check: enough distinct configurations, a measurable noise floor below what any effect
    can change, an error the vocabulary can reach at all. Otherwise the report says that the data
    cannot support a diagnosis and what experiment would (status ``insufficient data``).
-2. Split (:func:`split_three`): fit / validation / test rows. With ``MIN_SWEEPS_WHOLE`` sweeps
-   or more, whole sweeps; with fewer, contiguous blocks of every sweep (named in the report,
-   with a warning that they neighbour fit rows). Parameters are fitted on the fit rows, effects
-   and forms chosen on the validation rows; the test rows choose nothing and give the reported
-   errors. The model is always evaluated on all rows in order (friction depends on the history).
-3. Evidence from the data alone (:mod:`ctrplan.calibration.evidence`).
+2. Split (the one held-out splitter, :func:`ctrplan.split.split`): fit / validation / test
+   rows. With ``MIN_SWEEPS_WHOLE`` sweeps or more, whole sweeps; with fewer, contiguous blocks
+   of every sweep, the rows within the motion's autocorrelation length of a test block left out
+   (the report says how many independent test blocks the numbers rest on). Parameters are
+   fitted on the fit rows, effects and forms chosen on the validation rows; the test rows make
+   one choice only (step 9) and give the reported errors. Friction's history comes from all
+   rows in order (the commanded motion).
+3. Evidence from the data alone (:mod:`ctrplan.calibration.evidence`), on the fit and
+   validation rows only.
 4. Forward selection (:func:`ctrplan.calibration.select.forward`): every form of every
    candidate effect is fitted alone on top of the current model (robust soft-L1 loss, see :meth:`Problem.fit`); the leading ones are
    refitted jointly with the effects already in. A candidate enters the model when it lowers the
@@ -57,10 +60,22 @@ decisions:
    validation error above the noise floor, nothing is named and ``unexplained`` says what the
    residual still correlates with and how much is left; ``unexplained`` is also reported
    (without un-naming) whenever the residual stays clearly above the noise floor.
+9. Never worse than the base: before the final fit, a selected model worse than the base on
+   the validation mean or p99 falls back to the largest smaller model (or the base) that is not
+   (:func:`ctrplan.calibration.select.no_worse_than_base`); after it, the fitted model is the
+   default output only when its test-row mean and p99 are no worse than the base's
+   (:func:`ctrplan.calibration.verdict.heldout_choice`; otherwise the base model, with the fit
+   in ``calibrated_fit.yaml``). Effects the rows cannot tell apart are reported as
+   ``confounded`` (:mod:`ctrplan.calibration.confound`).
+
+Long recordings: the selection fits every k-th fit and validation row (at most about
+:data:`SELECT_FIT_ROWS` fit rows); the final fit uses them all. Progress and an estimate of
+the time left are logged (stderr, INFO).
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from collections.abc import Sequence
@@ -69,6 +84,8 @@ import numpy as np
 
 from ctrplan.calibration import evidence as ev
 from ctrplan.calibration.binned import residual_diagnostics
+from ctrplan.calibration.confound import confounded
+from ctrplan.calibration.confound import describe as describe_confounded
 from ctrplan.calibration.data import (
     MIN_SWEEPS_WHOLE,
     Inputs,
@@ -93,13 +110,17 @@ from ctrplan.calibration.select import (
     Selection,
     drop_partials_at_bounds,
     name_by_signature,
+    no_worse_than_base,
     select,
 )
-from ctrplan.calibration.verdict import Verdict, conclude, errors
+from ctrplan.calibration.verdict import HeldoutChoice, Verdict, conclude, errors, heldout_choice
 from ctrplan.measured import MeasuredData
 from ctrplan.robot import Robot
 from ctrplan.shape.base import direction_from_rows
 from ctrplan.shape.effects import EffectModel
+from ctrplan.split import HeldOut
+
+log = logging.getLogger("ctrplan")
 
 __all__ = ["diagnose", "DiagnoseReport", "DiagnoseStatus", "Step", "Candidate", "split_sweeps",
            "split_three", "row_ranges", "headline", "NUISANCES", "CHI3_MEAN", "MIN_SWEEPS_WHOLE",
@@ -112,7 +133,8 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
              screen_iter: int = 8, fit_iter: int = 25, refit_top: int = 3, max_effects: int = 6,
              max_remainder: float = 0.5, keep_gain: float = 0.02, min_configurations: int = 20,
              nuisances: bool = True, learned_residual: bool = True,
-             out: str | os.PathLike | None = None) -> DiagnoseReport:
+             out: str | os.PathLike | None = None,
+             heldout: HeldOut | None = None) -> DiagnoseReport:
     """Run the workflow (module docstring) and return a :class:`DiagnoseReport`.
 
     robot : Robot or shipped name / YAML path. data : MeasuredData or measured CSV path.
@@ -124,39 +146,39 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     the held-out error, see :mod:`ctrplan.calibration.residual`).
     out : when given, write report.json, report.md, plots and calibrated model files there
     (as a set: see :func:`ctrplan.calibration.report.write_report`).
+    heldout : the rows' split made beforehand by :func:`ctrplan.split.split` (``diagnose
+    --best`` passes the one it compares its candidates on); default: split here with
+    ``holdout`` and ``seed``.
     """
     t0 = time.perf_counter()
     cfg = SelectConfig(bic_threshold, min_gain, keep_gain, ambiguity_bic, screen_iter, fit_iter,
                        refit_top, max_effects)
     inp = check_inputs(robot, data, base, candidates)
     robot, data = inp.robot, inp.data
-    split = split_rows(data, holdout, seed)
+    split = split_rows(data, holdout, seed, heldout)
     # selection problem: parameters fitted on the fit rows, effects chosen on validation rows
-    prob = Problem(EffectModel(robot, inp.base), data, split.fit, split.val)
+    # (of a long recording, every k-th: see selection_rows)
+    prob = Problem(EffectModel(robot, inp.base), data, *selection_rows(split))
     base_score = prob.score({}, k=0)
     base_pred = prob.predict_many([{}])[0]
     evd = ev.gather(robot, data, split, base_pred, inp.candidates, min_configurations)
     prob.robust = evd.robust_scale
-    if evd.insufficient:
-        sel = Selection({}, base_score, {}, [], {})
-    else:
-        sel = select(prob, robot, inp.base, evd.candidates, cfg, evd.e_noise, base_score)
-        if split.ordered:
-            sel = name_by_signature(prob, sel, split.train,
-                                    direction_from_rows(data.q, split.sweeps), evd.noise_sd, cfg)
-    fit = final_fit(prob, split.train, split.test, sel.effects, sel.free, fit_iter, base_pred)
-    trimmed = drop_partials_at_bounds(prob, robot, inp.base, sel, fit.effects, cfg)
-    if trimmed is not None:
-        sel = trimmed
-        fit = final_fit(prob, split.train, split.test, sel.effects, sel.free, fit_iter, base_pred)
+    glitch = _glitches(data, split, base_pred)
+    sel, fit = _select_and_fit(prob, inp, split, evd, cfg, base_score, base_pred, glitch)
+    log.info("diagnose: final fit done (%.0f s); nuisances, conclusion and report",
+             time.perf_counter() - t0)
     ev_after = ev.collect(robot, data.q, fit.pred[:, -1], data.tip, split.sweeps, data.time,
-                          split.ordered, noise=evd.before["noise"]) if fit.effects else evd.before
+                          split.ordered, noise=evd.before["noise"],
+                          rows=split.train) if fit.effects else evd.before
     if nuisances and not evd.insufficient:
         nuis = screen_nuisances(robot, prob, data, split, fit.pred, base_pred, fit.effects,
                                 sel.named, min_gain)
     else:
         nuis = Nuisances([], [], sel.named)
-    err = errors(prob.errors(base_pred), fit, split.val, split.test, evd.noise_sd)
+    base_err = prob.errors(base_pred)
+    choice = heldout_choice(base_err, fit.err, split.test, split.units, glitch)
+    err = errors(base_err, fit, split.val, split.test, evd.noise_sd, choice.err)
+    conf = confounded(prob, fit.effects, sel.free, prob.train) if not evd.insufficient else []
     verdict = conclude(robot, inp.base, sel, nuis, fit, err, ev_after, evd.insufficient,
                        max_remainder, split.train, split.test)
     learned = None
@@ -164,16 +186,109 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
         from ctrplan.calibration.residual import learned_residual as _lr
 
         learned = _lr(robot, data.q, split.sweeps, data.tip, fit.pred[:, -1], split.train,
-                      split.test, split.ordered)
+                      split.test, split.ordered, groups=split.units)
     settings = _settings(holdout, seed, max_remainder, cfg, inp, split, evd, sel, prob.evals)
     rep = _report(inp, split, evd, sel, fit, nuis, verdict, base_pred, ev_after, settings,
                   learned)
+    rep.confounded = conf
+    rep.warnings += describe_confounded(conf)
+    named_conf = [c for c in conf if set(c["effects"]) & set(rep.effects)]
+    if named_conf:
+        # the evidence singled one effect out by its fit; the conclusion says what it is
+        # confounded with (report.json ``confounded``)
+        rep.conclusion += "; " + "; ".join(
+            f"{a} confounded with {b}" for a, b in (c["effects"] for c in named_conf))
+    _apply_choice(rep, choice, fit)
     rep.elapsed_s = time.perf_counter() - t0
     if out is not None:
         from ctrplan.calibration.report import write_report
 
         write_report(rep, data, out, base_pred=base_pred, final_pred=fit.pred, test=split.test)
     return rep
+
+
+#: the selection (screens, forward and joint models) fits at most about this many fit rows: a
+#: longer recording's fit and validation rows are thinned to every k-th row for it (its rows a
+#: few apart are nearly copies of each other: the motion's autocorrelation length is tens of
+#: rows, so thinning loses little of what the rows tell), and only the final fit uses them all.
+#: 1,300-row recordings (650 fit rows) are not thinned; 5,000 rows are thinned by 2-3, which
+#: keeps diagnose within its time budget (benchmarks/bench_diagnose.py, ``real_5000``)
+SELECT_FIT_ROWS = 1200
+
+
+def selection_rows(split: Split) -> tuple[np.ndarray, np.ndarray]:
+    """(fit, validation) rows of the selection: every k-th fit and validation row, k the
+    smallest step that leaves at most :data:`SELECT_FIT_ROWS` fit rows (k = 1 for shorter
+    data)."""
+    k = max(1, -(-int(split.fit.sum()) // SELECT_FIT_ROWS))
+    if k == 1:
+        return split.fit, split.val
+    out = []
+    for m in (split.fit, split.val):
+        idx = np.flatnonzero(m)[::k]
+        t = np.zeros_like(m)
+        t[idx] = True
+        out.append(t)
+    return out[0], out[1]
+
+
+def _glitches(data: MeasuredData, split: Split, base_pred: np.ndarray) -> np.ndarray:
+    """(B,) rows of the validation and the test rows whose measurement jumped
+    (:func:`ctrplan.calibration.evidence.glitches`, each role on its own runs of rows); none
+    for rows that are independent samples."""
+    if not split.ordered:
+        return np.zeros(len(data), dtype=bool)
+    res = base_pred[:, -1] - data.tip
+    return ev.glitches(res, split.sweeps, split.val) | ev.glitches(res, split.sweeps, split.test)
+
+
+def _select_and_fit(prob: Problem, inp: Inputs, split: Split, evd: ev.Evidence,
+                    cfg: SelectConfig, base_score, base_pred: np.ndarray, glitch: np.ndarray
+                    ) -> tuple[Selection, FinalFit]:
+    """Stages 3 and 4: the selection (with friction's signature and the fallback to a model no
+    worse than the base on the validation rows), the final fit on fit + validation rows, and
+    the partial effects at a bound left out."""
+    robot, data = inp.robot, inp.data
+    if evd.insufficient:
+        sel = Selection({}, base_score, {}, [], {})
+    else:
+        sel = select(prob, robot, inp.base, evd.candidates, cfg, evd.e_noise, base_score)
+        if split.ordered:
+            sel = name_by_signature(prob, sel, split.train,
+                                    direction_from_rows(data.q, split.sweeps), evd.noise_sd, cfg)
+    sel = no_worse_than_base(prob, sel, glitch)
+    fit = final_fit(prob, split.train, split.test, sel.effects, sel.free, cfg.fit_iter,
+                    base_pred)
+    trimmed = drop_partials_at_bounds(prob, robot, inp.base, sel, fit.effects, cfg)
+    if trimmed is not None:
+        sel = trimmed
+        fit = final_fit(prob, split.train, split.test, sel.effects, sel.free, cfg.fit_iter,
+                        base_pred)
+    return sel, fit
+
+
+def _apply_choice(rep: DiagnoseReport, choice: HeldoutChoice, fit: FinalFit) -> None:
+    """The held-out comparison in the report; the base model as the default output (the fit
+    kept as ``fit_effects``, written as calibrated_fit.yaml) when the fit is worse than the
+    base on the test rows' mean or p99 (the report's after-errors are then the base's)."""
+    rep.heldout_comparison = choice.info
+    rep.fit_effects = fit.effects
+    if not choice.info["stable"] and fit.effects:
+        rep.warnings.append(
+            "the fitted model and the base model compare differently on the two halves of the "
+            f"test units (no worse on the mean and p99: {choice.info['per_fold'][0]} on one, "
+            f"{choice.info['per_fold'][1]} on the other): the choice of the default output "
+            "rests on few units; record more sweeps")
+    if choice.output == "fit" or not fit.effects:
+        return
+    rep.model_effects = {}
+    b, f = choice.info["base"], choice.info["fit"]
+    rep.warnings.append(
+        f"the fitted model ({', '.join(fit.effects)}) is not the default output: on the test "
+        f"rows its tip error is mean {f['mean_mm']:.3f} mm, p99 {f['p99_mm']:.3f} mm against "
+        f"the base model's {b['mean_mm']:.3f} / {b['p99_mm']:.3f} mm (a model worse than the "
+        "base on the mean or the tail is not the default); calibrated.yaml is the base model "
+        "with the error bound measured, the fit is in calibrated_fit.yaml")
 
 
 def _settings(holdout: float, seed: int, max_remainder: float, cfg: SelectConfig, inp: Inputs,
@@ -186,6 +301,7 @@ def _settings(holdout: float, seed: int, max_remainder: float, cfg: SelectConfig
             "keep_gain": cfg.keep_gain, "ambiguity_bic": cfg.ambiguity_bic,
             "max_remainder": max_remainder, "candidates": list(evd.candidates),
             "rows": len(data), "fit_rows": int(split.fit.sum()),
+            "selection_fit_rows": int(selection_rows(split)[0].sum()),
             "validation_rows": int(split.val.sum()), "test_rows": int(split.test.sum()),
             "train_rows": int(split.train.sum()), "shapes_measured": data.points is not None,
             "rows_in_order_of_motion": split.ordered,
@@ -222,7 +338,7 @@ def _report(inp: Inputs, split: Split, evd: ev.Evidence, sel: Selection, fit: Fi
         learned_residual=learned, partial_values=verdict.partial_values,
         outliers=verdict.outliers,
         nuisance_tests=[{k: v for k, v in o.items() if k != "features"} for o in nuis.tests],
-        measured_insertion=measured,
+        measured_insertion=measured, error_quantiles_before=verdict.quantiles_before,
     )
 
 

@@ -2,7 +2,9 @@
 
 Stage 2 of the calibration pipeline (:mod:`ctrplan.calibration.diagnose`): data-only
 statistical tests whose results feed the data check, the screening and the conclusion (the
-descriptive binned statistics of the report are :mod:`ctrplan.calibration.binned`).
+descriptive binned statistics of the report are :mod:`ctrplan.calibration.binned`). They run on
+the fit and validation rows only (:func:`gather`, ``collect(rows=...)``): the test rows stay
+untouched; directions of motion come from all rows in order (the commanded history).
 
 Every test works on the tip residual ``r = predicted - measured`` (B, 3) of a model and on the
 configurations, directions of motion and times of the rows:
@@ -75,10 +77,11 @@ class Evidence:
 
 def gather(robot: Robot, data: MeasuredData, split: Split, base_pred: np.ndarray,
            candidates: Sequence[str], min_configurations: int) -> Evidence:
-    """The evidence stage: tests on the base model's predictions ``base_pred`` (B, m, 3), the
-    data check, and friction dropped from the candidates when the rows show no reversals."""
+    """The evidence stage on the fit and validation rows only (the test rows stay untouched):
+    tests on the base model's predictions ``base_pred`` (B, m, 3), the data check, and
+    friction dropped from the candidates when the rows show no reversals."""
     before = collect(robot, data.q, base_pred[:, -1], data.tip, split.sweeps, data.time,
-                     split.ordered)
+                     split.ordered, rows=split.train)
     noise_sd = before["noise"].get("sd_mm")
     insufficient = data_check(robot, data, before, base_pred[:, -1], min_configurations)
     hyst = before["hysteresis"]
@@ -375,14 +378,22 @@ def direction_field(q: np.ndarray, res: np.ndarray, direction: np.ndarray) -> di
 
 def collect(robot: Robot, q: np.ndarray, pred_tip: np.ndarray, meas_tip: np.ndarray,
             sweep: np.ndarray, time: np.ndarray | None, ordered: bool = True,
-            noise: dict | None = None) -> dict:
-    """All evidence for one model's residual (JSON-ready)."""
-    res = pred_tip - meas_tip
-    good = np.all(np.isfinite(res), axis=1)
-    q, res, pred_tip, meas_tip, sweep = q[good], res[good], pred_tip[good], meas_tip[good], sweep[good]
-    time = None if time is None else time[good]
+            noise: dict | None = None, rows: np.ndarray | None = None) -> dict:
+    """All evidence for one model's residual (JSON-ready), on the rows ``rows`` ((B,) bool;
+    default all). The direction of motion comes from the order of all rows (the commanded
+    history); the noise floor's second differences run along contiguous runs of ``rows``
+    within a sweep (never across a held-out block)."""
     direction = direction_from_rows(q, sweep) if ordered else np.zeros(q.shape, dtype=np.int8)
-    nf = noise or noise_floor(q, res, sweep, direction, ordered)
+    res = pred_tip - meas_tip
+    keep = np.all(np.isfinite(res), axis=1)
+    seg = np.asarray(sweep)
+    if rows is not None:
+        seg = contiguous_runs(np.asarray(rows, dtype=bool), seg)
+        keep &= np.asarray(rows, dtype=bool)
+    q, res, pred_tip, meas_tip = q[keep], res[keep], pred_tip[keep], meas_tip[keep]
+    direction, seg = direction[keep], seg[keep]
+    time = None if time is None else time[keep]
+    nf = noise or noise_floor(q, res, seg, direction, ordered)
     sd = nf.get("sd_mm")
     rms = float(np.sqrt((res ** 2).sum(1).mean())) if len(res) else math.nan
     return {
@@ -399,6 +410,51 @@ def collect(robot: Robot, q: np.ndarray, pred_tip: np.ndarray, meas_tip: np.ndar
         "relative_rotation": relative_rotation_field(robot, q, res),
         "direction": direction_field(q, res, direction) if ordered else {"tested": False},
     }
+
+
+#: a row is a measurement glitch when its residual jumps from the mean of its two neighbours'
+#: by more than this many robust sd of such jumps (and by more than its neighbours do)
+GLITCH_SD = 8.0
+
+
+def glitches(res: np.ndarray, sweep: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(B,) bool: rows of ``rows`` whose measurement jumped (a tracker glitch), from the
+    residual ``res`` (B, 3) of any smooth model (the base model's): the second difference
+    ``r_k - (r_(k-1) + r_(k+1)) / 2`` along contiguous runs of ``rows`` within a sweep exceeds
+    :data:`GLITCH_SD` robust sd (the MAD of those differences, per axis) and is the largest of
+    its neighbours'. A smooth model error barely changes from one row to the next of a slow
+    motion; a glitch of a few mm stands out by orders of magnitude. Rows at the ends of a run,
+    and unordered data (pass ``rows`` all False), are never flagged."""
+    res = np.asarray(res, dtype=float)
+    out = np.zeros(len(res), dtype=bool)
+    runs = contiguous_runs(np.asarray(rows, dtype=bool), sweep)
+    inner = np.zeros(len(res), dtype=bool)
+    inner[1:-1] = (runs[1:-1] >= 0) & (runs[:-2] == runs[1:-1]) & (runs[2:] == runs[1:-1])
+    idx = np.flatnonzero(inner & np.all(np.isfinite(res), axis=1))
+    if len(idx) < 10:
+        return out
+    d = res[idx] - 0.5 * (res[idx - 1] + res[idx + 1])
+    d = np.where(np.isfinite(d), d, 0.0)
+    scale = np.median(np.abs(d - np.median(d, axis=0)), axis=0) * 1.4826
+    size = np.linalg.norm(d / np.maximum(scale, 1e-9), axis=1)
+    big = np.zeros(len(res))
+    big[idx] = size
+    peak = (big[idx] >= big[idx - 1]) & (big[idx] >= big[idx + 1])
+    out[idx[(size > GLITCH_SD) & peak]] = True
+    return out
+
+
+def contiguous_runs(rows: np.ndarray, sweep: np.ndarray) -> np.ndarray:
+    """(B,) int label of the contiguous run of selected ``rows`` within a sweep each row is in
+    (a new run after every unselected row and at every sweep change; unselected rows: -1)."""
+    sw = np.asarray(sweep)
+    out = np.full(len(rows), -1, dtype=np.int64)
+    idx = np.flatnonzero(rows)
+    if len(idx):
+        brk = np.ones(len(idx), dtype=bool)
+        brk[1:] = (np.diff(idx) != 1) | (sw[idx[1:]] != sw[idx[:-1]])
+        out[idx] = np.cumsum(brk)
+    return out
 
 
 #: which evidence supports which effect (shown in the report for each named effect)

@@ -38,7 +38,8 @@ def final_fit(prob: Problem, train: np.ndarray, test: np.ndarray,
     ``prob``), kept only when it lowers the training residual; predictions use ``prob``."""
     sigma: dict[str, dict[str, float]] = {}
     if effects and free:
-        prob_all = Problem(EffectModel(prob.robot, prob.model.base), prob.data, train, test)
+        # scored on the training rows only: the refit's test errors are computed below
+        prob_all = Problem(EffectModel(prob.robot, prob.model.base), prob.data, train, train)
         prob_all.robust = prob.robust
         sel = prob_all.score(effects)
         k_all = sum(len(v) for v in free.values())

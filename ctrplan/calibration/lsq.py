@@ -2,10 +2,11 @@
 (:class:`Problem`) that the screening and selection stage (:mod:`ctrplan.calibration.select`)
 and the fit stage (:mod:`ctrplan.calibration.fit`) both use; not a stage itself.
 
-Every residual evaluation is one batched kernel call over the whole data set (rows in order of
-motion, so friction sees the true history even for held-out rows); the finite-difference
-Jacobian stacks all perturbed parameter sets into one kernel call as well. Parameters that act
-only on the sensor side (``registration``) reuse the mechanics solve.
+Every residual evaluation is one batched kernel call over the rows the problem uses (its
+training and held-out rows; the joint-space stage, friction's history included, runs on all
+rows in order of motion); the finite-difference Jacobian stacks all perturbed parameter sets
+into one kernel call as well. Parameters that act only on the sensor side (``registration``)
+reuse the mechanics solve.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ctrplan.measured import MeasuredData
-from ctrplan.shape.effects import EffectModel, Param, effect_params, prepare, to_sensor
+from ctrplan.shape.effects import EffectModel, Param, Prepared, effect_params, prepare, to_sensor
 from ctrplan.shape.physics import MechanicsParams
 
 #: Penalty (mm) for a coordinate whose predicted shape is not finite.
@@ -64,6 +65,8 @@ class Problem:
         self.data = data
         self.train = np.asarray(train, dtype=bool)
         self.test = np.asarray(test, dtype=bool)
+        #: rows a fit or a score solves (the others are NaN in its predictions)
+        self.rows = self.train | self.test
         self.m = data.points.shape[1] if data.points is not None else 2
         self.sweep = data.sweeps()
         target = data.points if data.points is not None else np.stack(
@@ -77,10 +80,19 @@ class Problem:
         self.robust: float | None = None
 
     # -------------------------------------------------------------- predictions
-    def predict_many(self, effect_sets: Sequence[Mapping[str, Mapping[str, float]]]) -> list[np.ndarray]:
-        """Predicted points (B, m, 3) for each complete effect set, one kernel call in all."""
+    def predict_many(self, effect_sets: Sequence[Mapping[str, Mapping[str, float]]],
+                     rows: np.ndarray | None = None) -> list[np.ndarray]:
+        """Predicted points (B, m, 3) for each complete effect set, one kernel call in all;
+        ``rows`` (B,) bool: solve only these rows (the others are NaN; default all)."""
         B = len(self.data)
         preps = [prepare(self.robot, self.model.base, e, self.data.q, self.sweep) for e in effect_sets]
+        if rows is not None and not np.all(rows):
+            return self._predict_rows(effect_sets, preps, np.flatnonzero(rows))
+        return self._solve(effect_sets, preps, B)
+
+    def _solve(self, effect_sets, preps, B: int) -> list[np.ndarray]:
+        """One kernel call for the prepared sets ``preps`` (rows B each): points in the sensor
+        frame per set."""
         # sets that differ only in sensor-side parameters share a solve
         keys: list[int] = []
         uniq: list[int] = []
@@ -113,6 +125,18 @@ class Problem:
             out.append(to_sensor(e, pts[j * B:(j + 1) * B]))
         return out
 
+    def _predict_rows(self, effect_sets, preps, idx: np.ndarray) -> list[np.ndarray]:
+        """:meth:`predict_many` on the rows ``idx`` only (the joint-space stage ran on all)."""
+        B = len(self.data)
+        sub = [Prepared(q=p.q[idx], params=_take(p.params, idx), torsion=p.torsion)
+               for p in preps]
+        out = []
+        for pts in self._solve(effect_sets, sub, len(idx)):
+            full = np.full((B, self.m, 3), np.nan)
+            full[idx] = pts
+            out.append(full)
+        return out
+
     def errors(self, pts: np.ndarray) -> np.ndarray:
         """(B,) tip error (mm); non-finite predictions count as NONFINITE_MM."""
         e = np.linalg.norm(pts[:, -1, :] - self.tip, axis=1)
@@ -136,7 +160,7 @@ class Problem:
               k: int = 0) -> FitResult:
         """Errors of a complete effect set without fitting."""
         if pts is None:
-            pts = self.predict_many([effects])[0]
+            pts = self.predict_many([effects], self.rows)[0]
         r = self.residual(pts, self.train)
         e = self.errors(pts)
         return FitResult(effects={a: dict(b) for a, b in effects.items()}, rss=float(r @ r),
@@ -156,7 +180,7 @@ class Problem:
         if start:
             for eff, vals in start.items():
                 base.setdefault(eff, {}).update(vals)
-        scale = np.array([_scale(p) for _, p in specs])
+        scale = np.array([param_scale(p) for _, p in specs])
         offv = np.array([p.off for _, p in specs])
         lo = (np.array([p.lo for _, p in specs]) - offv) / scale
         hi = (np.array([p.hi for _, p in specs]) - offv) / scale
@@ -191,7 +215,7 @@ class Problem:
             key = z.tobytes()
             if key not in cache:
                 cache.clear()
-                cache[key] = self.predict_many([effects_at(z)])[0]
+                cache[key] = self.predict_many([effects_at(z)], self.rows)[0]
             return self.residual(cache[key], self.train)
 
         def jac(z: np.ndarray) -> np.ndarray:
@@ -204,7 +228,7 @@ class Problem:
                 zi[i] += step
                 zs.append(zi)
                 steps.append(step)
-            preds = self.predict_many([effects_at(zi) for zi in zs])
+            preds = self.predict_many([effects_at(zi) for zi in zs], self.rows)
             J = np.empty((f0.size, len(z)))
             for i, p in enumerate(preds):
                 J[:, i] = (self.residual(p, self.train) - f0) / steps[i]
@@ -231,7 +255,7 @@ class Problem:
             J = np.zeros((0, 0))
             nfev = 0
         eff = effects_at(z)
-        pts = self.predict_many([eff])[0]
+        pts = self.predict_many([eff], self.rows)[0]
         out = self.score(eff, pts, k=len(specs) if k_total is None else k_total)
         out.nfev = nfev
         sig = _uncertainty(J, out.rss, out.n_res) * scale if len(specs) else np.zeros(0)
@@ -239,6 +263,16 @@ class Problem:
             out.values.setdefault(e, {})[p.name] = eff[e][p.name]
             out.sigma.setdefault(e, {})[p.name] = float(s)
         return out
+
+
+def _take(p: MechanicsParams, idx: np.ndarray) -> MechanicsParams:
+    """The parameter arrays of the rows ``idx``."""
+    def pick(a):
+        return None if a is None else a[idx]
+
+    return MechanicsParams(kappa=p.kappa[idx], EI=p.EI[idx], ratio=p.ratio[idx],
+                           kink=p.kink[idx], weight=pick(p.weight), force=pick(p.force),
+                           moment=pick(p.moment))
 
 
 def _loads_of(params: Sequence[MechanicsParams]) -> dict[str, np.ndarray]:
@@ -258,7 +292,7 @@ def _same_mechanics(a: Mapping[str, Mapping[str, float]], b: Mapping[str, Mappin
     return ka == kb and all(a[k] == b[k] for k in ka)
 
 
-def _scale(p: Param) -> float:
+def param_scale(p: Param) -> float:
     """A typical magnitude of a parameter (the unit of the optimiser's variable)."""
     # m/s^2 (load: gravity): light tubes sag little per m/s^2; a finer finite-difference step
     # at load off would compare the loaded kernel with the unloaded one, whose discretisations

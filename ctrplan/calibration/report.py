@@ -79,6 +79,7 @@ def markdown(rep: DiagnoseReport) -> str:
         lines += ["**What experiment would support a diagnosis:**", ""] + \
             [f"- {w}" for w in rep.experiment] + [""]
     lines += _rule_md(rep)
+    lines += _heldout_md(rep)
     lines += _evidence_md(rep)
     lines += _named_md(rep)
     lines += _unexplained_md(rep)
@@ -120,6 +121,35 @@ def _rule_md(rep: DiagnoseReport) -> list[str]:
             f"above are on the test rows, which chose nothing: {', '.join(rep.test_sweeps)} "
             f"({rep.split.get('method', 'whole sweeps')}). Step tables show validation "
             "errors.", ""]
+
+
+def _heldout_md(rep: DiagnoseReport) -> list[str]:
+    """How many independent test blocks the numbers rest on; base vs fit on the test rows."""
+    sp, hc = rep.split, rep.heldout_comparison
+    lines = ["## Held-out rows", ""]
+    if "independent_test_blocks" in sp:
+        unit = {"whole sweeps": "whole sweeps", "blocks": "blocks of the recording",
+                "rows": "independent rows"}.get(sp.get("kind"), "units")
+        lines.append(f"The held-out numbers rest on {sp['independent_test_blocks']} independent "
+                     f"test {unit} ({rep.settings.get('test_rows', '?')} rows)"
+                     + (f", each separated from the fit and validation rows by a gap of "
+                        f"{sp['gap_rows']} rows (the motion's autocorrelation length: "
+                        f"{sp['autocorrelation_rows']} rows)" if sp.get("kind") == "blocks"
+                        else "") + ".")
+    if hc:
+        b, f = hc["base"], hc["fit"]
+        lines += ["", "| model on the test rows | mean (mm) | p99 (mm) | max (mm) |",
+                  "|---|---|---|---|"]
+        for name, x in (("base", b), ("fitted", f)):
+            lines.append(f"| {name} | {_fmt(x['mean_mm'])} | {_fmt(x['p99_mm'])} | "
+                         f"{_fmt(x['max_mm'])} |")
+        lines += ["", f"Default output: the {'fitted' if hc['output'] == 'fit' else 'base'} "
+                  f"model. Rule: {hc['rule']}."]
+    for c in getattr(rep, "confounded", []) or []:
+        lines.append(f"- confounded: {c['effects'][0]} and {c['effects'][1]} (correlation "
+                     f"{c['tip_change_correlation']:.2f}, shares {c['share_a_by_b']:.2f} / "
+                     f"{c['share_b_by_a']:.2f})")
+    return lines + [""]
 
 
 def _named_md(rep: DiagnoseReport) -> list[str]:
@@ -265,6 +295,7 @@ def _evidence_md(rep) -> list[str]:
 
 #: every file a diagnose report may hold: a new report replaces all of them as a set
 REPORT_FILES = ("report.json", "report.md", "calibrated.yaml", "calibrated_robot.yaml",
+                "calibrated_fit.yaml",
                 "residuals_rotation.png", "residuals_insertion.png", "residuals_arclength.png",
                 "errors_by_step.png", "tip_paths.png")
 
@@ -337,6 +368,11 @@ def _write_files(rep: DiagnoseReport, data: MeasuredData, folder: Path, base_pre
     write_json_atomic(folder / "report.json", jsonable(d))
     write_text_atomic(folder / "report.md", markdown(rep))
     rep.model().save(folder / "calibrated.yaml")
+    if rep.fit_effects and rep.fit_effects != rep.model_effects:
+        # the fit the held-out comparison did not make the default output (report.json says why)
+        from ctrplan.shape.effects import EffectModel
+
+        EffectModel(rep.robot, rep.base, rep.fit_effects).save(folder / "calibrated_fit.yaml")
     folded_robot(rep.robot, rep.model_effects).save(folder / "calibrated_robot.yaml")
     _plots(rep, data, folder, base_pred, final_pred, test)
 

@@ -109,6 +109,16 @@ class DiagnoseReport:
     #: {"min": [n], "max": [n]} mm: the insertions of the measured rows (where the error bound
     #: was measured), or None
     measured_insertion: dict | None = None
+    #: the base model's test-row tip error quantiles (as ``error_quantiles``)
+    error_quantiles_before: dict[str, float] | None = None
+    #: effects whose tip changes the rows cannot tell apart (:mod:`ctrplan.calibration.confound`)
+    confounded: list = field(default_factory=list)
+    #: the fitted model compared with the base on the test rows, the default output and the
+    #: cross-fitted errors (:func:`ctrplan.calibration.verdict.heldout_choice`)
+    heldout_comparison: dict = field(default_factory=dict)
+    #: the fitted model's effects (equal to ``model_effects`` unless the base model is the
+    #: default output because the fit is worse on the test rows)
+    fit_effects: dict = field(default_factory=dict)
 
     def model(self) -> EffectModel:
         """The calibrated shape model with its held-out error quantiles (tip error on the test
@@ -139,6 +149,9 @@ class DiagnoseReport:
             "steps": steps, "error_before_mm": self.error_before_mm,
             "error_after_mm": self.error_after_mm, "max_before_mm": self.max_before_mm,
             "max_after_mm": self.max_after_mm, "error_quantiles": self.error_quantiles,
+            "error_quantiles_before": self.error_quantiles_before,
+            "confounded": list(self.confounded),
+            "heldout_comparison": self.heldout_comparison,
             "measured_insertion": self.measured_insertion,
             "unexplained": self.unexplained, "warnings": list(self.warnings),
             "experiment": list(self.experiment), "partial": list(self.partial),

@@ -16,14 +16,21 @@ Signature (:func:`name_by_signature`): friction kept in the model below the shar
 when the residual without it shows significant hysteresis that it removes (the one effect
 whose shapes depend on the direction of motion).
 
+Never worse than the base (:func:`no_worse_than_base`): the selected model, fitted on the fit
+rows, is used only when its validation mean and p99 tip error are no worse than the base
+model's; otherwise the largest smaller model the selection passed through that is no worse, or
+the base.
+
 Parameters are fitted on the fit rows (``prob.train``), effects and forms chosen on the
 validation rows (``prob.test``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -88,6 +95,10 @@ class Selection:
     steps: list[Step]
     settings: dict
     warnings: tuple[str, ...] = ()
+    #: the smaller models the selection passed through (forward selection's models after each
+    #: step, fitted on the fit rows), smallest first, as (effects, fitted names): the fallbacks
+    #: of :func:`no_worse_than_base`
+    nested: tuple = ()
 
     @property
     def in_model(self) -> list[str]:
@@ -128,7 +139,8 @@ def select(prob: Problem, robot: Robot, base: str, cands: Sequence[str], cfg: Se
     when forward selection leaves more than ``JOINT_TRIGGER`` times the noise floor's mean tip
     error ``e_noise`` (mm)."""
     steps: list[Step] = []
-    current, cur, free = forward(prob, robot, base, cands, {}, base_score, steps, cfg)
+    nested: list = []
+    current, cur, free = forward(prob, robot, base, cands, {}, base_score, steps, cfg, nested)
     settings: dict = {}
     warnings: list[str] = []
     if steps and cands and cur.test_mean > JOINT_TRIGGER * e_noise + 0.05 and cfg.max_effects > 1:
@@ -151,7 +163,7 @@ def select(prob: Problem, robot: Robot, base: str, cands: Sequence[str], cfg: Se
                             f"rows; fitted jointly {cur.test_mean:.3f} mm: the joint model is "
                             "used, each effect judged by dropping it from the joint model")
         settings["joint_model_tried"] = True
-    return Selection(current, cur, free, steps, settings, tuple(warnings))
+    return Selection(current, cur, free, steps, settings, tuple(warnings), tuple(nested))
 
 
 def drop_partials_at_bounds(prob: Problem, robot: Robot, base: str, sel: Selection,
@@ -181,8 +193,63 @@ def drop_partials_at_bounds(prob: Problem, robot: Robot, base: str, sel: Selecti
     warn = (f"left out of the calibrated model: {', '.join(out)} (its fit reached a parameter "
             "bound without the evidence to be named: it was absorbing what the other effects' "
             "forms miss, which does not carry to other motions)")
+    nested = tuple(m for m in sel.nested if not set(m[0]) & set(out))
     return Selection(dict(score.effects), score, keep, steps, sel.settings,
-                     sel.warnings + (warn,))
+                     sel.warnings + (warn,), nested)
+
+
+#: the calibrated model's tail is its validation tip error at this percentile (the planning
+#: margin is the p99 of the held-out error)
+TAIL_PERCENTILE = 99.0
+
+
+def no_worse_than_base(prob: Problem, sel: Selection,
+                       glitch: np.ndarray | None = None) -> Selection:
+    """The selection, or the largest of the smaller models it passed through
+    (``sel.nested``), or the base model: the first whose validation mean AND p99
+    (:data:`TAIL_PERCENTILE`) tip error are no worse than the base model's, every model fitted
+    on the fit rows (the test rows choose nothing). ``glitch`` (B,) bool: rows whose
+    measurement jumped (:func:`ctrplan.calibration.evidence.glitches`), left out of the
+    comparison (a tracker glitch of several mm sets the p99 of any model, at random). The check
+    is in ``settings["tail_check"]``; a fallback is said in the warnings (which effects left
+    and why)."""
+    if not sel.effects:
+        return sel
+    models = list(sel.nested)
+    if not models or models[-1][0] != sel.effects:
+        models.append((sel.effects, sel.free))
+    rows = prob.test & ~glitch if glitch is not None else prob.test
+    errs = [prob.errors(p)[rows]
+            for p in prob.predict_many([{}] + [m[0] for m in models], prob.test)]
+    stats = [(float(e.mean()), float(np.percentile(e, TAIL_PERCENTILE)), float(e.max()))
+             for e in errs]
+    b = stats[0]
+    ok = [i for i, st in enumerate(stats[1:]) if st[0] <= b[0] and st[1] <= b[1]]
+    pick = max(ok) if ok else -1
+    last = stats[-1]
+    check = {"percentile": TAIL_PERCENTILE, "rows": int(rows.sum()),
+             "glitch_rows_left_out": int(prob.test.sum() - rows.sum()),
+             "validation_mean_mm": [b[0], last[0]], "validation_p99_mm": [b[1], last[1]],
+             "validation_max_mm": [b[2], last[2]], "passed": pick == len(models) - 1}
+    settings = {**sel.settings, "tail_check": check}
+    if pick == len(models) - 1:
+        return dataclasses.replace(sel, settings=settings)
+    effects, free = models[pick] if pick >= 0 else ({}, {})
+    gone = [e for e in sel.effects if e not in effects]
+    kept = stats[pick + 1]
+    check["fallback"] = {"effects": list(effects), "validation_mean_mm": kept[0],
+                         "validation_p99_mm": kept[1], "validation_max_mm": kept[2]}
+    warn = (f"left out of the calibrated model: {', '.join(gone)} (with them the validation "
+            f"tip error would be mean {last[0]:.3f} mm, p{TAIL_PERCENTILE:g} {last[1]:.3f} mm "
+            f"against the base model's {b[0]:.3f} / {b[1]:.3f} mm: a model worse than the base "
+            "on the mean or the tail is not the default output; "
+            + (f"the smaller model ({', '.join(effects)}) is used" if effects else
+               "the base model is used") + ")")
+    score = prob.score(effects, k=sum(len(v) for v in free.values()))
+    steps = [st for st in sel.steps if st.accepted and st.effect in effects]
+    nested = tuple(m for m in sel.nested if set(m[0]) <= set(effects))
+    return Selection(dict(effects), score, dict(free), steps, settings,
+                     sel.warnings + (warn,), nested)
 
 
 def at_bounds(effects: dict, robot: Robot, base: str) -> list[str]:
@@ -202,14 +269,16 @@ def at_bounds(effects: dict, robot: Robot, base: str) -> list[str]:
 
 
 def forward(prob: Problem, robot: Robot, base: str, cands: Sequence[str], current: Effects,
-            cur: FitResult, steps: list[Step], cfg: SelectConfig
+            cur: FitResult, steps: list[Step], cfg: SelectConfig, nested: list | None = None
             ) -> tuple[Effects, FitResult, dict[str, list[str]]]:
-    """Forward selection over effect forms (module docstring); appends to ``steps``.
+    """Forward selection over effect forms (module docstring); appends to ``steps`` (and the
+    model after each step to ``nested``).
 
     Returns the effects, their score and the fitted parameter names per effect.
     """
     free_cur: dict[str, list[str]] = {}
     base_val = cur.test_mean
+    clock = [time.perf_counter()]
     while len(current) < cfg.max_effects:
         remaining = [c for c in cands if c not in current]
         if steps:
@@ -220,6 +289,7 @@ def forward(prob: Problem, robot: Robot, base: str, cands: Sequence[str], curren
             remaining = [c for c in remaining if prev.get(c, -1.0) < 0.0]
         if not remaining:
             break
+        _progress(len(steps), len(remaining), cfg.max_effects - len(current), clock)
         results, frees = _screen(prob, robot, base, remaining, current, free_cur, cfg)
         if not current and ("registration", "") in results:
             # registration is part of the base on a real set-up (the tracker frame is rarely
@@ -239,33 +309,49 @@ def forward(prob: Problem, robot: Robot, base: str, cands: Sequence[str], curren
             break
         cur, free_cur = step[1], step[2]
         current = cur.effects
+        if nested is not None:
+            nested.append(({e: dict(v) for e, v in current.items()}, dict(free_cur)))
     return current, cur, free_cur
+
+
+def _progress(step: int, effects: int, left: int, clock: list[float]) -> None:
+    """Log (stderr, INFO) the screen about to start, with the time so far and an estimate of
+    the most the remaining steps take (the mean step so far times the steps still possible)."""
+    spent = time.perf_counter() - clock[0]
+    if step == 0:
+        log.info("diagnose: screening every form of %d effects", effects)
+        return
+    bound = spent / step * min(left, effects)
+    log.info("diagnose: step %d: screening %d effects (%.0f s so far; at most about %.0f s "
+             "more for the remaining steps, then the final fit)", step + 1, effects, spent,
+             bound)
 
 
 def _screen(prob: Problem, robot: Robot, base: str, remaining: Sequence[str], current: Effects,
             free_cur: dict[str, list[str]], cfg: SelectConfig):
-    """Every form of every remaining effect fitted alone on top of ``current`` (held fixed)."""
+    """Every form of every remaining effect fitted alone on top of ``current`` (held fixed);
+    a progress bar on a terminal."""
+    from ctrplan.progress import bar
+
     k_cur = sum(len(v) for v in free_cur.values())
     results: dict[tuple[str, str], FitResult] = {}
     frees: dict[tuple[str, str], list[str]] = {}
-    for c in remaining:
-        for label, fixed_form, names in effect_variants(c, robot, base):
-            if not names:
-                continue
-            start = {**off_values(c, robot, base), **fixed_form}
-            fixed = {**current, c: start}
-            key = (c, label)
-            frees[key] = names
-            # later steps: a shorter screen (the leading candidates are refitted in full
-            # later), since every solve now carries the effects already found. Not shorter
-            # than 4 iterations: forms start at typical values, and one whose start is near
-            # its optimum (end-moment friction) led the screen over a better form still
-            # converging (a presliding lag: 2 iterations 0.58 mm, converged 0.47 mm on a
-            # real-robot-like recording) and was the only form refitted
-            results[key] = prob.fit(fixed, {c: names},
-                                    max_iter=cfg.screen_iter if not current else
-                                    max(3, cfg.screen_iter // 2),
-                                    k_total=k_cur + len(names))
+    variants = [(c, v) for c in remaining for v in effect_variants(c, robot, base) if v[2]]
+    for c, (label, fixed_form, names) in bar(variants, desc="diagnose screen", unit="form"):
+        start = {**off_values(c, robot, base), **fixed_form}
+        fixed = {**current, c: start}
+        key = (c, label)
+        frees[key] = names
+        # later steps: a shorter screen (the leading candidates are refitted in full
+        # later), since every solve now carries the effects already found. Not shorter
+        # than 4 iterations: forms start at typical values, and one whose start is near
+        # its optimum (end-moment friction) led the screen over a better form still
+        # converging (a presliding lag: 2 iterations 0.58 mm, converged 0.47 mm on a
+        # real-robot-like recording) and was the only form refitted
+        results[key] = prob.fit(fixed, {c: names},
+                                max_iter=cfg.screen_iter if not current else
+                                max(3, cfg.screen_iter // 2),
+                                k_total=k_cur + len(names))
     return results, frees
 
 

@@ -8,7 +8,7 @@ held-out (test-row) errors and their quantiles, rows far from the model.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -16,7 +16,7 @@ from ctrplan.calibration.evidence import CHI3_MEAN
 from ctrplan.calibration.fit import FinalFit
 from ctrplan.calibration.nuisance import NUISANCES, Nuisances
 from ctrplan.calibration.result import DiagnoseStatus
-from ctrplan.calibration.select import Selection, at_bounds, labels
+from ctrplan.calibration.select import TAIL_PERCENTILE, Selection, at_bounds, labels
 from ctrplan.robot import Robot
 
 #: Mean tip error (mm) above the noise floor that is no evidence of a remainder on its own: the
@@ -41,6 +41,9 @@ class Errors:
     e_noise: float
     excess0: float
     remainder: float
+    #: (T,) the base model's and the reported (cross-fitted) tip error on the test rows (mm)
+    base_test: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    after_test: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass(frozen=True)
@@ -64,20 +67,85 @@ class Verdict:
     insufficient: bool
     warnings: tuple[str, ...] = ()
     experiment: tuple[str, ...] = ()
+    #: quantiles of the base model's test-row tip error (as ``quantiles``)
+    quantiles_before: dict[str, float] | None = None
+
+
+@dataclass(frozen=True)
+class HeldoutChoice:
+    """Whether the fitted model or the base model is the default output, decided on the test
+    rows (:func:`heldout_choice`): ``output`` ``"fit"`` or ``"base"``, ``err`` (B,) the
+    output's tip error (the reported held-out error), ``info`` report.json
+    ``heldout_comparison``."""
+
+    output: str
+    err: np.ndarray
+    info: dict
+
+
+def _no_worse(fit_e: np.ndarray, base_e: np.ndarray) -> bool:
+    """The fitted model is no worse than the base on these rows: mean AND p99."""
+    if not len(fit_e):
+        return True
+    return bool(fit_e.mean() <= base_e.mean() and np.percentile(fit_e, TAIL_PERCENTILE)
+                <= np.percentile(base_e, TAIL_PERCENTILE))
+
+
+def heldout_choice(base_err: np.ndarray, fit_err: np.ndarray, test: np.ndarray,
+                   units: np.ndarray, glitch: np.ndarray | None = None) -> HeldoutChoice:
+    """Never worse than the base on the held-out rows: the fitted model is the default output
+    when its test-row mean AND p99 tip error are no worse than the base model's, otherwise the
+    base model is (a choice between two fixed models, the fit's parameters and effects having
+    been chosen without these rows; the report gives both models' numbers). The same rule on
+    each of two folds of the test units (sweeps or blocks, alternating; one unit: its halves)
+    says whether the choice holds across them (``stable``); where it does not, the warnings
+    say so. ``glitch`` (B,) bool: rows whose measurement jumped, left out of the comparison
+    (not of the reported errors): a tracker glitch of several mm sets the p99 of either model,
+    at random."""
+    full = np.flatnonzero(test)
+    if glitch is not None:
+        test = test & ~glitch
+    idx = np.flatnonzero(test)
+    u = np.asarray(units)[idx]
+    names = list(dict.fromkeys(u.tolist()))
+    if len(names) >= 2:
+        fold = np.array([names.index(x) % 2 for x in u.tolist()])
+    else:
+        fold = (np.arange(len(idx)) >= len(idx) // 2).astype(int)
+    fe, be = fit_err[idx], base_err[idx]
+    per_fold = ["fit" if _no_worse(fe[fold == f], be[fold == f]) else "base" for f in (0, 1)]
+    output = "fit" if _no_worse(fe, be) else "base"
+    err = np.array(fit_err if output == "fit" else base_err, dtype=float)
+    info = {"rule": f"the fitted model is the default output when its test-row mean and "
+                    f"p{TAIL_PERCENTILE:g} tip error are no worse than the base model's",
+            "output": output, "per_fold": per_fold, "stable": per_fold[0] == per_fold[1],
+            "folds": [idx[fold == f].tolist() for f in (0, 1)],
+            "glitch_rows_left_out": [int(i) + 1 for i in sorted(set(full) - set(idx))],
+            "base": _summary(be), "fit": _summary(fe)}
+    return HeldoutChoice(output, err, info)
+
+
+def _summary(e: np.ndarray) -> dict:
+    if not len(e):
+        return {"mean_mm": None, "p99_mm": None, "max_mm": None}
+    return {"mean_mm": float(e.mean()), "p99_mm": float(np.percentile(e, TAIL_PERCENTILE)),
+            "max_mm": float(e.max())}
 
 
 def errors(base_err: np.ndarray, fit: FinalFit, val: np.ndarray, test: np.ndarray,
-           noise_sd: float | None) -> Errors:
-    """The :class:`Errors` of the base model (``base_err``, (B,) mm) and the final fit."""
+           noise_sd: float | None, test_err: np.ndarray | None = None) -> Errors:
+    """The :class:`Errors` of the base model (``base_err``, (B,) mm) and the final fit
+    (``test_err``: the test rows' errors to report, default the fit's own)."""
     e_noise = CHI3_MEAN * noise_sd if noise_sd else 0.0
     val_before = float(base_err[val].mean())
     val_after = float(fit.err[val].mean())
     excess0 = max(val_before - e_noise, 0.0)
     excess1 = max(val_after - e_noise, 0.0)
     remainder = excess1 / excess0 if excess0 > 0 else 0.0
-    return Errors(val_before, val_after, float(base_err[test].mean()), float(fit.err[test].mean()),
-                  float(base_err[test].max()), float(fit.err[test].max()), e_noise, excess0,
-                  remainder)
+    te = (fit.err if test_err is None else test_err)[test]
+    return Errors(val_before, val_after, float(base_err[test].mean()), float(te.mean()),
+                  float(base_err[test].max()), float(te.max()), e_noise, excess0,
+                  remainder, base_err[test], te)
 
 
 def conclude(robot: Robot, base: str, sel: Selection, nuis: Nuisances, fit: FinalFit,
@@ -125,15 +193,32 @@ def conclude(robot: Robot, base: str, sel: Selection, nuis: Nuisances, fit: Fina
                         f"{outliers['threshold_mm']:.2f} mm) were down-weighted by the robust "
                         f"loss: {', '.join(str(r) for r in outliers['rows'][:10])}"
                         + (" ..." if len(outliers["rows"]) > 10 else ""))
-    et = fit.err[test]
-    quant = {"p50": float(np.percentile(et, 50)), "p95": float(np.percentile(et, 95)),
-             "p99": float(np.percentile(et, 99)), "max": float(et.max())} if len(et) else None
+    quant, quant_before = quantiles(err.after_test), quantiles(err.base_test)
+    warnings += tail_warnings(quant_before, quant)
     params = {e: {k: fit.effects[e][k] for k in sel.free.get(e, [])} for e in effects}
     sig = {e: {k: fit.sigma.get(e, {}).get(k, np.nan) for k in sel.free.get(e, [])}
            for e in effects}
     return Verdict(status, conclusion, effects, forms, params, sig, partial, partial_values,
                    unexplained, err, quant, outliers, bool(insufficient), tuple(warnings),
-                   tuple(experiment))
+                   tuple(experiment), quant_before)
+
+
+def quantiles(e: np.ndarray) -> dict[str, float] | None:
+    """p50 / p95 / p99 / max of tip errors (mm), or None for no rows."""
+    if not len(e):
+        return None
+    return {"p50": float(np.percentile(e, 50)), "p95": float(np.percentile(e, 95)),
+            "p99": float(np.percentile(e, 99)), "max": float(e.max())}
+
+
+def tail_warnings(before: dict | None, after: dict | None) -> list[str]:
+    """A warning when the default output's test-row maximum tip error is above the base
+    model's (the tail rule judges the mean and the p99; one row sets the maximum)."""
+    if not before or not after or not after["max"] > before["max"] + 1e-9:
+        return []
+    return [f"the largest test-row tip error is worse than the base model's ({before['max']:.3f} "
+            f"-> {after['max']:.3f} mm) while the mean and p99 are not: one row sets it; check "
+            "that row (a tracker glitch?) before planning with a margin below it"]
 
 
 def _remainder(ev_after: dict, err: Errors, nuis: Nuisances, max_remainder: float,

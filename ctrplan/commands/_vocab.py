@@ -2,8 +2,9 @@
 
 Model names are ``physics`` (torsionally compliant Cosserat rods) and ``rigid`` (torsionally
 rigid, the "traditional" model) everywhere, plus ``learned`` or a model file where a command
-takes one. The older name ``compliant`` (and ``diagnose``/``simulate``'s ``--base``) still
-works and prints a one-line deprecation message to stderr.
+takes one. The older name ``compliant`` (and ``diagnose``/``simulate``'s ``--base``, and
+``diagnose``'s ``--test-fraction`` for ``--holdout``) still works and prints a one-line
+deprecation message to stderr.
 """
 
 from __future__ import annotations
@@ -60,6 +61,19 @@ class DeprecatedFlag(argparse.Action):
         else:
             deprecated(option_string, self.new)
         setattr(namespace, self.dest, mechanics_model(s))
+
+
+class DeprecatedAlias(argparse.Action):
+    """An old spelling of an option (``--test-fraction`` for ``--holdout``): stores into the
+    new option's ``dest`` (converted by its ``type``) and prints a deprecation line."""
+
+    def __init__(self, option_strings, dest, new: str, **kw):
+        self.new = new
+        super().__init__(option_strings, dest, **kw)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        deprecated(option_string, self.new)
+        setattr(namespace, self.dest, values)
 
 
 def add_mechanics_model_arg(p: argparse.ArgumentParser, default: str, what: str) -> None:

@@ -7,7 +7,7 @@ import json
 import logging
 
 from ctrplan.commands._common import FRACTION, NONNEGATIVE, SEED, add_robot_arg, float_arg
-from ctrplan.commands._vocab import DEFAULT_OUT, add_mechanics_model_arg, base_of
+from ctrplan.commands._vocab import DEFAULT_OUT, DeprecatedAlias, add_mechanics_model_arg, base_of
 from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
@@ -29,8 +29,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--effects", default=None,
                    help="comma-separated candidate effects (default: all)")
     p.add_argument("--holdout", type=FRACTION, default=0.25,
-                   help="fraction of sweeps held out for test, and as many for validation "
-                        "(default 0.25; fewer than 8 sweeps: blocks of every sweep)")
+                   help="fraction of the sweeps held out for test, and as many for validation "
+                        "(default 0.25; fewer than 8 sweeps: blocks of every sweep, with the "
+                        "rows within the motion's autocorrelation length of a test block left "
+                        "out); --best compares its candidates on the same test rows")
     p.add_argument("--bic-threshold", type=NONNEGATIVE, default=10.0,
                    help="a named effect must lower BIC by more than this (default 10)")
     p.add_argument("--min-gain", type=float_arg(0.0, 1.0, hi_open=True), default=0.05,
@@ -38,16 +40,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(default 0.05)")
     p.add_argument("--seed", type=SEED, default=0, help="seed of the sweep split (default 0)")
     p.add_argument("--best", action="store_true",
-                   help="also build the best model of the robot: hold out test sweeps (or blocks) "
-                        "first, run the diagnosis on the rest, fit a learned residual over the "
+                   help="also build the best model of the robot: on the same split (the "
+                        "--holdout fit / validation / test rows) fit a learned residual over the "
                         "calibrated model (direction-aware when the rows show motion) and a learned "
                         "model alone (shapes measured), compare nominal, calibrated, calibrated + "
-                        "learned and learned on the same untouched test rows and write the winner "
-                        "as best_model.yaml or best_model.pt (with its test error_quantiles and, "
-                        "where shapes are measured, error_profile; use with --model) and the "
-                        "comparison as best_model.json / best_model.md")
-    p.add_argument("--test-fraction", type=FRACTION, default=0.2,
-                   help="with --best: fraction of the sweeps held out for the comparison (default 0.2)")
+                        "learned and learned on the untouched test rows and write the winner "
+                        "as best_model.yaml or best_model.pt (with error_quantiles cross-fitted over "
+                        "two folds of the test rows and, where shapes are measured, error_profile; "
+                        "use with --model) and the comparison as best_model.json / best_model.md")
+    p.add_argument("--test-fraction", type=FRACTION, dest="holdout", action=DeprecatedAlias,
+                   new="--holdout", help=argparse.SUPPRESS)
     p.add_argument("--out", default=DEFAULT_OUT["diagnose"], help=f"output folder (default {DEFAULT_OUT['diagnose']})")
     p.set_defaults(func=run)
 
@@ -59,8 +61,6 @@ def run(args: argparse.Namespace) -> int:
 
     if not 0 < args.holdout < 1:
         raise InputError("--holdout", "", f"must be in (0, 1), got {args.holdout}")
-    if not 0 < args.test_fraction < 1:
-        raise InputError("--test-fraction", "", f"must be in (0, 1), got {args.test_fraction}")
     robot = load_robot(args.robot)
     data = read_measured(args.data, robot)
     cands = None
@@ -70,9 +70,9 @@ def run(args: argparse.Namespace) -> int:
     if args.best:
         from ctrplan.calibration.best import best_model
 
-        best = best_model(robot, data, out=args.out, base=base_of(args.model), test_fraction=args.test_fraction,
+        best = best_model(robot, data, out=args.out, base=base_of(args.model), holdout=args.holdout,
                           seed=args.seed, diagnose_kwargs=dict(
-                              candidates=cands, holdout=args.holdout, bic_threshold=args.bic_threshold,
+                              candidates=cands, bic_threshold=args.bic_threshold,
                               min_gain=args.min_gain))
         rep = best.report
     else:

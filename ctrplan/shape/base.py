@@ -154,14 +154,19 @@ def direction_from_rows(q: np.ndarray, sweep: np.ndarray | None = None,
     diff = np.diff(q, axis=0)
     diff[:, :n] = (diff[:, :n] + np.pi) % (2 * np.pi) - np.pi
     step = np.where(diff > tol, 1, np.where(diff < -tol, -1, 0)).astype(np.int8)
-    sw = None if sweep is None else np.asarray(sweep)
-    last = np.zeros(d, dtype=np.int8)
-    for k in range(1, b):
-        if sw is not None and sw[k] != sw[k - 1]:
-            last = np.zeros(d, dtype=np.int8)
-        else:
-            last = np.where(step[k - 1] != 0, step[k - 1], last)
-        out[k] = last
+    # row k's candidate is the step into it; a new sweep resets (candidate 0, marked); each
+    # row then takes the latest marked or nonzero candidate at or before it (a forward fill)
+    cand = np.zeros((b, d), dtype=np.int8)
+    cand[1:] = step
+    reset = np.zeros(b, dtype=bool)
+    reset[0] = True
+    if sweep is not None:
+        sw = np.asarray(sweep)
+        reset[1:] = sw[1:] != sw[:-1]
+        cand[reset] = 0
+    mark = (cand != 0) | reset[:, None]
+    src = np.maximum.accumulate(np.where(mark, np.arange(b)[:, None], 0), axis=0)
+    out[:] = np.take_along_axis(cand, src, axis=0)
     return out
 
 

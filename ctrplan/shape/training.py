@@ -16,7 +16,8 @@ inputs (from row order within each sweep of measured data, :func:`direction_from
 Sim+Real direction-aware model starts from the Sim model with zero weights on those inputs.
 *Residual* models learn the difference to a base model: physics for Real-only, the frozen
 Sim model for Sim+Real (no physics call at evaluation), or a calibrated model.
-Measured data with a ``sweep`` column is split by whole sweeps (held-out sweeps).
+Data is split by the one held-out splitter (:func:`split`, :mod:`ctrplan.split`): whole sweeps,
+or blocks of a continuous recording with gaps, or random rows for independent samples.
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ from ctrplan.shape.learned import (
     base_model_spec,
 )
 from ctrplan.shape.physics import MechanicsParams, PhysicsModel
+from ctrplan.split import BLOCK_TAG, is_ordered
+from ctrplan.split import split as heldout_split
 
 log = logging.getLogger("ctrplan")
 
@@ -203,49 +206,30 @@ def from_measured(path: str, robot: Robot) -> ShapeData:
 
 def split(data: ShapeData, fractions: Sequence[float] = (0.8, 0.1, 0.1),
           seed: int = 0) -> tuple[ShapeData, ShapeData, ShapeData]:
-    """Seeded train/validation/test split (each part gets at least one row).
+    """Seeded train/validation/test split by the one held-out splitter of ctrplan
+    (:func:`ctrplan.split.split`, the rule diagnose uses; ``fractions[2]`` of the units for
+    test, ``fractions[1]`` for validation; each part gets at least one row).
 
-    Data with at least 3 sweeps is split by whole sweeps (rows of a sweep stay together,
-    roughly the row fractions; held-out sweeps). Measured rows in order of motion with fewer
-    sweeps (directions known or sweep ids given) are cut into contiguous blocks (about
-    :data:`SPLIT_BLOCKS` in all, labelled ``"<sweep>#block<k>"``) split the same way, so that held-out
-    rows are not the neighbours of training rows; other data (simulated, independent rows) by
-    random rows."""
+    Measured rows in order of motion (sweep ids or directions given) are split by whole sweeps
+    when there are at least :data:`ctrplan.split.MIN_SWEEPS_WHOLE` of them, else every sweep is
+    cut into contiguous blocks (labelled ``"<sweep>#block<k>"``) and the rows within the
+    motion's autocorrelation length of a test block are left out (in no part), so that
+    held-out rows are not the neighbours of training rows; other data (simulated, independent
+    rows) by random rows."""
     N = len(data)
     if N < 3:
         raise ValueError(f"need at least 3 rows to split, got {N}")
-    if data.sweep is not None and len(np.unique(data.sweep)) >= 3:
-        return split_sweeps(data, fractions, seed)
-    if (data.sweep is not None or data.direction is not None) and N >= SPLIT_BLOCKS:
-        return split_sweeps(dataclasses.replace(data, sweep=block_labels(data.sweep, N)), fractions, seed)
-    perm = np.random.default_rng(seed).permutation(N)
-    n_val = max(1, int(round(fractions[1] * N)))
-    n_test = max(1, int(round(fractions[2] * N)))
-    n_train = N - n_val - n_test
-    if n_train < 1:
+    ordered = data.sweep is not None or data.direction is not None
+    if data.sweep is not None:
+        ordered = is_ordered(data.sweep, N)
+    h = heldout_split(data.sweep, N, test=fractions[2], val=fractions[1], seed=seed, q=data.q,
+                      ordered=ordered)
+    if not (h.fit.any() and h.val.any() and h.test.any()):
         raise ValueError(f"too few rows ({N}) for a train/validation/test split")
-    return (data.subset(perm[:n_train]), data.subset(perm[n_train:n_train + n_val]),
-            data.subset(perm[n_train + n_val:]))
-
-
-#: contiguous blocks :func:`split` cuts measured rows with fewer than 3 sweeps into
-SPLIT_BLOCKS = 10
-BLOCK_TAG = "#block"
-
-
-def block_labels(sweep: np.ndarray | None, N: int, blocks: int = SPLIT_BLOCKS) -> np.ndarray:
-    """(N,) labels ``"<sweep>#block<k>"``: each sweep (all N rows when ``sweep`` is None) cut
-    into contiguous blocks, about ``blocks`` in all (at least 2 per sweep where it has 2 rows)."""
-    sw = np.full(N, "0", dtype=object) if sweep is None else np.asarray(sweep).astype(str)
-    names = list(dict.fromkeys(sw.tolist()))
-    per = max(2, int(math.ceil(blocks / len(names))))
-    lab = np.empty(N, dtype=object)
-    for name in names:
-        rows = np.flatnonzero(sw == name)
-        nb = max(1, min(per, len(rows)))
-        k = (np.arange(len(rows)) * nb) // len(rows)
-        lab[rows] = [f"{name}{BLOCK_TAG}{j}" for j in k]
-    return lab
+    if h.kind == "blocks":
+        data = dataclasses.replace(data, sweep=np.asarray(h.labels, dtype=object))
+    return (data.subset(np.flatnonzero(h.fit)), data.subset(np.flatnonzero(h.val)),
+            data.subset(np.flatnonzero(h.test)))
 
 
 def split_kind(part: ShapeData) -> str:
@@ -254,35 +238,6 @@ def split_kind(part: ShapeData) -> str:
         return "rows"
     sw = np.asarray(part.sweep).astype(str)
     return "contiguous blocks" if len(sw) and all(BLOCK_TAG in x for x in sw[:1]) else "whole sweeps"
-
-
-def split_sweeps(data: ShapeData, fractions: Sequence[float] = (0.8, 0.1, 0.1),
-                 seed: int = 0) -> tuple[ShapeData, ShapeData, ShapeData]:
-    """Split by whole sweeps in a seeded random order: test and validation take sweeps until
-    they hold their fraction of the rows (at least one sweep each), training the rest."""
-    if data.sweep is None:
-        raise ValueError("data has no sweep ids")
-    ids, inverse, counts = np.unique(data.sweep, return_inverse=True, return_counts=True)
-    if len(ids) < 3:
-        raise ValueError(f"need at least 3 sweeps to split by sweep, got {len(ids)}")
-    order = [int(i) for i in np.random.default_rng(seed).permutation(len(ids))]
-    N = len(data)
-    parts: list[list[int]] = []
-    for frac, keep in ((fractions[2], 2), (fractions[1], 1)):     # test, then validation
-        part: list[int] = []
-        rows = 0
-        while len(order) > keep and (not part or rows < frac * N):
-            k = order.pop(0)
-            part.append(k)
-            rows += int(counts[k])
-        parts.append(part)
-    test_s, val_s = set(parts[0]), set(parts[1])
-    te = np.isin(inverse, list(test_s))
-    va = np.isin(inverse, list(val_s))
-    tr = ~(te | va)
-    if not tr.any():
-        raise ValueError("too few sweeps for a train/validation/test split")
-    return data.subset(np.flatnonzero(tr)), data.subset(np.flatnonzero(va)), data.subset(np.flatnonzero(te))
 
 
 # ---------------------------------------------------------------------------------- training
@@ -677,8 +632,9 @@ def _concat(a: ShapeData, b: ShapeData) -> ShapeData:
 
 #: ``variant="auto"``: train the candidate variants and keep the best on the validation sweeps
 AUTO = "auto"
-SELECTION_METRIC = ("mean over the validation rows (whole sweeps when the data has sweep ids; "
-                    "not used to fit the weights) of the max deviation along the shaft, mm")
+SELECTION_METRIC = ("mean over the validation rows (whole sweeps, or blocks of a continuous "
+                    "recording, by the one held-out splitter; not used to fit the weights) of "
+                    "the max deviation along the shaft, mm")
 
 
 def has_motion(data: ShapeData) -> bool:
@@ -842,7 +798,8 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
     ones over ``residual_base``, default physics) and keep the best on the validation part
     (:func:`select_variant`); the table is stored in the metadata under ``selection``.
 
-    Each data set is split 80/10/10 (seeded; measured data with sweeps by whole sweeps);
+    Each data set is split 80/10/10 (seeded; by :func:`split`: measured data by whole sweeps
+    or blocks with gaps);
     validation drives early stopping, the test parts are evaluated and stored in the metadata,
     with the error quantiles and the training domain of the last data set trained on.
     ``base``: start from this trained model instead of pre-training (its normalisation is
@@ -973,7 +930,7 @@ def sweep(robot: Robot | str, sim: ShapeData, real: ShapeData,
           variants: Sequence[str] = VARIANTS, refit: bool = False) -> SweepResult:
     """Sim-only, and Real-only and Sim+Real for each variant (pure, direction-aware, residual,
     residual + direction), for each architecture, all evaluated on the same held-out part of
-    ``real`` (whole sweeps when it has sweep ids), next to the physics model. Residual
+    ``real`` (:func:`split`: whole sweeps, or blocks with gaps), next to the physics model. Residual
     variants: Real-only learns the difference to physics, Sim+Real the difference to the
     Sim-only model. Returns a :class:`SweepResult` (per-configuration errors for the plots)."""
     from ctrplan.shape.physics import PhysicsModel
