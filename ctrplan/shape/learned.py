@@ -66,6 +66,7 @@ from ctrplan.robot import Robot, load_robot, robot_from_dict
 from ctrplan.shape import basis
 from ctrplan.shape.base import Shape, check_q, radius_along
 from ctrplan.shape.base import needs_direction as _needs_direction
+from ctrplan.shape.rigid import RigidModel
 
 FORMAT = "ctrplan-learned-model"
 FORMAT_VERSION = 2
@@ -526,13 +527,20 @@ class LearnedModel:
         """Backbones (B, points, 3) and the base model's ok (or None) for checked q; with
         ``want_pad`` also the continuity pad (B, points - 1) (see :func:`polynomial_pad`)."""
         nets, rest = self._chain()
-        out = self._net_points(q, points, d, nets)
-        pad = None
-        if want_pad:
-            fit = out if points > self.terms else self._net_points(q, self.terms + 1, d, nets)
-            pad = polynomial_pad(fit, points, self.terms)
+        if self._device.type != "cpu":
+            out, pad, rest = self._device_points(q, points, d, nets, rest, want_pad)
+        else:
+            out = self._net_points(q, points, d, nets)
+            pad = None
+            if want_pad:
+                fit = out if points > self.terms else self._net_points(q, self.terms + 1, d, nets)
+                pad = polynomial_pad(fit, points, self.terms)
         ok = None
-        if rest is not None:
+        if isinstance(rest, RigidModel):      # closed form: never fails, its own sagitta pad
+            out += rest.points(q, points)
+            if pad is not None:
+                pad = pad + rest.pad(q, points)
+        elif rest is not None:
             if _needs_direction(rest) and d is not None:
                 sh = rest.shape(q, points=points, direction=d)
             else:
@@ -556,18 +564,41 @@ class LearnedModel:
         """The summed networks' polynomial backbones (B, points, 3) (no base model)."""
         if self._device.type == "cpu":
             if len(q) <= SMALL_BATCH:
-                out = self._numpy_points(q, points, d, nets)
-            else:
-                out = self._cpu_points(q, points, d, nets)
-        else:
-            qt = self._as_tensor(q)
-            dt = None if d is None else self._as_tensor(d)
-            with torch.inference_mode():
-                acc = nets[0]._fast_points(qt, points, dt)
-                for net in nets[1:]:
-                    acc += net._fast_points(qt, points, dt)
-            out = acc.cpu().numpy().astype(np.float64)
+                return self._numpy_points(q, points, d, nets)
+            return self._cpu_points(q, points, d, nets)
+        out, _, _ = self._device_points(q, points, d, nets, None, False)
         return out
+
+    def _device_points(self, q: np.ndarray, points: int, d: np.ndarray | None,
+                       nets: list[LearnedModel], rest: Any, want_pad: bool):
+        """The whole batch on the model's (non-CPU) device: the summed networks (float32), the
+        continuity pad of their polynomial (float64) and, for a closed-form rigid base, its
+        backbones (float64); one transfer back. Returns (points (B, points, 3) float64, pad
+        (B, points - 1) or None, the base model still to add on the CPU or None)."""
+        qt = self._as_tensor(q)
+        dt = None if d is None else self._as_tensor(d)
+        with torch.inference_mode():
+            acc = nets[0]._fast_points(qt, points, dt)
+            for net in nets[1:]:
+                acc += net._fast_points(qt, points, dt)
+            pad = None
+            if want_pad:
+                fit = acc
+                if points <= self.terms:
+                    fit = nets[0]._fast_points(qt, self.terms + 1, dt)
+                    for net in nets[1:]:
+                        fit += net._fast_points(qt, self.terms + 1, dt)
+                pad = polynomial_pad_torch(fit.double(), points, self.terms)
+            out = acc.double()
+            if isinstance(rest, RigidModel):
+                q64 = torch.as_tensor(np.ascontiguousarray(q, dtype=np.float64), device=self._device)
+                out += rest.points_torch(q64, points)
+                if pad is not None:
+                    pad += torch.as_tensor(rest.pad(q, points), device=self._device)
+                rest = None
+            out_np = out.cpu().numpy()
+            pad_np = None if pad is None else pad.cpu().numpy()
+        return out_np, pad_np, rest
 
     def backbone(self, q: np.ndarray, points: int = 20, direction: np.ndarray | None = None) -> np.ndarray:
         """(B, points, 3) backbone points, mm, robot base frame (one forward pass).
@@ -931,6 +962,23 @@ def polynomial_pad(fit: np.ndarray, points: int, terms: int) -> np.ndarray:
     return peak * h * h / 8.0 + POINT_ROUNDOFF_MM
 
 
+def polynomial_pad_torch(fit: torch.Tensor, points: int, terms: int) -> torch.Tensor:
+    """:func:`polynomial_pad` of float64 backbone samples ``fit`` (B, mf, 3) on their device."""
+    B, mf, _ = fit.shape
+    if terms < 2 or points < 2:
+        return torch.zeros(B, max(points - 1, 0), dtype=fit.dtype, device=fit.device)
+    key = (mf, int(points), int(terms))
+    hit = _PAD_MAPS.get(key)
+    if hit is None:
+        hit = _PAD_MAPS[key] = _bernstein_second_derivative(mf, points, terms)
+    idx, A = hit
+    At = torch.as_tensor(A, dtype=fit.dtype, device=fit.device)         # (k, r, mi)
+    ctrl = torch.einsum("kri,bic->bkrc", At, fit[:, torch.as_tensor(idx, device=fit.device)])
+    peak = torch.sqrt((ctrl * ctrl).sum(dim=3).amax(dim=2))              # (B, k)
+    h = 1.0 / (points - 1)
+    return peak * (h * h / 8.0) + POINT_ROUNDOFF_MM
+
+
 def n_direction_features(n: int) -> int:
     """Direction inputs of an n-tube model: 2n signs and n - 1 relative rotation directions."""
     return 3 * n - 1
@@ -1053,10 +1101,12 @@ def _check_domain(dom: Any) -> dict[str, Any] | None:
 def _load_base(spec: dict, obj: dict, src: str, robot: Robot, depth_left: int) -> Any:
     """The base model of a residual model file."""
     kind = spec.get("kind")
-    if kind in ("physics", "rigid"):
+    if kind == "rigid":      # closed form (the same shapes as PhysicsModel(torsion=False))
+        return RigidModel(robot)
+    if kind == "physics":
         from ctrplan.shape.physics import PhysicsModel
 
-        return PhysicsModel(robot, torsion=(kind == "physics"))
+        return PhysicsModel(robot)
     if kind == "learned":
         if depth_left <= 0 or not isinstance(obj.get("base"), dict):
             raise InputError(src, "base", "residual model over a learned base without a valid stored base")
@@ -1074,6 +1124,8 @@ def base_model_spec(base: Any) -> dict[str, Any]:
 
     if isinstance(base, LearnedModel):
         return {"kind": "learned"}
+    if isinstance(base, RigidModel):
+        return {"kind": "rigid"}
     if isinstance(base, PhysicsModel):
         return {"kind": "physics" if getattr(base, "torsion", True) else "rigid"}
     if hasattr(base, "to_dict") and getattr(base, "name", "") != "learned":
