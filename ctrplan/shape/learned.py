@@ -88,6 +88,12 @@ DEFAULT_FRAME = "outer"
 SMALL_BATCH = 64
 #: Rows per chunk of the CPU inference path (intermediates stay in cache).
 CHUNK = 4096
+#: A model on a GPU evaluates batches of at least this many configurations there; smaller ones
+#: on the CPU paths (a GPU call's fixed latency, ~0.3 ms with its transfers on an H100, exceeds
+#: the CPU's time for them: benchmarks/results/learned_gpu_h100.json).
+GPU_MIN_BATCH = 1024
+#: device of models loaded without one (:func:`using_device`)
+_default_device: list[str] = ["cpu"]
 
 
 class ShapeNet(nn.Module):
@@ -188,8 +194,9 @@ class LearnedModel:
         return self.base is not None
 
     def to(self, device: str | torch.device) -> LearnedModel:
-        """Move the network to ``device`` (in place); returns self."""
-        self._device = torch.device(device)
+        """Move the network to ``device`` (in place; ``auto``: :func:`resolve_device`); returns
+        self."""
+        self._device = resolve_device(device)
         self.net.to(self._device)
         if isinstance(self.base, LearnedModel):
             self.base.to(device)
@@ -527,7 +534,7 @@ class LearnedModel:
         """Backbones (B, points, 3) and the base model's ok (or None) for checked q; with
         ``want_pad`` also the continuity pad (B, points - 1) (see :func:`polynomial_pad`)."""
         nets, rest = self._chain()
-        if self._device.type != "cpu":
+        if self._on_device(len(q)):
             out, pad, rest = self._device_points(q, points, d, nets, rest, want_pad)
         else:
             out = self._net_points(q, points, d, nets)
@@ -559,10 +566,14 @@ class LearnedModel:
             return out, ok, pad
         return out, ok
 
+    def _on_device(self, batch: int) -> bool:
+        """True when a batch of this size runs on the model's (non-CPU) device."""
+        return self._device.type != "cpu" and batch >= GPU_MIN_BATCH
+
     def _net_points(self, q: np.ndarray, points: int, d: np.ndarray | None,
                     nets: list[LearnedModel]) -> np.ndarray:
         """The summed networks' polynomial backbones (B, points, 3) (no base model)."""
-        if self._device.type == "cpu":
+        if not self._on_device(len(q)):
             if len(q) <= SMALL_BATCH:
                 return self._numpy_points(q, points, d, nets)
             return self._cpu_points(q, points, d, nets)
@@ -689,7 +700,7 @@ class LearnedModel:
         q = check_q(self.robot, q)
         d = self.check_direction(q, direction)
         if method == "auto":
-            method = "compiled" if self._device.type == "cpu" else "autograd"
+            method = "autograd" if self._on_device(len(q)) else "compiled"
         if method not in ("compiled", "autograd"):
             raise ValueError(f"method must be 'auto', 'compiled' or 'autograd', got {method!r}")
         tip, J = self._own_tip_jacobian(q, d, method)
@@ -789,8 +800,9 @@ class LearnedModel:
 
     @classmethod
     def load(cls, path: str | os.PathLike, robot: Robot | str | None = None,
-             device: str | torch.device = "cpu") -> LearnedModel:
-        """Read a model file written by :meth:`save` / ``ctrplan train``.
+             device: str | torch.device | None = None) -> LearnedModel:
+        """Read a model file written by :meth:`save` / ``ctrplan train`` onto ``device``
+        (None: :func:`current_device`, the CPU unless inside :class:`using_device`).
 
         ``robot``: check the file was trained for this robot (same tubes); by default the
         robot stored in the file is used. Errors (missing, corrupt, mismatched) raise
@@ -808,7 +820,7 @@ class LearnedModel:
         except Exception as exc:  # corrupt, truncated, or not a torch file
             raise InputError(src, "", f"not a readable ctrplan model file ({exc.__class__.__name__})") from None
         model = cls._from_object(obj, src, robot)
-        return model.to(device)
+        return model.to(current_device() if device is None else device)
 
     @classmethod
     def _from_object(cls, obj: Any, src: str, robot: Robot | str | None, depth_left: int = 4) -> LearnedModel:
@@ -885,7 +897,8 @@ class LearnedModel:
         model.error_bound = bound_kind
         model.domain = domain
         keep = ("training", "metrics", "data", "created", "command", "ctrplan_version",
-                "error_quantiles_source", "variant", "error_profile_source", "selection")
+                "error_quantiles_source", "variant", "error_profile_source", "selection", "sim_base",
+                "sampling")
         model.meta = {k: meta[k] for k in keep if k in meta}
         model.source = src
         return model
@@ -1158,8 +1171,57 @@ def shipped_model_path(robot_name: str) -> Path | None:
     return p if p.is_file() else None
 
 
-def default_model_for(robot: Robot | str, device: str | torch.device = "cpu") -> LearnedModel:
-    """The shipped default learned model of ``robot`` (``ctrplan/data/models/<name>.pt``)."""
+def resolve_device(device: str | torch.device | None = "cpu") -> torch.device:
+    """A torch device from ``cpu``, ``cuda``, ``cuda:N``, ``auto`` (cuda when torch sees a GPU,
+    else cpu) or None (cpu). ValueError when torch cannot use it (no CUDA, a bad name)."""
+    if device is None:
+        return torch.device("cpu")
+    if isinstance(device, torch.device):
+        dev = device
+    else:
+        text = str(device).strip().lower()
+        if text == "auto":
+            return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        try:
+            dev = torch.device(text)
+        except (RuntimeError, ValueError):
+            raise ValueError(f"{str(device)[:40]!r} is not a device (cpu, cuda, cuda:N or auto)") from None
+    if dev.type == "cpu":
+        return dev
+    try:
+        torch.empty(1, device=dev)
+    except Exception as exc:     # no CUDA build, no GPU, an index past the last GPU
+        raise ValueError(f"{str(device)[:40]!r} is not available ({exc.__class__.__name__}: "
+                         f"torch sees {torch.cuda.device_count()} CUDA device(s))") from None
+    return dev
+
+
+class using_device:
+    """Context manager: learned models loaded inside it without a ``device`` (``--model
+    learned`` or a model file, through :func:`ctrplan.shape.models.load_model`) go to
+    ``device`` (:func:`resolve_device`: ``cpu``, ``cuda[:N]``, ``auto``). What the commands'
+    ``--device`` sets."""
+
+    def __init__(self, device: str | torch.device | None):
+        self.device = str(resolve_device(device))
+
+    def __enter__(self) -> str:
+        _default_device.append(self.device)
+        return self.device
+
+    def __exit__(self, *exc) -> None:
+        _default_device.pop()
+
+
+def current_device() -> str:
+    """The device learned models are loaded to when none is given (``cpu`` unless inside
+    :class:`using_device`)."""
+    return _default_device[-1]
+
+
+def default_model_for(robot: Robot | str, device: str | torch.device | None = None) -> LearnedModel:
+    """The shipped default learned model of ``robot`` (``ctrplan/data/models/<name>.pt``) on
+    ``device`` (None: :func:`current_device`)."""
     robot = load_robot(robot)
     p = shipped_model_path(robot.name)
     if p is None:

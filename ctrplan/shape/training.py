@@ -50,6 +50,29 @@ from ctrplan.shape.physics import MechanicsParams, PhysicsModel
 log = logging.getLogger("ctrplan")
 
 DEFAULT_SIM = 100_000
+
+
+@dataclass(frozen=True)
+class SimRecipe:
+    """Defaults of the network pre-trained on simulation (``ctrplan train --robot R``): rows of
+    simulated data, the network (width, depth) and its base (:func:`sim_base_model`), epochs,
+    loss and schedule (:class:`TrainConfig`). See ctrplan/data/models/README.md for what it
+    reaches and costs."""
+
+    rows: int
+    width: int
+    depth: int
+    epochs: int
+    loss: str
+    schedule: str
+
+
+#: the documented recipe (``ctrplan train --robot R``)
+SIM_RECIPE = SimRecipe(rows=1_000_000, width=64, depth=4, epochs=30, loss="sum_sq+max",
+                       schedule="onecycle")
+#: ``ctrplan train --sweep``: the literature's settings (the architectures are swept)
+SWEEP_RECIPE = SimRecipe(rows=DEFAULT_SIM, width=DEFAULT_WIDTH, depth=DEFAULT_DEPTH, epochs=150,
+                         loss="sum_sq", schedule="plateau")
 ARCH_DEPTHS = (3, 5, 7)
 ARCH_WIDTHS = (15, 30, 60)
 
@@ -871,7 +894,8 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
                       frame: str = DEFAULT_FRAME, variant: str = "pure",
                       residual_base: Any = None, real_only: TrainConfig | None = None,
                       refit: bool = False,
-                      candidates: Sequence[str] | None = None) -> tuple[LearnedModel, TrainReport]:
+                      candidates: Sequence[str] | None = None, sim_base: str | None = None,
+                      sim_arch: tuple[int, int] | None = None) -> tuple[LearnedModel, TrainReport]:
     """Pre-train on ``sim`` (if given), then train ``variant`` on ``real`` (if given).
 
     ``variant="auto"``: train the ``candidates`` (default :func:`candidate_variants`; residual
@@ -885,6 +909,9 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
     kept). ``residual_base``: the base of a residual variant (default: the pre-trained model,
     else physics). ``fine``: fine-tuning settings; ``real_only``: for new networks trained on
     ``real`` (default ``fine`` when nothing was pre-trained). ``refit``: see :func:`fit_real`.
+    ``sim_base``: what the network pre-trained on ``sim`` adds to (:func:`sim_base_model`:
+    ``"rigid"``, the closed-form rigid model, or None); ``sim_arch``: its (width, depth)
+    (default ``width``, ``depth``, which also size the networks trained on ``real`` alone).
     """
     robot = load_robot(robot)
     if variant not in VARIANTS and variant != AUTO:
@@ -906,7 +933,10 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
     if sim is not None:
         s_tr, s_va, s_te = split(sim, seed=seed)
         if start is None:
-            start = new_model(robot, width, depth, terms, seed, device, frame)
+            sw, sd = sim_arch if sim_arch is not None else (width, depth)
+            start = new_model(robot, sw, sd, terms, seed, device, frame, base=sim_base_model(robot, sim_base))
+            if sim_base is not None:
+                start.meta["sim_base"] = sim_base
             set_normalisation(start, s_tr)
         pre = pre or TrainConfig(seed=seed, label="pre-train (sim)")
         stages["pretrain"] = train(start, s_tr, s_va, pre)
@@ -951,6 +981,19 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
     if selection is not None:
         model.meta["selection"] = selection
     return model, report
+
+
+def sim_base_model(robot: Robot, kind: str | None) -> Any:
+    """The base a network pre-trained on simulation adds to: ``"rigid"`` the closed-form
+    torsionally rigid model (:class:`~ctrplan.shape.rigid.RigidModel`), None / ``"none"``
+    nothing (the network predicts the whole backbone)."""
+    if kind in (None, "none"):
+        return None
+    if kind == "rigid":
+        from ctrplan.shape.rigid import RigidModel
+
+        return RigidModel(robot)
+    raise ValueError(f"sim_base must be 'rigid' or 'none', got {kind!r}")
 
 
 # ---------------------------------------------------------------------------------- sweep
