@@ -266,7 +266,8 @@ def run(args: argparse.Namespace) -> int:
             pre=pre, fine=fine if (sim is not None or base is not None) else real_only,
             real_only=real_only, device=args.device, frame=args.frame, base=base,
             variant=variant, residual_base=residual_base, refit=args.refit,
-            sim_base=None if args.sim_base == "none" else args.sim_base, sim_arch=sim_arch)
+            sim_base=None if args.sim_base == "none" else args.sim_base, sim_arch=sim_arch,
+            sim_pairs=recipe.pairs)
     except ValueError as exc:
         raise InputError(args.real or "--sim", "", str(exc)) from None
     import sys

@@ -136,7 +136,7 @@ class LearnedModel:
     def __init__(self, robot: Robot | str, width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH,
                  terms: int = basis.DEFAULT_TERMS, device: str | torch.device = "cpu",
                  seed: int | None = 0, frame: str = DEFAULT_FRAME, direction: bool = False,
-                 base: Any = None, base_spec: dict | None = None):
+                 base: Any = None, base_spec: dict | None = None, pairs: bool = False):
         self.robot = load_robot(robot)
         if frame not in FRAMES:
             raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
@@ -148,8 +148,18 @@ class LearnedModel:
             torch.manual_seed(seed)
         #: direction-aware: extra inputs from the sign of the last motion of each joint
         self.direction_inputs = bool(direction)
-        self.net = ShapeNet(3 * n + (n_direction_features(n) if self.direction_inputs else 0), 3 * self.terms,
-                            self.width, self.depth)
+        #: pair inputs (:func:`pair_list`): cos, sin of the relative rotation of each pair of
+        #: tubes not already an input, and per pair of tubes the overlap of their curved
+        #: sections with its products with cos, sin of their relative rotation; before any
+        #: direction inputs
+        self.pair_inputs = bool(pairs)
+        pl, ol, oinv = pair_list(self.robot, frame) if self.pair_inputs else ([], [], [])
+        self._pairs = np.array(pl, dtype=np.int64).reshape(-1, 2)
+        self._opairs = np.array(ol, dtype=np.int64).reshape(-1, 2)
+        self._oinv = np.ascontiguousarray(oinv, dtype=np.float64).reshape(-1)
+        self._straight = np.ascontiguousarray(self.robot.array("straight_length"))
+        self.net = ShapeNet(self.n_q_features + (n_direction_features(n) if self.direction_inputs else 0),
+                            3 * self.terms, self.width, self.depth)
         #: residual mode: the network predicts the difference to this model (None: pure)
         self.base = base
         self.base_spec = dict(base_spec) if base_spec else (
@@ -173,6 +183,8 @@ class LearnedModel:
         self.coef_mean = torch.zeros(3 * self.terms)
         self.coef_std = torch.ones(3 * self.terms)
         self.lengths = torch.tensor(self.robot.lengths, dtype=torch.float32)
+        self.straight_t = torch.tensor(self._straight, dtype=torch.float32)
+        self.oinv_t = torch.tensor(self._oinv, dtype=torch.float32)
         self.meta: dict[str, Any] = {}
         self._device = torch.device("cpu")
         self._basis_cache: dict[tuple[int, str], torch.Tensor] = {}
@@ -183,6 +195,12 @@ class LearnedModel:
     @property
     def device(self) -> torch.device:
         return self._device
+
+    @property
+    def n_q_features(self) -> int:
+        """Inputs computed from q: 3 per tube, with pair inputs 2 per relative rotation and 3 per
+        overlap (:func:`pair_list`)."""
+        return 3 * self.robot.n + 2 * len(self._pairs) + 3 * len(self._opairs)
 
     @property
     def needs_direction(self) -> bool:
@@ -200,13 +218,14 @@ class LearnedModel:
         self.net.to(self._device)
         if isinstance(self.base, LearnedModel):
             self.base.to(device)
-        for k in ("beta_lo", "beta_span", "coef_mean", "coef_std", "lengths"):
+        for k in ("beta_lo", "beta_span", "coef_mean", "coef_std", "lengths", "straight_t", "oinv_t"):
             setattr(self, k, getattr(self, k).to(self._device))
         self._basis_cache = {}
         return self
 
     def __repr__(self) -> str:
         extra = (", direction=True" if self.direction_inputs else "") + (
+            ", pairs=True" if self.pair_inputs else "") + (
             f", base={self.base_spec.get('kind')!r}" if self.base_spec else "")
         return (f"LearnedModel(robot={self.robot.name!r}, width={self.width}, depth={self.depth}, "
                 f"terms={self.terms}, frame={self.frame!r}{extra}, device={str(self._device)!r})")
@@ -232,19 +251,37 @@ class LearnedModel:
 
     def features(self, q: torch.Tensor, direction: torch.Tensor | None = None) -> torch.Tensor:
         """Network input (B, 3n [+ 2n]): per tube cos alpha, sin alpha, beta scaled to [-1, 1]
-        (with frame "outer", alpha relative to the outermost tube's); direction-aware models
-        append the direction of the last motion of each joint (zeros when not given)."""
+        (with frame "outer", alpha relative to the outermost tube's); with pair inputs cos, sin of
+        alpha_i - alpha_j per pair (:func:`pair_list`); direction-aware models append the
+        direction of the last motion of each joint (zeros when not given)."""
         n = self.robot.n
         a, b = q[:, :n], q[:, n:]
         if self.frame == "outer":
             a = a - a[:, n - 1:n]
         bs = 2.0 * (b - self.beta_lo) / self.beta_span - 1.0
         x = torch.stack([torch.cos(a), torch.sin(a), bs], dim=2).reshape(len(q), 3 * n)
+        if self.pair_inputs:
+            x = torch.cat([x, self._pair_features_t(q)], dim=1)
         if not self.direction_inputs:
             return x
         d = torch.zeros_like(q) if direction is None else direction.to(dtype=x.dtype, device=x.device)
         rel = torch.sign(d[:, :n - 1] - d[:, 1:n])
         return torch.cat([x, d, rel], dim=1)
+
+    def _pair_features_t(self, q: torch.Tensor) -> torch.Tensor:
+        """The pair inputs (B, 2P + 3O) of q (B, 2n) tensors (:func:`pair_list`)."""
+        n, B = self.robot.n, len(q)
+        i, j = self._pairs[:, 0].tolist(), self._pairs[:, 1].tolist()
+        rel = q[:, i] - q[:, j]
+        parts = [torch.stack([torch.cos(rel), torch.sin(rel)], dim=2).reshape(B, -1)]
+        i, j = self._opairs[:, 0].tolist(), self._opairs[:, 1].tolist()
+        b = q[:, n:]
+        end = torch.minimum(b[:, i] + self.lengths[i], b[:, j] + self.lengths[j])
+        start = torch.clamp(torch.maximum(b[:, i] + self.straight_t[i], b[:, j] + self.straight_t[j]), min=0.0)
+        ov = torch.clamp(end - start, min=0.0) * self.oinv_t
+        rel = q[:, i] - q[:, j]
+        parts.append(torch.stack([ov, ov * torch.cos(rel), ov * torch.sin(rel)], dim=2).reshape(B, -1))
+        return torch.cat(parts, dim=1)
 
     def coefficients_t(self, q: torch.Tensor) -> torch.Tensor:
         """Basis coefficients (B, K, 3) of the network's own output (dimensionless, base frame;
@@ -349,6 +386,7 @@ class LearnedModel:
         m = self
         while (isinstance(m.base, LearnedModel) and m.base.frame == self.frame
                and m.base.terms == self.terms and m.base.robot.n == self.robot.n
+               and m.base.pair_inputs == self.pair_inputs
                and torch.equal(m.base.beta_lo.cpu(), self.beta_lo.cpu())
                and torch.equal(m.base.beta_span.cpu(), self.beta_span.cpu())):
             m = m.base
@@ -423,7 +461,8 @@ class LearnedModel:
             dirs = none
             if net.direction_inputs:
                 dirs = direction_features(np.zeros_like(q) if d is None else d, self.robot.n)
-            _learned_kernel.forward(q, dirs, self.robot.n, self.frame == "outer", lo, inv, L,
+            _learned_kernel.forward(q, dirs, net._pairs, net._opairs, net._straight, net._oinv,
+                                    self.robot.n, self.frame == "outer", lo, inv, L,
                                     W0, Wh, bh, slopes, Wl, bl, phi, out if k == 0 else tmp)
             if k > 0:
                 out += tmp
@@ -471,13 +510,17 @@ class LearnedModel:
         np.cos(ar, out=feats[:, :, 0])
         np.sin(ar, out=feats[:, :, 1])
         feats[:, :, 2] = (b - lo) * inv - 1.0
-        X3 = torch.from_numpy(feats.reshape(B, 3 * n))
+        f = feats.reshape(B, 3 * n)
+        if self.pair_inputs:                                      # (all nets share the pairs)
+            f = np.concatenate([f, pair_features(self, q32)], axis=1)
+        nq = f.shape[1]
+        X3 = torch.from_numpy(f)
         X5 = None
         if any(net.direction_inputs for net in nets):             # contiguous inputs per width
-            f5 = np.zeros((B, 3 * n + n_direction_features(n)), dtype=np.float32)
-            f5[:, :3 * n] = feats.reshape(B, 3 * n)
+            f5 = np.zeros((B, nq + n_direction_features(n)), dtype=np.float32)
+            f5[:, :nq] = f
             if d is not None:
-                f5[:, 3 * n:] = direction_features(d, n)
+                f5[:, nq:] = direction_features(d, n)
             X5 = torch.from_numpy(f5)
         length = torch.from_numpy(np.max(b + L, axis=1))
         if self.frame == "outer":
@@ -725,7 +768,8 @@ class LearnedModel:
             dirs = np.zeros((B, 0))
             if self.direction_inputs:
                 dirs = direction_features(np.zeros_like(qc) if d is None else d, self.robot.n)
-            _learned_kernel.tip_jacobian(qc, dirs, self.robot.n, self.frame == "outer", lo, inv, L,
+            _learned_kernel.tip_jacobian(qc, dirs, self._pairs, self._opairs, self._straight, self._oinv,
+                                         self.robot.n, self.frame == "outer", lo, inv, L,
                                          W0, Wh, bh, slopes, Wl, bl, ptip, tip, J)
             return tip, J
         qt = self._as_tensor(q).requires_grad_(True)
@@ -761,10 +805,16 @@ class LearnedModel:
             "domain": self.domain,
             "robot": self.robot.to_dict(),
             "architecture": {"width": self.width, "depth": self.depth, "activation": "PReLU",
-                             "frame": self.frame,
+                             "frame": self.frame, "pair_inputs": self.pair_inputs,
                              "inputs": "per tube: cos alpha, sin alpha, 2 (beta - lo) / (hi - lo) - 1"
                                        + (" (alpha relative to the outermost tube's; output "
-                                          "turned by it)" if self.frame == "outer" else ""),
+                                          "turned by it)" if self.frame == "outer" else "")
+                                       + ("; per pair (i, j) in pairs: cos, sin of alpha_i - alpha_j; "
+                                          "per pair in overlap_pairs: the overlap of the curved "
+                                          "sections beyond s = 0 over the shorter curved length, "
+                                          "times 1, cos and sin of alpha_i - alpha_j"
+                                          if self.pair_inputs else ""),
+                             "pairs": self._pairs.tolist(), "overlap_pairs": self._opairs.tolist(),
                              "outputs": "3K normalised basis coefficients (c = mean + std * z), (K, 3)"},
             "basis": {"terms": self.terms, "kind": "Gram-Schmidt on s..s^K over [0, 1], orthonormal, P(0) = 0",
                       "backbone": "x(q, s) = tip_length(q) * sum_k c_k P_k(s / tip_length(q))"},
@@ -838,6 +888,9 @@ class LearnedModel:
             if frame not in FRAMES:
                 raise ValueError(f"unknown frame {frame!r}")
             direction = bool((meta.get("inputs") or {}).get("direction", False))
+            pairs = arch.get("pair_inputs", False)
+            if not isinstance(pairs, bool):
+                raise ValueError("architecture.pair_inputs must be true or false")
             base_spec = meta.get("residual")
             if base_spec is not None and not isinstance(base_spec, dict):
                 raise ValueError("residual is not a mapping")
@@ -867,7 +920,7 @@ class LearnedModel:
             base = _load_base(base_spec, obj, src, robot, depth_left)
         try:
             model = cls(robot, width=width, depth=depth, terms=terms, seed=None, frame=frame,
-                        direction=direction, base=base, base_spec=base_spec)
+                        direction=direction, base=base, base_spec=base_spec, pairs=pairs)
             state = obj["state"]
             if not isinstance(state, dict):
                 raise TypeError("state is not a mapping")
@@ -990,6 +1043,50 @@ def polynomial_pad_torch(fit: torch.Tensor, points: int, terms: int) -> torch.Te
     peak = torch.sqrt((ctrl * ctrl).sum(dim=3).amax(dim=2))              # (B, k)
     h = 1.0 / (points - 1)
     return peak * (h * h / 8.0) + POINT_ROUNDOFF_MM
+
+
+def pair_list(n_or_robot: Any, frame: str = DEFAULT_FRAME):
+    """The pair inputs of a model. With a robot: (angle pairs, overlap pairs, 1 / scale of
+    each overlap), else (n tubes) the angle pairs alone.
+
+    Angle pairs (i, j), i < j: tubes whose relative rotation alpha_i - alpha_j enters as cos,
+    sin: with frame ``outer`` the pairs without the outermost tube (the angles relative to it
+    are inputs already), with ``base`` every pair. Overlap pairs: every pair of tubes, the
+    length over which their curved sections overlap beyond the constraint plane (mm; piecewise
+    linear in the translations), divided by the shorter of the two curved lengths, and that
+    times cos and sin of alpha_i - alpha_j. The twist of a CTR comes from the torque between
+    the curved sections of two tubes, about ``EI kappa_i kappa_j sin(alpha_i - alpha_j)`` per
+    length of overlap: products of per-tube inputs that a PReLU network can only approximate
+    piecewise (given directly they cut the surrogate's held-out p99 by about a quarter at the
+    same width; ctrplan/data/models/README.md)."""
+    if isinstance(n_or_robot, (int, np.integer)):
+        n = int(n_or_robot)
+        last = n - 1 if frame == "outer" else n
+        return [(i, j) for i in range(last) for j in range(i + 1, last)]
+    robot = n_or_robot
+    n = robot.n
+    curved = robot.array("curved_length")
+    opairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    oinv = [1.0 / max(min(curved[i], curved[j]), 1e-9) for i, j in opairs]
+    return pair_list(n, frame), opairs, oinv
+
+
+def pair_features(model: LearnedModel, q: np.ndarray) -> np.ndarray:
+    """The pair inputs (B, 2P + 3O) of q (B, 2n) in q's float dtype (:func:`pair_list`)."""
+    n, B = model.robot.n, len(q)
+    dt = q.dtype
+    P, O = model._pairs, model._opairs
+    rel = q[:, P[:, 0]] - q[:, P[:, 1]]
+    pa = np.stack([np.cos(rel), np.sin(rel)], axis=2).reshape(B, -1)
+    b = q[:, n:]
+    L, S = model.robot.lengths.astype(dt), model._straight.astype(dt)
+    i, j = O[:, 0], O[:, 1]
+    end = np.minimum(b[:, i] + L[i], b[:, j] + L[j])
+    start = np.maximum(np.maximum(b[:, i] + S[i], b[:, j] + S[j]), dt.type(0))
+    ov = np.maximum(end - start, dt.type(0)) * model._oinv.astype(dt)
+    rel = q[:, i] - q[:, j]
+    po = np.stack([ov, ov * np.cos(rel), ov * np.sin(rel)], axis=2).reshape(B, -1)
+    return np.concatenate([pa, po], axis=1).astype(dt, copy=False)
 
 
 def n_direction_features(n: int) -> int:

@@ -65,11 +65,12 @@ class SimRecipe:
     epochs: int
     loss: str
     schedule: str
+    pairs: bool = False
 
 
 #: the documented recipe (``ctrplan train --robot R``)
 SIM_RECIPE = SimRecipe(rows=1_000_000, width=64, depth=4, epochs=30, loss="sum_sq+max",
-                       schedule="onecycle")
+                       schedule="onecycle", pairs=True)
 #: ``ctrplan train --sweep``: the literature's settings (the architectures are swept)
 SWEEP_RECIPE = SimRecipe(rows=DEFAULT_SIM, width=DEFAULT_WIDTH, depth=DEFAULT_DEPTH, epochs=150,
                          loss="sum_sq", schedule="plateau")
@@ -536,16 +537,18 @@ def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
 
 def new_model(robot: Robot, width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH,
               terms: int = basis.DEFAULT_TERMS, seed: int = 0, device: str = "cpu",
-              frame: str = DEFAULT_FRAME, direction: bool = False, base: Any = None) -> LearnedModel:
+              frame: str = DEFAULT_FRAME, direction: bool = False, base: Any = None,
+              pairs: bool = False) -> LearnedModel:
     """A fresh network; with ``base`` a residual model whose last layer starts at zero (it
-    starts as the base model plus the mean difference once normalised)."""
+    starts as the base model plus the mean difference once normalised); ``pairs``: pair
+    inputs (:func:`ctrplan.shape.learned.pair_list`)."""
     spec = None if base is None else base_model_spec(base)
     if isinstance(base, LearnedModel):
         base = copy.deepcopy(base)
         base.invalidate()
         base.net.requires_grad_(False)
     m = LearnedModel(robot, width=width, depth=depth, terms=terms, seed=seed, device=device,
-                     frame=frame, direction=direction, base=base, base_spec=spec)
+                     frame=frame, direction=direction, base=base, base_spec=spec, pairs=pairs)
     if base is not None:
         with torch.no_grad():
             last = m.net.net[-1]
@@ -561,7 +564,7 @@ def with_direction_inputs(model: LearnedModel) -> LearnedModel:
         return copy.deepcopy(model)
     new = LearnedModel(model.robot, width=model.width, depth=model.depth, terms=model.terms,
                        seed=None, frame=model.frame, direction=True, base=copy.deepcopy(model.base),
-                       base_spec=model.base_spec)
+                       base_spec=model.base_spec, pairs=model.pair_inputs)
     state = {k: v.clone() for k, v in model.net.state_dict().items()}
     W0 = state["net.0.weight"]
     extra = new.net.net[0].weight.shape[1] - W0.shape[1]
@@ -667,10 +670,11 @@ def fit_real(robot: Robot, r_tr: ShapeData, r_va: ShapeData, variant: str = "pur
             from ctrplan.shape.physics import PhysicsModel
 
             residual_base = sim_model if sim_model is not None else PhysicsModel(robot)
-        if isinstance(residual_base, LearnedModel):
-            terms, frame = residual_base.terms, residual_base.frame
+        pairs = False
+        if isinstance(residual_base, LearnedModel):      # same inputs: one pass for both
+            terms, frame, pairs = residual_base.terms, residual_base.frame, residual_base.pair_inputs
         model = new_model(robot, width, depth, terms, seed, device, frame, direction=direction,
-                          base=residual_base)
+                          base=residual_base, pairs=pairs)
         set_normalisation(model, r_tr)
         return model, train(model, r_tr, r_va, real_only)
     if sim_model is not None:
@@ -895,7 +899,8 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
                       residual_base: Any = None, real_only: TrainConfig | None = None,
                       refit: bool = False,
                       candidates: Sequence[str] | None = None, sim_base: str | None = None,
-                      sim_arch: tuple[int, int] | None = None) -> tuple[LearnedModel, TrainReport]:
+                      sim_arch: tuple[int, int] | None = None,
+                      sim_pairs: bool = False) -> tuple[LearnedModel, TrainReport]:
     """Pre-train on ``sim`` (if given), then train ``variant`` on ``real`` (if given).
 
     ``variant="auto"``: train the ``candidates`` (default :func:`candidate_variants`; residual
@@ -911,7 +916,8 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
     ``real`` (default ``fine`` when nothing was pre-trained). ``refit``: see :func:`fit_real`.
     ``sim_base``: what the network pre-trained on ``sim`` adds to (:func:`sim_base_model`:
     ``"rigid"``, the closed-form rigid model, or None); ``sim_arch``: its (width, depth)
-    (default ``width``, ``depth``, which also size the networks trained on ``real`` alone).
+    (default ``width``, ``depth``, which also size the networks trained on ``real`` alone);
+    ``sim_pairs``: its pair inputs (:func:`ctrplan.shape.learned.pair_list`).
     """
     robot = load_robot(robot)
     if variant not in VARIANTS and variant != AUTO:
@@ -934,7 +940,8 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
         s_tr, s_va, s_te = split(sim, seed=seed)
         if start is None:
             sw, sd = sim_arch if sim_arch is not None else (width, depth)
-            start = new_model(robot, sw, sd, terms, seed, device, frame, base=sim_base_model(robot, sim_base))
+            start = new_model(robot, sw, sd, terms, seed, device, frame,
+                              base=sim_base_model(robot, sim_base), pairs=sim_pairs)
             if sim_base is not None:
                 start.meta["sim_base"] = sim_base
             set_normalisation(start, s_tr)
