@@ -1075,12 +1075,12 @@ def pair_features(model: LearnedModel, q: np.ndarray) -> np.ndarray:
     """The pair inputs (B, 2P + 3O) of q (B, 2n) in q's float dtype (:func:`pair_list`)."""
     n, B = model.robot.n, len(q)
     dt = q.dtype
-    P, O = model._pairs, model._opairs
+    P, OP = model._pairs, model._opairs
     rel = q[:, P[:, 0]] - q[:, P[:, 1]]
     pa = np.stack([np.cos(rel), np.sin(rel)], axis=2).reshape(B, -1)
     b = q[:, n:]
     L, S = model.robot.lengths.astype(dt), model._straight.astype(dt)
-    i, j = O[:, 0], O[:, 1]
+    i, j = OP[:, 0], OP[:, 1]
     end = np.minimum(b[:, i] + L[i], b[:, j] + L[j])
     start = np.maximum(np.maximum(b[:, i] + S[i], b[:, j] + S[j]), dt.type(0))
     ov = np.maximum(end - start, dt.type(0)) * model._oinv.astype(dt)
