@@ -126,7 +126,7 @@ def test_tip_and_jacobian_match_finite_differences(shipped, frame):
     for j in range(6):
         dq = np.zeros(6)
         dq[j] = h
-        fd = (m._numpy_points(q + dq, 2)[:, -1] - m._numpy_points(q - dq, 2)[:, -1]) / (2 * h)
+        fd = (m.backbone(q + dq, 2)[:, -1] - m.backbone(q - dq, 2)[:, -1]) / (2 * h)   # float64 paths
         np.testing.assert_allclose(J[:, :, j], fd, atol=1e-5 * max(1.0, np.abs(fd).max()))
     with pytest.raises(ValueError):
         m.tip_and_jacobian(q, method="nope")

@@ -65,7 +65,7 @@ def test_train_fine_tunes_the_shipped_model(tmp_path, measured_csv):
     assert (m.width, m.depth, m.terms, m.pair_inputs) == (shipped.width, shipped.depth,
                                                           shipped.terms, shipped.pair_inputs)
     assert "sim" not in m.meta["data"] and "finetune" in m.meta["training"]
-    assert m.meta["data"]["init"]["sim"]["rows"] == 100_000
+    assert m.meta["data"]["init"]["sim"]["rows"] == shipped.meta["data"]["sim"]["rows"]
     assert main(["-q", "train", "--robot", "seed1", "--init", str(tmp_path / "nope.pt"),
                  "--real", str(measured_csv), "--out", str(out)]) == 2
 

@@ -270,6 +270,16 @@ def run(args: argparse.Namespace) -> int:
             sim_pairs=recipe.pairs)
     except ValueError as exc:
         raise InputError(args.real or "--sim", "", str(exc)) from None
+    if sim is not None:
+        # a bistable robot: the surrogate follows the physics model's default branch and cannot
+        # represent snapping (docs/conventions.md); say so, and record it in the file
+        bist = T.bistable_fraction(robot, seed=args.seed)
+        model.meta["bistable"] = bist
+        if bist["fraction"] > 0:
+            log.warning("%s is bistable at %.1f%% of %d probed configurations: the learned model "
+                        "follows the physics model's default (least twisted) branch there and "
+                        "cannot represent a snap; plan this robot with --model physics",
+                        robot.name, 100 * bist["fraction"], bist["probed"])
     import sys
 
     from ctrplan import __version__

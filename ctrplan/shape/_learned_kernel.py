@@ -86,24 +86,36 @@ def forward(q, dirs, pairs, opairs, straight, oinv, n, outer, lo, inv, L, W0, Wh
             x[k0 + 2] = ov * math.sin(a)
         for k in range(nd):
             x[nq + k] = dirs[bi, k]
+        # layers as row updates h += x_k W[k, :] (contiguous inner loops: SIMD)
         for j in range(w):
-            s = bh[0, j]
-            for k in range(nx):
-                s += x[k] * W0[k, j]
-            h[j] = s if s > 0.0 else slopes[0] * s
+            h[j] = bh[0, j]
+        for k in range(nx):
+            xk = x[k]
+            for j in range(w):
+                h[j] += xk * W0[k, j]
+        sl = slopes[0]
+        for j in range(w):
+            if h[j] < 0.0:
+                h[j] *= sl
         for d in range(1, depth):
             for j in range(w):
-                s = bh[d, j]
-                for k in range(w):
-                    s += h[k] * Wh[d - 1, k, j]
-                h2[j] = s if s > 0.0 else slopes[d] * s
-            for j in range(w):
-                h[j] = h2[j]
-        for j in range(K3):
-            s = bl[j]
+                h2[j] = bh[d, j]
             for k in range(w):
-                s += h[k] * Wl[k, j]
-            c[j] = s * length
+                hk = h[k]
+                for j in range(w):
+                    h2[j] += hk * Wh[d - 1, k, j]
+            sl = slopes[d]
+            for j in range(w):
+                v = h2[j]
+                h[j] = v if v > 0.0 else sl * v
+        for j in range(K3):
+            c[j] = bl[j]
+        for k in range(w):
+            hk = h[k]
+            for j in range(K3):
+                c[j] += hk * Wl[k, j]
+        for j in range(K3):
+            c[j] *= length
         if outer:
             co = math.cos(ref)
             si = math.sin(ref)

@@ -3,9 +3,12 @@
 Network (one per robot):
 
 * input, per tube i: ``cos alpha_i, sin alpha_i, beta_i~`` with ``beta_i~`` the translation
-  scaled to [-1, 1] over the robot's joint range (``2 (beta - lo) / (hi - lo) - 1``);
-* ``depth`` hidden layers of ``width`` neurons, each Linear + PReLU (default 3 hidden layers of
-  30 neurons, "3 x 30");
+  scaled to [-1, 1] over the robot's joint range (``2 (beta - lo) / (hi - lo) - 1``); with
+  *pair inputs* (:func:`pair_list`) also the relative rotations of the tubes and the overlaps
+  of their curved sections with their products (what the tubes' twist depends on);
+* ``depth`` hidden layers of ``width`` neurons, each Linear + PReLU (``LearnedModel``'s default
+  3 hidden layers of 30 neurons, "3 x 30", the literature's; ``ctrplan train``'s simulation
+  recipe 4 x 64 with pair inputs over the rigid base, :data:`ctrplan.shape.training.SIM_RECIPE`);
 * output: ``3 K`` numbers ``z``, de-normalised to coefficients ``c = mean + std * z`` (mean, std
   from the training set) and arranged as (K, 3);
 * backbone ``x(q, s) = len(q) * sum_k c_k P_k(s / len(q))`` with :mod:`ctrplan.shape.basis`,
@@ -17,7 +20,9 @@ every tube by the same angle turns the backbone about the insertion axis) and le
 less to learn; frame ``base`` uses the absolute angles as the literature does.
 
 The whole batch goes through one forward pass (float32, CPU unless ``device=`` says otherwise;
-batches up to :data:`SMALL_BATCH` use a compiled float64 kernel for low latency).
+batches up to :data:`SMALL_BATCH` use a compiled float64 kernel for low latency; on a GPU,
+batches of at least :data:`GPU_MIN_BATCH` run there - network, rigid base and continuity pad -
+smaller ones on the CPU paths, where a call costs less than a GPU round trip).
 ``tip_and_jacobian`` differentiates the torch path with autograd (for inverse kinematics).
 Model files are written with :func:`torch.save` and read with ``torch.load(weights_only=True)``:
 they hold only tensors and a JSON string of metadata (robot, basis, normalisation,
@@ -32,7 +37,10 @@ Options recorded in the model file:
   ``needs_direction = True`` and takes ``shape(q, points, direction=D)``
   (:func:`ctrplan.shape.base.needs_direction`); without ``direction`` every input is 0.
 * **Residual mode** (``base=``): the network predicts the basis coefficients of the difference
-  to a base model - ``physics``/``rigid`` (a physics call per evaluation), a calibrated
+  to a base model - ``rigid`` (the closed-form torsionally rigid model,
+  :class:`~ctrplan.shape.rigid.RigidModel`, about 0.3 us per shape: the shipped networks learn
+  the compliant model's difference to it, the tubes' twist), ``physics`` (a physics call per
+  evaluation), a calibrated
   EffectModel (``ctrplan diagnose``; also a physics call) or a learned model (stored inside the
   file; evaluated in the same pass, no physics call). A residual model answers in its base
   model's frame (a calibrated model with ``registration``: the sensor frame).
@@ -951,7 +959,7 @@ class LearnedModel:
         model.domain = domain
         keep = ("training", "metrics", "data", "created", "command", "ctrplan_version",
                 "error_quantiles_source", "variant", "error_profile_source", "selection", "sim_base",
-                "sampling")
+                "bistable")
         model.meta = {k: meta[k] for k in keep if k in meta}
         model.source = src
         return model

@@ -137,6 +137,30 @@ def simulated_data(robot: Robot | str, n: int, seed: int = 0, points: int = 20,
     return ShapeData(q[ok], sh.points[ok], source=f"physics:{robot.name}:n={n}:seed={seed}")
 
 
+#: configurations :func:`bistable_fraction` probes by default
+BISTABLE_PROBE = 2000
+
+
+def bistable_fraction(robot: Robot | str, n: int = BISTABLE_PROBE, seed: int = 0) -> dict[str, Any]:
+    """How much of the joint space of ``robot`` is bistable (two stable equilibria of the
+    compliant model): the fraction of ``n`` uniform valid configurations where the physics
+    model, probing for a second stable equilibrium (``PhysicsConfig(probe_bistable=True)``),
+    finds two. A surrogate trained on simulation follows the branch the physics model returns
+    by default (the less twisted one) there and cannot represent a snap between branches; its
+    held-out error includes those configurations. Returns {"fraction", "probed", "seed"}."""
+    from ctrplan.shape.physics import PhysicsConfig
+
+    robot = load_robot(robot)
+    q = robot.sample(int(n), seed=seed)
+    pm = PhysicsModel(robot, config=PhysicsConfig(probe_bistable=True))
+    pm.shape(q, 2)
+    bi = pm.last_info.bistable if pm.last_info is not None else None
+    frac = float(np.mean(bi)) if bi is not None and len(bi) else 0.0
+    return {"fraction": frac, "probed": int(len(q)), "seed": int(seed),
+            "rule": "two stable equilibria found by the physics model's probe "
+                    "(PhysicsConfig(probe_bistable=True)) at uniform valid configurations"}
+
+
 @dataclass(frozen=True)
 class HiddenEffects:
     """A "real" robot: the physics model plus effects a learned model is not told about.
