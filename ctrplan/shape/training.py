@@ -4,8 +4,13 @@
 * :class:`HiddenEffects` / :func:`real_data` - "real" measurements: our own simulator with
   effects the learned model is never told about (miscalibrated precurvature, changed stiffness
   ratios, clearance tilts at the outer tubes' ends, rotational offsets and backlash, sensor noise);
-* :func:`train` - Adam on the sum of squared point distances, early stopping on a validation set;
-  :func:`pretrain_finetune` - pre-train on simulation, fine-tune on measured shapes;
+* :func:`train` - Adam on the sum of squared point distances (or with the largest along the
+  shaft weighted in, :data:`LOSSES`), early stopping on a validation set or one cycle of the
+  learning rate (:data:`SCHEDULES`); :func:`pretrain_finetune` - pre-train on simulation
+  (:data:`SIM_RECIPE`: the network learns the compliant model's difference to the closed-form
+  rigid model, with pair inputs), fine-tune on measured shapes;
+* :func:`bistable_fraction` - how much of a robot's joint space has two stable equilibria
+  (where a surrogate of one shape per configuration cannot follow the robot);
 * :func:`evaluate` - the literature's metrics (max deviation, MSE, sum of deviations along the
   shaft) with mean +- std over a test set;
 * :func:`sweep` - Sim-only / Real-only / Sim+Real x variants (pure, direction-aware,
