@@ -74,6 +74,9 @@ from ctrplan.robot import Robot, load_robot, robot_from_dict
 from ctrplan.shape import basis
 from ctrplan.shape.base import Shape, check_q, radius_along
 from ctrplan.shape.base import needs_direction as _needs_direction
+from ctrplan.shape.devices import GPU_MIN_BATCH, current_device, resolve_device
+from ctrplan.shape.devices import using_device as using_device  # noqa: F401 (API)
+from ctrplan.shape.pairs import pair_features, pair_list
 from ctrplan.shape.rigid import RigidModel
 
 FORMAT = "ctrplan-learned-model"
@@ -96,12 +99,6 @@ DEFAULT_FRAME = "outer"
 SMALL_BATCH = 64
 #: Rows per chunk of the CPU inference path (intermediates stay in cache).
 CHUNK = 4096
-#: A model on a GPU evaluates batches of at least this many configurations there; smaller ones
-#: on the CPU paths (a GPU call's fixed latency, ~0.3 ms with its transfers on an H100, exceeds
-#: the CPU's time for them: benchmarks/results/learned_gpu_h100.json).
-GPU_MIN_BATCH = 1024
-#: device of models loaded without one (:func:`using_device`)
-_default_device: list[str] = ["cpu"]
 
 
 class ShapeNet(nn.Module):
@@ -1053,50 +1050,6 @@ def polynomial_pad_torch(fit: torch.Tensor, points: int, terms: int) -> torch.Te
     return peak * (h * h / 8.0) + POINT_ROUNDOFF_MM
 
 
-def pair_list(n_or_robot: Any, frame: str = DEFAULT_FRAME):
-    """The pair inputs of a model. With a robot: (angle pairs, overlap pairs, 1 / scale of
-    each overlap), else (n tubes) the angle pairs alone.
-
-    Angle pairs (i, j), i < j: tubes whose relative rotation alpha_i - alpha_j enters as cos,
-    sin: with frame ``outer`` the pairs without the outermost tube (the angles relative to it
-    are inputs already), with ``base`` every pair. Overlap pairs: every pair of tubes, the
-    length over which their curved sections overlap beyond the constraint plane (mm; piecewise
-    linear in the translations), divided by the shorter of the two curved lengths, and that
-    times cos and sin of alpha_i - alpha_j. The twist of a CTR comes from the torque between
-    the curved sections of two tubes, about ``EI kappa_i kappa_j sin(alpha_i - alpha_j)`` per
-    length of overlap: products of per-tube inputs that a PReLU network can only approximate
-    piecewise (given directly they cut the surrogate's held-out p99 by about a quarter at the
-    same width; ctrplan/data/models/README.md)."""
-    if isinstance(n_or_robot, (int, np.integer)):
-        n = int(n_or_robot)
-        last = n - 1 if frame == "outer" else n
-        return [(i, j) for i in range(last) for j in range(i + 1, last)]
-    robot = n_or_robot
-    n = robot.n
-    curved = robot.array("curved_length")
-    opairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
-    oinv = [1.0 / max(min(curved[i], curved[j]), 1e-9) for i, j in opairs]
-    return pair_list(n, frame), opairs, oinv
-
-
-def pair_features(model: LearnedModel, q: np.ndarray) -> np.ndarray:
-    """The pair inputs (B, 2P + 3O) of q (B, 2n) in q's float dtype (:func:`pair_list`)."""
-    n, B = model.robot.n, len(q)
-    dt = q.dtype
-    P, OP = model._pairs, model._opairs
-    rel = q[:, P[:, 0]] - q[:, P[:, 1]]
-    pa = np.stack([np.cos(rel), np.sin(rel)], axis=2).reshape(B, -1)
-    b = q[:, n:]
-    L, S = model.robot.lengths.astype(dt), model._straight.astype(dt)
-    i, j = OP[:, 0], OP[:, 1]
-    end = np.minimum(b[:, i] + L[i], b[:, j] + L[j])
-    start = np.maximum(np.maximum(b[:, i] + S[i], b[:, j] + S[j]), dt.type(0))
-    ov = np.maximum(end - start, dt.type(0)) * model._oinv.astype(dt)
-    rel = q[:, i] - q[:, j]
-    po = np.stack([ov, ov * np.cos(rel), ov * np.sin(rel)], axis=2).reshape(B, -1)
-    return np.concatenate([pa, po], axis=1).astype(dt, copy=False)
-
-
 def n_direction_features(n: int) -> int:
     """Direction inputs of an n-tube model: 2n signs and n - 1 relative rotation directions."""
     return 3 * n - 1
@@ -1274,54 +1227,6 @@ def shipped_model_path(robot_name: str) -> Path | None:
     except TypeError:  # pragma: no cover - zipped installs
         return None
     return p if p.is_file() else None
-
-
-def resolve_device(device: str | torch.device | None = "cpu") -> torch.device:
-    """A torch device from ``cpu``, ``cuda``, ``cuda:N``, ``auto`` (cuda when torch sees a GPU,
-    else cpu) or None (cpu). ValueError when torch cannot use it (no CUDA, a bad name)."""
-    if device is None:
-        return torch.device("cpu")
-    if isinstance(device, torch.device):
-        dev = device
-    else:
-        text = str(device).strip().lower()
-        if text == "auto":
-            return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-        try:
-            dev = torch.device(text)
-        except (RuntimeError, ValueError):
-            raise ValueError(f"{str(device)[:40]!r} is not a device (cpu, cuda, cuda:N or auto)") from None
-    if dev.type == "cpu":
-        return dev
-    try:
-        torch.empty(1, device=dev)
-    except Exception as exc:     # no CUDA build, no GPU, an index past the last GPU
-        raise ValueError(f"{str(device)[:40]!r} is not available ({exc.__class__.__name__}: "
-                         f"torch sees {torch.cuda.device_count()} CUDA device(s))") from None
-    return dev
-
-
-class using_device:
-    """Context manager: learned models loaded inside it without a ``device`` (``--model
-    learned`` or a model file, through :func:`ctrplan.shape.models.load_model`) go to
-    ``device`` (:func:`resolve_device`: ``cpu``, ``cuda[:N]``, ``auto``). What the commands'
-    ``--device`` sets."""
-
-    def __init__(self, device: str | torch.device | None):
-        self.device = str(resolve_device(device))
-
-    def __enter__(self) -> str:
-        _default_device.append(self.device)
-        return self.device
-
-    def __exit__(self, *exc) -> None:
-        _default_device.pop()
-
-
-def current_device() -> str:
-    """The device learned models are loaded to when none is given (``cpu`` unless inside
-    :class:`using_device`)."""
-    return _default_device[-1]
 
 
 def default_model_for(robot: Robot | str, device: str | torch.device | None = None) -> LearnedModel:
