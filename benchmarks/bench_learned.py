@@ -12,9 +12,14 @@ machine; both are reported. Usage::
     python benchmarks/bench_learned.py [--quick] [--out results.json]
     python benchmarks/bench_learned.py --device cuda [--out results.json]   # GPU table
 
-With ``--device cuda`` (``run_gpu``) the learned model alone is timed on the GPU: the public
-``backbone(q)`` call from float64 numpy in to float64 numpy out (transfers included), and the
-forward pass on tensors already on the device (synchronised), batch 1 .. 1,000,000.
+With ``--device cuda`` (``run_gpu``) the learned model is timed on the GPU: the public
+``backbone(q)`` call from float64 numpy in to float64 numpy out (transfers included; batches
+below ``GPU_MIN_BATCH`` run on the CPU paths by design), ``shape(q)`` (backbones, closed-form
+rigid base and continuity pad on the device) and the network's forward pass on tensors already
+on the device (synchronised), batch 1 .. 1,000,000, each next to the same model on one CPU core
+in the same run (``cpu_us_per_shape``, ``speedup_vs_cpu``). ``--device auto`` runs it when torch
+sees a GPU (else the CPU table) and ``--record`` writes the result to
+``benchmarks/results/learned_gpu_<card>.json`` (the card's name in the file and its name).
 
 ``run(quick) -> dict`` is what ``ctrplan bench`` calls; ``table`` holds the markdown rows.
 Targets (issue 3): at batch 100,000 at most 1 us per shape and at least 100x faster than the
@@ -116,9 +121,11 @@ def variants(learned: LearnedModel, quick: bool = False, batch: int = 100_000) -
     q = robot.sample(batch, seed=SEED + 1)
     d = np.random.default_rng(SEED).choice([-1, 0, 1], size=q.shape).astype(np.int8)
     direction = T.with_direction_inputs(learned)
-    residual = T.new_model(robot, learned.width, learned.depth, learned.terms, seed=1, base=learned)
+    pairs = learned.pair_inputs                               # same inputs: one pass
+    residual = T.new_model(robot, learned.width, learned.depth, learned.terms, seed=1, base=learned,
+                           pairs=pairs)
     both = T.new_model(robot, learned.width, learned.depth, learned.terms, seed=1, base=learned,
-                       direction=True)
+                       direction=True, pairs=pairs)
     phys_res = T.new_model(robot, learned.width, learned.depth, learned.terms, seed=1,
                            base=PhysicsModel(robot))
     calls = {
@@ -180,7 +187,8 @@ def run(quick: bool = False) -> dict:
     return {
         "robot": ROBOT, "points": POINTS, "threads": torch.get_num_threads(),
         "model": _rel(path) if path else "untrained network (no shipped model)",
-        "architecture": f"{learned.depth}x{learned.width}, K={learned.terms}, frame={learned.frame}",
+        "architecture": f"{learned.depth}x{learned.width}, K={learned.terms}, frame={learned.frame}, "
+                        f"pairs={learned.pair_inputs}, base={type(learned.base).__name__}",
         "table": rows,
         "batch1_latency_us": {"learned": b1["learned_us_per_shape"], "physics": b1["physics_us_per_shape"]},
         "largest_batch": big["batch"],
@@ -206,47 +214,83 @@ def run_gpu(quick: bool = False, device: str = "cuda") -> dict:
             torch.cuda.synchronize(device)
         return call
 
+    numba.set_num_threads(1)
+    torch.set_num_threads(1)
+    cpu = LearnedModel.load(path, robot=robot, device="cpu") if path else LearnedModel(robot)
     rows = []
     for B in batches:
         q = q_all[:B]
         qt = torch.as_tensor(q, dtype=torch.float32, device=device)
         public = synced(lambda q=q: learned.backbone(q, POINTS))
+        shape = synced(lambda q=q: learned.shape(q, POINTS))
 
         def on_device(qt=qt):
             with torch.inference_mode():
                 learned._fast_points(qt, POINTS)
         forward = synced(on_device)
-        for fn in (public, forward):        # warm up (kernels, allocator)
+        for fn in (public, shape, forward):   # warm up (kernels, allocator)
             fn()
             fn()
         reps = 200 if B <= 1000 else (20 if B <= 100_000 else 5)
         reps = max(3, reps // 4) if quick else reps
         _, pw = _median_time(public, reps)
+        _, sw = _median_time(shape, reps)
         _, fw = _median_time(forward, reps)
+        cpu.backbone(q[:2], POINTS)
+        cc, _ = _median_time(lambda q=q: cpu.backbone(q, POINTS), max(3, reps // 4))
+        cs, _ = _median_time(lambda q=q: cpu.shape(q, POINTS), max(3, reps // 4))
         rows.append({"batch": B, "backbone_us_per_shape": 1e6 * pw / B,
+                     "shape_us_per_shape": 1e6 * sw / B,
                      "forward_on_device_us_per_shape": 1e6 * fw / B,
-                     "backbone_call_ms": 1e3 * pw})
+                     "backbone_call_ms": 1e3 * pw,
+                     "cpu_us_per_shape": 1e6 * cc / B, "cpu_shape_us_per_shape": 1e6 * cs / B,
+                     "speedup_vs_cpu": cc / pw if pw > 0 else float("inf"),
+                     "shape_speedup_vs_cpu": cs / sw if sw > 0 else float("inf")})
+    from ctrplan.shape.learned import GPU_MIN_BATCH
+
     return {"robot": ROBOT, "points": POINTS, "device": torch.cuda.get_device_name(device),
             "torch": torch.__version__, "model": _rel(path) if path else "untrained network",
+            "architecture": f"{learned.depth}x{learned.width}, K={learned.terms}, "
+                            f"pairs={learned.pair_inputs}, base={type(learned.base).__name__}",
+            "gpu_min_batch": GPU_MIN_BATCH, "cpu": "one core, one thread (same run)",
             "table": rows}
+
+
+def record_path(res: dict) -> str:
+    """benchmarks/results/learned_gpu_<card>.json for a GPU result."""
+    import re
+
+    slug = re.sub(r"[^a-z0-9]+", "_", res["device"].lower()).strip("_")[:40] or "gpu"
+    return os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", f"learned_gpu_{slug}.json")
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", default=None)
-    ap.add_argument("--device", default="cpu", help="cpu (learned vs physics) or cuda (learned on the GPU)")
+    ap.add_argument("--device", default="cpu",
+                    help="cpu (learned vs physics), cuda (learned on the GPU vs one CPU core) or "
+                         "auto (cuda when torch sees a GPU)")
+    ap.add_argument("--record", action="store_true",
+                    help="with a GPU: also write benchmarks/results/learned_gpu_<card>.json")
     args = ap.parse_args(argv)
+    if args.device == "auto":
+        args.device = "cuda" if torch.cuda.is_available() else "cpu"
     if args.device != "cpu" and not torch.cuda.is_available():
         print(f"bench_learned: --device {args.device}: torch sees no CUDA device", file=sys.stderr)
         return 2
     if args.device != "cpu":
         res = run_gpu(quick=args.quick, device=args.device)
-        print(f"{res['device']}, torch {res['torch']}")
-        print(f"{'batch':>8} {'backbone us/shape':>18} {'forward us/shape':>17} {'call ms':>9}")
-        lines = [f"{r['batch']:>8} {r['backbone_us_per_shape']:>18.4f} "
-                 f"{r['forward_on_device_us_per_shape']:>17.5f} {r['backbone_call_ms']:>9.3f}"
+        print(f"{res['device']}, torch {res['torch']}, {res['architecture']}")
+        print(f"{'batch':>8} {'backbone us':>12} {'shape us':>9} {'forward us':>11} {'CPU us':>8} "
+              f"{'x CPU':>7} {'shape x CPU':>12}")
+        lines = [f"{r['batch']:>8} {r['backbone_us_per_shape']:>12.4f} {r['shape_us_per_shape']:>9.4f} "
+                 f"{r['forward_on_device_us_per_shape']:>11.5f} {r['cpu_us_per_shape']:>8.3f} "
+                 f"{r['speedup_vs_cpu']:>6.1f}x {r['shape_speedup_vs_cpu']:>11.1f}x"
                  for r in res["table"]]
+        if args.record:
+            with open(record_path(res), "w") as fh:
+                json.dump(res, fh, indent=2)
     else:
         res = run(quick=args.quick)
         print(f"{'batch':>7} {'learned us':>11} {'(wall)':>8} {'physics us':>11} {'(wall)':>8} {'speed-up':>9}")

@@ -123,17 +123,21 @@ def test_best_model_is_the_candidate_with_the_lowest_recomputed_test_error(best_
 
 
 def test_a_learned_residual_takes_up_an_effect_outside_the_fitted_families(best_run):
-    """Clearance is outside the fitted family (only precurvature may be fitted): the learned
-    residual over the calibrated model must win and cut the calibrated model's test error by
-    at least a quarter (measured: nominal 3.77, calibrated 2.17, calibrated + learned 1.07,
-    learned alone 1.50 mm; with branch gen's rewritten generator forms 4.16, 1.89, 1.13, 1.58)."""
+    """Clearance is outside the fitted family (only precurvature may be fitted): a learned
+    candidate must win - the learned residual over the calibrated model, or the shipped network
+    fine-tuned alone - and both must cut the calibrated model's test error by at least a
+    quarter (measured: nominal 3.77, calibrated 2.17, calibrated + learned 1.07, learned alone
+    1.50 mm; with branch gen's rewritten generator forms 4.16, 1.89, 1.13, 1.58; with issue 38's
+    shipped network (4 x 64 over the rigid model) 4.15, 1.90, 1.11, 1.02: fine-tuned alone it
+    now wins)."""
     rc, d, out = best_run
     table = json.loads((out / "best_model.json").read_text())
     c = table["candidates"]
-    assert table["winner"] == "calibrated+learned", {k: v["mean_mm"] for k, v in c.items()}
-    assert c["calibrated+learned"]["mean_mm"] <= 0.75 * c["calibrated"]["mean_mm"]
+    assert table["winner"] in ("calibrated+learned", "learned"), {k: v["mean_mm"] for k, v in c.items()}
+    for name in ("calibrated+learned", "learned"):
+        assert c[name]["mean_mm"] <= 0.75 * c["calibrated"]["mean_mm"], (name, c[name]["mean_mm"])
     assert c["calibrated"]["mean_mm"] < c["nominal"]["mean_mm"]      # precurvature was fitted
-    model = load_model(str(out / table["files"]["best_model"]), "seed1")
+    model = load_model(str(out / table["files"]["calibrated+learned"]), "seed1")
     assert model.base_spec["kind"] == "effect" and "precurvature" in model.base.effects
 
 

@@ -15,7 +15,7 @@ import torch
 from ctrplan.cli import main
 from ctrplan.robot import load_robot
 from ctrplan.shape import training as T
-from ctrplan.shape.learned import SMALL_BATCH, LearnedModel, default_model_for
+from ctrplan.shape.learned import GPU_MIN_BATCH, SMALL_BATCH, LearnedModel, default_model_for
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 
@@ -32,21 +32,36 @@ def shipped_gpu():
     return default_model_for("seed1", device="cuda")
 
 
-@pytest.mark.parametrize("batch", [1, SMALL_BATCH + 1, 20_000])
+@pytest.mark.parametrize("batch", [1, SMALL_BATCH + 1, GPU_MIN_BATCH, 20_000])
 def test_gpu_backbone_matches_cpu(shipped_cpu, shipped_gpu, batch):
+    """Batches below GPU_MIN_BATCH run on the CPU paths, larger ones on the GPU (network,
+    closed-form rigid base and the polynomial pad in torch)."""
     assert shipped_gpu.device.type == "cuda"
+    assert shipped_gpu._on_device(batch) == (batch >= GPU_MIN_BATCH)
     q = shipped_cpu.robot.sample(batch, seed=batch)
     cpu = shipped_cpu.backbone(q, 20)
     gpu = shipped_gpu.backbone(q, 20)
     assert gpu.dtype == np.float64 and gpu.shape == (batch, 20, 3)
     np.testing.assert_allclose(gpu, cpu, atol=TOL_MM)
     sh = shipped_gpu.shape(q, 7)
-    np.testing.assert_allclose(sh.points, shipped_cpu.shape(q, 7).points, atol=TOL_MM)
-    np.testing.assert_allclose(sh.radius, shipped_cpu.shape(q, 7).radius)
+    ref = shipped_cpu.shape(q, 7)
+    np.testing.assert_allclose(sh.points, ref.points, atol=TOL_MM)
+    np.testing.assert_allclose(sh.radius, ref.radius)
+    np.testing.assert_allclose(sh.pad, ref.pad, rtol=1e-3, atol=1e-4)
+    np.testing.assert_array_equal(sh.ok, ref.ok)
+
+
+def test_rigid_base_on_the_gpu_matches_the_numba_kernel():
+    from ctrplan.shape.rigid import RigidModel
+
+    rm = RigidModel("seed1")
+    q = rm.robot.sample(5000, seed=4)
+    got = rm.points_torch(torch.as_tensor(q, dtype=torch.float64, device="cuda"), 20).cpu().numpy()
+    np.testing.assert_allclose(got, rm.backbone(q, 20), atol=1e-9)
 
 
 def test_gpu_jacobian_matches_compiled_cpu(shipped_cpu, shipped_gpu):
-    q = shipped_cpu.robot.sample(64, seed=2)
+    q = shipped_cpu.robot.sample(GPU_MIN_BATCH, seed=2)
     tip, J = shipped_cpu.tip_and_jacobian(q)               # numba forward mode, float64
     tip_g, J_g = shipped_gpu.tip_and_jacobian(q)           # autograd on the GPU ("auto")
     np.testing.assert_allclose(tip_g, tip, atol=TOL_MM)

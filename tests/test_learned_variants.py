@@ -254,15 +254,18 @@ def test_residual_over_a_calibrated_model_is_stored_in_the_file(tmp_path):
 def test_device_path_agrees_for_direction_and_residual_models(shipped):
     """The torch path used on GPUs (``_fast_points`` per network, summed), run on the CPU."""
     r = shipped.robot
-    m = _perturb(T.new_model(r, 15, 2, shipped.terms, seed=1, base=shipped, direction=True), seed=5, scale=0.1)
+    m = _perturb(T.new_model(r, 15, 2, shipped.terms, seed=1, base=shipped, direction=True,
+                             pairs=shipped.pair_inputs), seed=5, scale=0.1)
     q = r.sample(100, seed=6)
     d = _directions(r, 100, 7)
     nets, rest = m._chain()
-    assert len(nets) == 2 and rest is None
+    assert len(nets) == 2 and type(rest) is type(shipped.base)   # the shipped one's (rigid) base
     qt = torch.as_tensor(q, dtype=torch.float32)
     dt = torch.as_tensor(d, dtype=torch.float32)
     with torch.inference_mode():
         dev = sum(net._fast_points(qt, 20, dt) for net in nets).numpy()
+    if rest is not None:
+        dev = dev + rest.backbone(q, 20)
     np.testing.assert_allclose(dev, m.backbone(q, direction=d), atol=2e-3)
 
 

@@ -12,7 +12,7 @@ from ctrplan.cli import main
 from ctrplan.measured import MeasuredData, write_measured
 from ctrplan.robot import load_robot
 from ctrplan.shape import training as T
-from ctrplan.shape.learned import LearnedModel
+from ctrplan.shape.learned import LearnedModel, default_model_for
 
 torch.set_num_threads(1)
 SMALL = ["--width", "8", "--depth", "2", "--terms", "4", "--epochs", "3", "--fine-epochs", "3",
@@ -61,9 +61,11 @@ def test_train_fine_tunes_the_shipped_model(tmp_path, measured_csv):
     assert main(["-q", "train", "--robot", "seed1", "--init", "learned", "--real", str(measured_csv),
                  "--variant", "pure", "--fine-epochs", "2", "--out", str(out)]) == 0
     m = LearnedModel.load(out)
-    assert (m.width, m.depth, m.terms) == (30, 3, 7)          # the shipped architecture
+    shipped = default_model_for("seed1")                       # the shipped architecture
+    assert (m.width, m.depth, m.terms, m.pair_inputs) == (shipped.width, shipped.depth,
+                                                          shipped.terms, shipped.pair_inputs)
     assert "sim" not in m.meta["data"] and "finetune" in m.meta["training"]
-    assert m.meta["data"]["init"]["sim"]["rows"] == 100_000
+    assert m.meta["data"]["init"]["sim"]["rows"] == shipped.meta["data"]["sim"]["rows"]
     assert main(["-q", "train", "--robot", "seed1", "--init", str(tmp_path / "nope.pt"),
                  "--real", str(measured_csv), "--out", str(out)]) == 2
 

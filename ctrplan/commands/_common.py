@@ -164,6 +164,27 @@ def add_model_arg(p: argparse.ArgumentParser, default: str = "physics") -> None:
                         "or a model file written by 'ctrplan train'")
 
 
+def add_device_arg(p: argparse.ArgumentParser) -> None:
+    """``--device cpu|cuda[:N]|auto``: where a learned model's network runs."""
+    p.add_argument("--device", default="cpu",
+                   help="where a learned model evaluates its network (and closed-form base) for "
+                        "a batch: cpu (default), cuda[:N] or auto (cuda when torch sees a GPU, "
+                        "else cpu); other models ignore it")
+
+
+def device_arg(text: str) -> str:
+    """A ``--device`` value resolved (``auto``) and checked: the device's name, or InputError
+    naming ``--device`` when torch cannot use it."""
+    if text == "cpu":
+        return "cpu"
+    from ctrplan.shape.learned import resolve_device
+
+    try:
+        return str(resolve_device(text))
+    except ValueError as exc:
+        raise InputError("--device", "", str(exc)) from None
+
+
 def output_path(path: str, suffixes: tuple[str, ...], field: str = "--out") -> Path:
     """Check an output path's suffix and that it can be written (its folder exists or can be
     created, and accepts files)."""

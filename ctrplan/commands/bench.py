@@ -143,6 +143,20 @@ def _k(x: float) -> str:
     return f"{x / 1000:.0f}k"
 
 
+def _gpu_result(results: Path) -> dict | None:
+    """The GPU table of the learned model: the newest ``learned_gpu_<card>.json`` written by
+    ``bench_learned.py --device cuda --record`` (it names the architecture), else the older
+    ``learned_gpu_h100.json`` (the previous 3 x 30 network's)."""
+    new = sorted((p for p in results.glob("learned_gpu_*.json") if p.name != "learned_gpu_h100.json"),
+                 key=lambda p: p.stat().st_mtime)
+    for p in reversed(new):
+        got = _load(p)
+        if got and "architecture" in got:
+            return {**got, "_file": p.name}
+    old = _load(results / "learned_gpu_h100.json")
+    return None if old is None else {**old, "_file": "learned_gpu_h100.json"}
+
+
 def summary_block(bench: dict, gpu: dict | None) -> str:
     """The performance summary table (what | measured | target) from bench.json (one run) and
     the GPU JSON."""
@@ -172,7 +186,8 @@ def summary_block(bench: dict, gpu: dict | None) -> str:
                     f"batch 10^4–10^5 | ≥ 100x — {met} |")
     if gpu:
         g = {r["batch"]: r for r in gpu["table"]}
-        rows.append(f"| learned model on a GPU ({gpu['device']}), forward pass on the device | "
+        which = "" if "architecture" in gpu else ", the previous 3 x 30 network"
+        rows.append(f"| learned model on a GPU ({gpu['device']}{which}), forward pass on the device | "
                     f"{g[100000]['forward_on_device_us_per_shape']:.3f} µs per shape at 10^5; "
                     f"`backbone()` with numpy in/out {g[100000]['backbone_us_per_shape']:.2f} µs at "
                     f"10^5; batch 1: {g[1]['backbone_call_ms']:.2f} ms | – |")
@@ -239,7 +254,7 @@ def summary_block(bench: dict, gpu: dict | None) -> str:
                         f"{met} |")
     m = bench["machine"]
     rows += ["", f"Measured {m['date']} on {m['cpu']}, {m['cores']} cores (`benchmarks/results/bench.json`"
-             + (", `benchmarks/results/learned_gpu_h100.json`" if gpu else "") + ")."]
+             + (f", `benchmarks/results/{gpu.get('_file', 'learned_gpu_h100.json')}`" if gpu else "") + ")."]
     return "\n".join(rows)
 
 
@@ -456,7 +471,7 @@ def readme_blocks(results: Path) -> dict[str, str]:
     bench = _load(results / "bench.json")
     if bench:
         out["bench"] = to_markdown(bench)
-        out["perf-summary"] = summary_block(bench, _load(results / "learned_gpu_h100.json"))
+        out["perf-summary"] = summary_block(bench, _gpu_result(results))
         out["glance"] = glance_block(bench)
     claims = results.resolve().parents[1] / "docs" / "validation.yaml"
     if claims.is_file():

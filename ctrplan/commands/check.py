@@ -6,7 +6,14 @@ import argparse
 import itertools
 import logging
 
-from ctrplan.commands._common import POINTS, add_model_arg, add_robot_arg, output_path
+from ctrplan.commands._common import (
+    POINTS,
+    add_device_arg,
+    add_model_arg,
+    add_robot_arg,
+    device_arg,
+    output_path,
+)
 from ctrplan.commands._vocab import DEFAULT_OUT
 from ctrplan.errors import InputError
 
@@ -32,6 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_robot_arg(p)
     p.add_argument("--configs", required=True, help="configuration CSV (alpha1..alphaN,beta1..betaN)")
     add_model_arg(p)
+    add_device_arg(p)
     p.add_argument("--points", type=POINTS, default=21, help="backbone points (capsules + 1, default 21)")
     p.add_argument("--margin", default="auto", metavar="MM|auto",
                    help="safety margin added to the tube radii, mm; 'auto' (default) = the "
@@ -64,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     # the file's header and first rows are checked before the scene is prepared
     configs = iter_configs(args.configs, robot, chunk_rows=CHUNK)
     first = next(configs)
-    model = planning_model(load_model(args.model, robot))   # fit for collision checking
+    model = planning_model(load_model(args.model, robot, device=device_arg(args.device)))   # fit for collision checking
     auto = margin is None
     if auto:
         try:

@@ -8,7 +8,14 @@ import math
 import re
 from pathlib import Path
 
-from ctrplan.commands._common import POSITIVE, SEED, add_model_arg, output_path
+from ctrplan.commands._common import (
+    POSITIVE,
+    SEED,
+    add_device_arg,
+    add_model_arg,
+    device_arg,
+    output_path,
+)
 from ctrplan.commands._vocab import DEFAULT_OUT
 from ctrplan.errors import InputError
 from ctrplan.io import excerpt, strict_float
@@ -58,6 +65,7 @@ def add_planning_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robot", default="seed1",
                    help="shipped robot name (seed1, two_tube_nylon, two_tube_wide) or robot YAML path (default seed1)")
     add_model_arg(p, default="physics")
+    add_device_arg(p)
     p.add_argument("--planner", default="rrtconnect",
                    help="rrtconnect (default), rrt, rrtstar, bitstar, kpiece, bkpiece, lbkpiece (prm is refused: it deadlocks with Python validity checkers)")
     p.add_argument("--time", type=POSITIVE, default=5.0, help="time limit per plan, s (default 5)")
@@ -343,6 +351,7 @@ def run(args: argparse.Namespace) -> int:
     traj_out = (output_path(args.trajectory, (".csv",), "--trajectory")
                 if args.trajectory is not None else None)
     rate = parse_rate(args.rate)
+    device = device_arg(args.device)
     check_planner(args.planner)
     objective = parse_objective(args.objective)
     if args.seed < 0:
@@ -357,9 +366,19 @@ def run(args: argparse.Namespace) -> int:
         from dataclasses import replace
 
         config = replace(config, validator=replace(config.validator, stability_margin=stability))
-    planner = Planner(robot, scene, args.model, config)
-    result = planner.plan(target, seed=args.seed, start=start, planner=args.planner,
-                          time_limit=args.time, tolerance_mm=args.tolerance)
+    import contextlib
+
+    # where a learned model evaluates (torch is imported only for another device than the CPU)
+    if device == "cpu":
+        where = contextlib.nullcontext()
+    else:
+        from ctrplan.shape.learned import using_device
+
+        where = using_device(device)
+    with where:
+        planner = Planner(robot, scene, args.model, config)
+        result = planner.plan(target, seed=args.seed, start=start, planner=args.planner,
+                              time_limit=args.time, tolerance_mm=args.tolerance)
     plan = result.to_json()
     plan["scene"] = args.scene
     plan["robot"] = str(args.robot)   # the name or path given; robot_spec holds the robot itself

@@ -6,7 +6,14 @@ import argparse
 
 import numpy as np
 
-from ctrplan.commands._common import POINTS, add_model_arg, add_robot_arg, output_path
+from ctrplan.commands._common import (
+    POINTS,
+    add_device_arg,
+    add_model_arg,
+    add_robot_arg,
+    device_arg,
+    output_path,
+)
 from ctrplan.commands._vocab import DEFAULT_OUT
 
 
@@ -18,6 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_robot_arg(p)
     p.add_argument("--configs", required=True, help="configuration CSV (alpha1..alphaN,beta1..betaN)")
     add_model_arg(p)
+    add_device_arg(p)
     p.add_argument("--points", type=POINTS, default=20, help="points per backbone, base to tip (default 20)")
     p.add_argument("--out", default=DEFAULT_OUT["shape"], help=f"output .npz or .csv (default {DEFAULT_OUT['shape']})")
     p.set_defaults(func=run)
@@ -112,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
 
     out = output_path(args.out, (".npz", ".csv"))
     robot = load_robot(args.robot)
-    model = load_model(args.model, robot)
+    model = load_model(args.model, robot, device=device_arg(args.device))
     chunks = shape_chunks(model, robot, args.configs, args.points)
     if out.suffix.lower() == ".npz":
         n, bad = _write_npz_streamed(out, chunks)

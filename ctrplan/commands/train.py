@@ -12,6 +12,7 @@ from ctrplan.commands._common import (
     SEED,
     WORKERS,
     add_robot_arg,
+    device_arg,
     float_arg,
     int_arg,
     output_path,
@@ -24,13 +25,19 @@ log = logging.getLogger("ctrplan")
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "train", help="train a learned shape model (or run the evaluation sweep)",
-        description="Pre-train the learned shape network on simulated shapes (uniform valid "
-                    "configurations, compliant physics model), then fine-tune it on measured "
-                    "shapes (a measured CSV with backbone columns p1_x..pM_z). Each data set is "
+        description="Pre-train the learned shape network on simulated shapes (by default "
+                    "1,000,000 uniform valid configurations of the compliant physics model; a "
+                    "4 x 64 network with pair inputs learns their difference to the closed-form "
+                    "rigid model, one cycle of the learning rate over 30 epochs, loss with the "
+                    "largest point distance along the shaft: the recipe of "
+                    "ctrplan/data/models/README.md, minutes of one CPU core), then fine-tune it on "
+                    "measured shapes (a measured CSV with backbone columns p1_x..pM_z). Each data set is "
                     "split 80/10/10 into train/validation/test (measured rows by whole sweeps, or with "
                     "fewer than 8 sweeps by contiguous blocks of the motion with the rows next to a "
-                    "test block left out, as diagnose splits); training minimises the sum of "
-                    "squared point distances with Adam and stops early on the validation loss. "
+                    "test block left out, as diagnose splits); training on measured data minimises "
+                    "the sum of squared point distances with Adam and stops early on the validation "
+                    "loss. A robot with two stable equilibria somewhere (probed on 2,000 "
+                    "configurations) gets a warning: the network follows one branch. "
                     "Writes a model file (.pt) with its metadata, the held-out error quantiles "
                     "(p50/p95/p99/max of the max deviation along the shaft; error_bound says "
                     "where they were measured: 'measured' with --real, a calibrated model; "
@@ -54,7 +61,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "(results.md, results.json) and plots (PNG) to the --out folder.")
     add_robot_arg(p)
     p.add_argument("--sim", type=int_arg(0, 100_000_000), default=None,
-                   help="simulated configurations for pre-training (default 100000; 0 = none)")
+                   help="simulated configurations for pre-training (default 1000000, with --sweep "
+                        "100000; 0 = none)")
+    p.add_argument("--sim-base", choices=("rigid", "none"), default="rigid",
+                   help="what the network pre-trained on simulation adds to: 'rigid' (default: the "
+                        "closed-form torsionally rigid model; the network learns the tubes' twist, "
+                        "a smooth correction) or 'none' (the network predicts the whole backbone)")
     p.add_argument("--real", default=None,
                    help="measured CSV with backbone points to fine-tune on (with --sweep: the "
                         "'real' data; default there: simulated with hidden effects)")
@@ -64,13 +76,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--real-sim", type=int_arg(1, 100_000_000), default=3000,
                    help="--sweep without --real: rows of simulated 'real' data with hidden "
                         "effects (default 3000)")
-    p.add_argument("--width", type=int_arg(1, 4096), default=30, help="neurons per hidden layer (default 30)")
-    p.add_argument("--depth", type=int_arg(1, 64), default=3, help="hidden layers (default 3)")
+    p.add_argument("--width", type=int_arg(1, 4096), default=None,
+                   help="neurons per hidden layer (default 64 for the network pre-trained on "
+                        "simulation, 30 for networks trained on measured data alone)")
+    p.add_argument("--depth", type=int_arg(1, 64), default=None,
+                   help="hidden layers (default 4 for the network pre-trained on simulation, 3 "
+                        "for networks trained on measured data alone)")
     p.add_argument("--terms", type=int_arg(1, 1000), default=None, help="basis terms K per coordinate (default 7)")
     p.add_argument("--frame", choices=("outer", "base"), default="outer",
                    help="outer: angles relative to the outermost tube, output turned with it "
                         "(default); base: absolute angles as in the literature")
-    p.add_argument("--epochs", type=int_arg(1, 1_000_000), default=150, help="maximum pre-training epochs (default 150)")
+    p.add_argument("--epochs", type=int_arg(1, 1_000_000), default=None,
+                   help="pre-training epochs (default 30 with --schedule onecycle; at most 150 "
+                        "with plateau)")
+    p.add_argument("--schedule", choices=("onecycle", "plateau"), default=None,
+                   help="pre-training learning rate: 'onecycle' (default: warm-up, then cosine "
+                        "annealing over all --epochs) or 'plateau' (halved when the validation "
+                        "loss stalls, early stop after --patience; the default with --sweep)")
+    p.add_argument("--loss", choices=("sum_sq+max", "sum_sq"), default=None,
+                   help="pre-training loss per configuration: 'sum_sq+max' (default: mean squared "
+                        "point distance + 4 x the largest along the shaft) or 'sum_sq' (sum of "
+                        "squared point distances; the default with --sweep); training on measured "
+                        "data uses sum_sq")
     p.add_argument("--fine-epochs", type=int_arg(0, 1_000_000), default=300, help="maximum fine-tuning epochs (default 300)")
     p.add_argument("--patience", type=int_arg(1, 1_000_000), default=20, help="early-stopping patience in epochs (default 20)")
     p.add_argument("--lr", type=float_arg(0.0, 10.0, lo_open=True), default=2e-3, help="Adam learning rate of pre-training (default 2e-3)")
@@ -80,7 +107,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=WORKERS, default=None, help="processes for simulation (default: all cores)")
     p.add_argument("--threads", type=int_arg(1, 1024), default=1,
                    help="torch threads for training (default 1: the fastest for these small networks)")
-    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    p.add_argument("--device", default="cpu",
+                   help="torch device for training: cpu (default), cuda[:N] or auto (cuda when "
+                        "torch sees a GPU)")
     p.add_argument("--direction", action="store_true",
                    help="direction-aware inputs: the sign of the last motion of each joint, from "
                         "the row order within each sweep of the --real CSV")
@@ -109,7 +138,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _check(args: argparse.Namespace) -> None:
     for name in ("width", "depth", "epochs", "batch_size", "threads", "points", "real_sim"):
         v = getattr(args, name)
-        if v < 1:
+        if v is not None and v < 1:
             raise InputError(f"--{name.replace('_', '-')}", "", f"must be >= 1, got {v}")
     if args.threads > 256:    # torch.set_num_threads overflows on huge values
         raise InputError("--threads", "", f"must be <= 256, got {args.threads}")
@@ -123,13 +152,7 @@ def _check(args: argparse.Namespace) -> None:
         raise InputError("--workers", "", f"must be >= 1, got {args.workers}")
     if args.terms is not None and not 1 <= args.terms <= 12:
         raise InputError("--terms", "", f"must be in 1..12, got {args.terms}")
-    if args.device != "cpu":
-        import torch
-
-        try:
-            torch.empty(1, device=args.device)
-        except Exception as exc:
-            raise InputError("--device", "", f"{args.device!r} is not available ({exc.__class__.__name__})") from None
+    args.device = device_arg(args.device)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -151,10 +174,17 @@ def run(args: argparse.Namespace) -> int:
     explicit_base = args.residual is not None and args.residual != "sim"
     if args.variant is not None and args.variant.startswith("residual") and args.residual is None:
         explicit_base = True                      # residual over physics: nothing to pre-train
-    n_sim = (0 if args.init or explicit_base else T.DEFAULT_SIM) if args.sim is None else args.sim
+    recipe = T.SIM_RECIPE if not args.sweep else T.SWEEP_RECIPE
+    n_sim = (0 if args.init or explicit_base else recipe.rows) if args.sim is None else args.sim
     show = progress._enabled
-    pre = T.TrainConfig(epochs=args.epochs, lr=args.lr, batch_size=args.batch_size,
-                        patience=args.patience, seed=args.seed, progress=show, label="pre-train (sim)")
+    schedule = args.schedule or recipe.schedule
+    pre = T.TrainConfig(epochs=args.epochs or (recipe.epochs if schedule == "onecycle" else 150),
+                        lr=args.lr, batch_size=args.batch_size, patience=args.patience,
+                        seed=args.seed, progress=show, label="pre-train (sim)",
+                        loss=args.loss or recipe.loss, schedule=schedule)
+    width = args.width or T.DEFAULT_WIDTH
+    depth = args.depth or T.DEFAULT_DEPTH
+    sim_arch = (args.width or recipe.width, args.depth or recipe.depth)
     fine = T.TrainConfig(epochs=max(1, args.fine_epochs), lr=args.lr / 4, batch_size=min(args.batch_size, 128),
                          patience=args.patience, seed=args.seed, progress=show, label="fine-tune (real)")
     real_only = T.TrainConfig(epochs=max(1, args.fine_epochs), lr=args.lr, batch_size=min(args.batch_size, 128),
@@ -239,12 +269,24 @@ def run(args: argparse.Namespace) -> int:
                             progress=show) if n_sim else None)
     try:
         model, report = T.pretrain_finetune(
-            robot, sim, real, width=args.width, depth=args.depth, terms=terms, seed=args.seed,
+            robot, sim, real, width=width, depth=depth, terms=terms, seed=args.seed,
             pre=pre, fine=fine if (sim is not None or base is not None) else real_only,
             real_only=real_only, device=args.device, frame=args.frame, base=base,
-            variant=variant, residual_base=residual_base, refit=args.refit)
+            variant=variant, residual_base=residual_base, refit=args.refit,
+            sim_base=None if args.sim_base == "none" else args.sim_base, sim_arch=sim_arch,
+            sim_pairs=recipe.pairs)
     except ValueError as exc:
         raise InputError(args.real or "--sim", "", str(exc)) from None
+    if sim is not None:
+        # a bistable robot: the surrogate follows the physics model's default branch and cannot
+        # represent snapping (docs/conventions.md); say so, and record it in the file
+        bist = T.bistable_fraction(robot, seed=args.seed)
+        model.meta["bistable"] = bist
+        if bist["fraction"] > 0:
+            log.warning("%s is bistable at %.1f%% of %d probed configurations: the learned model "
+                        "follows the physics model's default (least twisted) branch there and "
+                        "cannot represent a snap; plan this robot with --model physics",
+                        robot.name, 100 * bist["fraction"], bist["probed"])
     import sys
 
     from ctrplan import __version__

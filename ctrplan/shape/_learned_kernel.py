@@ -1,7 +1,10 @@
 """Numba forward pass of the learned shape network for small batches (low call overhead).
 
 Same arithmetic as the torch path in float64: features per tube (cos, sin of alpha, relative
-to the outermost tube's when ``outer``; beta scaled to [-1, 1]), ``depth`` Linear + PReLU layers,
+to the outermost tube's when ``outer``; beta scaled to [-1, 1]), per pair (i, j) of ``pairs``
+cos, sin of alpha_i - alpha_j, per pair of ``opairs`` the overlap of the two curved sections
+(scaled by ``oinv``) and its products with cos, sin of alpha_i - alpha_j
+(:func:`ctrplan.shape.learned.pair_features`), ``depth`` Linear + PReLU layers,
 the last layer (de-normalisation folded in) to (K, 3) coefficients times the tip length, the
 turn by the outermost tube's angle (``outer``), and the basis expansion to points.
 """
@@ -14,11 +17,33 @@ import numpy as np
 from numba import njit
 
 
+@njit(cache=True, inline="always")
+def _overlap(q, bi, n, i, j, straight, L):
+    """Overlap (mm) of the curved sections of tubes i and j beyond the constraint plane, and
+    the tubes whose end / curve start bound it (ie, is: -1 for the plane)."""
+    ei = q[bi, n + i] + L[i]
+    ej = q[bi, n + j] + L[j]
+    si = q[bi, n + i] + straight[i]
+    sj = q[bi, n + j] + straight[j]
+    ie = i if ei <= ej else j
+    e = min(ei, ej)
+    if si >= sj:
+        st, is_ = si, i
+    else:
+        st, is_ = sj, j
+    if st < 0.0:
+        st, is_ = 0.0, -1
+    return e - st, ie, is_
+
+
 @njit(cache=True)
-def forward(q, dirs, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, phi, out):
+def forward(q, dirs, pairs, opairs, straight, oinv, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl,
+            bl, phi, out):
     """q (B, 2n); dirs (B, nd) extra inputs appended to the features (direction of the last
-    motion, nd = 0 or 2n); W0 (3n + nd, w); Wh (depth-1, w, w); bh (depth, w); slopes (depth,);
-    Wl (w, 3K); bl (3K,); phi (m, K); out (B, m, 3) written in place."""
+    motion, nd = 0 or 3n - 1); pairs (P, 2) int tube pairs (P may be 0); opairs (O, 2) int
+    tube pairs of the overlap inputs, straight (n,) mm, oinv (O,) 1/mm; W0 (3n + 2P + 3O + nd, w);
+    Wh (depth-1, w, w); bh (depth, w); slopes (depth,); Wl (w, 3K); bl (3K,); phi (m, K);
+    out (B, m, 3) written in place."""
     B = q.shape[0]
     w = W0.shape[1]
     depth = bh.shape[0]
@@ -26,7 +51,10 @@ def forward(q, dirs, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, phi, out)
     K = K3 // 3
     m = phi.shape[0]
     nd = dirs.shape[1]
-    nx = 3 * n + nd
+    npair = pairs.shape[0]
+    nov = opairs.shape[0]
+    nq = 3 * n + 2 * npair + 3 * nov
+    nx = nq + nd
     x = np.empty(nx)
     h = np.empty(w)
     h2 = np.empty(w)
@@ -42,26 +70,52 @@ def forward(q, dirs, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, phi, out)
             e = q[bi, n + i] + L[i]
             if e > length:
                 length = e
+        for p in range(npair):
+            a = q[bi, pairs[p, 0]] - q[bi, pairs[p, 1]]
+            x[3 * n + 2 * p] = math.cos(a)
+            x[3 * n + 2 * p + 1] = math.sin(a)
+        for p in range(nov):
+            i0 = opairs[p, 0]
+            i1 = opairs[p, 1]
+            ov, _, _ = _overlap(q, bi, n, i0, i1, straight, L)
+            ov = max(ov, 0.0) * oinv[p]
+            a = q[bi, i0] - q[bi, i1]
+            k0 = 3 * n + 2 * npair + 3 * p
+            x[k0] = ov
+            x[k0 + 1] = ov * math.cos(a)
+            x[k0 + 2] = ov * math.sin(a)
         for k in range(nd):
-            x[3 * n + k] = dirs[bi, k]
+            x[nq + k] = dirs[bi, k]
+        # layers as row updates h += x_k W[k, :] (contiguous inner loops: SIMD)
         for j in range(w):
-            s = bh[0, j]
-            for k in range(nx):
-                s += x[k] * W0[k, j]
-            h[j] = s if s > 0.0 else slopes[0] * s
+            h[j] = bh[0, j]
+        for k in range(nx):
+            xk = x[k]
+            for j in range(w):
+                h[j] += xk * W0[k, j]
+        sl = slopes[0]
+        for j in range(w):
+            if h[j] < 0.0:
+                h[j] *= sl
         for d in range(1, depth):
             for j in range(w):
-                s = bh[d, j]
-                for k in range(w):
-                    s += h[k] * Wh[d - 1, k, j]
-                h2[j] = s if s > 0.0 else slopes[d] * s
-            for j in range(w):
-                h[j] = h2[j]
-        for j in range(K3):
-            s = bl[j]
+                h2[j] = bh[d, j]
             for k in range(w):
-                s += h[k] * Wl[k, j]
-            c[j] = s * length
+                hk = h[k]
+                for j in range(w):
+                    h2[j] += hk * Wh[d - 1, k, j]
+            sl = slopes[d]
+            for j in range(w):
+                v = h2[j]
+                h[j] = v if v > 0.0 else sl * v
+        for j in range(K3):
+            c[j] = bl[j]
+        for k in range(w):
+            hk = h[k]
+            for j in range(K3):
+                c[j] += hk * Wl[k, j]
+        for j in range(K3):
+            c[j] *= length
         if outer:
             co = math.cos(ref)
             si = math.sin(ref)
@@ -79,7 +133,8 @@ def forward(q, dirs, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, phi, out)
 
 
 @njit(cache=True)
-def tip_jacobian(q, dirs, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, ptip, tip, J):
+def tip_jacobian(q, dirs, pairs, opairs, straight, oinv, n, outer, lo, inv, L, W0, Wh, bh, slopes,
+                 Wl, bl, ptip, tip, J):
     """Tip (B, 3) and d tip / d q (B, 3, 2n) by forward-mode differentiation of the same
     network (the direction inputs ``dirs`` (B, nd) are constants); ``ptip`` (K,) are the
     basis values at s = 1. tip and J are written in place."""
@@ -90,7 +145,10 @@ def tip_jacobian(q, dirs, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, ptip
     K = K3 // 3
     D = 2 * n
     nd = dirs.shape[1]
-    nx = 3 * n + nd
+    npair = pairs.shape[0]
+    nov = opairs.shape[0]
+    nq = 3 * n + 2 * npair + 3 * nov
+    nx = nq + nd
     x = np.empty(nx)
     dx = np.zeros((nx, D))
     h = np.empty(w)
@@ -108,7 +166,44 @@ def tip_jacobian(q, dirs, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, ptip
             for j in range(D):
                 dx[k, j] = 0.0
         for k in range(nd):
-            x[3 * n + k] = dirs[bi, k]
+            x[nq + k] = dirs[bi, k]
+        for p in range(npair):
+            i0 = pairs[p, 0]
+            i1 = pairs[p, 1]
+            a = q[bi, i0] - q[bi, i1]
+            ca = math.cos(a)
+            sa = math.sin(a)
+            x[3 * n + 2 * p] = ca
+            x[3 * n + 2 * p + 1] = sa
+            dx[3 * n + 2 * p, i0] = -sa
+            dx[3 * n + 2 * p, i1] = sa
+            dx[3 * n + 2 * p + 1, i0] = ca
+            dx[3 * n + 2 * p + 1, i1] = -ca
+        for p in range(nov):
+            i0 = opairs[p, 0]
+            i1 = opairs[p, 1]
+            ov, ie, is_ = _overlap(q, bi, n, i0, i1, straight, L)
+            a = q[bi, i0] - q[bi, i1]
+            ca = math.cos(a)
+            sa = math.sin(a)
+            k0 = 3 * n + 2 * npair + 3 * p
+            if ov > 0.0:
+                ov *= oinv[p]
+                dx[k0, n + ie] += oinv[p]                  # d ov / d beta: the nearer end ...
+                if is_ >= 0:
+                    dx[k0, n + is_] -= oinv[p]             # ... minus the later curve start
+            else:
+                ov = 0.0
+            x[k0] = ov
+            x[k0 + 1] = ov * ca
+            x[k0 + 2] = ov * sa
+            for t in range(D):
+                dx[k0 + 1, t] = dx[k0, t] * ca
+                dx[k0 + 2, t] = dx[k0, t] * sa
+            dx[k0 + 1, i0] += -ov * sa
+            dx[k0 + 1, i1] += ov * sa
+            dx[k0 + 2, i0] += ov * ca
+            dx[k0 + 2, i1] += -ov * ca
         for i in range(n):
             a = q[bi, i] - ref
             ca = math.cos(a)
@@ -137,7 +232,7 @@ def tip_jacobian(q, dirs, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl, bl, ptip
             h[j] = g * s
             for t in range(D):
                 ds = 0.0
-                for k in range(3 * n):
+                for k in range(nq):
                     ds += dx[k, t] * W0[k, j]
                 dh[j, t] = g * ds
         for d in range(1, depth):

@@ -3,9 +3,12 @@
 Network (one per robot):
 
 * input, per tube i: ``cos alpha_i, sin alpha_i, beta_i~`` with ``beta_i~`` the translation
-  scaled to [-1, 1] over the robot's joint range (``2 (beta - lo) / (hi - lo) - 1``);
-* ``depth`` hidden layers of ``width`` neurons, each Linear + PReLU (default 3 hidden layers of
-  30 neurons, "3 x 30");
+  scaled to [-1, 1] over the robot's joint range (``2 (beta - lo) / (hi - lo) - 1``); with
+  *pair inputs* (:func:`pair_list`) also the relative rotations of the tubes and the overlaps
+  of their curved sections with their products (what the tubes' twist depends on);
+* ``depth`` hidden layers of ``width`` neurons, each Linear + PReLU (``LearnedModel``'s default
+  3 hidden layers of 30 neurons, "3 x 30", the literature's; ``ctrplan train``'s simulation
+  recipe 4 x 64 with pair inputs over the rigid base, :data:`ctrplan.shape.training.SIM_RECIPE`);
 * output: ``3 K`` numbers ``z``, de-normalised to coefficients ``c = mean + std * z`` (mean, std
   from the training set) and arranged as (K, 3);
 * backbone ``x(q, s) = len(q) * sum_k c_k P_k(s / len(q))`` with :mod:`ctrplan.shape.basis`,
@@ -17,7 +20,9 @@ every tube by the same angle turns the backbone about the insertion axis) and le
 less to learn; frame ``base`` uses the absolute angles as the literature does.
 
 The whole batch goes through one forward pass (float32, CPU unless ``device=`` says otherwise;
-batches up to :data:`SMALL_BATCH` use a compiled float64 kernel for low latency).
+batches up to :data:`SMALL_BATCH` use a compiled float64 kernel for low latency; on a GPU,
+batches of at least :data:`GPU_MIN_BATCH` run there - network, rigid base and continuity pad -
+smaller ones on the CPU paths, where a call costs less than a GPU round trip).
 ``tip_and_jacobian`` differentiates the torch path with autograd (for inverse kinematics).
 Model files are written with :func:`torch.save` and read with ``torch.load(weights_only=True)``:
 they hold only tensors and a JSON string of metadata (robot, basis, normalisation,
@@ -32,7 +37,10 @@ Options recorded in the model file:
   ``needs_direction = True`` and takes ``shape(q, points, direction=D)``
   (:func:`ctrplan.shape.base.needs_direction`); without ``direction`` every input is 0.
 * **Residual mode** (``base=``): the network predicts the basis coefficients of the difference
-  to a base model - ``physics``/``rigid`` (a physics call per evaluation), a calibrated
+  to a base model - ``rigid`` (the closed-form torsionally rigid model,
+  :class:`~ctrplan.shape.rigid.RigidModel`, about 0.3 us per shape: the shipped networks learn
+  the compliant model's difference to it, the tubes' twist), ``physics`` (a physics call per
+  evaluation), a calibrated
   EffectModel (``ctrplan diagnose``; also a physics call) or a learned model (stored inside the
   file; evaluated in the same pass, no physics call). A residual model answers in its base
   model's frame (a calibrated model with ``registration``: the sensor frame).
@@ -66,6 +74,10 @@ from ctrplan.robot import Robot, load_robot, robot_from_dict
 from ctrplan.shape import basis
 from ctrplan.shape.base import Shape, check_q, radius_along
 from ctrplan.shape.base import needs_direction as _needs_direction
+from ctrplan.shape.devices import GPU_MIN_BATCH, current_device, resolve_device
+from ctrplan.shape.devices import using_device as using_device  # noqa: F401 (API)
+from ctrplan.shape.pairs import pair_features, pair_list
+from ctrplan.shape.rigid import RigidModel
 
 FORMAT = "ctrplan-learned-model"
 FORMAT_VERSION = 2
@@ -129,7 +141,7 @@ class LearnedModel:
     def __init__(self, robot: Robot | str, width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH,
                  terms: int = basis.DEFAULT_TERMS, device: str | torch.device = "cpu",
                  seed: int | None = 0, frame: str = DEFAULT_FRAME, direction: bool = False,
-                 base: Any = None, base_spec: dict | None = None):
+                 base: Any = None, base_spec: dict | None = None, pairs: bool = False):
         self.robot = load_robot(robot)
         if frame not in FRAMES:
             raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
@@ -141,8 +153,18 @@ class LearnedModel:
             torch.manual_seed(seed)
         #: direction-aware: extra inputs from the sign of the last motion of each joint
         self.direction_inputs = bool(direction)
-        self.net = ShapeNet(3 * n + (n_direction_features(n) if self.direction_inputs else 0), 3 * self.terms,
-                            self.width, self.depth)
+        #: pair inputs (:func:`pair_list`): cos, sin of the relative rotation of each pair of
+        #: tubes not already an input, and per pair of tubes the overlap of their curved
+        #: sections with its products with cos, sin of their relative rotation; before any
+        #: direction inputs
+        self.pair_inputs = bool(pairs)
+        pl, ol, oinv = pair_list(self.robot, frame) if self.pair_inputs else ([], [], [])
+        self._pairs = np.array(pl, dtype=np.int64).reshape(-1, 2)
+        self._opairs = np.array(ol, dtype=np.int64).reshape(-1, 2)
+        self._oinv = np.ascontiguousarray(oinv, dtype=np.float64).reshape(-1)
+        self._straight = np.ascontiguousarray(self.robot.array("straight_length"))
+        self.net = ShapeNet(self.n_q_features + (n_direction_features(n) if self.direction_inputs else 0),
+                            3 * self.terms, self.width, self.depth)
         #: residual mode: the network predicts the difference to this model (None: pure)
         self.base = base
         self.base_spec = dict(base_spec) if base_spec else (
@@ -166,6 +188,8 @@ class LearnedModel:
         self.coef_mean = torch.zeros(3 * self.terms)
         self.coef_std = torch.ones(3 * self.terms)
         self.lengths = torch.tensor(self.robot.lengths, dtype=torch.float32)
+        self.straight_t = torch.tensor(self._straight, dtype=torch.float32)
+        self.oinv_t = torch.tensor(self._oinv, dtype=torch.float32)
         self.meta: dict[str, Any] = {}
         self._device = torch.device("cpu")
         self._basis_cache: dict[tuple[int, str], torch.Tensor] = {}
@@ -178,6 +202,12 @@ class LearnedModel:
         return self._device
 
     @property
+    def n_q_features(self) -> int:
+        """Inputs computed from q: 3 per tube, with pair inputs 2 per relative rotation and 3 per
+        overlap (:func:`pair_list`)."""
+        return 3 * self.robot.n + 2 * len(self._pairs) + 3 * len(self._opairs)
+
+    @property
     def needs_direction(self) -> bool:
         """True for direction-aware models (and residual models over one)."""
         return self.direction_inputs or _needs_direction(self.base)
@@ -187,18 +217,20 @@ class LearnedModel:
         return self.base is not None
 
     def to(self, device: str | torch.device) -> LearnedModel:
-        """Move the network to ``device`` (in place); returns self."""
-        self._device = torch.device(device)
+        """Move the network to ``device`` (in place; ``auto``: :func:`resolve_device`); returns
+        self."""
+        self._device = resolve_device(device)
         self.net.to(self._device)
         if isinstance(self.base, LearnedModel):
             self.base.to(device)
-        for k in ("beta_lo", "beta_span", "coef_mean", "coef_std", "lengths"):
+        for k in ("beta_lo", "beta_span", "coef_mean", "coef_std", "lengths", "straight_t", "oinv_t"):
             setattr(self, k, getattr(self, k).to(self._device))
         self._basis_cache = {}
         return self
 
     def __repr__(self) -> str:
         extra = (", direction=True" if self.direction_inputs else "") + (
+            ", pairs=True" if self.pair_inputs else "") + (
             f", base={self.base_spec.get('kind')!r}" if self.base_spec else "")
         return (f"LearnedModel(robot={self.robot.name!r}, width={self.width}, depth={self.depth}, "
                 f"terms={self.terms}, frame={self.frame!r}{extra}, device={str(self._device)!r})")
@@ -224,19 +256,37 @@ class LearnedModel:
 
     def features(self, q: torch.Tensor, direction: torch.Tensor | None = None) -> torch.Tensor:
         """Network input (B, 3n [+ 2n]): per tube cos alpha, sin alpha, beta scaled to [-1, 1]
-        (with frame "outer", alpha relative to the outermost tube's); direction-aware models
-        append the direction of the last motion of each joint (zeros when not given)."""
+        (with frame "outer", alpha relative to the outermost tube's); with pair inputs cos, sin of
+        alpha_i - alpha_j per pair (:func:`pair_list`); direction-aware models append the
+        direction of the last motion of each joint (zeros when not given)."""
         n = self.robot.n
         a, b = q[:, :n], q[:, n:]
         if self.frame == "outer":
             a = a - a[:, n - 1:n]
         bs = 2.0 * (b - self.beta_lo) / self.beta_span - 1.0
         x = torch.stack([torch.cos(a), torch.sin(a), bs], dim=2).reshape(len(q), 3 * n)
+        if self.pair_inputs:
+            x = torch.cat([x, self._pair_features_t(q)], dim=1)
         if not self.direction_inputs:
             return x
         d = torch.zeros_like(q) if direction is None else direction.to(dtype=x.dtype, device=x.device)
         rel = torch.sign(d[:, :n - 1] - d[:, 1:n])
         return torch.cat([x, d, rel], dim=1)
+
+    def _pair_features_t(self, q: torch.Tensor) -> torch.Tensor:
+        """The pair inputs (B, 2P + 3O) of q (B, 2n) tensors (:func:`pair_list`)."""
+        n, B = self.robot.n, len(q)
+        i, j = self._pairs[:, 0].tolist(), self._pairs[:, 1].tolist()
+        rel = q[:, i] - q[:, j]
+        parts = [torch.stack([torch.cos(rel), torch.sin(rel)], dim=2).reshape(B, -1)]
+        i, j = self._opairs[:, 0].tolist(), self._opairs[:, 1].tolist()
+        b = q[:, n:]
+        end = torch.minimum(b[:, i] + self.lengths[i], b[:, j] + self.lengths[j])
+        start = torch.clamp(torch.maximum(b[:, i] + self.straight_t[i], b[:, j] + self.straight_t[j]), min=0.0)
+        ov = torch.clamp(end - start, min=0.0) * self.oinv_t
+        rel = q[:, i] - q[:, j]
+        parts.append(torch.stack([ov, ov * torch.cos(rel), ov * torch.sin(rel)], dim=2).reshape(B, -1))
+        return torch.cat(parts, dim=1)
 
     def coefficients_t(self, q: torch.Tensor) -> torch.Tensor:
         """Basis coefficients (B, K, 3) of the network's own output (dimensionless, base frame;
@@ -341,6 +391,7 @@ class LearnedModel:
         m = self
         while (isinstance(m.base, LearnedModel) and m.base.frame == self.frame
                and m.base.terms == self.terms and m.base.robot.n == self.robot.n
+               and m.base.pair_inputs == self.pair_inputs
                and torch.equal(m.base.beta_lo.cpu(), self.beta_lo.cpu())
                and torch.equal(m.base.beta_span.cpu(), self.beta_span.cpu())):
             m = m.base
@@ -415,7 +466,8 @@ class LearnedModel:
             dirs = none
             if net.direction_inputs:
                 dirs = direction_features(np.zeros_like(q) if d is None else d, self.robot.n)
-            _learned_kernel.forward(q, dirs, self.robot.n, self.frame == "outer", lo, inv, L,
+            _learned_kernel.forward(q, dirs, net._pairs, net._opairs, net._straight, net._oinv,
+                                    self.robot.n, self.frame == "outer", lo, inv, L,
                                     W0, Wh, bh, slopes, Wl, bl, phi, out if k == 0 else tmp)
             if k > 0:
                 out += tmp
@@ -463,13 +515,17 @@ class LearnedModel:
         np.cos(ar, out=feats[:, :, 0])
         np.sin(ar, out=feats[:, :, 1])
         feats[:, :, 2] = (b - lo) * inv - 1.0
-        X3 = torch.from_numpy(feats.reshape(B, 3 * n))
+        f = feats.reshape(B, 3 * n)
+        if self.pair_inputs:                                      # (all nets share the pairs)
+            f = np.concatenate([f, pair_features(self, q32)], axis=1)
+        nq = f.shape[1]
+        X3 = torch.from_numpy(f)
         X5 = None
         if any(net.direction_inputs for net in nets):             # contiguous inputs per width
-            f5 = np.zeros((B, 3 * n + n_direction_features(n)), dtype=np.float32)
-            f5[:, :3 * n] = feats.reshape(B, 3 * n)
+            f5 = np.zeros((B, nq + n_direction_features(n)), dtype=np.float32)
+            f5[:, :nq] = f
             if d is not None:
-                f5[:, 3 * n:] = direction_features(d, n)
+                f5[:, nq:] = direction_features(d, n)
             X5 = torch.from_numpy(f5)
         length = torch.from_numpy(np.max(b + L, axis=1))
         if self.frame == "outer":
@@ -526,13 +582,20 @@ class LearnedModel:
         """Backbones (B, points, 3) and the base model's ok (or None) for checked q; with
         ``want_pad`` also the continuity pad (B, points - 1) (see :func:`polynomial_pad`)."""
         nets, rest = self._chain()
-        out = self._net_points(q, points, d, nets)
-        pad = None
-        if want_pad:
-            fit = out if points > self.terms else self._net_points(q, self.terms + 1, d, nets)
-            pad = polynomial_pad(fit, points, self.terms, memo=_owned_memo(self, "pad_maps"))
+        if self._on_device(len(q)):
+            out, pad, rest = self._device_points(q, points, d, nets, rest, want_pad)
+        else:
+            out = self._net_points(q, points, d, nets)
+            pad = None
+            if want_pad:
+                fit = out if points > self.terms else self._net_points(q, self.terms + 1, d, nets)
+                pad = polynomial_pad(fit, points, self.terms, memo=_owned_memo(self, "pad_maps"))
         ok = None
-        if rest is not None:
+        if isinstance(rest, RigidModel):      # closed form: never fails, its own sagitta pad
+            out += rest.points(q, points)
+            if pad is not None:
+                pad = pad + rest.pad(q, points)
+        elif rest is not None:
             if _needs_direction(rest) and d is not None:
                 sh = rest.shape(q, points=points, direction=d)
             else:
@@ -551,23 +614,50 @@ class LearnedModel:
             return out, ok, pad
         return out, ok
 
+    def _on_device(self, batch: int) -> bool:
+        """True when a batch of this size runs on the model's (non-CPU) device."""
+        return self._device.type != "cpu" and batch >= GPU_MIN_BATCH
+
     def _net_points(self, q: np.ndarray, points: int, d: np.ndarray | None,
                     nets: list[LearnedModel]) -> np.ndarray:
         """The summed networks' polynomial backbones (B, points, 3) (no base model)."""
-        if self._device.type == "cpu":
+        if not self._on_device(len(q)):
             if len(q) <= SMALL_BATCH:
-                out = self._numpy_points(q, points, d, nets)
-            else:
-                out = self._cpu_points(q, points, d, nets)
-        else:
-            qt = self._as_tensor(q)
-            dt = None if d is None else self._as_tensor(d)
-            with torch.inference_mode():
-                acc = nets[0]._fast_points(qt, points, dt)
-                for net in nets[1:]:
-                    acc += net._fast_points(qt, points, dt)
-            out = acc.cpu().numpy().astype(np.float64)
+                return self._numpy_points(q, points, d, nets)
+            return self._cpu_points(q, points, d, nets)
+        out, _, _ = self._device_points(q, points, d, nets, None, False)
         return out
+
+    def _device_points(self, q: np.ndarray, points: int, d: np.ndarray | None,
+                       nets: list[LearnedModel], rest: Any, want_pad: bool):
+        """The whole batch on the model's (non-CPU) device: the summed networks (float32), the
+        continuity pad of their polynomial (float64) and, for a closed-form rigid base, its
+        backbones (float64); one transfer back. Returns (points (B, points, 3) float64, pad
+        (B, points - 1) or None, the base model still to add on the CPU or None)."""
+        qt = self._as_tensor(q)
+        dt = None if d is None else self._as_tensor(d)
+        with torch.inference_mode():
+            acc = nets[0]._fast_points(qt, points, dt)
+            for net in nets[1:]:
+                acc += net._fast_points(qt, points, dt)
+            pad = None
+            if want_pad:
+                fit = acc
+                if points <= self.terms:
+                    fit = nets[0]._fast_points(qt, self.terms + 1, dt)
+                    for net in nets[1:]:
+                        fit += net._fast_points(qt, self.terms + 1, dt)
+                pad = polynomial_pad_torch(fit.double(), points, self.terms)
+            out = acc.double()
+            if isinstance(rest, RigidModel):
+                q64 = torch.as_tensor(np.ascontiguousarray(q, dtype=np.float64), device=self._device)
+                out += rest.points_torch(q64, points)
+                if pad is not None:
+                    pad += torch.as_tensor(rest.pad(q, points), device=self._device)
+                rest = None
+            out_np = out.cpu().numpy()
+            pad_np = None if pad is None else pad.cpu().numpy()
+        return out_np, pad_np, rest
 
     def backbone(self, q: np.ndarray, points: int = 20, direction: np.ndarray | None = None) -> np.ndarray:
         """(B, points, 3) backbone points, mm, robot base frame (one forward pass).
@@ -658,7 +748,7 @@ class LearnedModel:
         q = check_q(self.robot, q)
         d = self.check_direction(q, direction)
         if method == "auto":
-            method = "compiled" if self._device.type == "cpu" else "autograd"
+            method = "autograd" if self._on_device(len(q)) else "compiled"
         if method not in ("compiled", "autograd"):
             raise ValueError(f"method must be 'auto', 'compiled' or 'autograd', got {method!r}")
         tip, J = self._own_tip_jacobian(q, d, method)
@@ -683,7 +773,8 @@ class LearnedModel:
             dirs = np.zeros((B, 0))
             if self.direction_inputs:
                 dirs = direction_features(np.zeros_like(qc) if d is None else d, self.robot.n)
-            _learned_kernel.tip_jacobian(qc, dirs, self.robot.n, self.frame == "outer", lo, inv, L,
+            _learned_kernel.tip_jacobian(qc, dirs, self._pairs, self._opairs, self._straight, self._oinv,
+                                         self.robot.n, self.frame == "outer", lo, inv, L,
                                          W0, Wh, bh, slopes, Wl, bl, ptip, tip, J)
             return tip, J
         qt = self._as_tensor(q).requires_grad_(True)
@@ -719,10 +810,16 @@ class LearnedModel:
             "domain": self.domain,
             "robot": self.robot.to_dict(),
             "architecture": {"width": self.width, "depth": self.depth, "activation": "PReLU",
-                             "frame": self.frame,
+                             "frame": self.frame, "pair_inputs": self.pair_inputs,
                              "inputs": "per tube: cos alpha, sin alpha, 2 (beta - lo) / (hi - lo) - 1"
                                        + (" (alpha relative to the outermost tube's; output "
-                                          "turned by it)" if self.frame == "outer" else ""),
+                                          "turned by it)" if self.frame == "outer" else "")
+                                       + ("; per pair (i, j) in pairs: cos, sin of alpha_i - alpha_j; "
+                                          "per pair in overlap_pairs: the overlap of the curved "
+                                          "sections beyond s = 0 over the shorter curved length, "
+                                          "times 1, cos and sin of alpha_i - alpha_j"
+                                          if self.pair_inputs else ""),
+                             "pairs": self._pairs.tolist(), "overlap_pairs": self._opairs.tolist(),
                              "outputs": "3K normalised basis coefficients (c = mean + std * z), (K, 3)"},
             "basis": {"terms": self.terms, "kind": "Gram-Schmidt on s..s^K over [0, 1], orthonormal, P(0) = 0",
                       "backbone": "x(q, s) = tip_length(q) * sum_k c_k P_k(s / tip_length(q))"},
@@ -758,8 +855,9 @@ class LearnedModel:
 
     @classmethod
     def load(cls, path: str | os.PathLike, robot: Robot | str | None = None,
-             device: str | torch.device = "cpu") -> LearnedModel:
-        """Read a model file written by :meth:`save` / ``ctrplan train``.
+             device: str | torch.device | None = None) -> LearnedModel:
+        """Read a model file written by :meth:`save` / ``ctrplan train`` onto ``device``
+        (None: :func:`current_device`, the CPU unless inside :class:`using_device`).
 
         ``robot``: check the file was trained for this robot (same tubes); by default the
         robot stored in the file is used. Errors (missing, corrupt, mismatched) raise
@@ -777,7 +875,7 @@ class LearnedModel:
         except Exception as exc:  # corrupt, truncated, or not a torch file
             raise InputError(src, "", f"not a readable ctrplan model file ({exc.__class__.__name__})") from None
         model = cls._from_object(obj, src, robot)
-        return model.to(device)
+        return model.to(current_device() if device is None else device)
 
     @classmethod
     def _from_object(cls, obj: Any, src: str, robot: Robot | str | None, depth_left: int = 4) -> LearnedModel:
@@ -795,6 +893,9 @@ class LearnedModel:
             if frame not in FRAMES:
                 raise ValueError(f"unknown frame {frame!r}")
             direction = bool((meta.get("inputs") or {}).get("direction", False))
+            pairs = arch.get("pair_inputs", False)
+            if not isinstance(pairs, bool):
+                raise ValueError("architecture.pair_inputs must be true or false")
             base_spec = meta.get("residual")
             if base_spec is not None and not isinstance(base_spec, dict):
                 raise ValueError("residual is not a mapping")
@@ -824,7 +925,7 @@ class LearnedModel:
             base = _load_base(base_spec, obj, src, robot, depth_left)
         try:
             model = cls(robot, width=width, depth=depth, terms=terms, seed=None, frame=frame,
-                        direction=direction, base=base, base_spec=base_spec)
+                        direction=direction, base=base, base_spec=base_spec, pairs=pairs)
             state = obj["state"]
             if not isinstance(state, dict):
                 raise TypeError("state is not a mapping")
@@ -854,7 +955,8 @@ class LearnedModel:
         model.error_bound = bound_kind
         model.domain = domain
         keep = ("training", "metrics", "data", "created", "command", "ctrplan_version",
-                "error_quantiles_source", "variant", "error_profile_source", "selection")
+                "error_quantiles_source", "variant", "error_profile_source", "selection", "sim_base",
+                "bistable")
         model.meta = {k: meta[k] for k in keep if k in meta}
         model.source = src
         return model
@@ -939,6 +1041,23 @@ def polynomial_pad(fit: np.ndarray, points: int, terms: int, memo: dict | None =
     h = 1.0 / (points - 1)
     # + float32 round-off of the evaluated points (the CPU path's ~1e-5 mm at 200 mm)
     return peak * h * h / 8.0 + POINT_ROUNDOFF_MM
+
+
+def polynomial_pad_torch(fit: torch.Tensor, points: int, terms: int) -> torch.Tensor:
+    """:func:`polynomial_pad` of float64 backbone samples ``fit`` (B, mf, 3) on their device."""
+    B, mf, _ = fit.shape
+    if terms < 2 or points < 2:
+        return torch.zeros(B, max(points - 1, 0), dtype=fit.dtype, device=fit.device)
+    key = (mf, int(points), int(terms))
+    hit = _PAD_MAPS.get(key)
+    if hit is None:
+        hit = _PAD_MAPS[key] = _bernstein_second_derivative(mf, points, terms)
+    idx, A = hit
+    At = torch.as_tensor(A, dtype=fit.dtype, device=fit.device)         # (k, r, mi)
+    ctrl = torch.einsum("kri,bic->bkrc", At, fit[:, torch.as_tensor(idx, device=fit.device)])
+    peak = torch.sqrt((ctrl * ctrl).sum(dim=3).amax(dim=2))              # (B, k)
+    h = 1.0 / (points - 1)
+    return peak * (h * h / 8.0) + POINT_ROUNDOFF_MM
 
 
 def n_direction_features(n: int) -> int:
@@ -1063,10 +1182,12 @@ def _check_domain(dom: Any) -> dict[str, Any] | None:
 def _load_base(spec: dict, obj: dict, src: str, robot: Robot, depth_left: int) -> Any:
     """The base model of a residual model file."""
     kind = spec.get("kind")
-    if kind in ("physics", "rigid"):
+    if kind == "rigid":      # closed form (the same shapes as PhysicsModel(torsion=False))
+        return RigidModel(robot)
+    if kind == "physics":
         from ctrplan.shape.physics import PhysicsModel
 
-        return PhysicsModel(robot, torsion=(kind == "physics"))
+        return PhysicsModel(robot)
     if kind == "learned":
         if depth_left <= 0 or not isinstance(obj.get("base"), dict):
             raise InputError(src, "base", "residual model over a learned base without a valid stored base")
@@ -1084,6 +1205,8 @@ def base_model_spec(base: Any) -> dict[str, Any]:
 
     if isinstance(base, LearnedModel):
         return {"kind": "learned"}
+    if isinstance(base, RigidModel):
+        return {"kind": "rigid"}
     if isinstance(base, PhysicsModel):
         return {"kind": "physics" if getattr(base, "torsion", True) else "rigid"}
     if hasattr(base, "to_dict") and getattr(base, "name", "") != "learned":
@@ -1116,8 +1239,9 @@ def shipped_model_path(robot_name: str) -> Path | None:
     return p if p.is_file() else None
 
 
-def default_model_for(robot: Robot | str, device: str | torch.device = "cpu") -> LearnedModel:
-    """The shipped default learned model of ``robot`` (``ctrplan/data/models/<name>.pt``)."""
+def default_model_for(robot: Robot | str, device: str | torch.device | None = None) -> LearnedModel:
+    """The shipped default learned model of ``robot`` (``ctrplan/data/models/<name>.pt``) on
+    ``device`` (None: :func:`current_device`)."""
     robot = load_robot(robot)
     p = shipped_model_path(robot.name)
     if p is None:

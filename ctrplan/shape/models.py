@@ -13,12 +13,15 @@ from ctrplan.shape.physics import PhysicsModel
 MODEL_NAMES = ("physics", "rigid", "learned")
 
 
-def load_model(spec: str | os.PathLike | ShapeModel, robot: Robot | str) -> ShapeModel:
+def load_model(spec: str | os.PathLike | ShapeModel, robot: Robot | str,
+               device: str | None = None) -> ShapeModel:
     """Return a shape model for ``robot``.
 
     spec : ``"physics"`` (torsionally compliant), ``"rigid"``, ``"learned"`` (the shipped
         default network of the robot) or the path of a model file written by ``ctrplan train``;
         an object with ``shape``/``backbone`` is returned unchanged.
+    device : where a learned model evaluates (``cpu``, ``cuda[:N]``, ``auto``; None: the CPU
+        unless inside :class:`ctrplan.shape.learned.using_device`); other models ignore it.
     """
     if not isinstance(spec, (str, os.PathLike)):
         return spec
@@ -31,7 +34,7 @@ def load_model(spec: str | os.PathLike | ShapeModel, robot: Robot | str) -> Shap
     if s == "learned":
         from ctrplan.shape.learned import default_model_for
 
-        return default_model_for(robot)
+        return default_model_for(robot, device=device)
     path = Path(s)
     if not path.exists():
         raise ArgumentError("model", f"{s!r} is not a model name ({', '.join(MODEL_NAMES)}) or an existing file")
@@ -42,7 +45,7 @@ def load_model(spec: str | os.PathLike | ShapeModel, robot: Robot | str) -> Shap
         return EffectModel.load(path, robot=robot)
     from ctrplan.shape.learned import LearnedModel
 
-    return LearnedModel.load(path, robot=robot)
+    return LearnedModel.load(path, robot=robot, device=device)
 
 
 #: Largest model file read (bytes): trained networks are a few MB, calibrated YAML about 2 kB.

@@ -4,8 +4,13 @@
 * :class:`HiddenEffects` / :func:`real_data` - "real" measurements: our own simulator with
   effects the learned model is never told about (miscalibrated precurvature, changed stiffness
   ratios, clearance tilts at the outer tubes' ends, rotational offsets and backlash, sensor noise);
-* :func:`train` - Adam on the sum of squared point distances, early stopping on a validation set;
-  :func:`pretrain_finetune` - pre-train on simulation, fine-tune on measured shapes;
+* :func:`train` - Adam on the sum of squared point distances (or with the largest along the
+  shaft weighted in, :data:`LOSSES`), early stopping on a validation set or one cycle of the
+  learning rate (:data:`SCHEDULES`); :func:`pretrain_finetune` - pre-train on simulation
+  (:data:`SIM_RECIPE`: the network learns the compliant model's difference to the closed-form
+  rigid model, with pair inputs), fine-tune on measured shapes;
+* :func:`bistable_fraction` - how much of a robot's joint space has two stable equilibria
+  (where a surrogate of one shape per configuration cannot follow the robot);
 * :func:`evaluate` - the literature's metrics (max deviation, MSE, sum of deviations along the
   shaft) with mean +- std over a test set;
 * :func:`sweep` - Sim-only / Real-only / Sim+Real x variants (pure, direction-aware,
@@ -53,6 +58,30 @@ from ctrplan.split import split as heldout_split
 log = logging.getLogger("ctrplan")
 
 DEFAULT_SIM = 100_000
+
+
+@dataclass(frozen=True)
+class SimRecipe:
+    """Defaults of the network pre-trained on simulation (``ctrplan train --robot R``): rows of
+    simulated data, the network (width, depth) and its base (:func:`sim_base_model`), epochs,
+    loss and schedule (:class:`TrainConfig`). See ctrplan/data/models/README.md for what it
+    reaches and costs."""
+
+    rows: int
+    width: int
+    depth: int
+    epochs: int
+    loss: str
+    schedule: str
+    pairs: bool = False
+
+
+#: the documented recipe (``ctrplan train --robot R``)
+SIM_RECIPE = SimRecipe(rows=1_000_000, width=64, depth=4, epochs=30, loss="sum_sq+max",
+                       schedule="onecycle", pairs=True)
+#: ``ctrplan train --sweep``: the literature's settings (the architectures are swept)
+SWEEP_RECIPE = SimRecipe(rows=DEFAULT_SIM, width=DEFAULT_WIDTH, depth=DEFAULT_DEPTH, epochs=150,
+                         loss="sum_sq", schedule="plateau")
 ARCH_DEPTHS = (3, 5, 7)
 ARCH_WIDTHS = (15, 30, 60)
 
@@ -114,6 +143,30 @@ def simulated_data(robot: Robot | str, n: int, seed: int = 0, points: int = 20,
     if not ok.all():
         log.info("simulated data: dropped %d of %d configurations that did not converge", int((~ok).sum()), len(q))
     return ShapeData(q[ok], sh.points[ok], source=f"physics:{robot.name}:n={n}:seed={seed}")
+
+
+#: configurations :func:`bistable_fraction` probes by default
+BISTABLE_PROBE = 2000
+
+
+def bistable_fraction(robot: Robot | str, n: int = BISTABLE_PROBE, seed: int = 0) -> dict[str, Any]:
+    """How much of the joint space of ``robot`` is bistable (two stable equilibria of the
+    compliant model): the fraction of ``n`` uniform valid configurations where the physics
+    model, probing for a second stable equilibrium (``PhysicsConfig(probe_bistable=True)``),
+    finds two. A surrogate trained on simulation follows the branch the physics model returns
+    by default (the less twisted one) there and cannot represent a snap between branches; its
+    held-out error includes those configurations. Returns {"fraction", "probed", "seed"}."""
+    from ctrplan.shape.physics import PhysicsConfig
+
+    robot = load_robot(robot)
+    q = robot.sample(int(n), seed=seed)
+    pm = PhysicsModel(robot, config=PhysicsConfig(probe_bistable=True))
+    pm.shape(q, 2)
+    bi = pm.last_info.bistable if pm.last_info is not None else None
+    frac = float(np.mean(bi)) if bi is not None and len(bi) else 0.0
+    return {"fraction": frac, "probed": int(len(q)), "seed": int(seed),
+            "rule": "two stable equilibria found by the physics model's probe "
+                    "(PhysicsConfig(probe_bistable=True)) at uniform valid configurations"}
 
 
 @dataclass(frozen=True)
@@ -241,6 +294,20 @@ def split_kind(part: ShapeData) -> str:
 
 
 # ---------------------------------------------------------------------------------- training
+#: Losses per configuration (mm^2): ``sum_sq`` the sum over the backbone points of the squared
+#: distance (the literature's); ``sum_sq+max`` that sum divided by the number of points plus
+#: :data:`MAX_WEIGHT` times the largest squared distance along the shaft: the held-out bound is
+#: a quantile of the max deviation along the shaft, so the worst point of each configuration
+#: is what the loss weighs most.
+LOSSES = ("sum_sq", "sum_sq+max")
+MAX_WEIGHT = 4.0
+#: ``plateau``: the learning rate halves after ``patience // 3`` epochs without validation
+#: improvement, training stops after ``patience``; ``onecycle``: warm-up over the first 5 % of
+#: the steps to ``lr``, cosine annealing to ``lr / 1e4`` over all ``epochs`` (no early stop; the
+#: weights with the best validation loss are kept either way).
+SCHEDULES = ("plateau", "onecycle")
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Optimiser settings. ``patience``: epochs without validation improvement before stopping;
@@ -257,6 +324,16 @@ class TrainConfig:
     label: str = "train"
     #: decoupled weight decay (AdamW) per step, 0 = plain Adam
     weight_decay: float = 0.0
+    #: the loss per configuration, averaged over the batch (:data:`LOSSES`)
+    loss: str = "sum_sq"
+    #: the learning-rate schedule (:data:`SCHEDULES`)
+    schedule: str = "plateau"
+
+    def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"schedule must be one of {', '.join(SCHEDULES)}, got {self.schedule!r}")
 
     def replace(self, **changes: Any) -> TrainConfig:
         return dataclasses.replace(self, **changes)
@@ -306,10 +383,14 @@ class TrainReport:
                 "metrics": self.metrics}
 
 
-def _loss(model: LearnedModel, x: torch.Tensor, length: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
-    """Mean over the batch of the sum over points of squared distances (mm^2)."""
+def _loss(model: LearnedModel, x: torch.Tensor, length: torch.Tensor, pts: torch.Tensor,
+          kind: str = "sum_sq") -> torch.Tensor:
+    """Mean over the batch of the loss ``kind`` per configuration (:data:`LOSSES`), mm^2."""
     pred = model.points_from_features(x, length, pts.shape[1])
-    return ((pred - pts) ** 2).sum(dim=(1, 2)).mean()
+    d2 = ((pred - pts) ** 2).sum(dim=2)                        # (B, m) squared distances
+    if kind == "sum_sq":
+        return d2.sum(dim=1).mean()
+    return d2.mean(dim=1).mean() + MAX_WEIGHT * d2.amax(dim=1).mean()
 
 
 def base_points(base: Any, data: ShapeData) -> np.ndarray:
@@ -375,6 +456,13 @@ def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
         opt = Opt(params, lr=cfg.lr, fused=True, **kw)
     except (RuntimeError, TypeError):  # pragma: no cover - older torch / unsupported device
         opt = Opt(params, lr=cfg.lr, **kw)
+    N = len(train_data)
+    bs = max(1, min(cfg.batch_size, N))
+    cycle = None
+    if cfg.schedule == "onecycle":
+        cycle = torch.optim.lr_scheduler.OneCycleLR(
+            opt, max_lr=cfg.lr, total_steps=cfg.epochs * math.ceil(N / bs), pct_start=0.05,
+            div_factor=25.0, final_div_factor=400.0)
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=max(1, cfg.patience // 3),
                                                        min_lr=cfg.min_lr)
     best = math.inf
@@ -382,8 +470,6 @@ def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
     best_epoch = 0
     stale = 0
     history: list[dict] = []
-    N = len(train_data)
-    bs = max(1, min(cfg.batch_size, N))
     t0 = time.perf_counter()
     epoch = 0
     with bar(total=cfg.epochs, desc=cfg.label, unit="epoch") as pb:
@@ -395,15 +481,18 @@ def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
             tot = 0.0
             for a in range(0, N, bs):
                 idx = perm[a:a + bs]
-                loss = _loss(model, xtr[idx], ltr[idx], ptr[idx])
+                loss = _loss(model, xtr[idx], ltr[idx], ptr[idx], cfg.loss)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
+                if cycle is not None:
+                    cycle.step()
                 tot += float(loss.detach()) * len(idx)
             model.net.eval()
             with torch.no_grad():
-                val = float(_loss(model, xva, lva, pva))
-            sched.step(val)
+                val = float(_loss(model, xva, lva, pva, cfg.loss))
+            if cycle is None:
+                sched.step(val)
             history.append({"epoch": epoch, "train_loss": tot / N, "val_loss": val,
                                 "lr": opt.param_groups[0]["lr"]})
             pb.set_postfix(val=f"{val:.3g}")
@@ -413,7 +502,7 @@ def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
                 best_state = copy.deepcopy(model.net.state_dict())
             else:
                 stale += 1
-            if stale >= cfg.patience:
+            if stale >= cfg.patience and cycle is None:
                 break
             if cfg.max_seconds is not None and time.perf_counter() - t0 > cfg.max_seconds:
                 log.info("%s: time limit reached after %d epochs", cfg.label, epoch)
@@ -432,16 +521,18 @@ def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
 
 def new_model(robot: Robot, width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH,
               terms: int = basis.DEFAULT_TERMS, seed: int = 0, device: str = "cpu",
-              frame: str = DEFAULT_FRAME, direction: bool = False, base: Any = None) -> LearnedModel:
+              frame: str = DEFAULT_FRAME, direction: bool = False, base: Any = None,
+              pairs: bool = False) -> LearnedModel:
     """A fresh network; with ``base`` a residual model whose last layer starts at zero (it
-    starts as the base model plus the mean difference once normalised)."""
+    starts as the base model plus the mean difference once normalised); ``pairs``: pair
+    inputs (:func:`ctrplan.shape.learned.pair_list`)."""
     spec = None if base is None else base_model_spec(base)
     if isinstance(base, LearnedModel):
         base = copy.deepcopy(base)
         base.invalidate()
         base.net.requires_grad_(False)
     m = LearnedModel(robot, width=width, depth=depth, terms=terms, seed=seed, device=device,
-                     frame=frame, direction=direction, base=base, base_spec=spec)
+                     frame=frame, direction=direction, base=base, base_spec=spec, pairs=pairs)
     if base is not None:
         with torch.no_grad():
             last = m.net.net[-1]
@@ -457,7 +548,7 @@ def with_direction_inputs(model: LearnedModel) -> LearnedModel:
         return copy.deepcopy(model)
     new = LearnedModel(model.robot, width=model.width, depth=model.depth, terms=model.terms,
                        seed=None, frame=model.frame, direction=True, base=copy.deepcopy(model.base),
-                       base_spec=model.base_spec)
+                       base_spec=model.base_spec, pairs=model.pair_inputs)
     state = {k: v.clone() for k, v in model.net.state_dict().items()}
     W0 = state["net.0.weight"]
     extra = new.net.net[0].weight.shape[1] - W0.shape[1]
@@ -563,10 +654,11 @@ def fit_real(robot: Robot, r_tr: ShapeData, r_va: ShapeData, variant: str = "pur
             from ctrplan.shape.physics import PhysicsModel
 
             residual_base = sim_model if sim_model is not None else PhysicsModel(robot)
-        if isinstance(residual_base, LearnedModel):
-            terms, frame = residual_base.terms, residual_base.frame
+        pairs = False
+        if isinstance(residual_base, LearnedModel):      # same inputs: one pass for both
+            terms, frame, pairs = residual_base.terms, residual_base.frame, residual_base.pair_inputs
         model = new_model(robot, width, depth, terms, seed, device, frame, direction=direction,
-                          base=residual_base)
+                          base=residual_base, pairs=pairs)
         set_normalisation(model, r_tr)
         return model, train(model, r_tr, r_va, real_only)
     if sim_model is not None:
@@ -791,7 +883,9 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
                       frame: str = DEFAULT_FRAME, variant: str = "pure",
                       residual_base: Any = None, real_only: TrainConfig | None = None,
                       refit: bool = False,
-                      candidates: Sequence[str] | None = None) -> tuple[LearnedModel, TrainReport]:
+                      candidates: Sequence[str] | None = None, sim_base: str | None = None,
+                      sim_arch: tuple[int, int] | None = None,
+                      sim_pairs: bool = False) -> tuple[LearnedModel, TrainReport]:
     """Pre-train on ``sim`` (if given), then train ``variant`` on ``real`` (if given).
 
     ``variant="auto"``: train the ``candidates`` (default :func:`candidate_variants`; residual
@@ -806,6 +900,10 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
     kept). ``residual_base``: the base of a residual variant (default: the pre-trained model,
     else physics). ``fine``: fine-tuning settings; ``real_only``: for new networks trained on
     ``real`` (default ``fine`` when nothing was pre-trained). ``refit``: see :func:`fit_real`.
+    ``sim_base``: what the network pre-trained on ``sim`` adds to (:func:`sim_base_model`:
+    ``"rigid"``, the closed-form rigid model, or None); ``sim_arch``: its (width, depth)
+    (default ``width``, ``depth``, which also size the networks trained on ``real`` alone);
+    ``sim_pairs``: its pair inputs (:func:`ctrplan.shape.learned.pair_list`).
     """
     robot = load_robot(robot)
     if variant not in VARIANTS and variant != AUTO:
@@ -827,7 +925,11 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
     if sim is not None:
         s_tr, s_va, s_te = split(sim, seed=seed)
         if start is None:
-            start = new_model(robot, width, depth, terms, seed, device, frame)
+            sw, sd = sim_arch if sim_arch is not None else (width, depth)
+            start = new_model(robot, sw, sd, terms, seed, device, frame,
+                              base=sim_base_model(robot, sim_base), pairs=sim_pairs)
+            if sim_base is not None:
+                start.meta["sim_base"] = sim_base
             set_normalisation(start, s_tr)
         pre = pre or TrainConfig(seed=seed, label="pre-train (sim)")
         stages["pretrain"] = train(start, s_tr, s_va, pre)
@@ -872,6 +974,19 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
     if selection is not None:
         model.meta["selection"] = selection
     return model, report
+
+
+def sim_base_model(robot: Robot, kind: str | None) -> Any:
+    """The base a network pre-trained on simulation adds to: ``"rigid"`` the closed-form
+    torsionally rigid model (:class:`~ctrplan.shape.rigid.RigidModel`), None / ``"none"``
+    nothing (the network predicts the whole backbone)."""
+    if kind in (None, "none"):
+        return None
+    if kind == "rigid":
+        from ctrplan.shape.rigid import RigidModel
+
+        return RigidModel(robot)
+    raise ValueError(f"sim_base must be 'rigid' or 'none', got {kind!r}")
 
 
 # ---------------------------------------------------------------------------------- sweep
