@@ -647,7 +647,8 @@ class LearnedModel:
                     fit = nets[0]._fast_points(qt, self.terms + 1, dt)
                     for net in nets[1:]:
                         fit += net._fast_points(qt, self.terms + 1, dt)
-                pad = polynomial_pad_torch(fit.double(), points, self.terms)
+                pad = polynomial_pad_torch(fit.double(), points, self.terms,
+                                           memo=_owned_memo(self, "pad_maps"))
             out = acc.double()
             if isinstance(rest, RigidModel):
                 q64 = torch.as_tensor(np.ascontiguousarray(q, dtype=np.float64), device=self._device)
@@ -1043,15 +1044,19 @@ def polynomial_pad(fit: np.ndarray, points: int, terms: int, memo: dict | None =
     return peak * h * h / 8.0 + POINT_ROUNDOFF_MM
 
 
-def polynomial_pad_torch(fit: torch.Tensor, points: int, terms: int) -> torch.Tensor:
-    """:func:`polynomial_pad` of float64 backbone samples ``fit`` (B, mf, 3) on their device."""
+def polynomial_pad_torch(fit: torch.Tensor, points: int, terms: int,
+                         memo: dict | None = None) -> torch.Tensor:
+    """:func:`polynomial_pad` of float64 backbone samples ``fit`` (B, mf, 3) on their device
+    (``memo`` as there)."""
     B, mf, _ = fit.shape
     if terms < 2 or points < 2:
         return torch.zeros(B, max(points - 1, 0), dtype=fit.dtype, device=fit.device)
     key = (mf, int(points), int(terms))
-    hit = _PAD_MAPS.get(key)
+    hit = None if memo is None else memo.get(key)
     if hit is None:
-        hit = _PAD_MAPS[key] = _bernstein_second_derivative(mf, points, terms)
+        hit = _bernstein_second_derivative(mf, points, terms)
+        if memo is not None:
+            memo[key] = hit
     idx, A = hit
     At = torch.as_tensor(A, dtype=fit.dtype, device=fit.device)         # (k, r, mi)
     ctrl = torch.einsum("kri,bic->bkrc", At, fit[:, torch.as_tensor(idx, device=fit.device)])
