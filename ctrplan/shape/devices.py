@@ -9,14 +9,17 @@ size from which a model on a GPU evaluates there (smaller batches stay on the CP
 
 from __future__ import annotations
 
+import contextvars
+
 import torch
 
 #: A model on a GPU evaluates batches of at least this many configurations there; smaller ones
 #: on the CPU paths (a GPU call's fixed latency, ~0.3 ms with its transfers on an H100, exceeds
 #: the CPU's time for them: benchmarks/results/learned_gpu_h100.json).
 GPU_MIN_BATCH = 1024
-#: device of models loaded without one (:class:`using_device`)
-_default_device: list[str] = ["cpu"]
+#: device of models loaded without one (:class:`using_device`): context state (per thread and
+#: task, restored on exit), not a cache
+_default_device: contextvars.ContextVar[str] = contextvars.ContextVar("ctrplan_device", default="cpu")
 
 
 def resolve_device(device: str | torch.device | None = "cpu") -> torch.device:
@@ -52,16 +55,17 @@ class using_device:
 
     def __init__(self, device: str | torch.device | None):
         self.device = str(resolve_device(device))
+        self._tokens: list[contextvars.Token] = []
 
     def __enter__(self) -> str:
-        _default_device.append(self.device)
+        self._tokens.append(_default_device.set(self.device))
         return self.device
 
     def __exit__(self, *exc) -> None:
-        _default_device.pop()
+        _default_device.reset(self._tokens.pop())
 
 
 def current_device() -> str:
     """The device learned models are loaded to when none is given (``cpu`` unless inside
     :class:`using_device`)."""
-    return _default_device[-1]
+    return _default_device.get()
