@@ -112,7 +112,7 @@ def test_rigid_two_tube_closed_form():
 
 # ----------------------------------------------------------------------------- scipy oracle
 def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True, mu=0.0, rel=None,
-                    clear=None, contact=0.0, ramp=None, ei_curved=None, coupling=None):
+                    clear=None, contact=0.0, ramp=None, ei_curved=None, coupling=None, twist=None):
     """Independent shooting: scipy DOP853 (rtol 1e-11) per section + scipy.optimize.root.
     Optional point events where outer tube o ends: friction torque
     T = mu rel (|M_o| + contact M_c e_o / L_o), M_c = EI_o EI_i |kappa_o - kappa_i| / (EI_o + EI_i)
@@ -122,18 +122,22 @@ def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True, mu=0.
     tilt R Rz(psi_in) e_y + lean R Rz(psi_in) e_x (scipy Rotation) and the backbone jumps by
     R Rz(psi_in) (jump_b, jump_a, 0). ramp: precurvature kappa (1 + ramp (s_c - 1/2)) at the
     middle of each of 8 sub-sections of the curved section; ei_curved: EI factor on the curved
-    section; coupling: extra transmission length (mm) of each tube's torsion."""
+    section; coupling: extra transmission length (mm) of each tube's torsion; twist: the
+    precurvature vector in each tube's frame turned by twist (s_c - 1/2) about the tangent
+    (same 8 sub-sections), kappa (-sin th, cos th, 0) written out in the bending moment and in
+    the twist equation's u_i x kappa_i."""
     n = spec.n
     L = spec.straight + spec.curved
     e = np.maximum(beta + L, 0.0)
     cs = np.minimum(np.maximum(beta + spec.straight, 0.0), e)
     subs = []
-    if ramp is not None:
+    if ramp is not None or twist is not None:
         for i in range(n):
             subs += [min(max(beta[i] + spec.straight[i] + spec.curved[i] * k / 8, 0.0), e[i])
                      for k in range(1, 8)]
     bps = np.unique(np.r_[0.0, cs, e, subs])
     ramp = np.zeros(n) if ramp is None else np.asarray(ramp, float)
+    twist = np.zeros(n) if twist is None else np.asarray(twist, float)
     eic = np.ones(n) if ei_curved is None else np.asarray(ei_curved, float)
     cpl = np.zeros(n) if coupling is None else np.asarray(coupling, float)
     EI, GJ, kap = spec.EI, spec.GJ, spec.kappa
@@ -141,11 +145,13 @@ def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True, mu=0.
     Fv = np.zeros(3) if F is None else np.asarray(F, float)
     loaded = gravity is not None or F is not None
 
-    def rhs(s, y, k_i, pres, EIs):
+    def rhs(s, y, k_i, pres, EIs, th):
         R, m = y[3:12].reshape(3, 3), y[12:15]
         psi, uz = y[15:15 + n], y[15 + n:15 + 2 * n]
         EIp = EIs * pres
-        S = np.array([np.sum(-EIp * k_i * np.sin(psi)), np.sum(EIp * k_i * np.cos(psi))])
+        kx, ky = -k_i * np.sin(th), k_i * np.cos(th)           # precurvature, tube frame
+        c, sn = np.cos(psi), np.sin(psi)
+        S = np.array([np.sum(EIp * (c * kx - sn * ky)), np.sum(EIp * (sn * kx + c * ky))])
         mb = R.T @ m
         uxy = (mb[:2] + S) / EIp.sum()
         u = np.array([uxy[0], uxy[1], 0.0])
@@ -153,8 +159,9 @@ def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True, mu=0.
         t = R[:, 2]
         dR = R @ np.array([[0, -u[2], u[1]], [u[2], 0, -u[0]], [-u[1], u[0], 0]])
         dpsi = uz * pres if torsion else np.zeros(n)
-        ui_x = np.cos(psi) * uxy[0] + np.sin(psi) * uxy[1]
-        duz = (EIp / GJ) * k_i * ui_x if torsion else np.zeros(n)
+        ui_x = c * uxy[0] + sn * uxy[1]
+        ui_y = -sn * uxy[0] + c * uxy[1]
+        duz = (EIp / GJ) * (ui_x * ky - ui_y * kx) if torsion else np.zeros(n)
         return np.r_[t, dR.ravel(), -np.cross(t, nvec), dpsi, duz]
 
     def run(x, T_out=None):
@@ -171,11 +178,12 @@ def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True, mu=0.
             pres = (mid < e).astype(float)
             curved = (mid >= cs) & (mid < e)
             sc = (mid - beta - spec.straight) / spec.curved
-            prof = 1.0 + ramp * ((np.floor(np.clip(sc, 0, 1 - 1e-12) * 8) + 0.5) / 8 - 0.5)
-            k_i = np.where(curved, kap * prof, 0.0)
+            mid8 = (np.floor(np.clip(sc, 0, 1 - 1e-12) * 8) + 0.5) / 8 - 0.5
+            k_i = np.where(curved, kap * (1.0 + ramp * mid8), 0.0)
+            th = np.where(curved, twist * mid8, 0.0)
             EIs = EI * np.where(curved, eic, 1.0)
             sol = solve_ivp(rhs, (a, b), y, method="DOP853", rtol=1e-11, atol=1e-11,
-                            args=(k_i, pres, EIs))
+                            args=(k_i, pres, EIs, th))
             y = sol.y[:, -1].copy()
             for o in range(1, n):
                 if e[o] != b:
@@ -321,13 +329,16 @@ ALL = VOCAB_EFFECTS + OUTSIDE_EFFECTS
 def test_effects_off_reproduce_the_base_exactly():
     off = {
         "clearance": {"amplitude": 0.0, "lean": 0.0, "jump": 0.0}, "friction": {"mu": 0.0},
-        "precurvature": {"scale": [1.0, 1.0, 1.0], "ramp": [0.0] * 3},
-        "stiffness": {"scale": [1.0, 1.0, 1.0], "curved": [1.0] * 3, "torsion": [1.0] * 3},
+        "precurvature": {"scale": [1.0, 1.0, 1.0], "ramp": [0.0] * 3, "twist": 0.0, "relax": 0.0},
+        "stiffness": {"scale": [1.0, 1.0, 1.0], "curved": [1.0] * 3, "torsion": [1.0] * 3,
+                      "soften": 0.0},
         "load": {"gravity": None, "tip_force": None},
         "joint_offset": {"alpha": [0.0] * 3, "beta": [0.0] * 3, "periodic": [0.0] * 3,
-                         "beta_scale": [0.0] * 3},
-        "registration": {"rotvec": [0.0] * 3, "translation": [0.0] * 3, "scale": 0.0},
-        "distortion": {"amplitude": 0.0}, "drift": {"amplitude": 0.0, "step": 0.0, "wobble": 0.0},
+                         "beta_scale": [0.0] * 3, "gear": 0.0, "rehome": 0.0},
+        "registration": {"rotvec": [0.0] * 3, "translation": [0.0] * 3, "scale": 0.0,
+                         "mount": 0.0, "sensor": 0.0},
+        "distortion": {"amplitude": 0.0},
+        "drift": {"amplitude": 0.0, "step": 0.0, "wobble": 0.0, "wander": 0.0},
     }
     for robot_effects in ({}, {"torsion": {}}):
         base = generate("seed1", "sweeps", n=120, effects=robot_effects, noise_mm=0.1, seed=5, points=5)
@@ -336,7 +347,12 @@ def test_effects_off_reproduce_the_base_exactly():
                          noise_mm=0.1, seed=5, points=5)
             assert np.array_equal(d.tip, base.tip), name
             assert np.array_equal(d.points, base.points), name
-        for form, params in (("coulomb_lag", {"lag": 0.0}), ("presliding", {"lag": 0.0})):
+        d = generate("seed1", "sweeps", n=120, effects={**robot_effects, "distortion":
+                                                          {"form": "dipole", "amplitude": 0.0}},
+                     noise_mm=0.1, seed=5, points=5)
+        assert np.array_equal(d.tip, base.tip)
+        for form, params in (("coulomb_lag", {"lag": 0.0}), ("presliding", {"lag": 0.0}),
+                             ("stick_slip", {"lag": 0.0})):
             d = generate("seed1", "sweeps", n=120, effects={**robot_effects, "friction": {"form": form, **params}},
                          noise_mm=0.1, seed=5)
             assert np.array_equal(d.tip, base.tip), form
@@ -609,25 +625,30 @@ def test_compliant_friction_and_clearance_events_vs_scipy():
 
 
 def test_compliant_mechanics_forms_vs_scipy():
-    """Curvature ramp, curved-section stiffness and drive couplings in the compliant, loaded
-    shooting against the scipy oracle (its own sub-sections and boundary conditions)."""
+    """Curvature ramp and pre-twist, curved-section stiffness and drive couplings in the
+    compliant, loaded shooting against the scipy oracle (its own sub-sections and boundary
+    conditions)."""
     sp = load_spec("seed1")
     n = sp.n
     from tests.foreign.robot import beta_from_unit
     q = np.c_[np.array([[1.1, -0.4, 2.0]]), beta_from_unit(sp, np.array([[0.6, 0.4, 0.7]]))]
     ramp, eic, cpl = np.array([0.6, -0.6, 0.6]), np.array([1.25, 0.8, 1.0]), np.array([60.0, 40, 30])
+    tw = np.array([0.8, -0.9, 0.8])
     bb = M.cosserat(sp, q[:, :n], q[:, n:], torsion=True, gravity=[9.81, 0.0, 0.0],
-                    ramp=ramp, ei_curved=eic, coupling=cpl)
+                    ramp=ramp, ei_curved=eic, coupling=cpl, twist=tw)
     ref = _scipy_cosserat(sp, q[0, :n], q[0, n:], np.array([9.81, 0.0, 0.0]), None, True,
-                          ramp=ramp, ei_curved=eic, coupling=cpl)
+                          ramp=ramp, ei_curved=eic, coupling=cpl, twist=tw)
     assert bb.ok.all()
     assert np.linalg.norm(bb.tip()[0] - ref) < 1e-3
     plain = M.cosserat(sp, q[:, :n], q[:, n:], torsion=True, gravity=[9.81, 0.0, 0.0]).tip()[0]
     assert np.linalg.norm(plain - ref) > 1.0
     # the rigid closed form with the same forms equals the oracle without torsion
-    rb = M.rigid(sp, q[:, :n], q[:, n:], ramp=ramp, ei_curved=eic).tip()[0]
-    ref_r = _scipy_cosserat(sp, q[0, :n], q[0, n:], torsion=False, ramp=ramp, ei_curved=eic)
+    rb = M.rigid(sp, q[:, :n], q[:, n:], ramp=ramp, ei_curved=eic, twist=tw).tip()[0]
+    ref_r = _scipy_cosserat(sp, q[0, :n], q[0, n:], torsion=False, ramp=ramp, ei_curved=eic,
+                            twist=tw)
     assert np.linalg.norm(rb - ref_r) < 1e-6
+    untwisted = M.rigid(sp, q[:, :n], q[:, n:], ramp=ramp, ei_curved=eic).tip()[0]
+    assert np.linalg.norm(untwisted - ref_r) > 0.3          # the pre-twist matters here
 
 
 def test_bistable_pair_returns_a_stable_twisted_equilibrium():

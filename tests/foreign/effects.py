@@ -141,7 +141,8 @@ import numpy as np
 VOCAB_EFFECTS = ("torsion", "clearance", "friction", "precurvature", "stiffness", "load",
                  "joint_offset", "registration")
 OUTSIDE_EFFECTS = ("distortion", "drift")
-FRICTION_FORMS = ("end_moment", "coulomb_lag", "presliding")
+FRICTION_FORMS = ("end_moment", "coulomb_lag", "presliding", "stick_slip")
+DISTORTION_FORMS = ("bumps", "dipole")
 
 
 def _per_tube(v, n, name):
@@ -168,44 +169,56 @@ def _outer_last(n, inner, mid, outer):
 def defaults(name: str, n: int, spec=None) -> dict:
     """Default parameters (each moves the tip by a few mm on the shipped robots)."""
     if name == "torsion":
-        return {"gj_scale": _outer_last(n, 1.0, 0.6, 1.4), "coupling": _outer_last(n, 60.0, 40.0, 30.0)}
+        return {"gj_scale": _outer_last(n, 1.0, 0.6, 1.4), "coupling": _outer_last(n, 60.0, 40.0, 30.0),
+                "play": _outer_last(n, 0.06, 0.05, 0.04), "play_torque": 0.3}
     if name == "clearance":
-        return {"amplitude": 0.07, "phase_deg": 205.0, "harmonics": [0.5, 0.32, 0.18],
-                "lean": 0.007, "jump": "gap"}
+        return {"amplitude": 0.07, "phase_deg": 205.0, "harmonics": [0.5, 0.4, 0.18],
+                "lean": 0.007, "jump": "gap", "snap": 0.15}
     if name == "friction":
         return friction_defaults("end_moment")
     if name == "precurvature":
-        return {"scale": _alt(n, 0.92, 1.10, 0.93), "ramp": _alt(n, 0.6, -0.6, 0.6)}
+        return {"scale": _alt(n, 0.92, 1.10, 0.93), "ramp": _alt(n, 0.6, -0.6, 0.6),
+                "twist": _alt(n, 0.8, -0.9, 0.8), "relax": _alt(n, 0.08, 0.1, 0.06),
+                "relax_turns": 3.0}
     if name == "stiffness":
         return {"scale": _alt(n, 1.0, 1.3, 0.85), "curved": _alt(n, 1.25, 0.8, 1.0),
-                "torsion": _alt(n, 1.0, 0.8, 1.1)}
+                "torsion": _alt(n, 1.0, 0.8, 1.1), "soften": 0.5, "soften_onset": 0.005,
+                "soften_width": 0.001}
     if name == "load":
         return {"gravity": [9.81, 0.0, 0.0], "density": None, "tip_force": "auto",
                 "lumen_density": 2500.0, "tether": 1.5e-4, "anchor": "auto",
-                "base_compliance": 5e-4}
+                "base_compliance": 5e-4, "wall": 6e-3, "wall_normal": [-1.0, 0.0, 0.0],
+                "wall_at": "auto"}
     if name == "joint_offset":
         return {"alpha": _alt(n, 0.05, -0.06, 0.04), "beta": _alt(n, -1.5, -1.0, -0.5),
                 "periodic": _alt(n, 0.03, 0.025, 0.02), "periodic_phase": _alt(n, 0.7, 2.1, -1.3),
-                "beta_scale": _alt(n, 0.01, -0.008, 0.006)}
+                "beta_scale": _alt(n, 0.01, -0.008, 0.006), "gear": _alt(n, 0.022, 0.018, 0.014),
+                "gear_order": 12, "gear_phase": _alt(n, 0.3, 1.9, -0.8),
+                "rehome": [0.01, 0.2], "rehome_seed": None}
     if name == "registration":
         return {"rotvec": [0.012, -0.009, 0.015], "translation": [1.2, -0.9, 1.5],
-                "scale": [0.012, -0.008, 0.015]}
+                "scale": [0.012, -0.008, 0.015], "mount": [0.008, 0.006],
+                "sensor": [0.0, 0.9, -2.0]}
     if name == "distortion":
-        return {"amplitude": 2.5, "width": "auto", "centres": "auto", "vectors": "auto"}
+        return {"form": "bumps", "amplitude": 2.8, "width": "auto", "centres": "auto",
+                "vectors": "auto"}
     if name == "drift":
         return {"amplitude": 4.0, "direction": [0.6, -0.48, 0.64], "settle": 0.15, "step": 1.5,
                 "step_at": 0.6, "step_direction": [-0.5, 0.7, 0.5], "wobble": 0.5,
-                "wobble_period": 0.04, "wobble_direction": [0.3, 0.9, -0.3]}
+                "wobble_period": 0.04, "wobble_direction": [0.3, 0.9, -0.3], "wander": 0.4,
+                "wander_time": 0.005, "wander_seed": None}
     raise ValueError(f"unknown effect {name!r}; known: {VOCAB_EFFECTS + OUTSIDE_EFFECTS}")
 
 
 def friction_defaults(form: str) -> dict:
     if form == "end_moment":
-        return {"form": form, "mu": 0.03, "contact": 12.0}
+        return {"form": form, "mu": 0.03, "contact": 20.0}
     if form == "coulomb_lag":
-        return {"form": form, "lag": 0.04, "beta_lag": 0.0, "growth": 3.0}
+        return {"form": form, "lag": 0.035, "beta_lag": 0.0, "growth": 8.0}
     if form == "presliding":
-        return {"form": form, "lag": 0.05, "angle": 0.25, "growth": 3.0}
+        return {"form": form, "lag": 0.07, "angle": 0.3, "growth": 8.0}
+    if form == "stick_slip":
+        return {"form": form, "lag": 0.08, "kinetic": 0.3, "growth": 3.0}
     raise ValueError(f"unknown friction form {form!r}; known: {FRICTION_FORMS}")
 
 
@@ -217,6 +230,12 @@ def distortion_grid(L1: float) -> tuple[list, list]:
     C = np.array([(x, y, z) for x in g for y in g for z in (0.5, 0.6, 0.7, 0.8)]) * L1
     V = np.random.default_rng(12345).normal(size=C.shape)
     return C.tolist(), V.tolist()
+
+
+def dipole_source(L1: float) -> tuple[list, list]:
+    """The "auto" dipole distortion: one source beside the workspace, at (0.2, -0.12, 0.55) L_1
+    (sensor frame), its moment along (0.3, 0.8, -0.52) (normalised)."""
+    return [[0.2 * L1, -0.12 * L1, 0.55 * L1]], [[0.3, 0.8, -0.52]]
 
 
 def resolve(effects, n: int, spec=None) -> dict:
@@ -238,7 +257,8 @@ def resolve(effects, n: int, spec=None) -> dict:
         if name == "load" and params:
             # explicit loads: what is not given is absent (a gravity-only or force-only load)
             base = {"gravity": None, "density": None, "tip_force": None, "lumen_density": None,
-                    "base_compliance": None, "tether": None, "anchor": "auto"}
+                    "base_compliance": None, "tether": None, "anchor": "auto", "wall": None,
+                    "wall_normal": [-1.0, 0.0, 0.0], "wall_at": "auto"}
         base.update(params)
         if name == "load" and isinstance(base.get("tip_force"), str):
             if base["tip_force"] != "auto" or spec is None:
@@ -254,17 +274,32 @@ def resolve(effects, n: int, spec=None) -> dict:
                 raise ValueError("load: anchor must be a 3-vector (mm) or 'auto'")
             L1 = float(spec.L[0]) if spec is not None else 300.0
             base["anchor"] = [0.15 * L1, 0.0, 1.0 * L1]
+        if name == "load" and isinstance(base.get("wall_at"), str):
+            if base["wall_at"] != "auto":
+                raise ValueError("load: wall_at must be a number (mm) or 'auto'")
+            base["wall_at"] = -0.08 * (float(spec.L[0]) if spec is not None else 300.0)
         if name == "distortion":
             L1 = float(spec.L[0]) if spec is not None else 300.0
+            if base.get("form", "bumps") not in DISTORTION_FORMS:
+                raise ValueError(f"distortion: form must be one of {DISTORTION_FORMS}")
             if isinstance(base.get("width"), str):
-                base["width"] = 0.05 * L1
-            C, V = distortion_grid(L1)
+                base["width"] = 0.05 * L1 if base.get("form", "bumps") == "bumps" else 0.12 * L1
+            C, V = distortion_grid(L1) if base.get("form", "bumps") == "bumps" else dipole_source(L1)
             if isinstance(base.get("centres"), str):
                 base["centres"] = C
             if isinstance(base.get("vectors"), str):
                 base["vectors"] = V
         out[name] = copy.deepcopy(base)
     return out
+
+
+def snap_wave(x, snap: float):
+    """cos(x), or with ``snap`` > 0 the saturated crossing tanh(cos(x) / snap) / tanh(1 / snap):
+    +-1 over most of the turn, changing sign within about ``snap`` rad of cos(x) = 0."""
+    c = np.cos(x)
+    if not snap:
+        return c
+    return np.tanh(c / snap) / np.tanh(1.0 / snap)
 
 
 def clearance_fn(params):
@@ -274,14 +309,16 @@ def clearance_fn(params):
     h = np.asarray(params["harmonics"], float)
     lean = float(params.get("lean", 0.0))
     jump = float(params.get("jump", 0.0) or 0.0)
+    snap = float(params.get("snap", 0.0) or 0.0)
 
     def event(phi, pair):
         d = np.zeros_like(phi)
         for k, hk in enumerate(h):
-            d = d + hk * np.cos(k * (phi - ph))
+            d = d + hk * (snap_wave(phi - ph, snap) if k == 1 else np.cos(k * (phi - ph)))
         if lean == 0.0 and jump == 0.0:
             return amp * d
-        return (amp * d, lean * np.sin(phi - ph), jump * np.cos(phi - ph), np.zeros_like(phi))
+        return (amp * d, lean * np.sin(phi - ph), jump * snap_wave(phi - ph, snap),
+                np.zeros_like(phi))
     return event
 
 
@@ -299,6 +336,45 @@ def _unit(v):
     v = np.asarray(v, float)
     nv = np.linalg.norm(v)
     return v / nv if nv > 0 else v
+
+
+def wander(params, tfrac: np.ndarray) -> np.ndarray:
+    """(N, 3) the drift's wandering part at time fractions ``tfrac``: a smooth random process
+    (white noise on a grid of ``wander_time`` / 4 spacing over the recording, smoothed by a
+    Gaussian of ``wander_time``, scaled to ``wander`` mm rms per axis), drawn from
+    ``wander_seed``."""
+    amp = float(params.get("wander", 0.0) or 0.0)
+    if not amp:
+        return np.zeros((len(tfrac), 3))
+    tau = float(params["wander_time"])
+    h = tau / 4.0
+    pad = 4.0 * tau
+    grid = np.arange(-pad, 1.0 + pad + h, h)
+    rng = np.random.default_rng([int(params.get("wander_seed") or 0), 31337])
+    w = rng.normal(size=(grid.size, 3))
+    k = np.exp(-0.5 * (np.arange(-16, 17) * h / tau) ** 2)
+    sm = np.stack([np.convolve(w[:, j], k / k.sum(), mode="same") for j in range(3)], axis=1)
+    inside = (grid >= 0.0) & (grid <= 1.0)
+    sm = sm / sm[inside].std(axis=0) * amp
+    t = np.asarray(tfrac, float)
+    return np.stack([np.interp(t, grid, sm[:, j]) for j in range(3)], axis=1)
+
+
+def mount_rotvec(params, q: np.ndarray, spec) -> np.ndarray:
+    """(N, 3) rotation vector of the robot's housing in the tracker frame (the registration's
+    configuration-dependent part): ``mount`` = (unbalance, rail) rad. The outermost tube's
+    rotary stage is unbalanced and the housing's clamp has play: the housing rocks about x to
+    the side the stage's heavy side is on, unbalance tanh(cos(alpha_n - 0.4) / 0.2) / tanh(5)
+    (:func:`snap_wave`); its carriage rides a bowed rail: the housing pitches by rail sin(pi u)
+    about y, u the carriage's fraction of its travel."""
+    m = np.broadcast_to(np.asarray(params.get("mount", 0.0) or 0.0, float), (2,))
+    q = np.atleast_2d(np.asarray(q, float))
+    n = spec.n
+    a = q[:, n - 1]
+    lo = max(float(spec.beta_lo[-1]), -float(spec.L[-1]))
+    u = np.clip((q[:, 2 * n - 1] - lo) / (0.0 - lo), 0.0, 1.0)
+    return np.stack([m[0] * snap_wave(a - 0.4, 0.2), m[1] * np.sin(np.pi * u), np.zeros_like(a)],
+                    axis=1)
 
 
 def drift_offset(params, tfrac: np.ndarray) -> np.ndarray:
@@ -321,12 +397,18 @@ def drift_offset(params, tfrac: np.ndarray) -> np.ndarray:
     return off
 
 
-def sensor(p: np.ndarray, eff: dict, tfrac: np.ndarray | None) -> np.ndarray:
+def sensor(p: np.ndarray, eff: dict, tfrac: np.ndarray | None, q=None, spec=None) -> np.ndarray:
     """Apply tracker effects (registration, distortion, drift) to points (..., 3); tfrac (N,)
-    the fraction of the recording time elapsed per row (drift), or None (no drift)."""
+    the fraction of the recording time elapsed per row (drift), or None (no drift); q (N, 2n)
+    and spec: the commanded configurations and robot (the registration's mount)."""
     out = p
     if "registration" in eff:
         rg = eff["registration"]
+        if np.any(np.asarray(rg.get("mount", 0.0) or 0.0, float) != 0.0):
+            if q is None or spec is None:
+                raise ValueError("registration: the mount needs the configurations")
+            Rm = np.stack([rotation_matrix(r) for r in mount_rotvec(rg, q, spec)])
+            out = np.einsum("bij,b...j->b...i", Rm, out)
         R = rotation_matrix(rg["rotvec"])
         out = out @ R.T + np.asarray(rg["translation"], float)
         sc = np.broadcast_to(np.asarray(rg.get("scale", 0.0), float), (3,))
@@ -339,10 +421,24 @@ def sensor(p: np.ndarray, eff: dict, tfrac: np.ndarray | None) -> np.ndarray:
             C = np.asarray(ds["centres"], float).reshape(-1, 3)
             V = np.stack([_unit(v) for v in np.asarray(ds["vectors"], float).reshape(-1, 3)])
             w = float(ds["width"])
-            d2 = np.sum((out[..., None, :] - C) ** 2, axis=-1)          # (..., k)
-            wgt = np.exp(-0.5 * d2 / w ** 2)
-            out = out + A * (wgt @ V[: C.shape[0]])
+            if ds.get("form", "bumps") == "dipole":
+                out = out + A * dipole(out, C[0], V[0], w)
+            else:
+                d2 = np.sum((out[..., None, :] - C) ** 2, axis=-1)          # (..., k)
+                wgt = np.exp(-0.5 * d2 / w ** 2)
+                out = out + A * (wgt @ V[: C.shape[0]])
     if "drift" in eff and tfrac is not None:
-        off = drift_offset(eff["drift"], tfrac)
+        off = drift_offset(eff["drift"], tfrac) + wander(eff["drift"], tfrac)
         out = out + (off[:, None, :] if out.ndim == 3 else off)
     return out
+
+
+def dipole(p: np.ndarray, c: np.ndarray, m: np.ndarray, w: float) -> np.ndarray:
+    """(..., 3) displacement of a dipole-like field distortion (a piece of metal beside the
+    workspace): (w / r)^3 (3 (m . rhat) rhat - m) / 2, r = |p - c| softened by w / 4 (1 at
+    distance w on the moment's axis)."""
+    r = p - c
+    r2 = np.sum(r * r, axis=-1, keepdims=True) + (0.25 * w) ** 2
+    rn = np.sqrt(r2)
+    rh = r / rn
+    return 0.5 * (w / rn) ** 3 * (3.0 * np.sum(rh * m, axis=-1, keepdims=True) * rh - m)
