@@ -92,9 +92,9 @@ CASES = (
     + [_case("outside", c) for c in ("distortion", "distortion:dipole", "drift")]
     + [_case("study", "study")]
     + [_case("none", "none", r) for r in ("two_tube_nitinol", "four_tube", "short_stiff")]
-    + [_case("single", c, "two_tube_nitinol") for c in ("clearance", "precurvature")]
+    + [_case("single", c, "two_tube_nitinol") for c in ("precurvature", "torsion")]
     + [_case("single", c, "four_tube") for c in ("precurvature", "joint_offset")]
-    + [_case("single", c, "short_stiff") for c in ("joint_offset", "registration")]
+    + [_case("single", c, "short_stiff") for c in ("torsion",)]
 )
 
 

@@ -44,6 +44,7 @@ from ctrplan.shape.effects import (
     effect_variants,
     off_values,
 )
+from tests.foreign.robot import robot_path
 
 #: the kernel families that need a slower kernel (added in the polish from the best start)
 SLOW = ("torsion", "load")
@@ -201,7 +202,7 @@ def joint_fit(robot: str, effects: dict, base_data, data, starts: int = 3, seed:
     noise-free tips (``tip_clean``); ``base_data``: the same rows without the effects (for
     the effect's size). ``starts`` starts per friction form on the rigid kernel, then the
     best is polished with torsion and the loads added."""
-    r = load_robot(robot)
+    r = load_robot(str(robot_path(robot)))
     md = measured(data, data.tip_clean)
     every = np.ones(len(md), bool)
     prob = Problem(EffectModel(r, "rigid"), md, every, every)

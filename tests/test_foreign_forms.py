@@ -10,13 +10,17 @@ the drift and field nuisances fitted to what is left as ``diagnose`` fits them),
 rows of the statistical suite's design (seed1, ``ROWS`` rows in ``SWEEPS`` back-and-forth
 sweeps; other robots for their cases). What the best fit leaves must be at least twice the
 suite's noise floor: the mean tip-noise norm of the generator at the suite's ``NOISE``
-(measured on its own noise, 0.16 mm at 0.1 mm per axis). A form that fails is not evidence and
+(sqrt(8 / pi) 0.1 mm = 0.16 mm; the generated noise's mean and robust mean are checked against
+it). Both the robot model alone and the model with the nuisances must leave that much. A form that fails is not evidence and
 is changed (tests/foreign/README.md says per form what ctrplan cannot express).
 
-Statistical (``make test-stat``): the real fits, about 15-30 s per form on one core.
+Statistical (``make test-stat``): the real fits, about 10-15 s per form on one idle core
+(the polish on the loaded compliant kernel is most of it).
 """
 
 from __future__ import annotations
+
+import math
 
 import pytest
 
@@ -27,8 +31,14 @@ pytestmark = pytest.mark.statistical
 
 #: the statistical suite's design (tests/test_diagnose_foreign.py) and a development seed
 ROBOT, ROWS, SWEEPS, NOISE, SEED = "seed1", 300, 8, 0.1, 100
+#: least-squares budget (function evaluations) of each start on the rigid kernel, and of the
+#: polish with torsion and the loads (the loaded compliant kernel: most of the time)
+ITERS, POLISH_ITERS = 30, 10
 #: the asserted ratio of what the joint fit leaves to the noise floor
 FLOOR_RATIO = 2.0
+#: the noise floor (mm): the mean norm of the suite's noise, a 3-d Gaussian of ``NOISE`` mm per
+#: axis (sqrt(8 / pi) NOISE; the generated noise's mean and robust mean are checked against it)
+FLOOR = math.sqrt(8.0 / math.pi) * NOISE
 
 #: every generator form the statistics use: each vocabulary effect at its default (friction in
 #: each form), the effects outside the vocabulary (two tracker-field families, the drift), and
@@ -37,9 +47,9 @@ FORMS = ([(ROBOT, e) for e in ("torsion", "clearance", "friction", "friction:cou
                                "friction:presliding", "friction:stick_slip", "precurvature",
                                "stiffness", "load", "joint_offset", "registration", "distortion",
                                "distortion:dipole", "drift")]
-         + [("two_tube_nitinol", "clearance"), ("two_tube_nitinol", "precurvature"),
+         + [("two_tube_nitinol", "precurvature"), ("two_tube_nitinol", "torsion"),
             ("four_tube", "precurvature"), ("four_tube", "joint_offset"),
-            ("short_stiff", "joint_offset"), ("short_stiff", "registration")])
+            ("short_stiff", "torsion")])
 
 
 def _data(robot: str, effects: dict):
@@ -52,11 +62,12 @@ def test_every_form_is_outside_the_joint_families(robot, case):
     name, _, form = case.partition(":")
     effects = {name: {"form": form} if form else {}}
     base, data = _data(robot, {}), _data(robot, effects)
-    floor = max(noise_floor(base))                    # mean and robust mean: the larger
-    assert 0.14 < floor < 0.18, floor                 # sqrt(8 / pi) * 0.1 mm = 0.160 mm
+    floor = FLOOR
+    for measured in noise_floor(data):                # the generated noise: mean, robust mean
+        assert abs(measured / floor - 1.0) < 0.1, (measured, floor)
     fit = joint_fit(robot, effects, base, data, starts=2,
                     friction_forms=FRICTION_ALL if name == "friction" else ("presliding/windup",),
-                    nuisances="diagnose")
+                    iters=ITERS, polish_iters=POLISH_ITERS, nuisances="diagnose")
     print(f"\nFORM {robot} {case}: effect {fit.effect_mm:.2f} mm; the joint families leave "
           + ", ".join(f"{k} {v:.3f}" for k, v in fit.modes.items())
           + f" mm (friction as {fit.friction}; starts "

@@ -144,3 +144,18 @@ def test_the_documents_quote_these_rates(fresh):
     assert f"lowest {low['case']}: {low['passed']}/{low['n']}" in readme
     study = next(c for c in fresh["cases"] if c["kind"] == "study")
     assert f"the study's three effects named: {study['passed']}/{study['n']}" in readme
+
+
+def test_every_form_of_the_fresh_cases_is_checked_outside_the_joint_families():
+    """Each single or outside case of the benchmark is a form tests/test_foreign_forms.py fits
+    with every family at once (its data are evidence only if no combination reproduces it)."""
+    import importlib.util
+
+    from tests.test_foreign_forms import FORMS
+
+    spec = importlib.util.spec_from_file_location("bench_fresh", ROOT / "benchmarks" / "bench_fresh.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    cases = {(c["robot"], c["case"].split("/")[-1]) for c in bench.CASES
+             if c["kind"] in ("single", "outside")}
+    assert cases <= set(FORMS), sorted(cases - set(FORMS))

@@ -93,6 +93,25 @@ def _held_curved(spec: Spec, q: np.ndarray) -> np.ndarray:
     return np.clip(held_to - start, 0.0, spec.curved[None, :]) / spec.curved[None, :]
 
 
+def _contact_moment(spec: Spec, q: np.ndarray, moment: float) -> np.ndarray:
+    """(N, n) factor of the friction lags from the contact force (torque-dependent friction):
+    tube i presses on the tube around it with a force that grows with their curvature mismatch
+    |kappa_i e(alpha_i) - kappa_o e(alpha_o)|, r in [0, 1] as a fraction of kappa_i + kappa_o;
+    factor 1 + moment (2 r - 1) (1 for the outermost tube, which has no tube around it)."""
+    n = spec.n
+    out = np.ones((q.shape[0], n))
+    if not moment or n < 2:
+        return out
+    a = q[:, :n]
+    k = spec.kappa
+    for i in range(n - 1):
+        phi = a[:, i] - a[:, i + 1]
+        mis = np.sqrt(np.maximum(k[i] ** 2 + k[i + 1] ** 2 - 2 * k[i] * k[i + 1] * np.cos(phi), 0.0))
+        r = mis / max(k[i] + k[i + 1], 1e-12)
+        out[:, i] = 1.0 + moment * (2.0 * r - 1.0)
+    return out
+
+
 def _alpha_lag(eff, q, n, direction, sweep, spec=None):
     """Friction lag forms acting on the transmitted joint values: returns q_eff."""
     q = q.copy()
@@ -104,6 +123,7 @@ def _alpha_lag(eff, q, n, direction, sweep, spec=None):
     growth = E._per_tube(fr.get("growth", 0.0), n, "growth")
     if spec is not None:
         c = lag[None, :] * (1.0 + growth[None, :] * _held_curved(spec, q))
+        c = c * _contact_moment(spec, q, float(fr.get("moment", 0.0) or 0.0))
     else:
         c = np.broadcast_to(lag[None, :], (q.shape[0], n))
     if fr["form"] == "coulomb_lag":
@@ -145,6 +165,8 @@ def _stick_slip(q, n, c, kinetic, d, sweep):
     beyond, the tube slips until the lag is the kinetic ``kinetic c``, sticks again, and so on
     (a sawtooth over the commanded travel). Without row order the mean lag (1 + kinetic) c / 2
     against the direction of motion."""
+    if not np.any(c > 0.0):
+        return q
     if sweep is None:
         q[:, :n] -= 0.5 * (1.0 + kinetic) * c * d[:, :n]
         return q

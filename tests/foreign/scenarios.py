@@ -152,7 +152,7 @@ def real_robot(seed: int = 0, robot="seed1", noise_mm: float = 0.08, registratio
                       "jump": "gap", "snap": 0.0},
         # base lags with the contact growth (1 + h): typical lags ~0.065 / 0.013 / 0.008 rad
         "friction": {"form": "presliding", "lag": _jitter(rng, outer_last(0.044, 0.012, 0.008)),
-                     "angle": float(_jitter(rng, 0.2)), "growth": 1.0},
+                     "angle": float(_jitter(rng, 0.2)), "growth": 1.0, "moment": 0.0},
         "torsion": {"gj_scale": 1.0, "coupling": _jitter(rng, outer_last(40.0, 25.0, 20.0)),
                     "play": 0.0},
     }
