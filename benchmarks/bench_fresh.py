@@ -19,9 +19,10 @@ uses the first ``STUDY_SEEDS``. Without ``CTRPLAN_FRESH_SEED`` the master seed i
 random and printed.
 
 Resumable: every (case, seed) result is appended to a journal (``--out`` with
-``.journal.jsonl``; one JSON line each, flushed) as soon as it is known, and a run with the
-same master seed skips what the journal holds; the summary (``--out``, default
-``benchmarks/results/fresh.json``) is rewritten after every result. One process, one core:
+``.journal.jsonl``; one JSON line each, flushed; not committed) as soon as it is known, and a
+run with the same master seed skips what the journal, or the summary's own records, hold; the
+summary (``--out``, default ``benchmarks/results/fresh.json``, committed) is rewritten after
+every result. One process, one core:
 about 5-30 s per diagnose, hours for the whole set on a shared machine (run it with nohup).
 ``--fresh-start`` ignores the journal.
 
@@ -237,9 +238,19 @@ def _journal_path(out: Path) -> Path:
     return out.with_name(out.stem + ".journal.jsonl")
 
 
-def read_journal(path: Path, master: int) -> dict:
-    """(case, seed) -> record of this master seed, from the journal (torn last line ignored)."""
+def read_journal(path: Path, master: int, summary: Path | None = None) -> dict:
+    """(case, seed) -> record of this master seed, from the journal (torn last line ignored)
+    and, where the journal is missing, from the records of a summary of the same master seed."""
     got: dict = {}
+    if summary is not None and summary.exists():
+        try:
+            old = json.loads(summary.read_text(encoding="utf-8"))
+        except ValueError:
+            old = {}
+        if old.get("master_seed") == master:
+            for c in old.get("cases", []):
+                for r in c.get("records", []):
+                    got[(c["case"], r["seed"])] = r
     if not path.exists():
         return got
     for line in path.read_text(encoding="utf-8").splitlines():
@@ -268,7 +279,7 @@ def run(quick: bool = False, seeds: int = SEEDS, cases: list[str] | None = None,
     drawn = fresh_seeds(master, seeds)
     out = Path(out)
     jpath = _journal_path(out)
-    journal = {} if fresh_start else read_journal(jpath, master)
+    journal = {} if fresh_start else read_journal(jpath, master, out)
     todo = [(c, s) for c in chosen for s in seeds_of(c, drawn) if (c["case"], s) not in journal]
     print(f"fresh seeds drawn from master seed {master} ({'given' if given else 'drawn'}; "
           f"reproduce or resume with {ENV}={master}); {len(journal)} results in the journal, "

@@ -57,6 +57,14 @@ decisions:
    validation error above the noise floor, nothing is named and ``unexplained`` says what the
    residual still correlates with and how much is left; ``unexplained`` is also reported
    (without un-naming) whenever the residual stays clearly above the noise floor.
+
+Out-of-sample rule. The selection constants of this pipeline (``FOLLOWER_SHARE``,
+``MIN_SHARE``, ``JOINT_TRIGGER``, ``SIGNATURE_CUT``, ``DRIFT_BLOCKS``, the screen's iteration
+counts, ...) were set by measuring the development seeds of ``tests/test_diagnose_foreign.py``,
+which that suite then asserts. One changes only with a physical reason written beside it, or
+with a fresh-seed run of ``benchmarks/bench_fresh.py`` (seeds never used in development)
+before and after the change, both recorded; the rates the documents quote are the fresh-seed
+ones (docs/validation.md, "Out-of-sample protocol").
 """
 
 from __future__ import annotations
