@@ -280,7 +280,9 @@ def run(quick: bool = False, seeds: int = SEEDS, cases: list[str] | None = None,
     out = Path(out)
     jpath = _journal_path(out)
     journal = {} if fresh_start else read_journal(jpath, master, out)
-    todo = [(c, s) for c in chosen for s in seeds_of(c, drawn) if (c["case"], s) not in journal]
+    # seed by seed over the cases: a run stopped early has every case on its first seeds
+    todo = [(c, s) for s in drawn for c in chosen
+            if s in seeds_of(c, drawn) and (c["case"], s) not in journal]
     print(f"fresh seeds drawn from master seed {master} ({'given' if given else 'drawn'}; "
           f"reproduce or resume with {ENV}={master}); {len(journal)} results in the journal, "
           f"{len(todo)} to run", flush=True)
