@@ -52,6 +52,15 @@ FORMS = ([(ROBOT, e) for e in ("torsion", "clearance", "friction", "friction:cou
             ("short_stiff", "torsion")])
 
 
+#: vocabulary forms part of whose outside part the nuisances take in (asserted at the ratio
+#: given, with the reason): the nuisances never enter the calibrated model, so what "named and
+#: halved" measures is the model's misfit (asserted at FLOOR_RATIO above for every form); a
+#: nuisance that takes in part of a form may be claimed, and a claimed one un-names an effect
+#: that is mostly a function of it, which the statistics then count as a failure. Empty when
+#: every form leaves FLOOR_RATIO times the floor with the nuisances too.
+NUISANCE_TAKES_PART: dict[str, tuple[float, str]] = {}
+
+
 def _data(robot: str, effects: dict):
     return foreign.generate(robot=robot, design="sweeps", n=ROWS, effects=effects,
                             noise_mm=NOISE, seed=SEED, sweeps=SWEEPS)
@@ -73,7 +82,10 @@ def test_every_form_is_outside_the_joint_families(robot, case):
           + f" mm (friction as {fit.friction}; starts "
           + ", ".join(f"{f}#{k} {m:.3f}" for f, k, m in fit.starts) + f"); floor {floor:.3f} mm")
     assert fit.model_misfit >= FLOOR_RATIO * floor, (case, fit.modes, floor)
-    assert fit.misfit_mm >= FLOOR_RATIO * floor, (case, fit.modes, floor)
+    if case not in NUISANCE_TAKES_PART:
+        assert fit.misfit_mm >= FLOOR_RATIO * floor, (case, fit.modes, floor)
+    else:
+        assert fit.misfit_mm >= NUISANCE_TAKES_PART[case][0] * floor, (case, fit.modes, floor)
     if name in foreign.VOCAB_EFFECTS:
         # still a form of its name: most of it is what the families can fit (the statistics
         # expect the named family to halve the error)

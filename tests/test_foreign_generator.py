@@ -112,7 +112,8 @@ def test_rigid_two_tube_closed_form():
 
 # ----------------------------------------------------------------------------- scipy oracle
 def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True, mu=0.0, rel=None,
-                    clear=None, contact=0.0, ramp=None, ei_curved=None, coupling=None, twist=None):
+                    clear=None, contact=0.0, ramp=None, ei_curved=None, coupling=None, twist=None,
+                    kink=None):
     """Independent shooting: scipy DOP853 (rtol 1e-11) per section + scipy.optimize.root.
     Optional point events where outer tube o ends: friction torque
     T = mu rel (|M_o| + contact M_c e_o / L_o), M_c = EI_o EI_i |kappa_o - kappa_i| / (EI_o + EI_i)
@@ -125,7 +126,8 @@ def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True, mu=0.
     section; coupling: extra transmission length (mm) of each tube's torsion; twist: the
     precurvature vector in each tube's frame turned by twist (s_c - 1/2) about the tangent
     (same 8 sub-sections), kappa (-sin th, cos th, 0) written out in the bending moment and in
-    the twist equation's u_i x kappa_i."""
+    the twist equation's u_i x kappa_i; kink (angles, at, length): angle_i / length more
+    precurvature over ``length`` mm centred at the fraction ``at`` of each curved section."""
     n = spec.n
     L = spec.straight + spec.curved
     e = np.maximum(beta + L, 0.0)
@@ -135,6 +137,11 @@ def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True, mu=0.
         for i in range(n):
             subs += [min(max(beta[i] + spec.straight[i] + spec.curved[i] * k / 8, 0.0), e[i])
                      for k in range(1, 8)]
+    if kink is not None:
+        k_ang = np.asarray(kink[0], float)
+        kc = beta + spec.straight + kink[1] * spec.curved
+        k_lo, k_hi = kc - 0.5 * kink[2], kc + 0.5 * kink[2]
+        subs += [min(max(v, 0.0), e[i]) for i in range(n) for v in (k_lo[i], k_hi[i])]
     bps = np.unique(np.r_[0.0, cs, e, subs])
     ramp = np.zeros(n) if ramp is None else np.asarray(ramp, float)
     twist = np.zeros(n) if twist is None else np.asarray(twist, float)
@@ -180,6 +187,8 @@ def _scipy_cosserat(spec, alpha, beta, gravity=None, F=None, torsion=True, mu=0.
             sc = (mid - beta - spec.straight) / spec.curved
             mid8 = (np.floor(np.clip(sc, 0, 1 - 1e-12) * 8) + 0.5) / 8 - 0.5
             k_i = np.where(curved, kap * (1.0 + ramp * mid8), 0.0)
+            if kink is not None:
+                k_i = k_i + np.where(curved & (mid >= k_lo) & (mid < k_hi), k_ang / kink[2], 0.0)
             th = np.where(curved, twist * mid8, 0.0)
             EIs = EI * np.where(curved, eic, 1.0)
             sol = solve_ivp(rhs, (a, b), y, method="DOP853", rtol=1e-11, atol=1e-11,
@@ -369,6 +378,8 @@ def test_every_effect_at_default_moves_the_tip(robot):
         lo, hi = (0.3, 20.0) if name == "torsion" else (0.5, 8.0)
         if name == "friction" and robot == "two_tube_nylon":
             hi = 20.0
+        if name == "stiffness":      # a 50 % stiffer middle and 30 % softer outer tube
+            hi = 12.0
         assert lo < mean < hi, (name, mean)
 
 
@@ -627,7 +638,7 @@ def test_compliant_friction_and_clearance_events_vs_scipy():
 
 
 def test_compliant_mechanics_forms_vs_scipy():
-    """Curvature ramp and pre-twist, curved-section stiffness and drive couplings in the
+    """Curvature ramp, pre-twist and kink, curved-section stiffness and drive couplings in the
     compliant, loaded shooting against the scipy oracle (its own sub-sections and boundary
     conditions)."""
     sp = load_spec("seed1")
@@ -635,22 +646,23 @@ def test_compliant_mechanics_forms_vs_scipy():
     from tests.foreign.robot import beta_from_unit
     q = np.c_[np.array([[1.1, -0.4, 2.0]]), beta_from_unit(sp, np.array([[0.6, 0.4, 0.7]]))]
     ramp, eic, cpl = np.array([0.6, -0.6, 0.6]), np.array([1.25, 0.8, 1.0]), np.array([60.0, 40, 30])
-    tw = np.array([0.8, -0.9, 0.8])
+    tw, kk = np.array([0.8, -0.9, 0.8]), (np.array([0.04, -0.04, 0.04]), 0.6, 3.0)
     bb = M.cosserat(sp, q[:, :n], q[:, n:], torsion=True, gravity=[9.81, 0.0, 0.0],
-                    ramp=ramp, ei_curved=eic, coupling=cpl, twist=tw)
+                    ramp=ramp, ei_curved=eic, coupling=cpl, twist=tw, kink=kk)
     ref = _scipy_cosserat(sp, q[0, :n], q[0, n:], np.array([9.81, 0.0, 0.0]), None, True,
-                          ramp=ramp, ei_curved=eic, coupling=cpl, twist=tw)
+                          ramp=ramp, ei_curved=eic, coupling=cpl, twist=tw, kink=kk)
     assert bb.ok.all()
     assert np.linalg.norm(bb.tip()[0] - ref) < 1e-3
     plain = M.cosserat(sp, q[:, :n], q[:, n:], torsion=True, gravity=[9.81, 0.0, 0.0]).tip()[0]
     assert np.linalg.norm(plain - ref) > 1.0
     # the rigid closed form with the same forms equals the oracle without torsion
-    rb = M.rigid(sp, q[:, :n], q[:, n:], ramp=ramp, ei_curved=eic, twist=tw).tip()[0]
+    rb = M.rigid(sp, q[:, :n], q[:, n:], ramp=ramp, ei_curved=eic, twist=tw, kink=kk).tip()[0]
     ref_r = _scipy_cosserat(sp, q[0, :n], q[0, n:], torsion=False, ramp=ramp, ei_curved=eic,
-                            twist=tw)
+                            twist=tw, kink=kk)
     assert np.linalg.norm(rb - ref_r) < 1e-6
-    untwisted = M.rigid(sp, q[:, :n], q[:, n:], ramp=ramp, ei_curved=eic).tip()[0]
-    assert np.linalg.norm(untwisted - ref_r) > 0.3          # the pre-twist matters here
+    for drop in ({"twist": None}, {"kink": None}):            # each matters here
+        kw = {"ramp": ramp, "ei_curved": eic, "twist": tw, "kink": kk, **drop}
+        assert np.linalg.norm(M.rigid(sp, q[:, :n], q[:, n:], **kw).tip()[0] - ref_r) > 0.3
 
 
 def test_bistable_pair_returns_a_stable_twisted_equilibrium():

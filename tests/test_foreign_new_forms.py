@@ -54,7 +54,7 @@ def test_coupling_play_is_the_fixed_point_scipy_finds():
         sol = root(f, q[i, :n], method="hybr", tol=1e-12)
         assert np.max(np.abs(f(sol.x))) < 1e-9            # (hybr may flag slow progress)
         ref = M.cosserat(gsp, sol.x[None, :], q[i:i + 1, n:], torsion=True, coupling=cpl).tip()[0]
-        assert np.linalg.norm(got[i] - ref) < 2e-3, (i, got[i], ref)
+        assert np.linalg.norm(got[i] - ref) < 3e-3, (i, got[i], ref)   # << 0.1 mm noise
     no_play, _, _ = truth(sp, q, {"torsion": {**tor, "play": 0.0}})
     assert np.linalg.norm(got - no_play, axis=1).max() > 0.2     # the play matters here
 

@@ -283,7 +283,7 @@ def truth(spec: Spec, q: np.ndarray, eff: dict, direction=None, sweep=None, poin
 
 
 #: fixed-point iterations of the drive couplings' play (damped by half)
-PLAY_ITERATIONS = 10
+PLAY_ITERATIONS = 14
 #: fixed-point iterations of the soft wall's contact force (damped by half)
 WALL_ITERATIONS = 8
 
@@ -294,7 +294,7 @@ def _mechanics(spec: Spec, q: np.ndarray, eff: dict, direction, points: int, h_m
     ``kscale`` (n,): an extra factor on the precurvature (its relaxation)."""
     n = spec.n
     sp = spec if kscale is None else spec.scaled(kscale, None)
-    ramp, ei_curved, softening, twist = None, None, None, None
+    ramp, ei_curved, softening, twist, kink = None, None, None, None, None
     if "precurvature" in eff or "stiffness" in eff:
         pc = eff.get("precurvature")
         st = eff.get("stiffness")
@@ -303,6 +303,9 @@ def _mechanics(spec: Spec, q: np.ndarray, eff: dict, direction, points: int, h_m
         if pc is not None:
             ramp = E._per_tube(pc.get("ramp", 0.0), n, "ramp")
             twist = E._per_tube(pc.get("twist", 0.0) or 0.0, n, "twist")
+            if np.any(E._per_tube(pc.get("kink", 0.0) or 0.0, n, "kink") != 0.0):
+                kink = (E._per_tube(pc["kink"], n, "kink"), float(pc["kink_at"]),
+                        float(pc["kink_length"]))
         if st is not None:
             ei_curved = E._per_tube(st.get("curved", 1.0), n, "curved")
             if np.any(E._per_tube(st.get("soften", 0.0) or 0.0, n, "soften") != 0.0):
@@ -347,7 +350,8 @@ def _mechanics(spec: Spec, q: np.ndarray, eff: dict, direction, points: int, h_m
                 extra[0] = float(load["lumen_density"]) * 1e-9 * np.pi / 4 * sp.id[0] ** 2 * 9.81
         kw = dict(torsion=torsion, gravity=grav, clearance=clear, friction_mu=mu, rel_dir=rel,
                   h_max=h_max, friction_contact=contact, ramp=ramp, ei_curved=ei_curved,
-                  coupling=coupling, extra_weight=extra, softening=softening, twist=twist)
+                  coupling=coupling, extra_weight=extra, softening=softening, twist=twist,
+                  kink=kink)
         tor = eff.get("torsion") or {}
         play = E._per_tube(tor.get("play", 0.0) or 0.0, n, "play") if torsion else np.zeros(n)
         if np.any(play != 0.0):
@@ -365,7 +369,7 @@ def _mechanics(spec: Spec, q: np.ndarray, eff: dict, direction, points: int, h_m
     else:
         bb = M.rigid(sp, alpha, beta, clearance=clear, friction_mu=mu, rel_dir=rel,
                      friction_contact=contact, ramp=ramp, ei_curved=ei_curved, softening=softening,
-                     twist=twist)
+                     twist=twist, kink=kink)
         ok = np.ones(q.shape[0], bool)
     tip = bb.tip()
     pts = bb.points(points) if points else None

@@ -250,17 +250,17 @@ def _outer_last(n, inner, mid, outer):
 def defaults(name: str, n: int, spec=None) -> dict:
     """Default parameters (each moves the tip by a few mm on the shipped robots)."""
     if name == "torsion":
-        return {"gj_scale": _outer_last(n, 1.0, 0.6, 1.4), "coupling": _outer_last(n, 60.0, 40.0, 30.0),
-                "play": _outer_last(n, 0.12, 0.09, 0.06), "play_torque": 0.15}
+        return {"gj_scale": _outer_last(n, 0.7, 0.45, 1.0), "coupling": _outer_last(n, 60.0, 40.0, 30.0),
+                "play": _outer_last(n, 0.1, 0.08, 0.05), "play_torque": 0.3}
     if name == "clearance":
-        return {"amplitude": 0.07, "phase_deg": 205.0, "harmonics": [0.5, 0.4, 0.18],
-                "lean": 0.007, "jump": "gap", "snap": 0.15}
+        return {"amplitude": 0.08, "phase_deg": 205.0, "harmonics": [0.5, 0.3, 0.18],
+                "lean": 0.007, "jump": "gap", "snap": 0.3}
     if name == "friction":
         return friction_defaults("end_moment")
     if name == "precurvature":
-        return {"scale": _alt(n, 0.92, 1.10, 0.93), "ramp": _alt(n, 0.6, -0.6, 0.6),
-                "twist": _alt(n, 1.1, -1.2, 1.1), "relax": _alt(n, 0.08, 0.1, 0.06),
-                "relax_turns": 3.0}
+        return {"scale": _alt(n, 0.88, 1.14, 0.90), "ramp": _alt(n, 0.6, -0.6, 0.6),
+                "twist": _alt(n, 1.0, -1.1, 1.0), "relax": _alt(n, 0.06, 0.08, 0.05),
+                "relax_turns": 3.0, "kink": 0.0, "kink_at": 0.6, "kink_length": 3.0}
     if name == "stiffness":
         return {"scale": _alt(n, 1.0, 1.5, 0.7), "curved": _alt(n, 1.25, 0.8, 1.0),
                 "torsion": _alt(n, 1.0, 0.8, 1.1), "soften": 0.6, "soften_onset": 0.0045,
@@ -268,7 +268,7 @@ def defaults(name: str, n: int, spec=None) -> dict:
     if name == "load":
         return {"gravity": [9.81, 0.0, 0.0], "density": None, "tip_force": "auto",
                 "lumen_density": 2500.0, "tether": 1.5e-4, "anchor": "auto",
-                "base_compliance": 5e-4, "wall": 1e-2, "wall_normal": [-1.0, 0.0, 0.0],
+                "base_compliance": 5e-4, "wall": 6e-3, "wall_normal": [-1.0, 0.0, 0.0],
                 "wall_at": "auto"}
     if name == "joint_offset":
         return {"alpha": _alt(n, 0.05, -0.06, 0.04), "beta": _alt(n, -1.5, -1.0, -0.5),
@@ -278,15 +278,15 @@ def defaults(name: str, n: int, spec=None) -> dict:
                 "rehome": [0.01, 0.2], "rehome_seed": None}
     if name == "registration":
         return {"rotvec": [0.012, -0.009, 0.015], "translation": [1.2, -0.9, 1.5],
-                "scale": [0.012, -0.008, 0.015], "mount": [0.008, 0.006],
-                "sensor": [0.0, 0.9, -2.0]}
+                "scale": [0.012, -0.008, 0.015], "mount": [0.01, 0.008],
+                "sensor": [0.0, 0.9, 0.0]}
     if name == "distortion":
         return {"form": "bumps", "amplitude": 2.8, "width": "auto", "centres": "auto",
                 "vectors": "auto"}
     if name == "drift":
         return {"amplitude": 4.0, "direction": [0.6, -0.48, 0.64], "settle": 0.15, "step": 1.5,
                 "step_at": 0.6, "step_direction": [-0.5, 0.7, 0.5], "wobble": 0.5,
-                "wobble_period": 0.04, "wobble_direction": [0.3, 0.9, -0.3], "wander": 0.4,
+                "wobble_period": 0.04, "wobble_direction": [0.3, 0.9, -0.3], "wander": 0.25,
                 "wander_time": 0.005, "wander_seed": None}
     raise ValueError(f"unknown effect {name!r}; known: {VOCAB_EFFECTS + OUTSIDE_EFFECTS}")
 
@@ -295,11 +295,11 @@ def friction_defaults(form: str) -> dict:
     if form == "end_moment":
         return {"form": form, "mu": 0.03, "contact": 25.0}
     if form == "coulomb_lag":
-        return {"form": form, "lag": 0.035, "beta_lag": 0.0, "growth": 8.0, "moment": 0.6}
+        return {"form": form, "lag": 0.12, "beta_lag": 0.0, "growth": 2.0, "moment": 0.5}
     if form == "presliding":
-        return {"form": form, "lag": 0.07, "angle": 0.3, "growth": 8.0, "moment": 0.6}
+        return {"form": form, "lag": 0.18, "angle": 0.3, "growth": 2.0, "moment": 0.6}
     if form == "stick_slip":
-        return {"form": form, "lag": 0.08, "kinetic": 0.3, "growth": 3.0, "moment": 0.6}
+        return {"form": form, "lag": 0.15, "kinetic": 0.75, "growth": 2.0, "moment": 0.4}
     raise ValueError(f"unknown friction form {form!r}; known: {FRICTION_FORMS}")
 
 

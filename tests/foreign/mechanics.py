@@ -65,7 +65,7 @@ class Geom:
 
 
 def geometry(spec: Spec, beta: np.ndarray, ramp=None, steps: int = 8, ei_curved=None,
-             twist=None) -> Geom:
+             twist=None, kink=None) -> Geom:
     """Break points and per-segment data. Optional effects of the generator:
 
     ramp (n,): precurvature varying along each tube's curved section,
@@ -75,18 +75,28 @@ def geometry(spec: Spec, beta: np.ndarray, ramp=None, steps: int = 8, ei_curved=
     ei_curved (n,): factor on tube i's EI over its curved (shape-set) section.
     twist (n,): the precurvature's plane turns along the curved section (a helix, not a planar
     arc): in the tube's frame the precurvature is kappa_i (-sin th, cos th, 0) with th =
-    twist_i (s_c - 1/2), on the same sub-sections as the ramp."""
+    twist_i (s_c - 1/2), on the same sub-sections as the ramp.
+    kink (angles (n,) rad, at, length mm): a concentrated bend set into each curved section
+    (the shape-setting fixture's joint): over ``length`` mm centred at the fraction ``at`` of
+    the curved section the precurvature is larger by angle_i / length (extra break points)."""
     B, n = beta.shape
     e = np.maximum(beta + spec.L, 0.0)
     cst = np.minimum(np.maximum(beta + spec.straight, 0.0), e)
     use_ramp = ramp is not None and np.any(np.asarray(ramp, float) != 0.0)
     use_twist = twist is not None and np.any(np.asarray(twist, float) != 0.0)
+    use_kink = kink is not None and np.any(np.asarray(kink[0], float) != 0.0)
     extra = np.zeros((B, 0))
     if use_ramp or use_twist:
         f = np.arange(1, steps) / steps
         c0 = beta + spec.straight                                      # (B, n) curved start
         extra = c0[:, :, None] + f[None, None, :] * spec.curved[None, :, None]
         extra = np.clip(extra, 0.0, e[:, :, None]).reshape(B, -1)
+    if use_kink:
+        k_ang = np.asarray(kink[0], float)
+        k_len = float(kink[2])
+        k0 = beta + spec.straight + float(kink[1]) * spec.curved - 0.5 * k_len       # (B, n)
+        k1 = k0 + k_len
+        extra = np.concatenate([extra, np.clip(k0, 0.0, e), np.clip(k1, 0.0, e)], axis=1)
     raw = np.concatenate([np.zeros((B, 1)), cst, e, extra], axis=1)
     order = np.argsort(raw, axis=1, kind="stable")
     bp = np.take_along_axis(raw, order, axis=1)
@@ -105,6 +115,9 @@ def geometry(spec: Spec, beta: np.ndarray, ramp=None, steps: int = 8, ei_curved=
             kap = kap * (1.0 + np.asarray(ramp, float)[None, None, :] * (sc_mid - 0.5))
         if use_twist:
             kphase = np.where(curved, np.asarray(twist, float)[None, None, :] * (sc_mid - 0.5), 0.0)
+    if use_kink:
+        inside = (mid[:, :, None] >= k0[:, None, :]) & (mid[:, :, None] < k1[:, None, :])
+        kap = kap + np.where(inside, k_ang[None, None, :] / k_len, 0.0)
     kappa = np.where(curved, kap, 0.0)
     eif = None
     if ei_curved is not None and np.any(np.asarray(ei_curved, float) != 1.0):
@@ -225,7 +238,7 @@ def soften(spec: Spec, g: Geom, alpha, softening) -> None:
 
 
 def rigid(spec: Spec, alpha, beta, *, clearance=None, friction_mu=0.0, rel_dir=None,
-          friction_contact=0.0, ramp=None, ei_curved=None, softening=None, twist=None):
+          friction_contact=0.0, ramp=None, ei_curved=None, softening=None, twist=None, kink=None):
     """Closed-form rigid backbone. Returns a Backbone (node frames per break point).
 
     clearance: callable(phi (B,) relative rotation inner - outer, pair index j) -> delta (B,) rad
@@ -237,7 +250,7 @@ def rigid(spec: Spec, alpha, beta, *, clearance=None, friction_mu=0.0, rel_dir=N
     """
     alpha = np.asarray(alpha, float)
     beta = np.asarray(beta, float)
-    g = geometry(spec, beta, ramp=ramp, ei_curved=ei_curved, twist=twist)
+    g = geometry(spec, beta, ramp=ramp, ei_curved=ei_curved, twist=twist, kink=kink)
     if softening is not None:
         soften(spec, g, alpha, softening)
     if friction_mu and rel_dir is not None and spec.n > 1:
@@ -747,7 +760,7 @@ def _m0_guess(pb, bb):
 def cosserat(spec: Spec, alpha, beta, *, torsion=True, gravity=None, tip_force=None,
              clearance=None, friction_mu=0.0, rel_dir=None, h_max=10.0, tol=1e-10, max_iter=12,
              friction_contact=0.0, ramp=None, ei_curved=None, coupling=None, extra_weight=None,
-             softening=None, twist=None):
+             softening=None, twist=None, kink=None):
     """Solve the (loaded) Cosserat rod BVP for a batch. gravity: (3,) m/s^2 in the base frame
     (None = no weight); tip_force: (3,) N. Returns a CosseratBackbone (with .ok per row).
 
@@ -756,7 +769,7 @@ def cosserat(spec: Spec, alpha, beta, *, torsion=True, gravity=None, tip_force=N
     alpha = np.asarray(alpha, float)
     beta = np.asarray(beta, float)
     B, n = alpha.shape
-    g = geometry(spec, beta, ramp=ramp, ei_curved=ei_curved, twist=twist)
+    g = geometry(spec, beta, ramp=ramp, ei_curved=ei_curved, twist=twist, kink=kink)
     if softening is not None:
         soften(spec, g, alpha, softening)       # the strain of the torsionally rigid shape
     wvec = None
