@@ -56,9 +56,13 @@ FORMS = ([(ROBOT, e) for e in ("torsion", "clearance", "friction", "friction:cou
 #: given, with the reason): the nuisances never enter the calibrated model, so what "named and
 #: halved" measures is the model's misfit (asserted at FLOOR_RATIO above for every form); a
 #: nuisance that takes in part of a form may be claimed, and a claimed one un-names an effect
-#: that is mostly a function of it, which the statistics then count as a failure. Empty when
-#: every form leaves FLOOR_RATIO times the floor with the nuisances too.
-NUISANCE_TAKES_PART: dict[str, tuple[float, str]] = {}
+#: that is mostly a function of it, which the statistics then count as a failure.
+NUISANCE_TAKES_PART: dict[str, tuple[float, str]] = {
+    # measured on the design seed: model 0.41 mm, with the nuisances 0.27 mm (1.7 floors)
+    "load": (1.5, "the soft wall's force is a hinge of the tip's position, and the tracker-field "
+                  "nuisance is a smooth function of the measured position: its quadratic takes in "
+                  "part of the hinge (a wall ctrplan's loads cannot express either way)"),
+}
 
 
 def _data(robot: str, effects: dict):

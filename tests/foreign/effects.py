@@ -13,7 +13,7 @@ oracles written there (scipy root on their fixed points, hand-composed rotations
 The study (``core.STUDY_EFFECTS``) and the real-robot scenario (``scenarios.py``) set the newer
 parts off explicitly (they keep the forms they were made with).
 
-torsion       {"gj_scale": 1.0 (scalar or per tube), "coupling": [mm per tube],
+torsion       {"gj_scale": scalar or per tube, "coupling": [mm per tube],
                "play": [rad per tube], "play_torque": N mm}
               Truth = torsionally compliant Cosserat rods (GJ scaled), and each tube's drive
               coupling (collet, motor shaft) adds torsional compliance equal to ``coupling`` mm
@@ -21,8 +21,9 @@ torsion       {"gj_scale": 1.0 (scalar or per tube), "coupling": [mm per tube],
               The coupling also has play (backlash and a soft elastomer element): the tube's base
               turns within it by play_i tanh(T_i / play_torque) in the direction that relieves
               the torque T_i = GJ_i u_iz(0) it carries (a fixed point, damped). Absent =
-              torsionally rigid truth. Default coupling (60, 40, 30) mm, play (0.12, 0.09, 0.06)
-              rad, play_torque 0.15 N mm (outermost last).
+              torsionally rigid truth. Default gj_scale (0.7, 0.45, 1.0) (tubes torsionally
+              softer than the solid-tube formula: ground or cut walls), coupling (60, 40, 30) mm,
+              play (0.1, 0.08, 0.05) rad, play_torque 0.3 N mm (outermost last).
               Why not ctrplan's: its torsion scales every tube's EI/GJ by one factor (tube 1 by a
               fixed extra factor); a length-independent coupling compliance is not a scale of the
               tube's compliance, and the play is a saturating rotation that follows the sign of
@@ -33,8 +34,8 @@ clearance     {"amplitude": rad, "phase_deg": 205, "harmonics": [h0, h1, h2, ...
               Where outer tube j ends, the tubes inside it (relative rotation phi = inner - outer)
               (a) tilt in the inner tube's bending plane by
                   delta(phi) = amplitude * (h0 + h1 S(phi - phase) + sum_k>=2 h_k cos(k (phi -
-                  phase))), S the gap crossing below (default amplitude 0.07, harmonics
-                  [0.5, 0.4, 0.18]);
+                  phase))), S the gap crossing below (default amplitude 0.08, harmonics
+                  [0.5, 0.3, 0.18]);
               (b) lean sideways, about the inner tube's bending direction, by
                   lean * sin(phi - phase) (the component of the moment mismatch out of the
                   inner tube's bending plane; default 0.007 rad);
@@ -45,7 +46,7 @@ clearance     {"amplitude": rad, "phase_deg": 205, "harmonics": [h0, h1, h2, ...
               S(x) = tanh(cos(x) / snap) / tanh(1 / snap) (``snap_wave``): the inner tube lies
               against one side of the gap or the other and crosses it within about ``snap``
               rad of the relative rotation where the moment mismatch changes sign (default
-              0.15; 0 gives the smooth cos(x) of the earlier form).
+              0.3; 0 gives the smooth cos(x) of the earlier form).
               Off: amplitude 0, lean 0, jump 0.
               Why not ctrplan's: its harmonic forms tilt only about the inner tube's curvature
               axis (in-plane) with harmonics up to the second, its gap form tilts by a multiple
@@ -75,8 +76,8 @@ friction      {"form": "end_moment" | "coulomb_lag" | "presliding" | "stick_slip
               translation relative to the next outer tube, with kinks where the curved section
               starts and stops being held), r = |kappa_i e(alpha_i) - kappa_o e(alpha_o)| /
               (kappa_i + kappa_o) the pair's curvature mismatch at its relative rotation (the
-              force between them; 1/2 for the outermost tube). Default {"lag": 0.035 rad,
-              "growth": 8.0, "moment": 0.6, "beta_lag": 0 mm} ("lag" scalar or per tube).
+              force between them; 1/2 for the outermost tube). Default {"lag": 0.12 rad,
+              "growth": 2.0, "moment": 0.5, "beta_lag": 0 mm} ("lag" scalar or per tube).
               Why not ctrplan's: its lag / relative / dead_band lags are constant per tube, or
               grow with the square of the tube's own retracted fraction (its windup, lost +
               wind (-beta / L)^2): h depends on the neighbour's translation and is piecewise
@@ -85,7 +86,7 @@ friction      {"form": "end_moment" | "coulomb_lag" | "presliding" | "stick_slip
               exponent 2 (hyperbolic, not exponential): w = 1 - z d / c, w <- w / (1 + w
               |dalpha| / angle), z = c d (1 - w), c as for coulomb_lag;
               alpha_eff = alpha - z. Without row history (``backbones(direction=...)``) the fully
-              developed lag c d. Default {"lag": 0.07 rad, "angle": 0.3 rad, "growth": 8.0,
+              developed lag c d. Default {"lag": 0.18 rad, "angle": 0.3 rad, "growth": 2.0,
               "moment": 0.6}.
               Why not ctrplan's: its presliding recursion is the exponential one
               (w <- w exp(-|dalpha| / angle)) with a lag constant or growing with the own
@@ -96,11 +97,12 @@ friction      {"form": "end_moment" | "coulomb_lag" | "presliding" | "stick_slip
               the command pushes it beyond, slips until the lag is the kinetic ``kinetic c``,
               sticks again, and so on (a sawtooth over the commanded travel; each sweep starts
               settled). Without row history the mean lag (1 + kinetic) c / 2. Default
-              {"lag": 0.08 rad, "kinetic": 0.3, "growth": 3.0, "moment": 0.6}.
+              {"lag": 0.15 rad, "kinetic": 0.75, "growth": 2.0, "moment": 0.4}.
               Why not ctrplan's: no form has a lag that saws between two limits along the
               commanded travel.
 precurvature  {"scale": [per tube], "ramp": [per tube], "twist": [rad per tube],
-               "relax": [per tube], "relax_turns": turns}
+               "relax": [per tube], "relax_turns": turns, "kink": [rad per tube], "kink_at":
+               fraction, "kink_length": mm}
               kappa_i(s) = scale_i kappa_i (1 + ramp_i (s_c - 1/2)), s_c in [0, 1] along the
               curved section from its proximal start (held constant over equal
               sub-sections, 8: a shape-setting fixture that bends more at one end); the curve is
@@ -108,9 +110,11 @@ precurvature  {"scale": [per tube], "ramp": [per tube], "twist": [rad per tube],
               the fixture's mandrel twisted); and it relaxes with use: times 1 - relax_i (1 -
               exp(-N_i / relax_turns)), N_i the bending cycles the tube has gone through (its
               accumulated rotation relative to the tube around it, in turns, counted along the
-              rows in order; rows without order: relaxed). Default scale (0.92, 1.10, 0.93), ramp
-              (0.6, -0.6, 0.6), twist (1.1, -1.2, 1.1) rad, relax (0.08, 0.10, 0.06) over 3
-              turns (outermost last).
+              rows in order; rows without order: relaxed); optionally a kink (a concentrated
+              bend of ``kink`` rad over ``kink_length`` mm at the fraction ``kink_at`` of the
+              section; off by default). Default scale (0.88, 1.14, 0.90), ramp (0.6, -0.6, 0.6),
+              twist (1.0, -1.1, 1.0) rad, relax (0.06, 0.08, 0.05) over 3 turns (outermost
+              last).
               Why not ctrplan's: it scales each tube's precurvature by one constant, in a plane;
               the out-of-plane part of the twisted curve turns with the tube and depends on how
               much of the section is exposed, and the relaxation is a history.
@@ -137,7 +141,7 @@ load          {"gravity": [gx, gy, gz] m/s^2 in the base frame (default [9.81, 0
               pulls the tip toward the anchor with F = tether (anchor - tip) (fixed point in the
               tip), "base_compliance": rad per N mm (default 5e-4): the mount turns the whole
               robot about the base origin by that times the loads' bending moment there,
-              "wall": N/mm (default 1e-2), "wall_normal": [3] (default (-1, 0, 0)), "wall_at":
+              "wall": N/mm (default 6e-3), "wall_normal": [3] (default (-1, 0, 0)), "wall_at":
               mm (default "auto": -0.08 L_1): soft tissue the tip presses on, a plane
               {p: normal . p = wall_at}; where the tip is beyond it, it pushes back along the
               normal with wall times the depth (a fixed point in the tip, damped)}.
@@ -175,8 +179,8 @@ registration  {"rotvec": [rad x3], "translation": [mm x3], "scale": [x3] or scal
               the tangent: a coil glued on the side of the tube, behind its tip), and m(q) turns
               the robot's housing with its configuration (``mount_rotvec``: its clamp rocks to
               the side of the unbalanced outer rotary stage, a bowed rail pitches it along the
-              outer carriage's travel). Default scale (0.012, -0.008, 0.015), mount (0.008,
-              0.006) rad, sensor (0, 0.9, -2.0) mm.
+              outer carriage's travel). Default scale (0.012, -0.008, 0.015), mount (0.01,
+              0.008) rad, sensor (0, 0.9, 0) mm (beside the axis, across the bending plane).
               Why not ctrplan's: its registration is rigid (no scale); the coil's offset turns
               with the tip's frame (no function of the tip's position) and the housing turns with
               the joints (no constant transform).
@@ -203,7 +207,8 @@ drift         {"amplitude": mm, "direction": [3], "settle": 0.15, "step": mm, "s
               cooling cycle; default 0.5 mm), a step of ``step`` mm at t >= step_at (the
               tracker was bumped), and a wander: a smooth random offset of ``wander`` mm rms per
               axis that changes over ``wander_time`` of the recording (:func:`wander`; drawn from
-              ``wander_seed``, which ``generate`` draws from its seed when None; default 0.4 mm).
+              ``wander_seed``, which ``generate`` draws from its seed when None; default 0.25
+              mm).
               Why not ctrplan's nuisance: it fits a linear spline in the fraction of the
               recording time with 10 evenly spaced knots (a cycle of 1/25 of the recording and a
               wander over 1/200 of it are far faster than its knots, and a step is not
