@@ -46,7 +46,7 @@ import numpy as np  # noqa: E402
 
 ROBOT = "seed1"
 #: the nominal robot in foreign terms: compliant rods, physical GJ, no coupling (ctrplan physics)
-NOMINAL = {"torsion": {"gj_scale": 1.0, "coupling": 0.0}}
+NOMINAL = {"torsion": {"gj_scale": 1.0, "coupling": 0.0, "play": 0.0}}
 SCENES = ("airway", "neuro", "skull_base", "bronchial_tree")
 OUT = ROOT / "benchmarks" / "results" / "real_robot.json"
 #: issue 18 "done when": calibrate-then-plan success share, penetration (mm) allowed on the
@@ -66,7 +66,7 @@ DISTANCES = True
 #: tube 10 % less curved, outer tube 25 % stiffer, a clearance tilt, an inner-tube rotation
 #: lag, torsional compliance)
 FALLBACK_EFFECTS = {
-    "torsion": {"gj_scale": 1.0},
+    "torsion": {"gj_scale": 1.0, "play": 0.0},
     "precurvature": {"scale": [1.0, 0.9, 1.0]},
     "stiffness": {"scale": [1.0, 1.0, 1.25]},
     "clearance": {"amplitude": 0.02, "phase_deg": 205.0, "harmonics": [0.5, 0.5]},

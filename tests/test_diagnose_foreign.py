@@ -1,12 +1,20 @@
 """Diagnose statistics on the foreign generator (issue 12, "Done when"; the README quotes these).
 
 The data come from ``tests.foreign``: its own mechanics (own integration, torsion by its own
-Cosserat shooting), its own effect forms, each outside ctrplan's fitted family of the same name
-(tests/foreign/effects.py says why, per effect: curvature ramps, curved-section stiffness,
-clearance lean + jump + 2nd harmonic, contact-length friction, Dahl-2 presliding, filled lumen +
-tether + compliant-mount loads, periodic encoder error, registration with scale, an RBF tracker
-field, settling + cycle + step drift, drive-coupling torsion), its own noise and experiment designs; it
-imports nothing from ctrplan. A failed import fails the suite.
+Cosserat shooting), its own effect forms, each outside what ctrplan's families can combine
+(tests/foreign/effects.py says why, per effect: pre-twisted, relaxing curvature ramps;
+curved-section stiffness with superelastic softening; a clearance crossing its gap with a lean
+and a jump; contact-length friction; torque-dependent Coulomb lags, Dahl-2 presliding and
+stick-slip; filled lumen + tether + compliant-mount + soft-wall loads; periodic, gear and
+re-homing joint errors; registration with scale, a coil beside the tip and a turning housing;
+an RBF tracker field; settling + cycle + step + wander drift; drive couplings with play;
+tests/test_foreign_forms.py asserts it), its own noise and experiment designs; it imports
+nothing from ctrplan. A failed import fails the suite.
+
+These are the DEVELOPMENT seeds (fixed, fast, in-sample: every selection constant and generator
+magnitude was looked at with them). The rates the documents quote are measured on fresh seeds
+by ``benchmarks/bench_fresh.py`` (same cases, same design; docs/validation.md, "Out-of-sample
+protocol").
 
 Sizes (to keep the whole suite within its budget on 2 cores): the seed1 robot (three tubes),
 ``ROWS`` = 300 rows in 8 back-and-forth sweeps per data set, noise 0.1 mm per axis; the study

@@ -502,7 +502,7 @@ def test_agrees_with_the_foreign_generator(robot, torsion):
     its plain load (horizontal gravity + tip force), a gravity-only and a force-only load."""
     foreign = pytest.importorskip("tests.foreign")
     # the generator's plain forms (its defaults add drive couplings, a filled lumen, a tether)
-    plain_torsion = {"torsion": {"gj_scale": 1.0, "coupling": 0.0}}
+    plain_torsion = {"torsion": {"gj_scale": 1.0, "coupling": 0.0, "play": 0.0}}
     r = load_robot(robot)
     q = r.sample(12, seed=5)
     unloaded = PhysicsModel(r, torsion=torsion).shape(q, 15).points

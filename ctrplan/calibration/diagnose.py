@@ -71,6 +71,14 @@ decisions:
 Long recordings: the selection fits every k-th fit and validation row (at most about
 :data:`SELECT_FIT_ROWS` fit rows); the final fit uses them all. Progress and an estimate of
 the time left are logged (stderr, INFO).
+
+Out-of-sample rule. The selection constants of this pipeline (``FOLLOWER_SHARE``,
+``MIN_SHARE``, ``JOINT_TRIGGER``, ``SIGNATURE_CUT``, ``DRIFT_BLOCKS``, the screen's iteration
+counts, ...) were set by measuring the development seeds of ``tests/test_diagnose_foreign.py``,
+which that suite then asserts. One changes only with a physical reason written beside it, or
+with a fresh-seed run of ``benchmarks/bench_fresh.py`` (seeds never used in development)
+before and after the change, both recorded; the rates the documents quote are the fresh-seed
+ones (docs/validation.md, "Out-of-sample protocol").
 """
 
 from __future__ import annotations

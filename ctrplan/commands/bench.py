@@ -10,11 +10,15 @@ import platform
 import time
 from pathlib import Path
 
+from ctrplan.commands._fresh import fresh_block, fresh_summary_block, measured_fresh
 from ctrplan.errors import InputError
 
 log = logging.getLogger("ctrplan")
 
 SUITES = ("shape", "learned", "collision", "planning", "diagnose")
+#: suites run only when named (hours long) that keep their own results file <out>/<suite>.json
+#: (resumable) instead of a part of bench.json: ``fresh``, the fresh-seed calibration statistics
+OWN_RESULTS = ("fresh",)
 START, END = "<!-- bench:start -->", "<!-- bench:end -->"
 
 
@@ -23,7 +27,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Run benchmarks/bench_<suite>.py (shape models, learned model, "
                                    "collision, planning, diagnose) and write <out>/bench.json and "
                                    "<out>/bench.md with the machine they ran on.")
-    p.add_argument("suites", nargs="*", default=list(SUITES), help=f"suites to run (default: all of {', '.join(SUITES)})")
+    p.add_argument("suites", nargs="*", default=list(SUITES),
+                   help=f"suites to run (default: all of {', '.join(SUITES)}; also "
+                        f"{', '.join(OWN_RESULTS)}: the fresh-seed calibration statistics, hours, "
+                        "resumable, written to <out>/fresh.json)")
     p.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
     p.add_argument("--out", default="benchmarks/results", help="output folder")
     p.add_argument("--readme", metavar="FILE",
@@ -398,6 +405,10 @@ def _m_design_infeasible(res: Path) -> str | None:
 MEASURED = {
     "design_generated": _m_design_generated,
     "design_infeasible": _m_design_infeasible,
+    "fresh_single": measured_fresh("single"),
+    "fresh_none": measured_fresh("none"),
+    "fresh_outside": measured_fresh("outside"),
+    "fresh_study": measured_fresh("study"),
     "learned_foreign_best_gain": _m_learned_foreign_best_gain,
     "learned_foreign_auto_ratio": _m_learned_foreign_auto_ratio,
     "hard_rrtconnect_success": _m_hard_rrtconnect_success,
@@ -483,6 +494,10 @@ def readme_blocks(results: Path) -> dict[str, str]:
     rr = _load(results / "real_robot.json")
     if rr:
         out["real-robot"] = real_robot_block(rr)
+    fr = _load(results / "fresh.json")
+    if fr:
+        out["fresh"] = fresh_block(fr)
+        out["fresh-summary"] = fresh_summary_block(fr)
     return out
 
 
@@ -513,9 +528,10 @@ def refresh_docs(readme: Path, results: Path) -> None:
 def run(args: argparse.Namespace) -> int:
     from ctrplan.io import jsonable, write_json_atomic, write_text_atomic
 
-    unknown = [s for s in args.suites if s not in SUITES]
+    unknown = [s for s in args.suites if s not in SUITES + OWN_RESULTS]
     if unknown:
-        raise InputError("suites", unknown[0], f"unknown suite (choose from {', '.join(SUITES)})")
+        raise InputError("suites", unknown[0],
+                         f"unknown suite (choose from {', '.join(SUITES + OWN_RESULTS)})")
     readme = None
     if args.readme:  # check the target before spending minutes on benchmarks
         try:
@@ -532,8 +548,18 @@ def run(args: argparse.Namespace) -> int:
         write_text_atomic(Path(args.readme), refresh_readme(readme, Path(args.out), args.readme))
         refresh_docs(Path(args.readme), Path(args.out))
         return 0
+    for name in [s for s in args.suites if s in OWN_RESULTS]:
+        log.info("bench: running %s%s", name, " (quick)" if args.quick else "")
+        res = load_suite(name).run(quick=args.quick, out=Path(args.out) / f"{name}.json")
+        print(to_markdown({"machine": res["machine"], "suites": {name: res}}))
+    regular = [s for s in args.suites if s not in OWN_RESULTS]
+    if not regular:
+        if readme is not None:
+            write_text_atomic(Path(args.readme), refresh_readme(readme, Path(args.out), args.readme))
+            refresh_docs(Path(args.readme), Path(args.out))
+        return 0
     results = {"machine": machine(), "quick": bool(args.quick), "suites": {}}
-    for name in args.suites:
+    for name in regular:
         log.info("bench: running %s%s", name, " (quick)" if args.quick else "")
         t0 = time.perf_counter()
         res = load_suite(name).run(quick=args.quick)

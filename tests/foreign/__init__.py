@@ -20,24 +20,29 @@ docstring and README.md say, per effect, why ctrplan's family of the same name c
 it; tests/test_foreign_generator.py checks the best fit of that family leaves a residual).
 
 Mean / max tip displacement (mm) each effect causes at its DEFAULT parameters against the same
-rows without it (design "sweeps", n=1000, seed=1, no noise; measured 2026-11-25, load and drift
-2026-11-27):
+rows without it (design "sweeps", n=1000, seed=1, no noise; measured 2026-11-27 with the forms
+of issue 36, each outside what ctrplan's families can combine):
 
     effect                    seed1 mean/max    two_tube_nylon mean/max
-    torsion (GJ, couplings)      1.40 / 4.83       14.89 / 44.31
-    clearance                    4.10 / 8.52        1.53 / 6.53
-    friction end_moment          2.52 / 9.82        1.45 / 8.14
-    friction coulomb_lag         1.31 / 3.75        1.89 / 5.56
-    friction presliding          1.16 / 3.99        1.53 / 18.10
-    precurvature                 2.72 / 7.26        7.48 / 15.94
-    stiffness                    2.49 / 4.43        1.18 / 3.22
-    load (gravity, tip force,    4.61 / 13.60       7.83 / 17.98
+    torsion (GJ, couplings,      3.12 / 8.28       17.27 / 63.19
+             play)
+    clearance (crossing)         4.68 / 10.91       1.76 / 7.29
+    friction end_moment          4.65 / 18.42       1.60 / 8.64
+    friction coulomb_lag         3.93 / 9.85        7.88 / 19.90
+    friction presliding          4.53 / 37.22       7.19 / 41.52
+    friction stick_slip          3.71 / 10.13       7.53 / 20.95
+    precurvature (ramp, twist,   5.12 / 12.01       8.13 / 18.53
+                  relaxation)
+    stiffness (softening)        9.59 / 15.96       3.55 / 8.52
+    load (gravity, tip force,    4.64 / 13.60       7.89 / 20.11
           filled lumen, tether,
-          compliant mount)
-    joint_offset                 3.04 / 4.15        3.97 / 9.67
-    registration (+ scale)       5.37 / 7.79        5.33 / 6.87
-    distortion                   1.58 / 3.21        0.83 / 3.34
-    drift                        3.27 / 4.17        3.27 / 4.17
+          compliant mount, wall)
+    joint_offset                 3.14 / 5.07        4.06 / 11.30
+    registration (+ scale, coil, 5.38 / 9.14        5.50 / 9.45
+                  housing)
+    distortion (bumps)           1.77 / 3.60        0.93 / 3.74
+    distortion (dipole)          0.57 / 3.11        0.65 / 11.62
+    drift                        3.23 / 5.06        3.23 / 5.06
 
 Torsion uses the tubes' physical GJ = E J / (2 (1 + nu)) times ``gj_scale`` per tube; it is
 small on seed1 and large on the nylon pair. Friction is only visible where rows carry a

@@ -93,6 +93,25 @@ def _held_curved(spec: Spec, q: np.ndarray) -> np.ndarray:
     return np.clip(held_to - start, 0.0, spec.curved[None, :]) / spec.curved[None, :]
 
 
+def _contact_moment(spec: Spec, q: np.ndarray, moment: float) -> np.ndarray:
+    """(N, n) factor of the friction lags from the contact force (torque-dependent friction):
+    tube i presses on the tube around it with a force that grows with their curvature mismatch
+    |kappa_i e(alpha_i) - kappa_o e(alpha_o)|, r in [0, 1] as a fraction of kappa_i + kappa_o;
+    factor 1 + moment (2 r - 1) (1 for the outermost tube, which has no tube around it)."""
+    n = spec.n
+    out = np.ones((q.shape[0], n))
+    if not moment or n < 2:
+        return out
+    a = q[:, :n]
+    k = spec.kappa
+    for i in range(n - 1):
+        phi = a[:, i] - a[:, i + 1]
+        mis = np.sqrt(np.maximum(k[i] ** 2 + k[i + 1] ** 2 - 2 * k[i] * k[i + 1] * np.cos(phi), 0.0))
+        r = mis / max(k[i] + k[i + 1], 1e-12)
+        out[:, i] = 1.0 + moment * (2.0 * r - 1.0)
+    return out
+
+
 def _alpha_lag(eff, q, n, direction, sweep, spec=None):
     """Friction lag forms acting on the transmitted joint values: returns q_eff."""
     q = q.copy()
@@ -104,12 +123,15 @@ def _alpha_lag(eff, q, n, direction, sweep, spec=None):
     growth = E._per_tube(fr.get("growth", 0.0), n, "growth")
     if spec is not None:
         c = lag[None, :] * (1.0 + growth[None, :] * _held_curved(spec, q))
+        c = c * _contact_moment(spec, q, float(fr.get("moment", 0.0) or 0.0))
     else:
         c = np.broadcast_to(lag[None, :], (q.shape[0], n))
     if fr["form"] == "coulomb_lag":
         q[:, :n] -= c * d[:, :n]
         q[:, n:] -= E._per_tube(fr.get("beta_lag", 0.0), n, "beta_lag") * d[:, n:]
         return q
+    if fr["form"] == "stick_slip":
+        return _stick_slip(q, n, c, float(fr["kinetic"]), d, sweep)
     # presliding: history along each sweep when rows are in motion order, else developed lag
     ang = float(fr["angle"])
     if sweep is None:
@@ -136,34 +158,159 @@ def _alpha_lag(eff, q, n, direction, sweep, spec=None):
     return q
 
 
-def truth(spec: Spec, q: np.ndarray, eff: dict, direction=None, sweep=None, points: int = 0,
-          h_max: float = 10.0):
-    """Noise-free tips (N,3) and points (N,M,3) or None in the robot base frame (before tracker
-    effects), and ok (N,) (mechanics converged)."""
-    q = np.atleast_2d(np.asarray(q, float))
-    n = spec.n
-    eff = E.resolve(eff, n, spec)       # idempotent on resolved parameters; {} -> defaults
+def _stick_slip(q, n, c, kinetic, d, sweep):
+    """Stick-slip lags along the rows (one motion per sweep, each sweep starting settled): each
+    tube's transmitted angle sticks while the lag e (commanded - actual) stays within the static
+    limit c (per row: the torque-dependent ``lag (1 + growth h)``); where the command pushes it
+    beyond, the tube slips until the lag is the kinetic ``kinetic c``, sticks again, and so on
+    (a sawtooth over the commanded travel). Without row order the mean lag (1 + kinetic) c / 2
+    against the direction of motion."""
+    if not np.any(c > 0.0):
+        return q
+    if sweep is None:
+        q[:, :n] -= 0.5 * (1.0 + kinetic) * c * d[:, :n]
+        return q
+    a0 = q[:, :n].copy()
+    e = np.zeros(n)
+    for i in range(q.shape[0]):
+        if i == 0 or sweep[i] != sweep[i - 1]:
+            e = np.zeros(n)
+        else:
+            da = a0[i] - a0[i - 1]
+            sg = np.sign(da)
+            cs, ck = c[i], kinetic * c[i]
+            e1 = e + da
+            over = sg * e1 - cs
+            slip = (sg != 0) & (over > 0)
+            width = np.maximum(cs - ck, 1e-12)
+            e = np.where(slip, sg * (ck + np.mod(over, width)), e1)
+        q[i, :n] -= e
+    return q
+
+
+def _joint_space(eff, q, n, direction, sweep, spec):
+    """The joints the tubes really reach: joint offsets (encoder, gear and lead-screw errors)
+    and friction lags."""
     if "joint_offset" in eff:
         jo = eff["joint_offset"]
         q = q.copy()
         a = q[:, :n]
         amp = E._per_tube(jo.get("periodic", 0.0), n, "periodic")
         ph = E._per_tube(jo.get("periodic_phase", 0.0), n, "periodic_phase")
-        q[:, :n] = a + E._per_tube(jo["alpha"], n, "alpha") + amp * np.sin(a + ph)
+        gear = E._per_tube(jo.get("gear", 0.0), n, "gear")
+        gph = E._per_tube(jo.get("gear_phase", 0.0), n, "gear_phase")
+        order = float(jo.get("gear_order", 3))
+        q[:, :n] = (a + E._per_tube(jo["alpha"], n, "alpha") + amp * np.sin(a + ph)
+                    + gear * np.sin(order * a + gph))
         bs = E._per_tube(jo.get("beta_scale", 0.0), n, "beta_scale")
         q[:, n:] = q[:, n:] * (1.0 + bs) + E._per_tube(jo["beta"], n, "beta")
-    q = _alpha_lag(eff, q, n, direction, sweep, spec)
-    sp = spec
-    ramp, ei_curved = None, None
+        q = q + _rehome(jo, n, sweep, q.shape[0])
+    return _alpha_lag(eff, q, n, direction, sweep, spec)
+
+
+def _rehome(jo: dict, n: int, sweep, B: int) -> np.ndarray:
+    """(B, 2n) the joint offsets' part that changes from sweep to sweep: the robot homes its
+    joints before every sweep and the home switches repeat only to ``rehome`` = (rad, mm)
+    (standard deviations, per joint, drawn from ``rehome_seed`` and the sweep's position in the
+    recording). Without sweeps (rows as independent configurations): none."""
+    sd = np.broadcast_to(np.asarray(jo.get("rehome", 0.0) or 0.0, float), (2,))
+    out = np.zeros((B, 2 * n))
+    if sweep is None or not np.any(sd != 0.0):
+        return out
+    sw = np.asarray(sweep)
+    starts = np.r_[True, sw[1:] != sw[:-1]]
+    k = np.cumsum(starts) - 1                                   # sweep index of each row
+    rng = np.random.default_rng([int(jo.get("rehome_seed") or 0), 4242])
+    draw = rng.normal(size=(int(k.max()) + 1, 2 * n)) * np.repeat(sd, n)[None, :]
+    return draw[k]
+
+
+#: levels of the relaxation's progress (0..1) within which rows share one mechanics solve
+AGING_LEVELS = 32
+
+
+def _aging(spec: Spec, eff: dict, q: np.ndarray, sweep):
+    """Per-row factors (N, n) on the precurvature as it relaxes with bending cycles and the
+    relaxation's progress (N, n), or None when it is off. Rows in order (``sweep`` given): the
+    cycles of tube i are its accumulated rotation relative to the tube around it (the base, for
+    the outermost) in turns, counted over all rows in order (the robot also moves between
+    sweeps). Without order: the settled state (fully relaxed)."""
+    n = spec.n
+    pc = eff.get("precurvature")
+    relax = E._per_tube(pc.get("relax", 0.0) or 0.0, n, "relax") if pc else np.zeros(n)
+    if not np.any(relax != 0.0):
+        return None
+    B = q.shape[0]
+    if sweep is None:
+        progress = np.ones((B, n))
+    else:
+        a = q[:, :n]
+        rel = a - np.concatenate([a[:, 1:], np.zeros((B, 1))], axis=1)
+        turns = np.concatenate([np.zeros((1, n)),
+                                np.cumsum(np.abs(np.diff(rel, axis=0)), axis=0)]) / (2 * np.pi)
+        progress = 1.0 - np.exp(-turns / float(pc["relax_turns"]))
+    return 1.0 - relax * progress, progress
+
+
+def truth(spec: Spec, q: np.ndarray, eff: dict, direction=None, sweep=None, points: int = 0,
+          h_max: float = 10.0, tfrac=None):
+    """Noise-free tips (N,3) and points (N,M,3) or None in the robot base frame (before tracker
+    effects), and ok (N,) (mechanics converged). ``tfrac`` (N,): the fraction of the recording
+    time of each row (unused by the mechanics; kept for time-dependent forms)."""
+    q = np.atleast_2d(np.asarray(q, float))
+    n = spec.n
+    eff = E.resolve(eff, n, spec)       # idempotent on resolved parameters; {} -> defaults
+    q_cmd = q
+    q = _joint_space(eff, q, n, direction, sweep, spec)
+    aging = _aging(spec, eff, q_cmd, sweep)
+    if aging is None:
+        return _mechanics(spec, q, eff, direction, points, h_max)
+    kf, progress = aging
+    _, group = np.unique(np.round(progress * AGING_LEVELS), axis=0, return_inverse=True)
+    group = group.ravel()
+    B = q.shape[0]
+    tip = np.full((B, 3), np.nan)
+    pts = np.full((B, points, 3), np.nan) if points else None
+    ok = np.zeros(B, bool)
+    for g in np.unique(group):
+        idx = np.flatnonzero(group == g)
+        t, p, o = _mechanics(spec, q[idx], eff, None if direction is None else direction[idx],
+                             points, h_max, kf[idx].mean(0))
+        tip[idx], ok[idx] = t, o
+        if pts is not None:
+            pts[idx] = p
+    return tip, pts, ok
+
+
+#: fixed-point iterations of the drive couplings' play (damped by half)
+PLAY_ITERATIONS = 14
+#: fixed-point iterations of the soft wall's contact force (damped by half)
+WALL_ITERATIONS = 8
+
+
+def _mechanics(spec: Spec, q: np.ndarray, eff: dict, direction, points: int, h_max: float,
+               kscale=None):
+    """The truth's mechanics for joint values ``q`` the tubes really reach (see :func:`truth`);
+    ``kscale`` (n,): an extra factor on the precurvature (its relaxation)."""
+    n = spec.n
+    sp = spec if kscale is None else spec.scaled(kscale, None)
+    ramp, ei_curved, softening, twist, kink = None, None, None, None, None
     if "precurvature" in eff or "stiffness" in eff:
         pc = eff.get("precurvature")
         st = eff.get("stiffness")
-        sp = spec.scaled(E._per_tube(pc["scale"], n, "scale") if pc else None,
-                         E._per_tube(st["scale"], n, "scale") if st else None)
+        sp = sp.scaled(E._per_tube(pc["scale"], n, "scale") if pc else None,
+                       E._per_tube(st["scale"], n, "scale") if st else None)
         if pc is not None:
             ramp = E._per_tube(pc.get("ramp", 0.0), n, "ramp")
+            twist = E._per_tube(pc.get("twist", 0.0) or 0.0, n, "twist")
+            if np.any(E._per_tube(pc.get("kink", 0.0) or 0.0, n, "kink") != 0.0):
+                kink = (E._per_tube(pc["kink"], n, "kink"), float(pc["kink_at"]),
+                        float(pc["kink_length"]))
         if st is not None:
             ei_curved = E._per_tube(st.get("curved", 1.0), n, "curved")
+            if np.any(E._per_tube(st.get("soften", 0.0) or 0.0, n, "soften") != 0.0):
+                softening = {"onset": st["soften_onset"], "width": st["soften_width"],
+                             "drop": E._per_tube(st["soften"], n, "soften")}
     torsion = "torsion" in eff
     gj = np.ones(n)
     coupling = None
@@ -203,24 +350,32 @@ def truth(spec: Spec, q: np.ndarray, eff: dict, direction=None, sweep=None, poin
                 extra[0] = float(load["lumen_density"]) * 1e-9 * np.pi / 4 * sp.id[0] ** 2 * 9.81
         kw = dict(torsion=torsion, gravity=grav, clearance=clear, friction_mu=mu, rel_dir=rel,
                   h_max=h_max, friction_contact=contact, ramp=ramp, ei_curved=ei_curved,
-                  coupling=coupling, extra_weight=extra)
-        k_t = float(load.get("tether") or 0.0) if load is not None else 0.0
-        bb = M.cosserat(sp, alpha, beta, tip_force=F, **kw)
-        if k_t:
-            # a tether (the tracker sensor's cable, a tissue attachment) pulls the tip toward an
-            # anchor: F_t = k (anchor - tip), fixed point in the tip position (k is small)
-            F0 = np.zeros(3) if F is None else np.asarray(F, float)
-            anchor = np.asarray(load["anchor"], float)
-            for _ in range(TETHER_ITERATIONS):
-                Ft = F0[None, :] + k_t * (anchor[None, :] - bb.tip())
-                bb = M.cosserat(sp, alpha, beta, tip_force=Ft, **kw)
+                  coupling=coupling, extra_weight=extra, softening=softening, twist=twist,
+                  kink=kink)
+        tor = eff.get("torsion") or {}
+        play = E._per_tube(tor.get("play", 0.0) or 0.0, n, "play") if torsion else np.zeros(n)
+        if np.any(play != 0.0):
+            # the drive couplings' play (an elastomer jaw coupling): the tube's base turns
+            # within it by play tanh(T / play_torque) in the direction that relieves the
+            # torque T = GJ u_z(0) it carries; a damped fixed point in the base angles
+            a0 = alpha
+            T0 = float(tor["play_torque"])
+            for _ in range(PLAY_ITERATIONS):
+                bb = _loaded(sp, alpha, beta, F, load, kw)
+                T = sp.GJ[None, :] * bb.info["x"][:, :n]
+                alpha = 0.5 * alpha + 0.5 * (a0 + play * np.tanh(T / T0))
+        bb = _loaded(sp, alpha, beta, F, load, kw)
         ok = bb.ok
     else:
         bb = M.rigid(sp, alpha, beta, clearance=clear, friction_mu=mu, rel_dir=rel,
-                     friction_contact=contact, ramp=ramp, ei_curved=ei_curved)
+                     friction_contact=contact, ramp=ramp, ei_curved=ei_curved, softening=softening,
+                     twist=twist, kink=kink)
         ok = np.ones(q.shape[0], bool)
     tip = bb.tip()
     pts = bb.points(points) if points else None
+    rg = eff.get("registration")
+    if rg is not None and np.any(np.asarray(rg.get("sensor", 0.0) or 0.0, float) != 0.0):
+        tip = tip + sensor_offset(bb, n, np.asarray(rg["sensor"], float))
     c_b = float(load.get("base_compliance") or 0.0) if load is not None else 0.0
     if c_b:
         # a compliant mount: the whole robot turns about the base origin by c_b times the
@@ -234,8 +389,57 @@ def truth(spec: Spec, q: np.ndarray, eff: dict, direction=None, sweep=None, poin
     return tip, pts, ok
 
 
+def sensor_offset(bb, n: int, o: np.ndarray) -> np.ndarray:
+    """(B, 3) where the tracker's coil sits relative to the tip: ``o`` (mm) in the innermost
+    tube's material frame at its tip (x toward its precurvature's bending direction, z along
+    the tangent), R Rz(psi_1) o with R the backbone frame at the tip."""
+    if bb.kind == "rigid":
+        R = bb.R[:, -1]
+        psi = bb.alpha_eff[:, 0]
+    else:
+        X = bb.info["state_end"]
+        R = X[:, 2 * n + 3:2 * n + 12].reshape(-1, 3, 3)
+        psi = X[:, 0]
+    c, s = np.cos(psi), np.sin(psi)
+    local = np.stack([c * o[0] - s * o[1], s * o[0] + c * o[1], np.full_like(c, o[2])], axis=1)
+    return np.einsum("bij,bj->bi", R, local)
+
+
 #: fixed-point iterations of the tether force (contraction ~ k L^3 / 3 EI ~ 0.1 on seed1)
 TETHER_ITERATIONS = 4
+
+
+def _loaded(sp, alpha, beta, F, load, kw):
+    """The Cosserat solve with the tip forces of the tether and the soft wall (fixed points in
+    the tip position)."""
+    bb = M.cosserat(sp, alpha, beta, tip_force=F, **kw)
+    k_t = float(load.get("tether") or 0.0) if load is not None else 0.0
+    k_w = float(load.get("wall") or 0.0) if load is not None else 0.0
+    if not (k_t or k_w):
+        return bb
+    F0 = np.zeros(3) if F is None else np.asarray(F, float)
+    if not k_w:
+        # a tether (the tracker sensor's cable, a tissue attachment) pulls the tip toward an
+        # anchor: F_t = k (anchor - tip), fixed point in the tip position (k is small)
+        anchor = np.asarray(load["anchor"], float)
+        for _ in range(TETHER_ITERATIONS):
+            Ft = F0[None, :] + k_t * (anchor[None, :] - bb.tip())
+            bb = M.cosserat(sp, alpha, beta, tip_force=Ft, **kw)
+        return bb
+    # a soft wall (tissue the tip presses on): where the tip is beyond the plane
+    # {p: nrm . p = at} it pushes back along nrm with k_w times the depth; damped by half
+    nrm = E._unit(load["wall_normal"])
+    at = float(load["wall_at"])
+    anchor = np.asarray(load["anchor"], float)
+    tip = bb.tip()
+    Fw = np.zeros((len(tip), 3))
+    for _ in range(WALL_ITERATIONS):
+        depth = np.maximum(at - tip @ nrm, 0.0)
+        Fw = 0.5 * Fw + 0.5 * k_w * depth[:, None] * nrm[None, :]
+        Ft = F0[None, :] + k_t * (anchor[None, :] - tip) + Fw
+        bb = M.cosserat(sp, alpha, beta, tip_force=Ft, **kw)
+        tip = bb.tip()
+    return bb
 
 
 def _tfrac(time):
@@ -257,11 +461,14 @@ def generate(robot="seed1", design="sweeps", n=1000, effects=None, noise_mm=0.1,
     eff = E.resolve(effects, spec.n, spec)
     q, t, sw = D.design(spec, design, int(n), rng, sweeps=sweeps)
     direction = D.directions(q, sw)
-    tip, pts, ok = truth(spec, q, eff, direction=direction, sweep=sw, points=points)
     tf = _tfrac(t)
-    tip = E.sensor(tip, eff, tf)
+    for name, key in (("drift", "wander_seed"), ("joint_offset", "rehome_seed")):
+        if name in eff and eff[name].get(key) is None:      # drawn with the data
+            eff[name][key] = int(np.random.SeedSequence(seed).generate_state(1)[0])
+    tip, pts, ok = truth(spec, q, eff, direction=direction, sweep=sw, points=points, tfrac=tf)
+    tip = E.sensor(tip, eff, tf, q, spec)
     if pts is not None:
-        pts = E.sensor(pts, eff, tf)
+        pts = E.sensor(pts, eff, tf, q, spec)
     nrng = np.random.default_rng([seed, 7919])
     tip_meas = tip + nrng.normal(0.0, noise_mm, tip.shape) if noise_mm > 0 else tip.copy()
     if pts is not None and noise_mm > 0:
@@ -283,16 +490,16 @@ def backbones(robot, q, effects=None, points=20, direction=None) -> np.ndarray:
     q = np.atleast_2d(np.asarray(q, float))
     d = None if direction is None else np.asarray(direction)
     _, pts, ok = truth(spec, q, eff, direction=d, sweep=None, points=max(int(points), 2))
-    pts = E.sensor(pts, eff, None)
+    pts = E.sensor(pts, eff, None, q, spec)
     if not ok.all():
         pts[~ok] = np.nan
     return pts
 
 
 STUDY_EFFECTS = {
-    "torsion": {"gj_scale": 6.0, "coupling": [40.0, 20.0]},
+    "torsion": {"gj_scale": 6.0, "coupling": [40.0, 20.0], "play": 0.0},
     "clearance": {"amplitude": 0.15, "phase_deg": 205.0, "harmonics": [0.5, 0.32, 0.18],
-                  "lean": 0.015, "jump": "gap"},
+                  "lean": 0.015, "jump": "gap", "snap": 0.0},
     "friction": {"form": "end_moment", "mu": 0.06, "contact": 12.0},
 }
 # The generator's own forms (outside ctrplan's families, tests/foreign/effects.py): clearance with

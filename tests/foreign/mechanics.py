@@ -51,10 +51,12 @@ class Geom:
     ends: np.ndarray      # (B, n) e_i
     beta: np.ndarray      # (B, n)
     eif: np.ndarray | None = None   # (B, S, n) factor on each tube's EI in each segment
+    kphase: np.ndarray | None = None  # (B, S, n) angle of the precurvature in the tube's frame
 
     def take(self, idx):
         return Geom(self.bp[idx], self.kappa[idx], self.present[idx], self.endnode[idx],
-                    self.ends[idx], self.beta[idx], None if self.eif is None else self.eif[idx])
+                    self.ends[idx], self.beta[idx], None if self.eif is None else self.eif[idx],
+                    None if self.kphase is None else self.kphase[idx])
 
     def EIp(self, spec, j):
         """(B, n) bending stiffness of each tube present in segment j (0 where absent)."""
@@ -62,24 +64,39 @@ class Geom:
         return np.where(self.present[:, j], EI, 0.0)
 
 
-def geometry(spec: Spec, beta: np.ndarray, ramp=None, steps: int = 8, ei_curved=None) -> Geom:
+def geometry(spec: Spec, beta: np.ndarray, ramp=None, steps: int = 8, ei_curved=None,
+             twist=None, kink=None) -> Geom:
     """Break points and per-segment data. Optional effects of the generator:
 
     ramp (n,): precurvature varying along each tube's curved section,
     kappa_i(s) = kappa_i (1 + ramp_i (s_c - 1/2)), s_c in [0, 1] the fraction of the curved
     section (0 at its proximal start), held piecewise constant over ``steps`` equal sub-sections
     (value at each sub-section's middle; extra break points).
-    ei_curved (n,): factor on tube i's EI over its curved (shape-set) section."""
+    ei_curved (n,): factor on tube i's EI over its curved (shape-set) section.
+    twist (n,): the precurvature's plane turns along the curved section (a helix, not a planar
+    arc): in the tube's frame the precurvature is kappa_i (-sin th, cos th, 0) with th =
+    twist_i (s_c - 1/2), on the same sub-sections as the ramp.
+    kink (angles (n,) rad, at, length mm): a concentrated bend set into each curved section
+    (the shape-setting fixture's joint): over ``length`` mm centred at the fraction ``at`` of
+    the curved section the precurvature is larger by angle_i / length (extra break points)."""
     B, n = beta.shape
     e = np.maximum(beta + spec.L, 0.0)
     cst = np.minimum(np.maximum(beta + spec.straight, 0.0), e)
     use_ramp = ramp is not None and np.any(np.asarray(ramp, float) != 0.0)
+    use_twist = twist is not None and np.any(np.asarray(twist, float) != 0.0)
+    use_kink = kink is not None and np.any(np.asarray(kink[0], float) != 0.0)
     extra = np.zeros((B, 0))
-    if use_ramp:
+    if use_ramp or use_twist:
         f = np.arange(1, steps) / steps
         c0 = beta + spec.straight                                      # (B, n) curved start
         extra = c0[:, :, None] + f[None, None, :] * spec.curved[None, :, None]
         extra = np.clip(extra, 0.0, e[:, :, None]).reshape(B, -1)
+    if use_kink:
+        k_ang = np.asarray(kink[0], float)
+        k_len = float(kink[2])
+        k0 = beta + spec.straight + float(kink[1]) * spec.curved - 0.5 * k_len       # (B, n)
+        k1 = k0 + k_len
+        extra = np.concatenate([extra, np.clip(k0, 0.0, e), np.clip(k1, 0.0, e)], axis=1)
     raw = np.concatenate([np.zeros((B, 1)), cst, e, extra], axis=1)
     order = np.argsort(raw, axis=1, kind="stable")
     bp = np.take_along_axis(raw, order, axis=1)
@@ -89,16 +106,23 @@ def geometry(spec: Spec, beta: np.ndarray, ramp=None, steps: int = 8, ei_curved=
     present = mid[:, :, None] < e[:, None, :]
     curved = present & (mid[:, :, None] >= cst[:, None, :])
     kap = np.broadcast_to(spec.kappa[None, None, :], curved.shape)
-    if use_ramp:
+    kphase = None
+    if use_ramp or use_twist:
         sc = (mid[:, :, None] - (beta + spec.straight)[:, None, :]) / spec.curved[None, None, :]
         k = np.clip(np.floor(sc * steps), 0, steps - 1)
         sc_mid = (k + 0.5) / steps
-        kap = kap * (1.0 + np.asarray(ramp, float)[None, None, :] * (sc_mid - 0.5))
+        if use_ramp:
+            kap = kap * (1.0 + np.asarray(ramp, float)[None, None, :] * (sc_mid - 0.5))
+        if use_twist:
+            kphase = np.where(curved, np.asarray(twist, float)[None, None, :] * (sc_mid - 0.5), 0.0)
+    if use_kink:
+        inside = (mid[:, :, None] >= k0[:, None, :]) & (mid[:, :, None] < k1[:, None, :])
+        kap = kap + np.where(inside, k_ang[None, None, :] / k_len, 0.0)
     kappa = np.where(curved, kap, 0.0)
     eif = None
     if ei_curved is not None and np.any(np.asarray(ei_curved, float) != 1.0):
         eif = np.where(curved, np.asarray(ei_curved, float)[None, None, :], 1.0)
-    return Geom(bp, kappa, present, endnode, e, beta, eif)
+    return Geom(bp, kappa, present, endnode, e, beta, eif, kphase)
 
 
 # ----------------------------------------------------------------------------- small helpers
@@ -184,8 +208,37 @@ def end_torque(spec, g, o, M, mu, contact, rel):
     return mu * rel * T
 
 
+#: damped fixed-point iterations of the superelastic softening (the strain depends on the EI)
+SOFTEN_ITERATIONS = 30
+
+
+def soften(spec: Spec, g: Geom, alpha, softening) -> None:
+    """Superelastic softening (sets ``g.eif``): nitinol's stress-strain curve bends over into
+    its plateau, so a tube's secant bending stiffness drops where its bending strain is large:
+    EI_i -> EI_i (1 - drop_i / (1 + exp(-(eps - onset) / width))), eps = (od_i / 2) |u_i -
+    kappa_i| the strain at its surface (u_i: the backbone curvature in the tube's frame, from
+    the torsionally rigid shape), per segment; a damped fixed point (the strain depends on the
+    stiffness). ``softening``: dict of per-tube ``onset`` and ``width`` (strain) and ``drop``."""
+    n = spec.n
+    onset = np.broadcast_to(np.asarray(softening["onset"], float), (n,))
+    width = np.broadcast_to(np.asarray(softening["width"], float), (n,))
+    drop = np.broadcast_to(np.asarray(softening["drop"], float), (n,))
+    base = np.ones(g.kappa.shape) if g.eif is None else g.eif.copy()
+    f = np.ones(g.kappa.shape)
+    c, s_ = np.cos(alpha)[:, None, :], np.sin(alpha)[:, None, :]
+    for _ in range(SOFTEN_ITERATIONS):
+        g.eif = base * f
+        u = _rigid_pass(spec, g, alpha, None).u                   # (B, S, 2) backbone frame
+        uix = c * u[:, :, :1] + s_ * u[:, :, 1:]                   # tube i's frame, (B, S, n)
+        uiy = -s_ * u[:, :, :1] + c * u[:, :, 1:]
+        eps = 0.5 * spec.od[None, None, :] * np.hypot(uix, uiy - g.kappa)
+        target = 1.0 - drop / (1.0 + np.exp(-(eps - onset) / width))
+        f = 0.5 * f + 0.5 * np.where(g.present, target, 1.0)
+    g.eif = base * f
+
+
 def rigid(spec: Spec, alpha, beta, *, clearance=None, friction_mu=0.0, rel_dir=None,
-          friction_contact=0.0, ramp=None, ei_curved=None):
+          friction_contact=0.0, ramp=None, ei_curved=None, softening=None, twist=None, kink=None):
     """Closed-form rigid backbone. Returns a Backbone (node frames per break point).
 
     clearance: callable(phi (B,) relative rotation inner - outer, pair index j) -> delta (B,) rad
@@ -197,7 +250,9 @@ def rigid(spec: Spec, alpha, beta, *, clearance=None, friction_mu=0.0, rel_dir=N
     """
     alpha = np.asarray(alpha, float)
     beta = np.asarray(beta, float)
-    g = geometry(spec, beta, ramp=ramp, ei_curved=ei_curved)
+    g = geometry(spec, beta, ramp=ramp, ei_curved=ei_curved, twist=twist, kink=kink)
+    if softening is not None:
+        soften(spec, g, alpha, softening)
     if friction_mu and rel_dir is not None and spec.n > 1:
         bb0 = _rigid_pass(spec, g, alpha, None)
         alpha = alpha + _friction_dtheta(spec, g, alpha, bb0.u, friction_mu, rel_dir,
@@ -265,7 +320,8 @@ def _rigid_pass(spec, g, alpha, clearance):
     EIp = np.where(g.present, spec.EI[None, None, :], 0.0)
     if g.eif is not None:
         EIp = EIp * g.eif
-    Sx, Sy, EIt = _bend_xy(alpha[:, None, :], g.kappa, EIp)
+    psi = alpha[:, None, :] if g.kphase is None else alpha[:, None, :] + g.kphase
+    Sx, Sy, EIt = _bend_xy(psi, g.kappa, EIp)
     EIt = np.where(EIt > 0, EIt, 1.0)
     u = np.stack([Sx / EIt, Sy / EIt], axis=2)                      # (B, S, 2)
     P = np.zeros((B, S + 1, 3))
@@ -347,10 +403,11 @@ class _Problem:
                         self.coupling)
 
 
-def _deriv(X, s, kap, EIp, GJ, EIt, nA, nB, n, full, torsion):
+def _deriv(X, s, kap, EIp, GJ, EIt, nA, nB, n, full, torsion, kph=None):
     """State derivative. Reduced state (full=False): [psi (n), u_z (n)]; full state adds
-    p (3), R (9, row-major), m (3)."""
-    psi = X[:, 0:n]
+    p (3), R (9, row-major), m (3). ``kph`` (B, n): the precurvature's angle in each tube's
+    frame (a pre-twisted curve); the bending and twist terms see psi + kph."""
+    psi = X[:, 0:n] if kph is None else X[:, 0:n] + kph
     c, sn = np.cos(psi), np.sin(psi)
     ek = EIp * kap
     Sx = -(ek * sn).sum(axis=1)
@@ -421,7 +478,8 @@ def _integrate(pb: _Problem, X, full, K, record=False):
                 nB = pres.astype(float) @ pb.wvec
         s = g.bp[:, j].copy()
         h = (g.bp[:, j + 1] - g.bp[:, j]) / max(Kj, 1)
-        args = (kap, EIp, GJ, EIt, nA, nB, n, full, pb.torsion)
+        args = (kap, EIp, GJ, EIt, nA, nB, n, full, pb.torsion,
+                None if g.kphase is None else g.kphase[:, j])
         if record:
             rec_s[:, j, :] = s[:, None]
             rec_p[:, j, :] = X[:, None, 2 * n:2 * n + 3]
@@ -447,7 +505,8 @@ def _integrate(pb: _Problem, X, full, K, record=False):
                 if pb.mu and pb.rel_dir is not None:
                     _, ux, uy = _deriv(X[msk], s[msk], kap[msk], EIp[msk], GJ, EIt[msk],
                                        None if nA is None else nA[msk],
-                                       None if nB is None else nB[msk], n, full, pb.torsion)
+                                       None if nB is None else nB[msk], n, full, pb.torsion,
+                                       None if args[-1] is None else args[-1][msk])
                     a = X[msk, o]
                     uox = np.cos(a) * ux + np.sin(a) * uy
                     uoy = -np.sin(a) * ux + np.cos(a) * uy
@@ -700,7 +759,8 @@ def _m0_guess(pb, bb):
 
 def cosserat(spec: Spec, alpha, beta, *, torsion=True, gravity=None, tip_force=None,
              clearance=None, friction_mu=0.0, rel_dir=None, h_max=10.0, tol=1e-10, max_iter=12,
-             friction_contact=0.0, ramp=None, ei_curved=None, coupling=None, extra_weight=None):
+             friction_contact=0.0, ramp=None, ei_curved=None, coupling=None, extra_weight=None,
+             softening=None, twist=None, kink=None):
     """Solve the (loaded) Cosserat rod BVP for a batch. gravity: (3,) m/s^2 in the base frame
     (None = no weight); tip_force: (3,) N. Returns a CosseratBackbone (with .ok per row).
 
@@ -709,7 +769,9 @@ def cosserat(spec: Spec, alpha, beta, *, torsion=True, gravity=None, tip_force=N
     alpha = np.asarray(alpha, float)
     beta = np.asarray(beta, float)
     B, n = alpha.shape
-    g = geometry(spec, beta, ramp=ramp, ei_curved=ei_curved)
+    g = geometry(spec, beta, ramp=ramp, ei_curved=ei_curved, twist=twist, kink=kink)
+    if softening is not None:
+        soften(spec, g, alpha, softening)       # the strain of the torsionally rigid shape
     wvec = None
     if gravity is not None and np.any(np.asarray(gravity) != 0):
         w = spec.weight_per_mm if extra_weight is None else spec.weight_per_mm + extra_weight

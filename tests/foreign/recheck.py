@@ -58,7 +58,7 @@ from .robot import Spec, load_spec, valid
 _ANATOMY = Path(__file__).resolve().parents[2] / "anatomy"
 
 #: nominal model of the re-check: torsionally compliant rods with the tubes' physical GJ
-NOMINAL = {"torsion": {"gj_scale": 1.0, "coupling": 0.0}}
+NOMINAL = {"torsion": {"gj_scale": 1.0, "coupling": 0.0, "play": 0.0}}
 #: bisection resolution of the penetration depth (mm)
 DEPTH_TOL_MM = 0.002
 #: backbone segments per coarse capsule

@@ -14,6 +14,8 @@ import numpy as np
 import yaml
 
 _ROBOT_DIR = Path(__file__).resolve().parents[2] / "ctrplan" / "data" / "robots"
+#: robots ctrplan does not ship (other tube counts, lengths, materials): found by name as well
+FOREIGN_ROBOT_DIR = Path(__file__).resolve().parent / "robots"
 NITINOL_DENSITY = 6450.0  # kg/m^3
 
 
@@ -69,16 +71,26 @@ class Spec:
         return replace(self, kappa=k, E=E)
 
 
+def robot_path(name: str) -> Path:
+    """The YAML file of a robot name: a shipped robot (``ctrplan/data/robots``), a foreign one
+    (``tests/foreign/robots``), or ``name`` itself as a path."""
+    if "/" not in name and not name.endswith(".yaml"):
+        for d in (_ROBOT_DIR, FOREIGN_ROBOT_DIR):
+            if (d / f"{name}.yaml").exists():
+                return d / f"{name}.yaml"
+    return Path(name)
+
+
 def load_spec(robot) -> Spec:
-    """``robot``: a Spec, a shipped name (``seed1``, ``two_tube_nylon``), a YAML path or a dict."""
+    """``robot``: a Spec, a robot name (shipped: ``seed1``, ``two_tube_nylon``; foreign:
+    ``tests/foreign/robots/<name>.yaml``), a YAML path or a dict."""
     if isinstance(robot, Spec):
         return robot
     if isinstance(robot, dict):
         data = robot
     else:
         s = str(robot)
-        p = _ROBOT_DIR / f"{s}.yaml"
-        path = p if (p.exists() and "/" not in s and not s.endswith(".yaml")) else Path(s)
+        path = robot_path(s)
         with open(path, encoding="utf-8") as f:
             data = yaml.safe_load(f)
     tubes = data["tubes"]

@@ -115,7 +115,7 @@ class RealRobot:
             _, pts, ok = truth(self.spec, q, eff, direction=d, sweep=None,
                                points=max(int(points), 2))
         if frame == "sensor":
-            pts = E.sensor(pts, self.effects, None)
+            pts = E.sensor(pts, self.effects, None, q, self.spec)
         if not ok.all():
             pts[~ok] = np.nan
         return pts
@@ -142,22 +142,25 @@ def real_robot(seed: int = 0, robot="seed1", noise_mm: float = 0.08, registratio
     else:
         pc_scale[-1] = 1.0 - 0.10 * (1.0 + rng.uniform(-0.2, 0.2))
     eff = {
-        "precurvature": {"scale": pc_scale, "ramp": _jitter(rng, outer_last(0.25, -0.3, 0.25))},
+        "precurvature": {"scale": pc_scale, "ramp": _jitter(rng, outer_last(0.25, -0.3, 0.25)),
+                         "relax": 0.0, "twist": 0.0},
         "stiffness": {"scale": outer_last(1.0, 1.0, 1.0 + 0.25 * (1.0 + rng.uniform(-0.2, 0.2))),
                       "curved": _jitter(rng, outer_last(1.0, 1.0, 1.08), 0.03),
-                      "torsion": outer_last(1.0, 1.0, 1.0)},
+                      "torsion": outer_last(1.0, 1.0, 1.0), "soften": 0.0},
         "clearance": {"amplitude": float(_jitter(rng, 0.02)), "phase_deg": float(rng.uniform(160, 250)),
                       "harmonics": [0.5, 0.32, 0.18], "lean": float(_jitter(rng, 0.004)),
-                      "jump": "gap"},
+                      "jump": "gap", "snap": 0.0},
         # base lags with the contact growth (1 + h): typical lags ~0.065 / 0.013 / 0.008 rad
         "friction": {"form": "presliding", "lag": _jitter(rng, outer_last(0.044, 0.012, 0.008)),
-                     "angle": float(_jitter(rng, 0.2)), "growth": 1.0},
-        "torsion": {"gj_scale": 1.0, "coupling": _jitter(rng, outer_last(40.0, 25.0, 20.0))},
+                     "angle": float(_jitter(rng, 0.2)), "growth": 1.0, "moment": 0.0},
+        "torsion": {"gj_scale": 1.0, "coupling": _jitter(rng, outer_last(40.0, 25.0, 20.0)),
+                    "play": 0.0},
     }
     if registration:
         eff["registration"] = {"rotvec": _jitter(rng, [0.02, -0.015, 0.025]),
                                "translation": _jitter(rng, [3.0, -2.0, 4.0]),
-                               "scale": _jitter(rng, [0.005, -0.004, 0.006])}
+                               "scale": _jitter(rng, [0.005, -0.004, 0.006]), "mount": 0.0,
+                               "sensor": 0.0}
     eff = E.resolve(eff, n, spec)
     return RealRobot(spec=spec, effects=eff, noise_mm=float(noise_mm), outliers=float(outliers),
                      seed=int(seed))
