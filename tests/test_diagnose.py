@@ -142,8 +142,15 @@ def test_cli_diagnose_writes_report_and_calibrated_model(tmp_path, capsys):
     assert "## Evidence from the data" in md and "## Evidence for each named effect" in md
     assert set(rep["evidence"]["before"]) >= {"noise", "hysteresis", "harmonics", "insertion",
                                               "procrustes"}
+    # each value under one key (issue 37): no two top-level keys carry the same non-empty value
+    written = {}
+    for key, value in rep.items():
+        if isinstance(value, (list, dict, float)) and value not in ([], {}):
+            text = json.dumps(value, sort_keys=True)
+            assert text not in written, (key, written.get(text))
+            written[text] = key
     eq = rep["error_quantiles"]
-    assert 0 < eq["p50"] <= eq["p95"] <= eq["p99"] <= eq["max"] == pytest.approx(rep["max_after_mm"])
+    assert 0 < eq["p50"] <= eq["p95"] <= eq["p99"] <= eq["max"] == pytest.approx(rep["max_error_after_mm"])
     for png in ("residuals_rotation", "residuals_insertion", "residuals_arclength",
                 "errors_by_step", "tip_paths"):
         assert (out / f"{png}.png").stat().st_size > 5000, png

@@ -138,7 +138,9 @@ class DiagnoseReport:
                         self.max_after_mm)
 
     def to_dict(self) -> dict:
-        """JSON-ready dict (the report.json fields of docs/conventions.md and more)."""
+        """JSON-ready dict (the report.json fields of docs/conventions.md and more), each value
+        under one key (``max_error_before_mm`` / ``max_error_after_mm``, ``partial``; the
+        Python attributes are ``max_before_mm`` / ``max_after_mm``)."""
         steps = [asdict(s) for s in self.steps]
         return {
             "headline": self.headline(),
@@ -147,15 +149,15 @@ class DiagnoseReport:
             "forms": dict(self.forms),
             "parameters": _params_json(self.parameters, self.sigma, self.robot, self.base),
             "steps": steps, "error_before_mm": self.error_before_mm,
-            "error_after_mm": self.error_after_mm, "max_before_mm": self.max_before_mm,
-            "max_after_mm": self.max_after_mm, "error_quantiles": self.error_quantiles,
+            "error_after_mm": self.error_after_mm,
+            "max_error_before_mm": self.max_before_mm, "max_error_after_mm": self.max_after_mm,
+            "error_quantiles": self.error_quantiles,
             "error_quantiles_before": self.error_quantiles_before,
             "confounded": list(self.confounded),
             "heldout_comparison": self.heldout_comparison,
             "measured_insertion": self.measured_insertion,
             "unexplained": self.unexplained, "warnings": list(self.warnings),
             "experiment": list(self.experiment), "partial": list(self.partial),
-            "partial_fits": list(self.partial),
             "partial_values": self.partial_values,
             "learned_residual": self.learned_residual,
             "evidence": {"before": self.evidence_before, "after": self.evidence_after},
@@ -163,7 +165,6 @@ class DiagnoseReport:
                       **self.split},
             "diagnostics": {"before": self.diagnostics_before, "after": self.diagnostics_after},
             "test_rows": self.split.get("test_row_ranges", []),
-            "max_error_before_mm": self.max_before_mm, "max_error_after_mm": self.max_after_mm,
             "outliers": self.outliers, "nuisance_tests": self.nuisance_tests,
             "settings": self.settings, "elapsed_s": self.elapsed_s,
         }
