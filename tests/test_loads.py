@@ -22,7 +22,7 @@ from scipy.optimize import root
 from ctrplan.errors import InputError
 from ctrplan.robot import Robot, Tube, load_robot, robot_from_dict
 from ctrplan.shape import _loaded
-from ctrplan.shape._kernel import _tube_events
+from ctrplan.shape._ode import _tube_events
 from ctrplan.shape.effects import EffectModel, effect_params
 from ctrplan.shape.physics import Loads, MechanicsParams, PhysicsModel
 
