@@ -245,4 +245,4 @@ def solve_chain(alpha, beta, L, straight, kappa, EI, ratio, kink, m, step, tol, 
         store_row(out, bi, out_s, x, iters[bi], rnorm[bi], cont[bi] and finite and rnorm[bi] < tol)
     return out + (detj, cont)
 
-# numba cache stamp: (rewritten by python -m ctrplan.shape._cache_stamp)
+# numba cache stamp: ced77f820964671a3812064c7af4ffc3f86fa86376ce64110bc2b8f304d0d578

@@ -38,12 +38,16 @@ from collections import namedtuple
 
 import numpy as np
 from numba import njit
-from numba.extending import overload
 
-from ctrplan.shape import _ode
-from ctrplan.shape._ode import emit, is_record, kink_matrix, rk4, runtime, turn_frame
-
-_OPTS = {"error_model": "numpy"}
+from ctrplan.shape._ode import (
+    emit,
+    frame_rates,
+    kink_matrix,
+    register_model,
+    rk4,
+    runtime,
+    turn_frame,
+)
 
 # Every kernel uses numba's ``error_model="numpy"``: a division by zero gives inf/nan instead
 # of a per-division check that raises (all divisions here are guarded; non-finite results end
@@ -88,15 +92,7 @@ def _deriv(y, Y, n, a, w, eisum_inv, frame, sens, dy, dY):
         ux = -sw * eisum_inv
         uy = cw * eisum_inv
         b = 3 * n
-        # R' = R [u]x with u = (ux, uy, 0): columns d0 = -uy r2, d1 = ux r2, d2 = uy r0 - ux r1
-        for r in range(3):
-            r0 = y[b + 3 * r]
-            r1 = y[b + 3 * r + 1]
-            r2 = y[b + 3 * r + 2]
-            dy[b + 3 * r] = -uy * r2
-            dy[b + 3 * r + 1] = ux * r2
-            dy[b + 3 * r + 2] = uy * r0 - ux * r1
-            dy[b + 9 + r] = r2
+        frame_rates(y, b, ux, uy, dy)
     if sens:
         for col in range(n):
             cwy = 0.0
@@ -394,47 +390,28 @@ def unloaded_work(n):
             np.zeros((5, nst)), np.zeros((5, 2 * n, n)), np.zeros((3, 3)), np.zeros(n))
 
 
-@overload(_ode.derivative, jit_options=_OPTS)
 def _derivative(model, y, Y, s, sens, dy, dY):
-    if is_record(model, UnloadedRhs):
-        def impl(model, y, Y, s, sens, dy, dY):
-            _deriv(y, Y, model.n, model.a, model.w, model.eisum_inv, model.frame, sens, dy, dY)
-        return impl
-    return None
+    _deriv(y, Y, model.n, model.a, model.w, model.eisum_inv, model.frame, sens, dy, dY)
 
 
-@overload(_ode.shoot, jit_options=_OPTS)
 def _shoot(problem, x, sens, out_s, m_out, out_p, resid, jac):
-    if is_record(problem, UnloadedProblem):
-        def impl(problem, x, sens, out_s, m_out, out_p, resid, jac):
-            p = problem
-            y, Y, a, w, pend, ws, WS, G, _rs = p.work
-            # R and p are integrated only for output points
-            _integrate(p.alpha, p.beta, x, p.L, p.straight, p.kappa, p.EI, p.ratio, p.kink,
-                       p.torsion, p.tpos, p.ttyp, p.tidx, out_s, m_out, p.step, m_out > 0, sens,
-                       out_p, resid, jac, y, Y, a, w, pend, ws, WS, G)
-        return impl
-    return None
+    p = problem
+    y, Y, a, w, pend, ws, WS, G, _rs = p.work
+    # R and p are integrated only for output points
+    _integrate(p.alpha, p.beta, x, p.L, p.straight, p.kappa, p.EI, p.ratio, p.kink, p.torsion,
+               p.tpos, p.ttyp, p.tidx, out_s, m_out, p.step, m_out > 0, sens, out_p, resid, jac,
+               y, Y, a, w, pend, ws, WS, G)
 
 
-@overload(_ode.scaled, jit_options=_OPTS)
 def _scaled(problem, lam, what):
-    if is_record(problem, UnloadedProblem):
-        def impl(problem, lam, what):       # what: COMPLIANCE, the only one
-            p = problem
-            rs = p.work[8]
-            for i in range(rs.shape[0]):
-                rs[i] = p.ratio[i] * lam
-            return UnloadedProblem(p.alpha, p.beta, p.L, p.straight, p.kappa, p.EI, rs, p.kink,
-                                   p.torsion, p.step, p.tpos, p.ttyp, p.tidx, p.work)
-        return impl
-    return None
+    p = problem                 # what: COMPLIANCE, the only parameter scaled here
+    rs = p.work[8]
+    for i in range(rs.shape[0]):
+        rs[i] = p.ratio[i] * lam
+    return UnloadedProblem(p.alpha, p.beta, p.L, p.straight, p.kappa, p.EI, rs, p.kink,
+                           p.torsion, p.step, p.tpos, p.ttyp, p.tidx, p.work)
 
 
-@overload(_ode.keeps_jacobian, jit_options=_OPTS)
-def _keeps_jacobian(problem):
-    if is_record(problem, UnloadedProblem):
-        return lambda problem: False
-    return None
+register_model(UnloadedRhs, UnloadedProblem, _derivative, _shoot, _scaled, chords=False)
 
-# numba cache stamp: (rewritten by python -m ctrplan.shape._cache_stamp)
+# numba cache stamp: ced77f820964671a3812064c7af4ffc3f86fa86376ce64110bc2b8f304d0d578

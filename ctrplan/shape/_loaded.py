@@ -50,29 +50,26 @@ from collections import namedtuple
 
 import numpy as np
 from numba import njit
-from numba.extending import overload
 
-from ctrplan.shape import _ode
 from ctrplan.shape._ode import (
     COMPLIANCE,
     LOADS,
     emit,
     events,
     finish_row,
-    is_record,
+    frame_rates,
     kink_matrix,
     newton,
     newton_work,
     outputs,
     ramp,
+    register_model,
     rk4,
     row_grid,
     runtime,
     store_row,
     turn_frame,
 )
-
-_OPTS = {"error_model": "numpy"}
 
 #: One interval's constants of the state equations (:func:`_rhs`), the ``model`` of
 #: :func:`ctrplan.shape._ode.rk4`: n tubes, nx = n + 2 unknowns, k (n,) EI/GJ / EI, w (n,)
@@ -121,14 +118,7 @@ def _rhs(y, T, n, nx, s, k, w, eisum_inv, n0, wsum, sens, dy, dT):
     n_z = n0[2] - s * wsum[2]
     nbx = 0.0
     nby = 0.0
-    for r in range(3):
-        r0 = y[b + 3 * r]
-        r1 = y[b + 3 * r + 1]
-        r2 = y[b + 3 * r + 2]
-        dy[b + 3 * r] = -uy * r2
-        dy[b + 3 * r + 1] = ux * r2
-        dy[b + 3 * r + 2] = uy * r0 - ux * r1
-        dy[b + 9 + r] = r2
+    frame_rates(y, b, ux, uy, dy)
     nbx = y[b + 0] * n_x + y[b + 3] * n_y + y[b + 6] * n_z
     nby = y[b + 1] * n_x + y[b + 4] * n_y + y[b + 7] * n_z
     dy[b + 12] = -uy * mbz + nby
@@ -335,56 +325,37 @@ def loaded_work(n):
             np.zeros(3))
 
 
-@overload(_ode.derivative, jit_options=_OPTS)
 def _derivative(model, y, Y, s, sens, dy, dY):
-    if is_record(model, LoadedRhs):
-        def impl(model, y, Y, s, sens, dy, dY):
-            m = model
-            _rhs(y, Y, m.n, m.nx, s, m.k, m.w, m.eisum_inv, m.n0, m.wsum, sens, dy, dY)
-        return impl
-    return None
+    m = model
+    _rhs(y, Y, m.n, m.nx, s, m.k, m.w, m.eisum_inv, m.n0, m.wsum, sens, dy, dY)
 
 
-@overload(_ode.shoot, jit_options=_OPTS)
 def _shoot(problem, x, sens, out_s, m_out, out_p, resid, jac):
-    if is_record(problem, LoadedProblem):
-        def impl(problem, x, sens, out_s, m_out, out_p, resid, jac):
-            p = problem
-            y, T, k, w, n0, wsum, ws, WS = p.work[:8]
-            _integrate(p.alpha, p.beta, x, p.L, p.straight, p.kappa, p.EI, p.ratio, p.kink, p.W,
-                       p.F, p.M, p.tpos, p.ttyp, p.tidx, out_s, m_out, p.step, sens, out_p, resid,
-                       jac, y, T, k, w, n0, wsum, ws, WS)
-        return impl
-    return None
+    p = problem
+    y, T, k, w, n0, wsum, ws, WS = p.work[:8]
+    _integrate(p.alpha, p.beta, x, p.L, p.straight, p.kappa, p.EI, p.ratio, p.kink, p.W, p.F,
+               p.M, p.tpos, p.ttyp, p.tidx, out_s, m_out, p.step, sens, out_p, resid, jac, y, T,
+               k, w, n0, wsum, ws, WS)
 
 
-@overload(_ode.scaled, jit_options=_OPTS)
 def _scaled(problem, lam, what):
-    if is_record(problem, LoadedProblem):
-        def impl(problem, lam, what):
-            p = problem
-            rs, Wl, Fl, Ml = p.work[8:]
-            if what == LOADS:
-                for c in range(3):
-                    Fl[c] = lam * p.F[c]
-                    Ml[c] = lam * p.M[c]
-                    for i in range(Wl.shape[0]):
-                        Wl[i, c] = lam * p.W[i, c]
-                return LoadedProblem(p.alpha, p.beta, p.L, p.straight, p.kappa, p.EI, p.ratio,
-                                     p.kink, Wl, Fl, Ml, p.step, p.tpos, p.ttyp, p.tidx, p.work)
-            for i in range(rs.shape[0]):
-                rs[i] = lam * p.ratio[i]
-            return LoadedProblem(p.alpha, p.beta, p.L, p.straight, p.kappa, p.EI, rs, p.kink,
-                                 p.W, p.F, p.M, p.step, p.tpos, p.ttyp, p.tidx, p.work)
-        return impl
-    return None
+    p = problem
+    rs, Wl, Fl, Ml = p.work[8:]
+    if what == LOADS:
+        for c in range(3):
+            Fl[c] = lam * p.F[c]
+            Ml[c] = lam * p.M[c]
+            for i in range(Wl.shape[0]):
+                Wl[i, c] = lam * p.W[i, c]
+        return LoadedProblem(p.alpha, p.beta, p.L, p.straight, p.kappa, p.EI, p.ratio, p.kink,
+                             Wl, Fl, Ml, p.step, p.tpos, p.ttyp, p.tidx, p.work)
+    for i in range(rs.shape[0]):
+        rs[i] = lam * p.ratio[i]
+    return LoadedProblem(p.alpha, p.beta, p.L, p.straight, p.kappa, p.EI, rs, p.kink, p.W, p.F,
+                         p.M, p.step, p.tpos, p.ttyp, p.tidx, p.work)
 
 
-@overload(_ode.keeps_jacobian, jit_options=_OPTS)
-def _keeps_jacobian(problem):
-    if is_record(problem, LoadedProblem):
-        return lambda problem: True
-    return None
+register_model(LoadedRhs, LoadedProblem, _derivative, _shoot, _scaled, chords=True)
 
 
 # ----------------------------------------------------------------------------- the batch
@@ -457,4 +428,4 @@ def solve_loaded_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, W, F, M
         store_row(out, bi, out_s, x, it, r, r < tol and finite)
     return out
 
-# numba cache stamp: (rewritten by python -m ctrplan.shape._cache_stamp)
+# numba cache stamp: ced77f820964671a3812064c7af4ffc3f86fa86376ce64110bc2b8f304d0d578

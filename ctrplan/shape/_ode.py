@@ -5,9 +5,9 @@ Every mechanics model (the unloaded one of :mod:`ctrplan.shape._kernel`, the loa
 :mod:`ctrplan.shape._loaded`) integrates a state that starts with ``(cos psi (n), sin psi (n),
 torsion (n), R (9, row-major), p (3))`` from s = 0 to the tip, between the tube events, and
 solves for its unknowns at s = 0 by shooting. The stepper and the driver here are written once
-for all models; what differs per model is reached through three generic functions, each
-implemented by the model's module for its own record types with numba's ``@overload`` (chosen at
-compile time by the argument's type, like ``functools.singledispatch``):
+for all models; what differs per model is reached through four generic functions, each
+implemented by the model's module for its own record types (:func:`implement`: numba's
+``@overload``, chosen at compile time by the argument's type, like ``functools.singledispatch``):
 
 - :func:`derivative` ``(model, y, Y, s, sens, dy, dY)``: the right-hand side of the state
   equations at arc length s (and of the variational equations when ``sens``); ``model`` is the
@@ -29,11 +29,12 @@ caller.
 
 from __future__ import annotations
 
+import inspect
 import math
 
 import numpy as np
 from numba import njit, types
-from numba.extending import intrinsic
+from numba.extending import intrinsic, overload
 
 # Every kernel uses numba's ``error_model="numpy"``: a division by zero gives inf/nan instead
 # of a per-division check that raises (all divisions here are guarded; non-finite results end
@@ -59,9 +60,17 @@ def runtime(typingctx, v):
     return plain(v), codegen
 
 
-def is_record(t, cls) -> bool:
-    """In an ``@overload``: the numba type ``t`` is the namedtuple class ``cls``."""
-    return isinstance(t, types.BaseNamedTuple) and t.instance_class is cls
+def implement(generic, cls, impl) -> None:
+    """Register ``impl`` (a plain function with the parameters of ``generic``, compiled by
+    numba) as ``generic`` where the first argument is a ``cls`` record (a namedtuple)."""
+    def typer(*args):
+        t = args[0]
+        if isinstance(t, types.BaseNamedTuple) and t.instance_class is cls:
+            return impl
+        return None
+
+    typer.__signature__ = inspect.signature(generic)    # numba checks impl against it
+    overload(generic, jit_options={"error_model": "numpy"})(typer)
 
 
 # ----------------------------------------------------------------------------- generic functions
@@ -84,6 +93,16 @@ def keeps_jacobian(problem):
     """True: :func:`newton` keeps its Jacobian while the steps contract (chord steps) and every
     pass writes the output points (per model: ``@overload``)."""
     raise NotImplementedError
+
+
+def register_model(rhs, problem, derivative_impl, shoot_impl, scaled_impl, chords: bool) -> None:
+    """A mechanics model: its interval records (class ``rhs``) and configuration records
+    (class ``problem``), the implementations of :func:`derivative`, :func:`shoot` and
+    :func:`scaled` for them, and its :func:`keeps_jacobian` constant ``chords``."""
+    implement(derivative, rhs, derivative_impl)
+    implement(shoot, problem, shoot_impl)
+    implement(scaled, problem, scaled_impl)
+    implement(keeps_jacobian, problem, (lambda problem: True) if chords else (lambda problem: False))
 
 
 # ----------------------------------------------------------------------------- events and output
@@ -150,16 +169,17 @@ def emit(out_s, out_p, ko, m_out, s_now, last, y, b):
 
 
 @njit(cache=True, error_model="numpy")
+def _point(y, b):
+    """The position p = y[b+9:b+12] and the tangent R e_z = (y[b+2], y[b+5], y[b+8])."""
+    return y[b + 9], y[b + 10], y[b + 11], y[b + 2], y[b + 5], y[b + 8]
+
+
+@njit(cache=True, error_model="numpy")
 def _hermite_out(out_s, out_p, ko, m_out, s_end, sa, sb, h, pax, pay, paz, tax, tay, taz, y, b):
     """Backbone points at the output arc lengths in (sa, sb] of one RK4 step, by cubic Hermite
     interpolation between the step's end points (position y[b+9:b+12], tangent = third column
     of R, y[b+2], y[b+5], y[b+8]) and the start values ``pa``, ``ta``. Returns the next ``ko``."""
-    pbx = y[b + 9]
-    pby = y[b + 10]
-    pbz = y[b + 11]
-    tbx = y[b + 2]
-    tby = y[b + 5]
-    tbz = y[b + 8]
+    pbx, pby, pbz, tbx, tby, tbz = _point(y, b)
     while ko < m_out and out_s[ko] < s_end and out_s[ko] <= sb:
         th = (out_s[ko] - sa) / h
         if th < 0.0:
@@ -196,6 +216,20 @@ def kink_matrix(kx, ky, K):
     K[2, 0] = -ey * st
     K[2, 1] = ex * st
     K[2, 2] = ct
+
+
+@njit(cache=True, error_model="numpy")
+def frame_rates(y, b, ux, uy, dy):
+    """R' = R [u]x with u = (ux, uy, 0) and p' = R e_z for the frame R (row-major) and the
+    position p in y[b:b+12]: columns d0 = -uy r2, d1 = ux r2, d2 = uy r0 - ux r1."""
+    for r in range(3):
+        r0 = y[b + 3 * r]
+        r1 = y[b + 3 * r + 1]
+        r2 = y[b + 3 * r + 2]
+        dy[b + 3 * r] = -uy * r2
+        dy[b + 3 * r + 1] = ux * r2
+        dy[b + 3 * r + 2] = uy * r0 - ux * r1
+        dy[b + 9 + r] = r2
 
 
 @njit(cache=True, error_model="numpy")
@@ -262,12 +296,7 @@ def rk4(model, y, Y, nst, frame, sens, s0, seg, step, out_s, m_out, ko, out_p, w
         want = frame and ko < m_out and out_s[ko] < s_end and out_s[ko] <= sb
         pax = pay = paz = tax = tay = taz = 0.0
         if want:
-            pax = y[b + 9]
-            pay = y[b + 10]
-            paz = y[b + 11]
-            tax = y[b + 2]
-            tay = y[b + 5]
-            taz = y[b + 8]
+            pax, pay, paz, tax, tay, taz = _point(y, b)
         derivative(model, y, Y, sa, sens, ws[0], WS[0])
         _stage(y, Y, ws[0], WS[0], 0.5 * h, yt, Yt, nst, sens)
         derivative(model, yt, Yt, sa + 0.5 * h, sens, ws[1], WS[1])
@@ -532,4 +561,4 @@ def store_row(out, bi, out_s, x, it, r, ok):
     rnorm[bi] = r
     okv[bi] = ok
 
-# numba cache stamp: (rewritten by python -m ctrplan.shape._cache_stamp)
+# numba cache stamp: ced77f820964671a3812064c7af4ffc3f86fa86376ce64110bc2b8f304d0d578

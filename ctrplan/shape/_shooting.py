@@ -280,6 +280,30 @@ def _probe(prob, x, tol, max_iter, out_s, m, pts, nw, sw, alt):
 
 
 @njit(cache=True, error_model="numpy")
+def _solve_row(prob, x, x0, stability, probe, tol, max_iter, out_s, m, pts, nw, sw, alt):
+    """One row of the compliant model (:func:`solve_batch`): x from x0 (in place). Returns
+    (residual, iterations, shaped, stable, det J, branch code)."""
+    r, it, shaped = _solve_compliant(prob, x, tol, max_iter, out_s, m, pts, nw)
+    dj = 1.0
+    code = 0
+    stable = True
+    if r < tol and stability:
+        dj = det(nw[1], nw[6])
+        if not dj > 0.0:
+            # an unstable equilibrium: search stable ones to both sides of it
+            code, r2, d2, it2 = _stabilise(prob, x, x0, tol, max_iter, out_s, m, pts, nw, sw, alt)
+            it += it2
+            stable = code != -1
+            if stable:
+                r = r2
+                dj = d2
+            shaped = False
+        elif probe and it > 0 and _probe(prob, x, tol, max_iter, out_s, m, pts, nw, sw, alt):
+            code = 4
+    return r, it, shaped, stable, dj, code
+
+
+@njit(cache=True, error_model="numpy")
 def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, step, tol,
                 max_iter, x_init, stability=True, probe=False):
     """Solve and integrate a batch of configurations.
@@ -348,24 +372,13 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
         r = 0.0
         stable = True
         if torsion:
-            r, it, shaped = _solve_compliant(prob, x, tol, max_iter, out_s, m, pts, nw)
-            if r < tol and stability:
-                detj[bi] = det(nw[1], nw[6])
-                if not detj[bi] > 0.0:
-                    code, r2, d2, it2 = _stabilise(prob, x, x_init[bi], tol, max_iter, out_s, m,
-                                                   pts, nw, sw, uz0alt[bi])
-                    it += it2
-                    branch[bi] = code
-                    stable = code != -1
-                    if stable:
-                        r = r2
-                        detj[bi] = d2
-                    shaped = False
-                elif probe and it > 0:
-                    if _probe(prob, x, tol, max_iter, out_s, m, pts, nw, sw, uz0alt[bi]):
-                        branch[bi] = 4
+            r, it, shaped, stable, dj, code = _solve_row(prob, x, x_init[bi], stability, probe,
+                                                         tol, max_iter, out_s, m, pts, nw, sw,
+                                                         uz0alt[bi])
+            detj[bi] = dj
+            branch[bi] = code
         finite = finish_row(prob, x, shaped, out_s, m, pts, nw)
         store_row(out, bi, out_s, x, it, r, r < tol and finite and stable)
     return out + (detj, branch, uz0alt)
 
-# numba cache stamp: (rewritten by python -m ctrplan.shape._cache_stamp)
+# numba cache stamp: ced77f820964671a3812064c7af4ffc3f86fa86376ce64110bc2b8f304d0d578
