@@ -45,12 +45,12 @@ from ctrplan.shape._ode import (
 SMOOTH = 0.25
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _wrap(d):
     return d - 2.0 * math.pi * math.floor((d + math.pi) / (2.0 * math.pi))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _blend(t, ra, rb, alpha, beta, kappa, EI, ratio, kink, al, be, ka, ei, rt, kk):
     """Row ra's configuration and mechanics moved a fraction t toward row rb's (rotations along
     the shorter arc), written into al, be, ka, ei, rt, kk."""
@@ -65,7 +65,7 @@ def _blend(t, ra, rb, alpha, beta, kappa, EI, ratio, kink, al, be, ka, ei, rt, k
             kk[i, c] = kink[ra, i, c] + t * (kink[rb, i, c] - kink[ra, i, c])
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _predict(x, xp, xn, have_xp, u1, u_x, u_xp):
     """xn = the last two accepted points (x at u_x, xp at u_xp) extrapolated to u1."""
     for i in range(x.shape[0]):
@@ -74,7 +74,7 @@ def _predict(x, xp, xn, have_xp, u1, u_x, u_xp):
             xn[i] += (x[i] - xp[i]) * (u1 - u_x) / (u_x - u_xp)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _smooth(x, xp, xn, u1, u_x, u_xp, same):
     """The corrector moved the solution by much less than the step moved the predictor: the
     branch extrapolated smoothly (no other stable equilibrium lies that close to the
@@ -88,7 +88,7 @@ def _smooth(x, xp, xn, u1, u_x, u_xp, same):
     return corr <= SMOOTH * pred + 1e-3 * same
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _goes_back(bprob, t, bi, rows, x, xn, xb, same, tol, max_iter, out_s, no_p, nw):
     """Backward check: Newton at the previous accepted point (fraction t of the row step)
     from the new solution xn must come back to x. Returns (passed, iterations)."""
@@ -105,7 +105,7 @@ def _goes_back(bprob, t, bi, rows, x, xn, xb, same, tol, max_iter, out_s, no_p, 
     return rb < tol and back <= same, itb
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _corrector(prob, bprob, t1, last, bi, rows, xn, tol, max_iter, out_s, m, pts, no_p, nw):
     """Newton from the prediction xn (in place) at fraction t1 of the row step: at the row
     itself (``last``: with its output points) or at the blended configuration."""
@@ -119,7 +119,7 @@ def _corrector(prob, bprob, t1, last, bi, rows, xn, tol, max_iter, out_s, m, pts
     return newton(bprob, xn, tol, max_iter, runtime(False), out_s, 0, no_p, nw)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _continue_row(prob, bprob, bi, rows, dist, levels, have_xp, tol, max_iter, out_s, m, pts,
                   no_p, nw, cw):
     """Row bi continues the branch of row bi - 1 (cw: x at u[0] and the point before, xp at
@@ -245,4 +245,4 @@ def solve_chain(alpha, beta, L, straight, kappa, EI, ratio, kink, m, step, tol, 
         store_row(out, bi, out_s, x, iters[bi], rnorm[bi], cont[bi] and finite and rnorm[bi] < tol)
     return out + (detj, cont)
 
-# numba cache stamp: ced77f820964671a3812064c7af4ffc3f86fa86376ce64110bc2b8f304d0d578
+# numba cache stamp: d8f966079f52654bec9904c45b481f0c7a18363c5bbb5d76c49e39122e994b7c

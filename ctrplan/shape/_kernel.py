@@ -72,7 +72,7 @@ UnloadedProblem = namedtuple("UnloadedProblem", (
     "ttyp", "tidx", "work"))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _deriv(y, Y, n, a, w, eisum_inv, frame, sens, dy, dY):
     """Derivative of y = [c(n), s(n), uz(n), R(9, row-major), p(3)] and of the sensitivities
     Y = [dpsi/dx (n x n); duz/dx (n x n)] (when ``sens``)."""
@@ -107,7 +107,7 @@ def _deriv(y, Y, n, a, w, eisum_inv, frame, sens, dy, dY):
                 dY[n + i, col] = a[i] * ((c * cw + s * sw) * Y[i, col] - c * cwy - s * swy)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _exp_coeffs(th2, seg):
     """For Exp(seg [v]x) with th = |v| seg: returns (a1, a2, a3) with
     Exp = I + a1 [v] + a2 [v]^2 and int_0^seg Exp(t [v]) dt = seg I + a2 [v] + a3 [v]^2."""
@@ -125,7 +125,7 @@ def _exp_coeffs(th2, seg):
     return seg * s1, seg * seg * s2, seg * seg * seg * s3
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _exact_frame(y, b, seg, vx, vy, vz, c0, s0, c1, s1, G):
     """Advance R, p exactly over ``seg`` when the curvature is constant in a frame that spins
     at rate vz about the tangent: R(s) = R0 Rz(phi0) Exp(s [v]x) Rz(-phi(s)),
@@ -176,7 +176,7 @@ def _exact_frame(y, b, seg, vx, vy, vz, c0, s0, c1, s1, G):
         y[b + 3 * r + 2] = r0 * G[0, 2] + r1 * G[1, 2] + r2 * G[2, 2]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _catch_up(y, n, i, pend):
     """Apply tube i's deferred rotation ``pend[i]`` to its (cos, sin) psi."""
     th = pend[i]
@@ -190,7 +190,7 @@ def _catch_up(y, n, i, pend):
         pend[i] = 0.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _exact(y, Y, n, b, w, eisum_inv, ncurved, jc, torsion, frame, sens, seg, pend, G):
     """Advance over ``seg`` where fewer than two curved sections overlap (or the model is
     rigid): the torsions are constant, so every psi advances linearly (its (cos, sin) rotation
@@ -241,7 +241,7 @@ def _exact(y, Y, n, b, w, eisum_inv, ncurved, jc, torsion, frame, sens, seg, pen
                          1.0, 0.0, 1.0, 0.0, G)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _start(alpha, beta, x, torsion, frame, sens, y, Y, pend):
     """The states at s = 0: psi_i = alpha_i - beta_i uz_i(0) (the straight part behind the
     constraint plane twists uniformly), uz = x (0 for the rigid model), R = I, p = 0; dpsi/dx
@@ -270,7 +270,7 @@ def _start(alpha, beta, x, torsion, frame, sens, y, Y, pend):
             Y[n + i, i] = 1.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _regime(mid, beta, L, straight, kappa, EI, ratio, torsion, y, a, w):
     """The regime at arc length ``mid`` (constant between break points): fills w (and a where
     two or more curved sections overlap in the compliant model). Returns (1 / sum EI, number of
@@ -302,7 +302,7 @@ def _regime(mid, beta, L, straight, kappa, EI, ratio, torsion, y, a, w):
     return eisum_inv, ncurved, jc, twisting
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _interval(y, Y, n, nst, w, a, eisum_inv, ncurved, jc, twisting, torsion, frame, sens,
               s_now, s_next, step, out_s, m_out, ko, out_p, pend, ws, WS, G):
     """Advance from s_now to s_next (one regime): RK4 where the torsions vary, else exactly,
@@ -331,7 +331,7 @@ def _interval(y, Y, n, nst, w, a, eisum_inv, ncurved, jc, twisting, torsion, fra
     return ko
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _tube_end(i, y, Y, n, frame, sens, kink, resid, jac, G):
     """Tube i ends: its boundary residual uz_i (and the Jacobian row); then its torsion (and so
     its angle) is frozen, and the clearance kink turns the frame."""
@@ -348,7 +348,7 @@ def _tube_end(i, y, Y, n, frame, sens, kink, resid, jac, G):
         turn_frame(y.reshape((y.shape[0], 1)), 0, 3 * n, G)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, torsion,
                tpos, ttyp, tidx, out_s, m_out, step, frame, sens, out_p, resid, jac,
                y, Y, a, w, pend, ws, WS, G):
@@ -382,7 +382,7 @@ def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, torsion,
 
 
 # ----------------------------------------------------------------------------- the model's records
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def unloaded_work(n):
     """Workspace of one unloaded problem: y, Y, a, w, pend, ws, WS, G and the scaled EI/GJ."""
     nst = 3 * n + 12
@@ -414,4 +414,4 @@ def _scaled(problem, lam, what):
 
 register_model(UnloadedRhs, UnloadedProblem, _derivative, _shoot, _scaled, chords=False)
 
-# numba cache stamp: ced77f820964671a3812064c7af4ffc3f86fa86376ce64110bc2b8f304d0d578
+# numba cache stamp: d8f966079f52654bec9904c45b481f0c7a18363c5bbb5d76c49e39122e994b7c

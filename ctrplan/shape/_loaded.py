@@ -86,7 +86,7 @@ LoadedProblem = namedtuple("LoadedProblem", (
     "tpos", "ttyp", "tidx", "work"))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _rhs(y, T, n, nx, s, k, w, eisum_inv, n0, wsum, sens, dy, dT):
     """Derivative of the state y (3n + 14) and, when ``sens``, of its tangent T (3n + 14, nx).
 
@@ -161,7 +161,7 @@ def _rhs(y, T, n, nx, s, k, w, eisum_inv, n0, wsum, sens, dy, dT):
             dT[b + 13, col] = dux * mbz + ux * dmbz - dnbx
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _turn_moment(Z, col, n, b, K):
     """mb_xy <- (K^T (mb_x, mb_y, sum tau))_xy for the state (or tangent) Z[:, col]: the
     bending moment turns with the frame, the twisting moment sum tau carries over."""
@@ -174,12 +174,12 @@ def _turn_moment(Z, col, n, b, K):
     Z[b + 13, col] = K[0, 1] * mx + K[1, 1] * my + K[2, 1] * mz
 
 
-@njit(cache=True, error_model="numpy")
-def _kink(y, T, n, nx, sens, kx, ky):
+@njit(cache=True, error_model="numpy", _nrt=False)
+def _kink(y, T, n, nx, sens, kx, ky, K):
     """R <- R K with K = Exp([kx, ky, 0]); mb_xy <- (K^T (mb_x, mb_y, sum tau))_xy, the
-    twisting moment sum tau carries over. The tangent follows (K is constant)."""
+    twisting moment sum tau carries over. The tangent follows (K is constant). K (3, 3) is
+    workspace."""
     b = 3 * n
-    K = np.empty((3, 3))
     kink_matrix(kx, ky, K)
     Yv = y.reshape((y.shape[0], 1))
     turn_frame(Yv, 0, b, K)
@@ -189,7 +189,7 @@ def _kink(y, T, n, nx, sens, kx, ky):
         _turn_moment(T, col, n, b, K)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _start(alpha, beta, x, ratio, EI, sens, y, T, k):
     """The states at s = 0: psi_i = alpha_i - beta_i uz_i(0), tau = x[:n], R = I, p = 0,
     mb = x[n:]; and their derivatives by x."""
@@ -224,7 +224,7 @@ def _start(alpha, beta, x, ratio, EI, sens, y, T, k):
         T[b + 13, n + 1] = 1.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _regime(mid, beta, L, straight, kappa, EI, W, F, w, n0, wsum):
     """The regime at arc length ``mid`` (constant between break points): w, and the internal
     force n(s) = n0 - s wsum of the tip force and the weight of the tubes present (N).
@@ -246,14 +246,14 @@ def _regime(mid, beta, L, straight, kappa, EI, W, F, w, n0, wsum):
     return 1.0 / eisum if eisum > 0.0 else 0.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _along(Z, col, b, M, j):
     """Component j of R^T M (the moment M in the backbone frame) from the frame in Z[:, col]."""
     return Z[b + j, col] * M[0] + Z[b + 3 + j, col] * M[1] + Z[b + 6 + j, col] * M[2]
 
 
-@njit(cache=True, error_model="numpy")
-def _tube_end(i, y, T, n, sens, EI, M, kink, resid, jac):
+@njit(cache=True, error_model="numpy", inline="always")
+def _tube_end(i, y, T, n, sens, EI, M, kink, resid, jac, K):
     """Tube i ends: its residual tau_i (the innermost tube: minus the tip moment's twist) / EI_i
     and its Jacobian row; then no torsion, its angle frozen; the clearance kink."""
     nx = n + 2
@@ -270,10 +270,10 @@ def _tube_end(i, y, T, n, sens, EI, M, kink, resid, jac):
         for c in range(nx):
             T[2 * n + i, c] = 0.0
     if kink[i, 0] != 0.0 or kink[i, 1] != 0.0:
-        _kink(y, T, n, nx, sens, kink[i, 0], kink[i, 1])
+        _kink(y, T, n, nx, sens, kink[i, 0], kink[i, 1], K)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _tip(y, T, n, sens, EI, M, resid, jac):
     """The tip: the bending moment equals the applied moment (backbone frame), / EI_1."""
     b = 3 * n
@@ -287,9 +287,9 @@ def _tip(y, T, n, sens, EI, M, resid, jac):
             jac[n + 1, c] = (T[b + 13, c] - _along(T, c, b, M, 1)) / e0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, W, F, M, tpos, ttyp, tidx,
-               out_s, m_out, step, sens, out_p, resid, jac, y, T, k, w, n0, wsum, ws, WS):
+               out_s, m_out, step, sens, out_p, resid, jac, y, T, k, w, n0, wsum, ws, WS, K):
     """One pass from s = 0 to the tip at unknowns x (n + 2). Fills resid (n + 2), jac when
     ``sens`` and out_p[:m_out] (m_out may be 0)."""
     n = alpha.shape[0]
@@ -308,21 +308,21 @@ def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, W, F, M, tpo
                      WS)
             s_now = s_next
         if ttyp[it] == 1:
-            _tube_end(tidx[it], y, T, n, sens, EI, M, kink, resid, jac)
+            _tube_end(tidx[it], y, T, n, sens, EI, M, kink, resid, jac, K)
         ko = emit(out_s, out_p, ko, m_out, s_now, it == ne - 1, y, 3 * n)
     _tip(y, T, n, sens, EI, M, resid, jac)
 
 
 # ----------------------------------------------------------------------------- the model's records
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def loaded_work(n):
     """Workspace of one loaded problem: y, T, k, w, n0, wsum, ws, WS and the scaled EI/GJ,
-    weights, tip force and tip moment."""
+    weights, tip force and tip moment; K (3, 3) the kink rotation."""
     N = 3 * n + 14
     nx = n + 2
     return (np.zeros(N), np.zeros((N, nx)), np.zeros(n), np.zeros(n), np.zeros(3), np.zeros(3),
             np.zeros((5, N)), np.zeros((5, N, nx)), np.zeros(n), np.zeros((n, 3)), np.zeros(3),
-            np.zeros(3))
+            np.zeros(3), np.zeros((3, 3)))
 
 
 def _derivative(model, y, Y, s, sens, dy, dY):
@@ -333,14 +333,15 @@ def _derivative(model, y, Y, s, sens, dy, dY):
 def _shoot(problem, x, sens, out_s, m_out, out_p, resid, jac):
     p = problem
     y, T, k, w, n0, wsum, ws, WS = p.work[:8]
+    K = p.work[12]
     _integrate(p.alpha, p.beta, x, p.L, p.straight, p.kappa, p.EI, p.ratio, p.kink, p.W, p.F,
                p.M, p.tpos, p.ttyp, p.tidx, out_s, m_out, p.step, sens, out_p, resid, jac, y, T,
-               k, w, n0, wsum, ws, WS)
+               k, w, n0, wsum, ws, WS, K)
 
 
 def _scaled(problem, lam, what):
     p = problem
-    rs, Wl, Fl, Ml = p.work[8:]
+    rs, Wl, Fl, Ml = p.work[8:12]
     if what == LOADS:
         for c in range(3):
             Fl[c] = lam * p.F[c]
@@ -359,7 +360,7 @@ register_model(LoadedRhs, LoadedProblem, _derivative, _shoot, _scaled, chords=Tr
 
 
 # ----------------------------------------------------------------------------- the batch
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _solve_row(prob, x, x0, xs, tol, max_iter, out_s, m, pts, nw):
     """Newton from x0 (into x); where it fails, the load ramped up from the unloaded solution
     xs (K = 8, then 32 stages); where that fails too, the torsional compliance ramped up from
@@ -428,4 +429,4 @@ def solve_loaded_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, W, F, M
         store_row(out, bi, out_s, x, it, r, r < tol and finite)
     return out
 
-# numba cache stamp: ced77f820964671a3812064c7af4ffc3f86fa86376ce64110bc2b8f304d0d578
+# numba cache stamp: d8f966079f52654bec9904c45b481f0c7a18363c5bbb5d76c49e39122e994b7c

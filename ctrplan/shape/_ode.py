@@ -39,6 +39,19 @@ from numba.extending import intrinsic, overload
 # Every kernel uses numba's ``error_model="numpy"``: a division by zero gives inf/nan instead
 # of a per-division check that raises (all divisions here are guarded; non-finite results end
 # up as ok=False).
+#
+# Every kernel that allocates nothing and returns no array is compiled without numba's
+# reference counting (``_nrt=False``); the batch entry points (which allocate
+# the workspace and the results) and :func:`scaled` (returns a record of arrays) keep it.
+# With it, every array argument of every call, every view (``ws[0]``) and every field read
+# from a record of arrays costs an atomic increment and decrement of the array's count, and
+# numba's pruning removes few of them across the small functions shared here: the shared
+# stepper and driver (issue 37) ran at half main's speed (bench_shape batch 10,000 on one
+# thread: compliant 28.1 vs 12.7 us/shape, loaded 92 vs 55), without it they run faster than
+# main's copies. A kernel compiled so must not return an array, nor a record or tuple holding
+# one, to a caller with reference counting (the caller would release a reference never taken),
+# and cannot allocate (numba refuses to compile it). The arrays passed in are owned by the
+# caller for the duration of the call.
 
 #: :func:`scaled` targets: the torsional compliance EI/GJ, or every external load
 COMPLIANCE = 0
@@ -58,19 +71,6 @@ def runtime(typingctx, v):
         return context.cast(builder, args[0], v, plain)
 
     return plain(v), codegen
-
-
-def implement(generic, cls, impl) -> None:
-    """Register ``impl`` (a plain function with the parameters of ``generic``, compiled by
-    numba) as ``generic`` where the first argument is a ``cls`` record (a namedtuple)."""
-    def typer(*args):
-        t = args[0]
-        if isinstance(t, types.BaseNamedTuple) and t.instance_class is cls:
-            return impl
-        return None
-
-    typer.__signature__ = inspect.signature(generic)    # numba checks impl against it
-    overload(generic, jit_options={"error_model": "numpy"})(typer)
 
 
 # ----------------------------------------------------------------------------- generic functions
@@ -95,18 +95,37 @@ def keeps_jacobian(problem):
     raise NotImplementedError
 
 
+def implement(generic, cls, impl, inline: bool = False, nrt: bool = False) -> None:
+    """Register ``impl`` (a plain function with the parameters of ``generic``, compiled by
+    numba) as ``generic`` where the first argument is a ``cls`` record (a namedtuple);
+    ``inline``: compiled into each caller (numba IR inlining) instead of called; ``nrt``: with
+    numba's reference counting, needed where ``impl`` returns arrays (the note above ``COMPLIANCE``)."""
+    def typer(*args):
+        t = args[0]
+        if isinstance(t, types.BaseNamedTuple) and t.instance_class is cls:
+            return impl
+        return None
+
+    typer.__signature__ = inspect.signature(generic)    # numba checks impl against it
+    overload(generic, jit_options={"error_model": "numpy", "_nrt": nrt},
+             inline="always" if inline else "never")(typer)
+
+
 def register_model(rhs, problem, derivative_impl, shoot_impl, scaled_impl, chords: bool) -> None:
     """A mechanics model: its interval records (class ``rhs``) and configuration records
     (class ``problem``), the implementations of :func:`derivative`, :func:`shoot` and
     :func:`scaled` for them, and its :func:`keeps_jacobian` constant ``chords``."""
-    implement(derivative, rhs, derivative_impl)
+    # compile time: the small ones are compiled into their callers, the pass is called (one
+    # compiled pass per model, not one per call site)
+    implement(derivative, rhs, derivative_impl, inline=True)
     implement(shoot, problem, shoot_impl)
-    implement(scaled, problem, scaled_impl)
-    implement(keeps_jacobian, problem, (lambda problem: True) if chords else (lambda problem: False))
+    implement(scaled, problem, scaled_impl, nrt=True)        # returns a record of arrays
+    implement(keeps_jacobian, problem, (lambda problem: True) if chords else (lambda problem: False),
+              inline=True)
 
 
 # ----------------------------------------------------------------------------- events and output
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _tube_events(beta, L, straight, tpos, ttyp, tidx):
     """Sorted tube events (curve start = 0, tube end = 1) by insertion sort; ties keep
     curve starts before ends, curve starts of lower tube indices first and ends of higher
@@ -138,13 +157,13 @@ def _tube_events(beta, L, straight, tpos, ttyp, tidx):
         tidx[m + 1] = j
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def events(n):
     """Workspace of :func:`_tube_events` for n tubes: tpos, ttyp, tidx."""
     return np.zeros(2 * n), np.zeros(2 * n, dtype=np.int64), np.zeros(2 * n, dtype=np.int64)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def row_grid(beta, L, straight, m, tpos, ttyp, tidx, out_s):
     """The tube events of one configuration and its m output arc lengths, evenly spaced from
     0 to the tip (mm)."""
@@ -156,7 +175,7 @@ def row_grid(beta, L, straight, m, tpos, ttyp, tidx, out_s):
     out_s[m - 1] = tip
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def emit(out_s, out_p, ko, m_out, s_now, last, y, b):
     """Output points at (or, by round-off, just past) arc length s_now, every remaining one
     when ``last``: the position y[b+9:b+12]. Returns the next output index."""
@@ -168,13 +187,13 @@ def emit(out_s, out_p, ko, m_out, s_now, last, y, b):
     return ko
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _point(y, b):
     """The position p = y[b+9:b+12] and the tangent R e_z = (y[b+2], y[b+5], y[b+8])."""
     return y[b + 9], y[b + 10], y[b + 11], y[b + 2], y[b + 5], y[b + 8]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _hermite_out(out_s, out_p, ko, m_out, s_end, sa, sb, h, pax, pay, paz, tax, tay, taz, y, b):
     """Backbone points at the output arc lengths in (sa, sb] of one RK4 step, by cubic Hermite
     interpolation between the step's end points (position y[b+9:b+12], tangent = third column
@@ -198,7 +217,7 @@ def _hermite_out(out_s, out_p, ko, m_out, s_end, sa, sb, h, pax, pay, paz, tax, 
 
 
 # ----------------------------------------------------------------------------- kinks
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def kink_matrix(kx, ky, K):
     """K = Exp([kx, ky, 0]x), the rotation by |k| about the axis (kx, ky, 0) / |k| (Rodrigues)."""
     th = math.sqrt(kx * kx + ky * ky)
@@ -218,7 +237,7 @@ def kink_matrix(kx, ky, K):
     K[2, 2] = ct
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def frame_rates(y, b, ux, uy, dy):
     """R' = R [u]x with u = (ux, uy, 0) and p' = R e_z for the frame R (row-major) and the
     position p in y[b:b+12]: columns d0 = -uy r2, d1 = ux r2, d2 = uy r0 - ux r1."""
@@ -232,7 +251,7 @@ def frame_rates(y, b, ux, uy, dy):
         dy[b + 9 + r] = r2
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def turn_frame(Z, col, b, K):
     """R <- R K for the frame R stored row-major in Z[b:b+9, col]."""
     for r in range(3):
@@ -245,7 +264,7 @@ def turn_frame(Z, col, b, K):
 
 
 # ----------------------------------------------------------------------------- RK4
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _stage(y, Y, k, K, c, yt, Yt, nst, sens):
     """yt = y + c k (first nst states) and, when ``sens``, Yt = Y + c K."""
     for j in range(nst):
@@ -256,7 +275,7 @@ def _stage(y, Y, k, K, c, yt, Yt, nst, sens):
                 Yt[r, q] = Y[r, q] + c * K[r, q]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _combine(y, Y, ws, WS, h6, nst, sens):
     """y += h/6 (k1 + 2 k2 + 2 k3 + k4) (first nst states), likewise Y when ``sens``."""
     k1, k2, k3, k4 = ws[0], ws[1], ws[2], ws[3]
@@ -269,7 +288,7 @@ def _combine(y, Y, ws, WS, h6, nst, sens):
                 Y[r, c] += h6 * (K1[r, c] + 2.0 * K2[r, c] + 2.0 * K3[r, c] + K4[r, c])
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def rk4(model, y, Y, nst, frame, sens, s0, seg, step, out_s, m_out, ko, out_p, ws, WS):
     """Fixed-step RK4 of :func:`derivative` over [s0, s0 + seg] (``ceil(seg / step)`` equal steps).
 
@@ -312,7 +331,7 @@ def rk4(model, y, Y, nst, frame, sens, s0, seg, step, out_s, m_out, ko, out_p, w
 
 
 # ----------------------------------------------------------------------------- linear algebra
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def max_abs(v):
     """max_i |v_i|, NaN when some v_i is NaN."""
     m = 0.0
@@ -322,7 +341,7 @@ def max_abs(v):
     return m
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _eliminate(jac, v, A, solve):
     """Gaussian elimination with partial pivoting of the n x n matrix ``jac`` (copied into the
     workspace ``A``), applied to v as well when ``solve`` (n is tiny). Returns (ok, det): ok is
@@ -365,7 +384,7 @@ def _eliminate(jac, v, A, solve):
     return True, det
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def newton_step(jac, resid, dx, A):
     """dx = -jac^{-1} resid (``A`` is workspace). Returns False when the Jacobian is singular
     or not finite."""
@@ -386,27 +405,27 @@ def newton_step(jac, resid, dx, A):
     return True
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def det(jac, A):
     """Determinant of the n x n matrix ``jac`` (``A`` is workspace); NaN when it is not finite."""
     return _eliminate(jac, jac[0], A, False)[1]
 
 
 # ----------------------------------------------------------------------------- Newton
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def newton_work(nx):
     """Workspace of :func:`newton` for nx unknowns: resid, jac, resid_t, jac_t, dx, xt, A."""
     return (np.zeros(nx), np.zeros((nx, nx)), np.zeros(nx), np.zeros((nx, nx)), np.zeros(nx),
             np.zeros(nx), np.zeros((nx, nx)))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _step_to(x, dx, t, xt):
     for i in range(x.shape[0]):
         xt[i] = x[i] + t * dx[i]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _take(x, xt, resid, resid_t, jac, jac_t, with_jac):
     """x, resid (and jac when ``with_jac``) <- the trial's."""
     n = x.shape[0]
@@ -418,7 +437,7 @@ def _take(x, xt, resid, resid_t, jac, jac_t, with_jac):
                 jac[i, c] = jac_t[i, c]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _line_search(problem, x, dx, r, tol, tries, out_s, m_out, pts, nw):
     """Backtracking from the full step x + dx, halving up to ``tries`` times, until the residual
     falls below r (or tol). Passes with sensitivities into the trial workspace. Returns
@@ -436,7 +455,7 @@ def _line_search(problem, x, dx, r, tol, tries, out_s, m_out, pts, nw):
     return False, t, rt
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def newton(problem, x, tol, max_iter, may_shape, out_s, m_out, pts, nw):
     """Shooting on the unknowns x (updated in place) by Newton with a backtracking line search.
 
@@ -507,7 +526,7 @@ def newton(problem, x, tol, max_iter, may_shape, out_s, m_out, pts, nw):
     return r, it, shaped
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def ramp(problem, x, k0, K, what, tol, max_iter, may_shape, out_s, m_out, pts, nw):
     """Continuation in a parameter: Newton on :func:`scaled` ``(problem, k / K, what)`` for
     k = k0..K, each stage from the previous one's solution (x, in place), until a stage fails.
@@ -527,7 +546,7 @@ def ramp(problem, x, k0, K, what, tol, max_iter, may_shape, out_s, m_out, pts, n
 
 
 # ----------------------------------------------------------------------------- batch rows
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def outputs(B, m, nx):
     """Per-batch results: points (B, m, 3), s (B, m), x (B, nx), iterations (B,),
     residual (B,), ok (B,)."""
@@ -535,7 +554,7 @@ def outputs(B, m, nx):
             np.zeros(B), np.zeros(B, dtype=np.bool_))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def finish_row(problem, x, shaped, out_s, m, pts, nw):
     """The backbone at x unless ``pts[:m]`` already hold it (final pass without
     sensitivities); returns True when every point is finite."""
@@ -549,7 +568,7 @@ def finish_row(problem, x, shaped, out_s, m, pts, nw):
     return finite
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def store_row(out, bi, out_s, x, it, r, ok):
     """Row bi of :func:`outputs` (points are written in place by the passes)."""
     svals, xout, iters, rnorm, okv = out[1], out[2], out[3], out[4], out[5]
@@ -561,4 +580,4 @@ def store_row(out, bi, out_s, x, it, r, ok):
     rnorm[bi] = r
     okv[bi] = ok
 
-# numba cache stamp: ced77f820964671a3812064c7af4ffc3f86fa86376ce64110bc2b8f304d0d578
+# numba cache stamp: d8f966079f52654bec9904c45b481f0c7a18363c5bbb5d76c49e39122e994b7c

@@ -68,7 +68,7 @@ from ctrplan.shape._ode import (
 _SCALES = (1.0, 0.3, 3.0, 0.1)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _unstable_direction(jac, ra, ei, d, v, A):
     """Direction of the unstable mode of an unstable equilibrium, in the torque-balanced
     hyperplane sum_i GJ_i uz_i(0) = 0 that holds every unloaded equilibrium (the total
@@ -105,7 +105,7 @@ def _unstable_direction(jac, ra, ei, d, v, A):
             d[i] = v[i]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _solve_compliant(prob, x, tol, max_iter, out_s, m, pts, nw):
     """Newton from x (in place); where it fails, continuation in the torsional compliance from
     the rigid solution uz = 0 (EI/GJ scaled by k/K, k = 1..K, K = 8 then 32). Returns
@@ -122,7 +122,7 @@ def _solve_compliant(prob, x, tol, max_iter, out_s, m, pts, nw):
     return r, it, shaped
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _amp(kappa):
     amp = 0.0
     for i in range(kappa.shape[0]):
@@ -130,14 +130,14 @@ def _amp(kappa):
     return amp
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def search_work(n):
     """Workspace of the stable-root search: xu, d, v (n,), roots (2, n), their residuals and
     Jacobian determinants (2,)."""
     return np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((2, n)), np.zeros(2), np.zeros(2)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _keep_root(x, r2, d2, nfound, amp, sw):
     """Store a stable root unless it is the one already found. Returns the number found."""
     roots, rres, rdet = sw[3], sw[4], sw[5]
@@ -154,7 +154,7 @@ def _keep_root(x, r2, d2, nfound, amp, sw):
     return nfound + 1
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _both_sides(prob, x, amp, tol, max_iter, out_s, m, pts, nw, sw):
     """Newton from the unstable root xu pushed along its unstable mode by t x amp, t in
     :data:`_SCALES`, to each side; the first stable root per side is kept. Returns (number of
@@ -179,7 +179,7 @@ def _both_sides(prob, x, amp, tol, max_iter, out_s, m, pts, nw, sw):
     return nfound, it
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _from_rigid(prob, x, tol, max_iter, out_s, m, pts, nw, sw):
     """Continuation in the compliance (K = 8) from the rigid solution; its root is kept if
     stable. Returns (number found, iterations)."""
@@ -194,7 +194,7 @@ def _from_rigid(prob, x, tol, max_iter, out_s, m, pts, nw, sw):
     return 0, it
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _stabilise(prob, x, x0, tol, max_iter, out_s, m, pts, nw, sw, alt):
     """x (in place) is an unstable equilibrium: search stable ones to both sides of it
     (:func:`_both_sides`), else by :func:`_from_rigid`; with two, return the one nearer x0
@@ -235,7 +235,7 @@ def _stabilise(prob, x, x0, tol, max_iter, out_s, m, pts, nw, sw, alt):
     return code, rres[pick], rdet[pick], it
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _probe(prob, x, tol, max_iter, out_s, m, pts, nw, sw, alt):
     """x is a stable equilibrium: where some pair of curved tubes is rotated apart by more than
     90 deg at the actuators, Newton from the mirrored root pushed to the other side (1 and
@@ -279,7 +279,7 @@ def _probe(prob, x, tol, max_iter, out_s, m, pts, nw, sw, alt):
     return found
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _solve_row(prob, x, x0, stability, probe, tol, max_iter, out_s, m, pts, nw, sw, alt):
     """One row of the compliant model (:func:`solve_batch`): x from x0 (in place). Returns
     (residual, iterations, shaped, stable, det J, branch code)."""
@@ -381,4 +381,4 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
         store_row(out, bi, out_s, x, it, r, r < tol and finite and stable)
     return out + (detj, branch, uz0alt)
 
-# numba cache stamp: ced77f820964671a3812064c7af4ffc3f86fa86376ce64110bc2b8f304d0d578
+# numba cache stamp: d8f966079f52654bec9904c45b481f0c7a18363c5bbb5d76c49e39122e994b7c
