@@ -3,7 +3,9 @@
 - no import cycle anywhere in ``ctrplan/`` (module-level and function-level imports alike;
   a cycle found by Tarjan's strongly connected components over the import graph);
 - the calibration stages in pipeline order, none importing a later one;
-- no function in ``ctrplan/calibration/`` longer than ``MAX_LINES`` lines;
+- no function in ``ctrplan/calibration/`` longer than ``MAX_LINES`` lines, and none in the whole
+  package but those of an explicit allow-list that only shrinks (issue 37: no function over 80
+  lines);
 - every calibration module says in its docstring what it is; each stage module names its stage;
 - the public names stay importable where they always were.
 
@@ -175,6 +177,62 @@ def test_no_function_in_calibration_exceeds_the_limit():
     assert len(files) >= 10
     long = [x for f in files for x in _long_functions(f, MAX_LINES)]
     assert long == [], long
+
+
+#: Functions still over MAX_LINES outside ctrplan/calibration, each with the issue whose work
+#: splits it. The list only shrinks: an entry no longer over the limit must be removed (the test
+#: says which), and no function may join it.
+LONG_ALLOWED = {
+    "collision/field.py::_capsule_bounds": "issue 41 (collision/)",
+    "collision/labels.py::scene_from_labels": "issue 41 (collision/, scene from-labels)",
+    "commands/bench.py::summary_block": "issue 37 item 5",
+    "commands/train.py::register": "issue 38 (train)",
+    "commands/train.py::run": "issue 38 (train)",
+    "design/__init__.py::design": "issue 40 (design/)",
+    "planning/space.py::_solve": "issue 37 item 1 (Planner)",
+    "shape/_learned_kernel.py::tip_jacobian": "issue 38 (learned model)",
+    "shape/training.py::select_variant": "issue 38 (learned model)",
+    "shape/training.py::pretrain_finetune": "issue 38 (learned model)",
+}
+
+
+def function_lengths(root: Path) -> dict[str, int]:
+    """``"path/below/root.py::Class.function"`` -> lines of every function (nested ones too)."""
+    out: dict[str, int] = {}
+    for f in sorted(root.rglob("*.py")):
+        rel = f.relative_to(root).as_posix()
+
+        def visit(node: ast.AST, prefix: str, rel: str = rel) -> None:
+            for ch in ast.iter_child_nodes(node):
+                if isinstance(ch, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    out[f"{rel}::{prefix}{ch.name}"] = ch.end_lineno - ch.lineno + 1
+                    visit(ch, f"{prefix}{ch.name}.")
+                elif isinstance(ch, ast.ClassDef):
+                    visit(ch, f"{prefix}{ch.name}.")
+                else:
+                    visit(ch, prefix)
+
+        visit(ast.parse(f.read_text(encoding="utf-8")), "")
+    return out
+
+
+def test_function_lengths_name_methods_and_nested_functions(tmp_path):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "m.py").write_text(
+        "class C:\n    def f(self):\n        def g():\n            pass\n        return g\n\n\n"
+        "if True:\n    def h():\n" + "        x = 1\n" * MAX_LINES)
+    got = function_lengths(tmp_path)
+    assert got == {"sub/m.py::C.f": 4, "sub/m.py::C.f.g": 2, "sub/m.py::h": MAX_LINES + 1}
+
+
+def test_no_function_in_the_package_exceeds_the_limit():
+    lengths = function_lengths(ROOT)
+    assert len(lengths) > 1000
+    long = {k for k, v in lengths.items() if v > MAX_LINES}
+    new = sorted(f"{k} ({lengths[k]} lines)" for k in long - set(LONG_ALLOWED))
+    assert not new, f"over {MAX_LINES} lines: {new}"
+    done = sorted(set(LONG_ALLOWED) - long)
+    assert not done, f"no longer over {MAX_LINES} lines, remove from LONG_ALLOWED: {done}"
 
 
 STAGES = {"data": "Stage 1", "evidence": "Stage 2", "select": "Stage 3", "fit": "Stage 4",

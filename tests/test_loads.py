@@ -22,7 +22,7 @@ from scipy.optimize import root
 from ctrplan.errors import InputError
 from ctrplan.robot import Robot, Tube, load_robot, robot_from_dict
 from ctrplan.shape import _loaded
-from ctrplan.shape._kernel import _tube_events
+from ctrplan.shape._ode import _tube_events
 from ctrplan.shape.effects import EffectModel, effect_params
 from ctrplan.shape.physics import Loads, MechanicsParams, PhysicsModel
 
@@ -275,7 +275,8 @@ def _workspace(n):
     N = 3 * n + 14
     nx = n + 2
     return dict(y=np.zeros(N), T=np.zeros((N, nx)), k=np.zeros(n), w=np.zeros(n),
-                n0=np.zeros(3), wsum=np.zeros(3), ws=np.zeros((5, N)), WS=np.zeros((5, N, nx)))
+                n0=np.zeros(3), wsum=np.zeros(3), ws=np.zeros((5, N)), WS=np.zeros((5, N, nx)),
+                K=np.zeros((3, 3)))
 
 
 def _residual(robot, q, x, W, F, M, kink=None, torsion=True, sens=True):
@@ -292,7 +293,7 @@ def _residual(robot, q, x, W, F, M, kink=None, torsion=True, sens=True):
     _loaded._integrate(q[:n].copy(), q[n:].copy(), x, L, st, robot.array("curvature"), EI, ratio,
                        kink, W, F, M, tpos, ttyp, tidx, np.zeros(1), 0, 10.0, sens,
                        np.zeros((0, 3)), resid, jac, ws["y"], ws["T"], ws["k"], ws["w"],
-                       ws["n0"], ws["wsum"], ws["ws"], ws["WS"])
+                       ws["n0"], ws["wsum"], ws["ws"], ws["WS"], ws["K"])
     return resid, jac
 
 

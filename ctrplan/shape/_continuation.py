@@ -26,20 +26,31 @@ import math
 import numpy as np
 from numba import njit
 
-from ctrplan.shape._kernel import _integrate, _tube_events, runtime
-from ctrplan.shape._shooting import _det, _newton
+from ctrplan.shape._kernel import UnloadedProblem, unloaded_work
+from ctrplan.shape._ode import (
+    _tube_events,
+    det,
+    events,
+    finish_row,
+    newton,
+    newton_work,
+    outputs,
+    row_grid,
+    runtime,
+    store_row,
+)
 
 #: a step is accepted without the backward check when the corrector moved the solution by at
 #: most this fraction of the predictor's extrapolation (a smooth branch: O(h) smaller)
 SMOOTH = 0.25
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _wrap(d):
     return d - 2.0 * math.pi * math.floor((d + math.pi) / (2.0 * math.pi))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _blend(t, ra, rb, alpha, beta, kappa, EI, ratio, kink, al, be, ka, ei, rt, kk):
     """Row ra's configuration and mechanics moved a fraction t toward row rb's (rotations along
     the shorter arc), written into al, be, ka, ei, rt, kk."""
@@ -52,6 +63,117 @@ def _blend(t, ra, rb, alpha, beta, kappa, EI, ratio, kink, al, be, ka, ei, rt, k
         rt[i] = ratio[ra, i] + t * (ratio[rb, i] - ratio[ra, i])
         for c in range(2):
             kk[i, c] = kink[ra, i, c] + t * (kink[rb, i, c] - kink[ra, i, c])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _predict(x, xp, xn, have_xp, u1, u_x, u_xp):
+    """xn = the last two accepted points (x at u_x, xp at u_xp) extrapolated to u1."""
+    for i in range(x.shape[0]):
+        xn[i] = x[i]
+        if have_xp and u_x - u_xp > 0.0:
+            xn[i] += (x[i] - xp[i]) * (u1 - u_x) / (u_x - u_xp)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _smooth(x, xp, xn, u1, u_x, u_xp, same):
+    """The corrector moved the solution by much less than the step moved the predictor: the
+    branch extrapolated smoothly (no other stable equilibrium lies that close to the
+    continuation; a jump moves by the branches' gap)."""
+    corr = 0.0
+    pred = 0.0
+    for i in range(x.shape[0]):
+        p_i = x[i] + (x[i] - xp[i]) * (u1 - u_x) / (u_x - u_xp) if u_x - u_xp > 0.0 else x[i]
+        corr = max(corr, abs(xn[i] - p_i))
+        pred = max(pred, abs(p_i - x[i]))
+    return corr <= SMOOTH * pred + 1e-3 * same
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _goes_back(bprob, t, bi, rows, x, xn, xb, same, tol, max_iter, out_s, no_p, nw):
+    """Backward check: Newton at the previous accepted point (fraction t of the row step)
+    from the new solution xn must come back to x. Returns (passed, iterations)."""
+    alpha, beta, kappa, EI, ratio, kink = rows
+    for i in range(x.shape[0]):
+        xb[i] = xn[i]
+    _blend(t, bi - 1, bi, alpha, beta, kappa, EI, ratio, kink, bprob.alpha, bprob.beta,
+           bprob.kappa, bprob.EI, bprob.ratio, bprob.kink)
+    _tube_events(bprob.beta, bprob.L, bprob.straight, bprob.tpos, bprob.ttyp, bprob.tidx)
+    rb, itb, _s = newton(bprob, xb, tol, max_iter, runtime(False), out_s, 0, no_p, nw)
+    back = 0.0
+    for i in range(x.shape[0]):
+        back = max(back, abs(xb[i] - x[i]))
+    return rb < tol and back <= same, itb
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _corrector(prob, bprob, t1, last, bi, rows, xn, tol, max_iter, out_s, m, pts, no_p, nw):
+    """Newton from the prediction xn (in place) at fraction t1 of the row step: at the row
+    itself (``last``: with its output points) or at the blended configuration."""
+    if last:
+        _tube_events(prob.beta, prob.L, prob.straight, prob.tpos, prob.ttyp, prob.tidx)
+        return newton(prob, xn, tol, max_iter, runtime(True), out_s, m, pts, nw)
+    alpha, beta, kappa, EI, ratio, kink = rows
+    _blend(t1, bi - 1, bi, alpha, beta, kappa, EI, ratio, kink, bprob.alpha, bprob.beta,
+           bprob.kappa, bprob.EI, bprob.ratio, bprob.kink)
+    _tube_events(bprob.beta, bprob.L, bprob.straight, bprob.tpos, bprob.ttyp, bprob.tidx)
+    return newton(bprob, xn, tol, max_iter, runtime(False), out_s, 0, no_p, nw)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _continue_row(prob, bprob, bi, rows, dist, levels, have_xp, tol, max_iter, out_s, m, pts,
+                  no_p, nw, cw):
+    """Row bi continues the branch of row bi - 1 (cw: x at u[0] and the point before, xp at
+    u[1]; xn, xb workspace): steps from the last accepted point, doubled after an accepted
+    one and halved after a rejected one (down to 2**-levels of the row step). Returns (reached
+    the row, iterations, residual, det J, pts hold x's backbone, have_xp)."""
+    x, xp, xn, xb, u = cw
+    n = x.shape[0]
+    kappa = rows[2]
+    amp = 0.0
+    for i in range(n):
+        amp = max(amp, abs(kappa[bi - 1, i]), abs(kappa[bi, i]))
+    same = max(1e-4 * amp, 1e-12)
+    t = 0.0
+    h = 1.0
+    hmin = 0.5 ** levels
+    u0 = u[0]
+    total = 0
+    done = False
+    shaped = False
+    r = math.inf
+    dj = math.nan
+    while not done:
+        t1 = min(1.0, t + h)
+        last = t1 >= 1.0
+        u1 = u0 + t1 * dist[bi]
+        _predict(x, xp, xn, have_xp, u1, u[0], u[1])
+        r, it, shaped = _corrector(prob, bprob, t1, last, bi, rows, xn, tol, max_iter, out_s, m,
+                                   pts, no_p, nw)
+        total += it
+        dj = det(nw[1], nw[6])
+        good = r < tol and dj > 0.0
+        smooth = good and have_xp and _smooth(x, xp, xn, u1, u[0], u[1], same)
+        if good and not smooth:
+            good, itb = _goes_back(bprob, t, bi, rows, x, xn, xb, same, tol, max_iter, out_s,
+                                   no_p, nw)
+            total += itb
+        if good:
+            for i in range(n):
+                xp[i] = x[i]
+                x[i] = xn[i]
+            u[1] = u[0]
+            u[0] = u0 + t1 * dist[bi]
+            have_xp = True
+            t = t1
+            done = last
+            h = min(2.0 * h, 1.0)
+        else:
+            h *= 0.5
+            if h < hmin:
+                break
+        if not done:
+            shaped = False
+    return done, total, r, dj, shaped, have_xp
 
 
 @njit(cache=True, error_model="numpy")
@@ -72,174 +194,55 @@ def solve_chain(alpha, beta, L, straight, kappa, EI, ratio, kink, m, step, tol, 
     (converged, finite), False where not ``cont``.
     """
     B, n = alpha.shape
-    points = np.zeros((B, m, 3))
-    svals = np.zeros((B, m))
-    uz0 = np.zeros((B, n))
-    iters = np.zeros(B, dtype=np.int64)
-    rnorm = np.full(B, np.inf)
-    ok = np.zeros(B, dtype=np.bool_)
+    out = outputs(B, m, n)
+    points, iters, rnorm = out[0], out[3], out[4]
+    rnorm[:] = math.inf
     detj = np.full(B, np.nan)
     cont = np.zeros(B, dtype=np.bool_)
-    nst = 3 * n + 12
-    y = np.zeros(nst)
-    Y = np.zeros((2 * n, n))
-    a = np.zeros(n)
-    w = np.zeros(n)
-    pend = np.zeros(n)
-    ws = np.zeros((5, nst))
-    WS = np.zeros((5, 2 * n, n))
-    G = np.zeros((3, 3))
-    tpos = np.zeros(2 * n)
-    ttyp = np.zeros(2 * n, dtype=np.int64)
-    tidx = np.zeros(2 * n, dtype=np.int64)
-    resid = np.zeros(n)
-    jac = np.zeros((n, n))
-    resid_t = np.zeros(n)
-    jac_t = np.zeros((n, n))
-    A = np.zeros((n, n))
-    dx = np.zeros(n)
-    xt = np.zeros(n)
+    work = unloaded_work(n)
+    tpos, ttyp, tidx = events(n)
+    nw = newton_work(n)
     out_s = np.zeros(m)
     no_p = np.zeros((0, 3))
-    x = np.zeros(n)          # the branch's solution at the last accepted point
-    xp = np.zeros(n)         # ... and at the one before (predictor)
-    xn = np.zeros(n)         # trial solution
-    xb = np.zeros(n)         # backward check
-    al = np.zeros(n)
-    be = np.zeros(n)
-    ka = np.zeros(n)
-    ei = np.zeros(n)
-    rt = np.zeros(n)
-    kk = np.zeros((n, 2))
-    u_x = 0.0                # metric position of x and of xp along the chain
-    u_xp = 0.0
+    # the branch's solution at the last accepted point, at the one before (predictor), trial,
+    # backward check; their metric positions along the chain
+    cw = (np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(2))
+    x, u = cw[0], cw[4]
     have_xp = False
+    bprob = UnloadedProblem(np.zeros(n), np.zeros(n), L, straight, np.zeros(n), np.zeros(n),
+                            np.zeros(n), np.zeros((n, 2)), True, step, tpos, ttyp, tidx, work)
+    rows = (alpha, beta, kappa, EI, ratio, kink)
     for bi in range(B):
+        prob = UnloadedProblem(alpha[bi], beta[bi], L, straight, kappa[bi], EI[bi], ratio[bi],
+                               kink[bi], True, step, tpos, ttyp, tidx, work)
         pts = points[bi]
-        _tube_events(beta[bi], L, straight, tpos, ttyp, tidx)
-        tip = tpos[2 * n - 1]
-        for k in range(m):
-            out_s[k] = tip * k / (m - 1) if m > 1 else tip
-        out_s[m - 1] = tip
+        row_grid(beta[bi], L, straight, m, tpos, ttyp, tidx, out_s)
         if start[bi] or bi == 0:
             for i in range(n):
                 x[i] = x_init[bi, i]
-            r, it, shaped = _newton(alpha[bi], beta[bi], x, L, straight, kappa[bi], EI[bi],
-                                    ratio[bi], kink[bi], tpos, ttyp, tidx, out_s, m, step, tol,
-                                    max_iter, runtime(True), pts, resid, jac, resid_t, jac_t,
-                                    dx, xt, A, y, Y, a, w, pend, ws, WS, G)
-            dj = _det(jac, A)
+            r, it, shaped = newton(prob, x, tol, max_iter, runtime(True), out_s, m, pts, nw)
+            dj = det(nw[1], nw[6])
             iters[bi] = it
             rnorm[bi] = r
             detj[bi] = dj
             cont[bi] = r < tol and dj > 0.0
-            u_x = 0.0
+            u[0] = 0.0
             have_xp = False
         elif not cont[bi - 1]:
             shaped = False            # the branch ended earlier in this chain
         else:
-            amp = 0.0
-            for i in range(n):
-                amp = max(amp, abs(kappa[bi - 1, i]), abs(kappa[bi, i]))
-            same = max(1e-4 * amp, 1e-12)
-            t = 0.0
-            h = 1.0
-            hmin = 0.5 ** levels
-            u0 = u_x
-            total = 0
-            done = False
-            shaped = False
-            r = math.inf
-            dj = math.nan
-            while not done:
-                t1 = min(1.0, t + h)
-                last = t1 >= 1.0
-                # predictor: extrapolate the last two accepted points along the metric
-                u1 = u0 + t1 * dist[bi]
-                for i in range(n):
-                    xn[i] = x[i]
-                    if have_xp and u_x - u_xp > 0.0:
-                        xn[i] += (x[i] - xp[i]) * (u1 - u_x) / (u_x - u_xp)
-                if last:
-                    _tube_events(beta[bi], L, straight, tpos, ttyp, tidx)
-                    r, it, shaped = _newton(alpha[bi], beta[bi], xn, L, straight, kappa[bi],
-                                            EI[bi], ratio[bi], kink[bi], tpos, ttyp, tidx,
-                                            out_s, m, step, tol, max_iter, runtime(True), pts,
-                                            resid, jac, resid_t, jac_t, dx, xt, A, y, Y, a, w,
-                                            pend, ws, WS, G)
-                else:
-                    _blend(t1, bi - 1, bi, alpha, beta, kappa, EI, ratio, kink, al, be, ka, ei,
-                           rt, kk)
-                    _tube_events(be, L, straight, tpos, ttyp, tidx)
-                    r, it, shaped = _newton(al, be, xn, L, straight, ka, ei, rt, kk, tpos, ttyp,
-                                            tidx, out_s, 0, step, tol, max_iter, runtime(False),
-                                            no_p, resid, jac, resid_t, jac_t, dx, xt, A, y, Y,
-                                            a, w, pend, ws, WS, G)
-                total += it
-                dj = _det(jac, A)
-                good = r < tol and dj > 0.0
-                smooth = False
-                if good and have_xp:
-                    # the corrector moved the solution by much less than the step moved the
-                    # predictor: the branch extrapolated smoothly (no other stable equilibrium
-                    # lies that close to the continuation; a jump moves by the branches' gap)
-                    corr = 0.0
-                    pred = 0.0
-                    for i in range(n):
-                        p_i = x[i] + (x[i] - xp[i]) * (u1 - u_x) / (u_x - u_xp) if u_x - u_xp > 0.0 else x[i]
-                        corr = max(corr, abs(xn[i] - p_i))
-                        pred = max(pred, abs(p_i - x[i]))
-                    smooth = corr <= SMOOTH * pred + 1e-3 * same
-                if good and not smooth:
-                    # backward: Newton at the previous accepted point from the new solution
-                    for i in range(n):
-                        xb[i] = xn[i]
-                    _blend(t, bi - 1, bi, alpha, beta, kappa, EI, ratio, kink, al, be, ka, ei,
-                           rt, kk)
-                    _tube_events(be, L, straight, tpos, ttyp, tidx)
-                    rb, itb, _s = _newton(al, be, xb, L, straight, ka, ei, rt, kk, tpos, ttyp,
-                                          tidx, out_s, 0, step, tol, max_iter, runtime(False),
-                                          no_p, resid_t, jac_t, resid, jac, dx, xt, A, y, Y, a,
-                                          w, pend, ws, WS, G)
-                    total += itb
-                    back = 0.0
-                    for i in range(n):
-                        back = max(back, abs(xb[i] - x[i]))
-                    good = rb < tol and back <= same
-                if good:
-                    for i in range(n):
-                        xp[i] = x[i]
-                        x[i] = xn[i]
-                    u_xp = u_x
-                    u_x = u0 + t1 * dist[bi]
-                    have_xp = True
-                    t = t1
-                    done = last
-                    h = min(2.0 * h, 1.0)
-                else:
-                    h *= 0.5
-                    if h < hmin:
-                        break
-                if not done:
-                    shaped = False
-            # events and output arc lengths of this row again (substeps overwrote them)
+            done, total, r, dj, shaped, have_xp = _continue_row(
+                prob, bprob, bi, rows, dist, levels, have_xp, tol, max_iter, out_s, m, pts, no_p,
+                nw, cw)
+            # events of this row again (substeps overwrote them)
             _tube_events(beta[bi], L, straight, tpos, ttyp, tidx)
             iters[bi] = total
             if done:
                 rnorm[bi] = r
                 detj[bi] = dj
                 cont[bi] = True
-        if not shaped:
-            _integrate(alpha[bi], beta[bi], x, L, straight, kappa[bi], EI[bi], ratio[bi],
-                       kink[bi], True, tpos, ttyp, tidx, out_s, m, step, runtime(True),
-                       runtime(False), pts, resid_t, jac_t, y, Y, a, w, pend, ws, WS, G)
-        finite = True
-        for k in range(m):
-            svals[bi, k] = out_s[k]
-            for c in range(3):
-                if not math.isfinite(pts[k, c]):
-                    finite = False
-        for i in range(n):
-            uz0[bi, i] = x[i]
-        ok[bi] = cont[bi] and finite and rnorm[bi] < tol
-    return points, svals, uz0, iters, rnorm, ok, detj, cont
+        finite = finish_row(prob, x, shaped, out_s, m, pts, nw)
+        store_row(out, bi, out_s, x, iters[bi], rnorm[bi], cont[bi] and finite and rnorm[bi] < tol)
+    return out + (detj, cont)
+
+# numba cache stamp: d8f966079f52654bec9904c45b481f0c7a18363c5bbb5d76c49e39122e994b7c

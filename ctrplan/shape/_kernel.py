@@ -34,9 +34,20 @@ model exactly). No numpy allocation happens per configuration: one workspace per
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
-from numba import njit, types
-from numba.extending import intrinsic
+import numpy as np
+from numba import njit
+
+from ctrplan.shape._ode import (
+    emit,
+    frame_rates,
+    kink_matrix,
+    register_model,
+    rk4,
+    runtime,
+    turn_frame,
+)
 
 # Every kernel uses numba's ``error_model="numpy"``: a division by zero gives inf/nan instead
 # of a per-division check that raises (all divisions here are guarded; non-finite results end
@@ -46,55 +57,22 @@ from numba.extending import intrinsic
 # (1 - cos t) / t^2 and (t - sin t) / t^3 cancel catastrophically for small t.
 _SERIES_BELOW = 1e-2
 
+#: One interval's constants of the state equations (:func:`_deriv`), the ``model`` of
+#: :func:`ctrplan.shape._ode.rk4`: n tubes, a (n,) torsional coupling, w (n,) EI kappa of the
+#: curved sections present (N mm^2 / mm), 1 / sum EI of the tubes present, and whether R, p are
+#: integrated.
+UnloadedRhs = namedtuple("UnloadedRhs", ("n", "a", "w", "eisum_inv", "frame"))
 
-@intrinsic
-def runtime(typingctx, v):
-    """``v`` with its literal type dropped (a bool or int constant becomes a plain bool or
-    int64). Numba compiles one specialisation of a jitted callee per distinct literal argument
-    (``True``, ``0``, ...); passing such arguments through this keeps one compiled version of
-    each kernel: the first (uncached) compile of the compliant model took 28 s before and 15 s
-    after on the 2-core development machine, with bit-identical results and the same run time."""
-    plain = types.unliteral(v)
-
-    def codegen(context, builder, signature, args):
-        return context.cast(builder, args[0], v, plain)
-
-    return plain(v), codegen
-
-
-@njit(cache=True, error_model="numpy")
-def _tube_events(beta, L, straight, tpos, ttyp, tidx):
-    """Sorted tube events (curve start = 0, tube end = 1) by insertion sort; ties keep
-    curve starts before ends, curve starts of lower tube indices first and ends of higher
-    (outer) tube indices first: the order of ends just apart, as the constraints allow them
-    (an inner tube reaches at least as far), so that the clearance kinks of tubes ending
-    together compose as in the limit and the shape is continuous there."""
-    n = beta.shape[0]
-    ne = 2 * n
-    for i in range(n):
-        tpos[i] = max(beta[i] + straight[i], 0.0)
-        ttyp[i] = 0
-        tidx[i] = i
-        o = n - 1 - i
-        tpos[n + i] = max(beta[o] + L[o], 0.0)
-        ttyp[n + i] = 1
-        tidx[n + i] = o
-    for k in range(1, ne):
-        p = tpos[k]
-        t = ttyp[k]
-        j = tidx[k]
-        m = k - 1
-        while m >= 0 and tpos[m] > p:
-            tpos[m + 1] = tpos[m]
-            ttyp[m + 1] = ttyp[m]
-            tidx[m + 1] = tidx[m]
-            m -= 1
-        tpos[m + 1] = p
-        ttyp[m + 1] = t
-        tidx[m + 1] = j
+#: One configuration (the ``problem`` of :func:`ctrplan.shape._ode.newton`): alpha, beta (n,)
+#: rad, mm; L, straight (n,) mm; kappa, EI, ratio (n,) 1/mm, N mm^2, EI/GJ; kink (n, 2) rad;
+#: torsion (False: the rigid model); step (mm); tpos, ttyp, tidx its tube events; work
+#: (:func:`unloaded_work`).
+UnloadedProblem = namedtuple("UnloadedProblem", (
+    "alpha", "beta", "L", "straight", "kappa", "EI", "ratio", "kink", "torsion", "step", "tpos",
+    "ttyp", "tidx", "work"))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _deriv(y, Y, n, a, w, eisum_inv, frame, sens, dy, dY):
     """Derivative of y = [c(n), s(n), uz(n), R(9, row-major), p(3)] and of the sensitivities
     Y = [dpsi/dx (n x n); duz/dx (n x n)] (when ``sens``)."""
@@ -114,15 +92,7 @@ def _deriv(y, Y, n, a, w, eisum_inv, frame, sens, dy, dY):
         ux = -sw * eisum_inv
         uy = cw * eisum_inv
         b = 3 * n
-        # R' = R [u]x with u = (ux, uy, 0): columns d0 = -uy r2, d1 = ux r2, d2 = uy r0 - ux r1
-        for r in range(3):
-            r0 = y[b + 3 * r]
-            r1 = y[b + 3 * r + 1]
-            r2 = y[b + 3 * r + 2]
-            dy[b + 3 * r] = -uy * r2
-            dy[b + 3 * r + 1] = ux * r2
-            dy[b + 3 * r + 2] = uy * r0 - ux * r1
-            dy[b + 9 + r] = r2
+        frame_rates(y, b, ux, uy, dy)
     if sens:
         for col in range(n):
             cwy = 0.0
@@ -137,105 +107,7 @@ def _deriv(y, Y, n, a, w, eisum_inv, frame, sens, dy, dY):
                 dY[n + i, col] = a[i] * ((c * cw + s * sw) * Y[i, col] - c * cwy - s * swy)
 
 
-@njit(cache=True, error_model="numpy")
-def _hermite_out(out_s, out_p, ko, m_out, s_end, sa, sb, h, pax, pay, paz, tax, tay, taz, y, b):
-    """Backbone points at the output arc lengths in (sa, sb] of one RK4 step, by cubic Hermite
-    interpolation between the step's end points (position y[b+9:b+12], tangent = third column
-    of R, y[b+2], y[b+5], y[b+8]) and the start values ``pa``, ``ta``. Returns the next ``ko``."""
-    pbx = y[b + 9]
-    pby = y[b + 10]
-    pbz = y[b + 11]
-    tbx = y[b + 2]
-    tby = y[b + 5]
-    tbz = y[b + 8]
-    while ko < m_out and out_s[ko] < s_end and out_s[ko] <= sb:
-        th = (out_s[ko] - sa) / h
-        if th < 0.0:
-            th = 0.0
-        th2 = th * th
-        th3 = th2 * th
-        h00 = 2.0 * th3 - 3.0 * th2 + 1.0
-        h10 = (th3 - 2.0 * th2 + th) * h
-        h01 = -2.0 * th3 + 3.0 * th2
-        h11 = (th3 - th2) * h
-        out_p[ko, 0] = h00 * pax + h10 * tax + h01 * pbx + h11 * tbx
-        out_p[ko, 1] = h00 * pay + h10 * tay + h01 * pby + h11 * tby
-        out_p[ko, 2] = h00 * paz + h10 * taz + h01 * pbz + h11 * tbz
-        ko += 1
-    return ko
-
-
-@njit(cache=True, error_model="numpy")
-def _rk4(y, Y, n, nst, a, w, eisum_inv, frame, sens, s0, seg, step, out_s, m_out, ko, out_p,
-         k1, k2, k3, k4, yt, K1, K2, K3, K4, Yt):
-    """Fixed-step RK4 over [s0, s0 + seg] (``ceil(seg / step)`` equal steps).
-
-    The step grid depends on the break points only, so the frame pass reproduces the shooting
-    passes' torsion exactly. Output points ``out_s[ko:]`` that fall strictly inside the
-    interval are read off by cubic Hermite interpolation of p between steps (p' = R e_z at
-    both ends; O(h^4) like RK4 itself). Returns the next output index. k*, yt (nst,) and
-    K*, Yt (2n, n) are workspace.
-    """
-    nsub = int(math.ceil(seg / step - 1e-9))
-    if nsub < 1:
-        nsub = 1
-    h = seg / nsub
-    n2 = 2 * n
-    b = 3 * n
-    s_end = s0 + seg
-    for q in range(nsub):
-        sa = s0 + q * h
-        sb = s_end if q == nsub - 1 else sa + h
-        pax = 0.0
-        pay = 0.0
-        paz = 0.0
-        tax = 0.0
-        tay = 0.0
-        taz = 0.0
-        want = frame and ko < m_out and out_s[ko] < s_end and out_s[ko] <= sb
-        if want:
-            pax = y[b + 9]
-            pay = y[b + 10]
-            paz = y[b + 11]
-            tax = y[b + 2]
-            tay = y[b + 5]
-            taz = y[b + 8]
-        _deriv(y, Y, n, a, w, eisum_inv, frame, sens, k1, K1)
-        for j in range(nst):
-            yt[j] = y[j] + 0.5 * h * k1[j]
-        if sens:
-            for r in range(n2):
-                for c in range(n):
-                    Yt[r, c] = Y[r, c] + 0.5 * h * K1[r, c]
-        _deriv(yt, Yt, n, a, w, eisum_inv, frame, sens, k2, K2)
-        for j in range(nst):
-            yt[j] = y[j] + 0.5 * h * k2[j]
-        if sens:
-            for r in range(n2):
-                for c in range(n):
-                    Yt[r, c] = Y[r, c] + 0.5 * h * K2[r, c]
-        _deriv(yt, Yt, n, a, w, eisum_inv, frame, sens, k3, K3)
-        for j in range(nst):
-            yt[j] = y[j] + h * k3[j]
-        if sens:
-            for r in range(n2):
-                for c in range(n):
-                    Yt[r, c] = Y[r, c] + h * K3[r, c]
-        _deriv(yt, Yt, n, a, w, eisum_inv, frame, sens, k4, K4)
-        h6 = h / 6.0
-        for j in range(nst):
-            y[j] += h6 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
-        if sens:
-            for r in range(n2):
-                for c in range(n):
-                    Y[r, c] += h6 * (K1[r, c] + 2.0 * K2[r, c] + 2.0 * K3[r, c] + K4[r, c])
-        if want:
-            ko = _hermite_out(out_s, out_p, ko, m_out, s_end, sa, sb, h, pax, pay, paz, tax, tay,
-                              taz, y, b)
-    return ko
-
-
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _exp_coeffs(th2, seg):
     """For Exp(seg [v]x) with th = |v| seg: returns (a1, a2, a3) with
     Exp = I + a1 [v] + a2 [v]^2 and int_0^seg Exp(t [v]) dt = seg I + a2 [v] + a3 [v]^2."""
@@ -253,7 +125,7 @@ def _exp_coeffs(th2, seg):
     return seg * s1, seg * seg * s2, seg * seg * seg * s3
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _exact_frame(y, b, seg, vx, vy, vz, c0, s0, c1, s1, G):
     """Advance R, p exactly over ``seg`` when the curvature is constant in a frame that spins
     at rate vz about the tangent: R(s) = R0 Rz(phi0) Exp(s [v]x) Rz(-phi(s)),
@@ -304,7 +176,7 @@ def _exact_frame(y, b, seg, vx, vy, vz, c0, s0, c1, s1, G):
         y[b + 3 * r + 2] = r0 * G[0, 2] + r1 * G[1, 2] + r2 * G[2, 2]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _catch_up(y, n, i, pend):
     """Apply tube i's deferred rotation ``pend[i]`` to its (cos, sin) psi."""
     th = pend[i]
@@ -318,35 +190,7 @@ def _catch_up(y, n, i, pend):
         pend[i] = 0.0
 
 
-@njit(cache=True, error_model="numpy")
-def _apply_kink(y, b, kx, ky):
-    """R <- R Exp([kx, ky, 0]) (Rodrigues)."""
-    th = math.sqrt(kx * kx + ky * ky)
-    ex = kx / th
-    ey = ky / th
-    ct = math.cos(th)
-    st = math.sin(th)
-    vt = 1.0 - ct
-    # rotation about axis (ex, ey, 0)
-    m00 = ct + ex * ex * vt
-    m01 = ex * ey * vt
-    m02 = ey * st
-    m10 = ex * ey * vt
-    m11 = ct + ey * ey * vt
-    m12 = -ex * st
-    m20 = -ey * st
-    m21 = ex * st
-    m22 = ct
-    for r in range(3):
-        r0 = y[b + 3 * r]
-        r1 = y[b + 3 * r + 1]
-        r2 = y[b + 3 * r + 2]
-        y[b + 3 * r] = r0 * m00 + r1 * m10 + r2 * m20
-        y[b + 3 * r + 1] = r0 * m01 + r1 * m11 + r2 * m21
-        y[b + 3 * r + 2] = r0 * m02 + r1 * m12 + r2 * m22
-
-
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _exact(y, Y, n, b, w, eisum_inv, ncurved, jc, torsion, frame, sens, seg, pend, G):
     """Advance over ``seg`` where fewer than two curved sections overlap (or the model is
     rigid): the torsions are constant, so every psi advances linearly (its (cos, sin) rotation
@@ -397,19 +241,12 @@ def _exact(y, Y, n, b, w, eisum_inv, ncurved, jc, torsion, frame, sens, seg, pen
                          1.0, 0.0, 1.0, 0.0, G)
 
 
-@njit(cache=True, error_model="numpy")
-def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, torsion,
-               tpos, ttyp, tidx, out_s, m_out, step, frame, sens, out_p, resid, jac,
-               y, Y, a, w, pend, ws, WS, G):
-    """Integrate one configuration from s = 0 to its last tube event.
-
-    tpos/ttyp/tidx : the sorted tube events (:func:`_tube_events`); out_s[:m_out] : sorted
-    output arc lengths in [0, last event]. Fills ``out_p`` (m_out, 3) when ``frame``;
-    ``resid`` (n,) = uz_i at tube i's end (always) and ``jac`` (n, n) = d resid / d x when
-    ``sens``. y, Y, a, w, pend, ws, WS, G are workspace.
-    """
+@njit(cache=True, error_model="numpy", inline="always")
+def _start(alpha, beta, x, torsion, frame, sens, y, Y, pend):
+    """The states at s = 0: psi_i = alpha_i - beta_i uz_i(0) (the straight part behind the
+    constraint plane twists uniformly), uz = x (0 for the rigid model), R = I, p = 0; dpsi/dx
+    = -beta, duz/dx = I."""
     n = alpha.shape[0]
-    nst = 3 * n + 12 if frame else 3 * n
     b = 3 * n
     for i in range(n):
         xi = x[i] if torsion else 0.0
@@ -431,6 +268,100 @@ def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, torsion,
         for i in range(n):
             Y[i, i] = -beta[i]
             Y[n + i, i] = 1.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _regime(mid, beta, L, straight, kappa, EI, ratio, torsion, y, a, w):
+    """The regime at arc length ``mid`` (constant between break points): fills w (and a where
+    two or more curved sections overlap in the compliant model). Returns (1 / sum EI, number of
+    curved sections, the last curved tube, whether the torsions vary: RK4 is needed)."""
+    n = beta.shape[0]
+    eisum = 0.0
+    ncurved = 0
+    jc = -1
+    for i in range(n):
+        present = mid < beta[i] + L[i]
+        curved = mid >= beta[i] + straight[i]
+        if present:
+            eisum += EI[i]
+        if present and curved and kappa[i] != 0.0:
+            w[i] = EI[i] * kappa[i]
+            ncurved += 1
+            jc = i
+        else:
+            w[i] = 0.0
+    eisum_inv = 1.0 / eisum if eisum > 0.0 else 0.0
+    twisting = False
+    if torsion and ncurved >= 2:
+        for i in range(n):
+            a[i] = ratio[i] * kappa[i] * eisum_inv if w[i] != 0.0 else 0.0
+            if a[i] != 0.0 or y[2 * n + i] != 0.0:
+                twisting = True
+        # with no torsional coupling and no torsion (e.g. EI/GJ = 0) the curvature is
+        # constant: the rigid model's exact arc, not RK4
+    return eisum_inv, ncurved, jc, twisting
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _interval(y, Y, n, nst, w, a, eisum_inv, ncurved, jc, twisting, torsion, frame, sens,
+              s_now, s_next, step, out_s, m_out, ko, out_p, pend, ws, WS, G):
+    """Advance from s_now to s_next (one regime): RK4 where the torsions vary, else exactly,
+    split at the output points inside. Returns the next output index."""
+    b = 3 * n
+    if twisting:
+        for i in range(n):
+            _catch_up(y, n, i, pend)
+        return rk4(UnloadedRhs(n, a, w, eisum_inv, frame), y, Y, nst, frame, sens, s_now,
+                   s_next - s_now, step, out_s, m_out, runtime(ko), out_p, ws, WS)
+    s_at = s_now
+    while ko < m_out and out_s[ko] < s_next:
+        d = out_s[ko] - s_at
+        if d > 0.0:
+            _exact(y, Y, n, b, w, eisum_inv, runtime(ncurved), runtime(jc), torsion, frame,
+                   sens, d, pend, G)
+            s_at = out_s[ko]
+        out_p[ko, 0] = y[b + 9]
+        out_p[ko, 1] = y[b + 10]
+        out_p[ko, 2] = y[b + 11]
+        ko += 1
+    d = s_next - s_at
+    if d > 0.0:
+        _exact(y, Y, n, b, w, eisum_inv, runtime(ncurved), runtime(jc), torsion, frame, sens, d,
+               pend, G)
+    return ko
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _tube_end(i, y, Y, n, frame, sens, kink, resid, jac, G):
+    """Tube i ends: its boundary residual uz_i (and the Jacobian row); then its torsion (and so
+    its angle) is frozen, and the clearance kink turns the frame."""
+    resid[i] = y[2 * n + i]
+    if sens:
+        for c in range(n):
+            jac[i, c] = Y[n + i, c]
+    y[2 * n + i] = 0.0
+    if sens:
+        for c in range(n):
+            Y[n + i, c] = 0.0
+    if frame and (kink[i, 0] != 0.0 or kink[i, 1] != 0.0):
+        kink_matrix(kink[i, 0], kink[i, 1], G)
+        turn_frame(y.reshape((y.shape[0], 1)), 0, 3 * n, G)
+
+
+@njit(cache=True, error_model="numpy", _nrt=False)
+def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, torsion,
+               tpos, ttyp, tidx, out_s, m_out, step, frame, sens, out_p, resid, jac,
+               y, Y, a, w, pend, ws, WS, G):
+    """Integrate one configuration from s = 0 to its last tube event.
+
+    tpos/ttyp/tidx : the sorted tube events (:func:`ctrplan.shape._ode._tube_events`);
+    out_s[:m_out] : sorted output arc lengths in [0, last event]. Fills ``out_p`` (m_out, 3)
+    when ``frame``; ``resid`` (n,) = uz_i at tube i's end (always) and ``jac`` (n, n) =
+    d resid / d x when ``sens``. y, Y, a, w, pend, ws, WS, G are workspace.
+    """
+    n = alpha.shape[0]
+    nst = 3 * n + 12 if frame else 3 * n
+    _start(alpha, beta, x, torsion, frame, sens, y, Y, pend)
     ko = 0
     if not frame:
         m_out = 0
@@ -439,71 +370,48 @@ def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, torsion,
         s_next = tpos[it]
         seg = s_next - s_now
         if seg > 0.0:
-            # the regime (tubes present, curved sections) is constant inside the interval
-            mid = s_now + 0.5 * seg
-            eisum = 0.0
-            ncurved = 0
-            jc = -1
-            for i in range(n):
-                present = mid < beta[i] + L[i]
-                curved = mid >= beta[i] + straight[i]
-                if present:
-                    eisum += EI[i]
-                if present and curved and kappa[i] != 0.0:
-                    w[i] = EI[i] * kappa[i]
-                    ncurved += 1
-                    jc = i
-                else:
-                    w[i] = 0.0
-            eisum_inv = 1.0 / eisum if eisum > 0.0 else 0.0
-            twisting = False
-            if torsion and ncurved >= 2:
-                for i in range(n):
-                    a[i] = ratio[i] * kappa[i] * eisum_inv if w[i] != 0.0 else 0.0
-                    if a[i] != 0.0 or y[2 * n + i] != 0.0:
-                        twisting = True
-                # with no torsional coupling and no torsion (e.g. EI/GJ = 0) the curvature is
-                # constant: the rigid model's exact arc below, not RK4
-            if twisting:
-                for i in range(n):
-                    _catch_up(y, n, i, pend)
-                ko = _rk4(y, Y, n, nst, a, w, eisum_inv, frame, sens, s_now, seg, step,
-                          out_s, m_out, runtime(ko), out_p, ws[0], ws[1], ws[2], ws[3], ws[4],
-                          WS[0], WS[1], WS[2], WS[3], WS[4])
-            else:
-                # exact: split at the output points inside the interval
-                s_at = s_now
-                while ko < m_out and out_s[ko] < s_next:
-                    d = out_s[ko] - s_at
-                    if d > 0.0:
-                        _exact(y, Y, n, b, w, eisum_inv, runtime(ncurved), runtime(jc), torsion, frame,
-                               sens, d, pend, G)
-                        s_at = out_s[ko]
-                    out_p[ko, 0] = y[b + 9]
-                    out_p[ko, 1] = y[b + 10]
-                    out_p[ko, 2] = y[b + 11]
-                    ko += 1
-                d = s_next - s_at
-                if d > 0.0:
-                    _exact(y, Y, n, b, w, eisum_inv, runtime(ncurved), runtime(jc), torsion, frame,
-                           sens, d, pend, G)
+            eisum_inv, ncurved, jc, twisting = _regime(s_now + 0.5 * seg, beta, L, straight,
+                                                       kappa, EI, ratio, torsion, y, a, w)
+            ko = _interval(y, Y, n, nst, w, a, eisum_inv, ncurved, jc, twisting, torsion, frame,
+                           sens, s_now, s_next, step, out_s, m_out, runtime(ko), out_p, pend,
+                           ws, WS, G)
             s_now = s_next
-        i = tidx[it]
         if ttyp[it] == 1:
-            resid[i] = y[2 * n + i]
-            if sens:
-                for c in range(n):
-                    jac[i, c] = Y[n + i, c]
-            # the tube is gone: its torsion (and so its angle) is frozen from here on
-            y[2 * n + i] = 0.0
-            if sens:
-                for c in range(n):
-                    Y[n + i, c] = 0.0
-            if frame and (kink[i, 0] != 0.0 or kink[i, 1] != 0.0):
-                _apply_kink(y, b, kink[i, 0], kink[i, 1])
-        # output points at (or, by round-off, just past) this event
-        while ko < m_out and (out_s[ko] <= s_now or it == 2 * n - 1):
-            out_p[ko, 0] = y[b + 9]
-            out_p[ko, 1] = y[b + 10]
-            out_p[ko, 2] = y[b + 11]
-            ko += 1
+            _tube_end(tidx[it], y, Y, n, frame, sens, kink, resid, jac, G)
+        ko = emit(out_s, out_p, ko, m_out, s_now, it == 2 * n - 1, y, 3 * n)
+
+
+# ----------------------------------------------------------------------------- the model's records
+@njit(cache=True, error_model="numpy", inline="always")
+def unloaded_work(n):
+    """Workspace of one unloaded problem: y, Y, a, w, pend, ws, WS, G and the scaled EI/GJ."""
+    nst = 3 * n + 12
+    return (np.zeros(nst), np.zeros((2 * n, n)), np.zeros(n), np.zeros(n), np.zeros(n),
+            np.zeros((5, nst)), np.zeros((5, 2 * n, n)), np.zeros((3, 3)), np.zeros(n))
+
+
+def _derivative(model, y, Y, s, sens, dy, dY):
+    _deriv(y, Y, model.n, model.a, model.w, model.eisum_inv, model.frame, sens, dy, dY)
+
+
+def _shoot(problem, x, sens, out_s, m_out, out_p, resid, jac):
+    p = problem
+    y, Y, a, w, pend, ws, WS, G, _rs = p.work
+    # R and p are integrated only for output points
+    _integrate(p.alpha, p.beta, x, p.L, p.straight, p.kappa, p.EI, p.ratio, p.kink, p.torsion,
+               p.tpos, p.ttyp, p.tidx, out_s, m_out, p.step, m_out > 0, sens, out_p, resid, jac,
+               y, Y, a, w, pend, ws, WS, G)
+
+
+def _scaled(problem, lam, what):
+    p = problem                 # what: COMPLIANCE, the only parameter scaled here
+    rs = p.work[8]
+    for i in range(rs.shape[0]):
+        rs[i] = p.ratio[i] * lam
+    return UnloadedProblem(p.alpha, p.beta, p.L, p.straight, p.kappa, p.EI, rs, p.kink,
+                           p.torsion, p.step, p.tpos, p.ttyp, p.tidx, p.work)
+
+
+register_model(UnloadedRhs, UnloadedProblem, _derivative, _shoot, _scaled, chords=False)
+
+# numba cache stamp: d8f966079f52654bec9904c45b481f0c7a18363c5bbb5d76c49e39122e994b7c

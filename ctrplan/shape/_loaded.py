@@ -46,19 +46,47 @@ moment is continuous.
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 from numba import njit
 
-from ctrplan.shape._kernel import _hermite_out, _tube_events, runtime
+from ctrplan.shape._ode import (
+    COMPLIANCE,
+    LOADS,
+    emit,
+    events,
+    finish_row,
+    frame_rates,
+    kink_matrix,
+    newton,
+    newton_work,
+    outputs,
+    ramp,
+    register_model,
+    rk4,
+    row_grid,
+    runtime,
+    store_row,
+    turn_frame,
+)
 
-# numba caches this module's kernels with the _kernel functions they call compiled in, and
-# checks only this file's time stamp: edit this file too when _kernel.py changes (last: the
-# tie order of tube ends in _tube_events).
-from ctrplan.shape._shooting import _newton_step
+#: One interval's constants of the state equations (:func:`_rhs`), the ``model`` of
+#: :func:`ctrplan.shape._ode.rk4`: n tubes, nx = n + 2 unknowns, k (n,) EI/GJ / EI, w (n,)
+#: EI kappa of the curved sections present, 1 / sum EI of the tubes present, and the internal
+#: force n(s) = n0 - s wsum (base frame, N).
+LoadedRhs = namedtuple("LoadedRhs", ("n", "nx", "k", "w", "eisum_inv", "n0", "wsum"))
+
+#: One loaded configuration (the ``problem`` of :func:`ctrplan.shape._ode.newton`): as
+#: :class:`ctrplan.shape._kernel.UnloadedProblem` with the loads W (n, 3) N/mm, F (3,) N,
+#: M (3,) N mm instead of the torsion flag (ratio = 0 is the rigid model); work
+#: (:func:`loaded_work`).
+LoadedProblem = namedtuple("LoadedProblem", (
+    "alpha", "beta", "L", "straight", "kappa", "EI", "ratio", "kink", "W", "F", "M", "step",
+    "tpos", "ttyp", "tidx", "work"))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _rhs(y, T, n, nx, s, k, w, eisum_inv, n0, wsum, sens, dy, dT):
     """Derivative of the state y (3n + 14) and, when ``sens``, of its tangent T (3n + 14, nx).
 
@@ -90,14 +118,7 @@ def _rhs(y, T, n, nx, s, k, w, eisum_inv, n0, wsum, sens, dy, dT):
     n_z = n0[2] - s * wsum[2]
     nbx = 0.0
     nby = 0.0
-    for r in range(3):
-        r0 = y[b + 3 * r]
-        r1 = y[b + 3 * r + 1]
-        r2 = y[b + 3 * r + 2]
-        dy[b + 3 * r] = -uy * r2
-        dy[b + 3 * r + 1] = ux * r2
-        dy[b + 3 * r + 2] = uy * r0 - ux * r1
-        dy[b + 9 + r] = r2
+    frame_rates(y, b, ux, uy, dy)
     nbx = y[b + 0] * n_x + y[b + 3] * n_y + y[b + 6] * n_z
     nby = y[b + 1] * n_x + y[b + 4] * n_y + y[b + 7] * n_z
     dy[b + 12] = -uy * mbz + nby
@@ -140,133 +161,38 @@ def _rhs(y, T, n, nx, s, k, w, eisum_inv, n0, wsum, sens, dy, dT):
             dT[b + 13, col] = dux * mbz + ux * dmbz - dnbx
 
 
-@njit(cache=True, error_model="numpy")
-def _rk4(y, T, n, nx, k, w, eisum_inv, n0, wsum, sens, s0, seg, step, out_s, m_out, ko,
-         out_p, k1, k2, k3, k4, yt, K1, K2, K3, K4, Tt):
-    """Fixed-step RK4 over [s0, s0 + seg]; output points strictly inside by cubic Hermite
-    interpolation. Returns the next output index."""
-    nsub = int(math.ceil(seg / step - 1e-9))
-    if nsub < 1:
-        nsub = 1
-    h = seg / nsub
-    N = y.shape[0]
-    b = 3 * n
-    s_end = s0 + seg
-    for q in range(nsub):
-        sa = s0 + q * h
-        sb = s_end if q == nsub - 1 else sa + h
-        want = ko < m_out and out_s[ko] < s_end and out_s[ko] <= sb
-        pax = y[b + 9]
-        pay = y[b + 10]
-        paz = y[b + 11]
-        tax = y[b + 2]
-        tay = y[b + 5]
-        taz = y[b + 8]
-        _rhs(y, T, n, nx, sa, k, w, eisum_inv, n0, wsum, sens, k1, K1)
-        for j in range(N):
-            yt[j] = y[j] + 0.5 * h * k1[j]
-        if sens:
-            for r in range(N):
-                for c in range(nx):
-                    Tt[r, c] = T[r, c] + 0.5 * h * K1[r, c]
-        _rhs(yt, Tt, n, nx, sa + 0.5 * h, k, w, eisum_inv, n0, wsum, sens, k2, K2)
-        for j in range(N):
-            yt[j] = y[j] + 0.5 * h * k2[j]
-        if sens:
-            for r in range(N):
-                for c in range(nx):
-                    Tt[r, c] = T[r, c] + 0.5 * h * K2[r, c]
-        _rhs(yt, Tt, n, nx, sa + 0.5 * h, k, w, eisum_inv, n0, wsum, sens, k3, K3)
-        for j in range(N):
-            yt[j] = y[j] + h * k3[j]
-        if sens:
-            for r in range(N):
-                for c in range(nx):
-                    Tt[r, c] = T[r, c] + h * K3[r, c]
-        _rhs(yt, Tt, n, nx, sa + h, k, w, eisum_inv, n0, wsum, sens, k4, K4)
-        h6 = h / 6.0
-        for j in range(N):
-            y[j] += h6 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
-        if sens:
-            for r in range(N):
-                for c in range(nx):
-                    T[r, c] += h6 * (K1[r, c] + 2.0 * K2[r, c] + 2.0 * K3[r, c] + K4[r, c])
-        if want:
-            ko = _hermite_out(out_s, out_p, ko, m_out, s_end, sa, sb, h, pax, pay, paz, tax, tay,
-                              taz, y, b)
-    return ko
+@njit(cache=True, error_model="numpy", inline="always")
+def _turn_moment(Z, col, n, b, K):
+    """mb_xy <- (K^T (mb_x, mb_y, sum tau))_xy for the state (or tangent) Z[:, col]: the
+    bending moment turns with the frame, the twisting moment sum tau carries over."""
+    mx = Z[b + 12, col]
+    my = Z[b + 13, col]
+    mz = 0.0
+    for j in range(n):
+        mz += Z[2 * n + j, col]
+    Z[b + 12, col] = K[0, 0] * mx + K[1, 0] * my + K[2, 0] * mz
+    Z[b + 13, col] = K[0, 1] * mx + K[1, 1] * my + K[2, 1] * mz
 
 
-@njit(cache=True, error_model="numpy")
-def _kink(y, T, n, nx, sens, kx, ky):
+@njit(cache=True, error_model="numpy", _nrt=False)
+def _kink(y, T, n, nx, sens, kx, ky, K):
     """R <- R K with K = Exp([kx, ky, 0]); mb_xy <- (K^T (mb_x, mb_y, sum tau))_xy, the
-    twisting moment sum tau carries over. The tangent follows (K is constant)."""
+    twisting moment sum tau carries over. The tangent follows (K is constant). K (3, 3) is
+    workspace."""
     b = 3 * n
-    th = math.sqrt(kx * kx + ky * ky)
-    ex = kx / th
-    ey = ky / th
-    ct = math.cos(th)
-    st = math.sin(th)
-    vt = 1.0 - ct
-    K = np.empty((3, 3))
-    K[0, 0] = ct + ex * ex * vt
-    K[0, 1] = ex * ey * vt
-    K[0, 2] = ey * st
-    K[1, 0] = ex * ey * vt
-    K[1, 1] = ct + ey * ey * vt
-    K[1, 2] = -ex * st
-    K[2, 0] = -ey * st
-    K[2, 1] = ex * st
-    K[2, 2] = ct
-    ncol = nx if sens else 0
-    for col in range(-1, ncol):
-        for r in range(3):
-            if col < 0:
-                r0 = y[b + 3 * r]
-                r1 = y[b + 3 * r + 1]
-                r2 = y[b + 3 * r + 2]
-            else:
-                r0 = T[b + 3 * r, col]
-                r1 = T[b + 3 * r + 1, col]
-                r2 = T[b + 3 * r + 2, col]
-            v0 = r0 * K[0, 0] + r1 * K[1, 0] + r2 * K[2, 0]
-            v1 = r0 * K[0, 1] + r1 * K[1, 1] + r2 * K[2, 1]
-            v2 = r0 * K[0, 2] + r1 * K[1, 2] + r2 * K[2, 2]
-            if col < 0:
-                y[b + 3 * r] = v0
-                y[b + 3 * r + 1] = v1
-                y[b + 3 * r + 2] = v2
-            else:
-                T[b + 3 * r, col] = v0
-                T[b + 3 * r + 1, col] = v1
-                T[b + 3 * r + 2, col] = v2
-        if col < 0:
-            mx = y[b + 12]
-            my = y[b + 13]
-            mz = 0.0
-            for j in range(n):
-                mz += y[2 * n + j]
-        else:
-            mx = T[b + 12, col]
-            my = T[b + 13, col]
-            mz = 0.0
-            for j in range(n):
-                mz += T[2 * n + j, col]
-        nx_ = K[0, 0] * mx + K[1, 0] * my + K[2, 0] * mz
-        ny_ = K[0, 1] * mx + K[1, 1] * my + K[2, 1] * mz
-        if col < 0:
-            y[b + 12] = nx_
-            y[b + 13] = ny_
-        else:
-            T[b + 12, col] = nx_
-            T[b + 13, col] = ny_
+    kink_matrix(kx, ky, K)
+    Yv = y.reshape((y.shape[0], 1))
+    turn_frame(Yv, 0, b, K)
+    _turn_moment(Yv, 0, n, b, K)
+    for col in range(nx if sens else 0):
+        turn_frame(T, col, b, K)
+        _turn_moment(T, col, n, b, K)
 
 
-@njit(cache=True, error_model="numpy")
-def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, W, F, M, tpos, ttyp, tidx,
-               out_s, m_out, step, sens, out_p, resid, jac, y, T, k, w, n0, wsum, ws, WS):
-    """One pass from s = 0 to the tip at unknowns x (n + 2). Fills resid (n + 2), jac when
-    ``sens`` and out_p[:m_out] (m_out may be 0)."""
+@njit(cache=True, error_model="numpy", inline="always")
+def _start(alpha, beta, x, ratio, EI, sens, y, T, k):
+    """The states at s = 0: psi_i = alpha_i - beta_i uz_i(0), tau = x[:n], R = I, p = 0,
+    mb = x[n:]; and their derivatives by x."""
     n = alpha.shape[0]
     nx = n + 2
     N = 3 * n + 14
@@ -296,6 +222,78 @@ def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, W, F, M, tpo
             T[2 * n + i, i] = 1.0
         T[b + 12, n] = 1.0
         T[b + 13, n + 1] = 1.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _regime(mid, beta, L, straight, kappa, EI, W, F, w, n0, wsum):
+    """The regime at arc length ``mid`` (constant between break points): w, and the internal
+    force n(s) = n0 - s wsum of the tip force and the weight of the tubes present (N).
+    Returns 1 / sum EI."""
+    n = beta.shape[0]
+    eisum = 0.0
+    for c in range(3):
+        n0[c] = F[c]
+        wsum[c] = 0.0
+    for i in range(n):
+        present = mid < beta[i] + L[i]
+        curved = mid >= beta[i] + straight[i]
+        if present:
+            eisum += EI[i]
+            for c in range(3):
+                n0[c] += W[i, c] * (beta[i] + L[i])
+                wsum[c] += W[i, c]
+        w[i] = EI[i] * kappa[i] if (present and curved) else 0.0
+    return 1.0 / eisum if eisum > 0.0 else 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _along(Z, col, b, M, j):
+    """Component j of R^T M (the moment M in the backbone frame) from the frame in Z[:, col]."""
+    return Z[b + j, col] * M[0] + Z[b + 3 + j, col] * M[1] + Z[b + 6 + j, col] * M[2]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _tube_end(i, y, T, n, sens, EI, M, kink, resid, jac, K):
+    """Tube i ends: its residual tau_i (the innermost tube: minus the tip moment's twist) / EI_i
+    and its Jacobian row; then no torsion, its angle frozen; the clearance kink."""
+    nx = n + 2
+    b = 3 * n
+    Yv = y.reshape((y.shape[0], 1))
+    tz = _along(Yv, 0, b, M, 2) if i == 0 else 0.0
+    resid[i] = (y[2 * n + i] - tz) / EI[i]
+    if sens:
+        for c in range(nx):
+            dtz = _along(T, c, b, M, 2) if i == 0 else 0.0
+            jac[i, c] = (T[2 * n + i, c] - dtz) / EI[i]
+    y[2 * n + i] = 0.0
+    if sens:
+        for c in range(nx):
+            T[2 * n + i, c] = 0.0
+    if kink[i, 0] != 0.0 or kink[i, 1] != 0.0:
+        _kink(y, T, n, nx, sens, kink[i, 0], kink[i, 1], K)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _tip(y, T, n, sens, EI, M, resid, jac):
+    """The tip: the bending moment equals the applied moment (backbone frame), / EI_1."""
+    b = 3 * n
+    e0 = EI[0]
+    Yv = y.reshape((y.shape[0], 1))
+    resid[n] = (y[b + 12] - _along(Yv, 0, b, M, 0)) / e0
+    resid[n + 1] = (y[b + 13] - _along(Yv, 0, b, M, 1)) / e0
+    if sens:
+        for c in range(n + 2):
+            jac[n, c] = (T[b + 12, c] - _along(T, c, b, M, 0)) / e0
+            jac[n + 1, c] = (T[b + 13, c] - _along(T, c, b, M, 1)) / e0
+
+
+@njit(cache=True, error_model="numpy", _nrt=False)
+def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, W, F, M, tpos, ttyp, tidx,
+               out_s, m_out, step, sens, out_p, resid, jac, y, T, k, w, n0, wsum, ws, WS, K):
+    """One pass from s = 0 to the tip at unknowns x (n + 2). Fills resid (n + 2), jac when
+    ``sens`` and out_p[:m_out] (m_out may be 0)."""
+    n = alpha.shape[0]
+    _start(alpha, beta, x, ratio, EI, sens, y, T, k)
     ko = 0
     s_now = 0.0
     ne = 2 * n
@@ -303,148 +301,98 @@ def _integrate(alpha, beta, x, L, straight, kappa, EI, ratio, kink, W, F, M, tpo
         s_next = tpos[it]
         seg = s_next - s_now
         if seg > 0.0:
-            mid = s_now + 0.5 * seg
-            eisum = 0.0
-            for c in range(3):
-                n0[c] = F[c]
-                wsum[c] = 0.0
-            for i in range(n):
-                present = mid < beta[i] + L[i]
-                curved = mid >= beta[i] + straight[i]
-                if present:
-                    eisum += EI[i]
-                    for c in range(3):
-                        n0[c] += W[i, c] * (beta[i] + L[i])
-                        wsum[c] += W[i, c]
-                w[i] = EI[i] * kappa[i] if (present and curved) else 0.0
-            eisum_inv = 1.0 / eisum if eisum > 0.0 else 0.0
-            ko = _rk4(y, T, n, nx, k, w, eisum_inv, n0, wsum, sens, s_now, seg, step, out_s,
-                      m_out, runtime(ko), out_p, ws[0], ws[1], ws[2], ws[3], ws[4], WS[0], WS[1], WS[2],
-                      WS[3], WS[4])
+            eisum_inv = _regime(s_now + 0.5 * seg, beta, L, straight, kappa, EI, W, F, w, n0,
+                                wsum)
+            ko = rk4(LoadedRhs(n, n + 2, k, w, eisum_inv, n0, wsum), y, T, y.shape[0],
+                     runtime(True), sens, s_now, seg, step, out_s, m_out, runtime(ko), out_p, ws,
+                     WS)
             s_now = s_next
-        i = tidx[it]
         if ttyp[it] == 1:
-            tz = 0.0
-            if i == 0:
-                # twisting component of the tip moment, in the backbone frame
-                tz = y[b + 2] * M[0] + y[b + 5] * M[1] + y[b + 8] * M[2]
-            resid[i] = (y[2 * n + i] - tz) / EI[i]
-            if sens:
-                for c in range(nx):
-                    dtz = 0.0
-                    if i == 0:
-                        dtz = T[b + 2, c] * M[0] + T[b + 5, c] * M[1] + T[b + 8, c] * M[2]
-                    jac[i, c] = (T[2 * n + i, c] - dtz) / EI[i]
-            # the tube is gone: no torsion, its angle frozen
-            y[2 * n + i] = 0.0
-            if sens:
-                for c in range(nx):
-                    T[2 * n + i, c] = 0.0
-            if kink[i, 0] != 0.0 or kink[i, 1] != 0.0:
-                _kink(y, T, n, nx, sens, kink[i, 0], kink[i, 1])
-        while ko < m_out and (out_s[ko] <= s_now or it == ne - 1):
-            out_p[ko, 0] = y[b + 9]
-            out_p[ko, 1] = y[b + 10]
-            out_p[ko, 2] = y[b + 11]
-            ko += 1
-    # the tip: bending moment equals the applied moment (backbone frame)
-    e0 = EI[0]
-    mx = y[b + 0] * M[0] + y[b + 3] * M[1] + y[b + 6] * M[2]
-    my = y[b + 1] * M[0] + y[b + 4] * M[1] + y[b + 7] * M[2]
-    resid[n] = (y[b + 12] - mx) / e0
-    resid[n + 1] = (y[b + 13] - my) / e0
-    if sens:
-        for c in range(nx):
-            dmx = T[b + 0, c] * M[0] + T[b + 3, c] * M[1] + T[b + 6, c] * M[2]
-            dmy = T[b + 1, c] * M[0] + T[b + 4, c] * M[1] + T[b + 7, c] * M[2]
-            jac[n, c] = (T[b + 12, c] - dmx) / e0
-            jac[n + 1, c] = (T[b + 13, c] - dmy) / e0
+            _tube_end(tidx[it], y, T, n, sens, EI, M, kink, resid, jac, K)
+        ko = emit(out_s, out_p, ko, m_out, s_now, it == ne - 1, y, 3 * n)
+    _tip(y, T, n, sens, EI, M, resid, jac)
 
 
-@njit(cache=True, error_model="numpy")
-def _max_abs(v):
-    m = 0.0
-    for i in range(v.shape[0]):
-        if not abs(v[i]) <= m:       # NaN propagates
-            m = abs(v[i])
-    return m
+# ----------------------------------------------------------------------------- the model's records
+@njit(cache=True, error_model="numpy", inline="always")
+def loaded_work(n):
+    """Workspace of one loaded problem: y, T, k, w, n0, wsum, ws, WS and the scaled EI/GJ,
+    weights, tip force and tip moment; K (3, 3) the kink rotation."""
+    N = 3 * n + 14
+    nx = n + 2
+    return (np.zeros(N), np.zeros((N, nx)), np.zeros(n), np.zeros(n), np.zeros(3), np.zeros(3),
+            np.zeros((5, N)), np.zeros((5, N, nx)), np.zeros(n), np.zeros((n, 3)), np.zeros(3),
+            np.zeros(3), np.zeros((3, 3)))
 
 
-@njit(cache=True, error_model="numpy")
-def _newton(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, out_s, m_out,
-            step, tol, max_iter, pts, resid, jac, resid_t, jac_t, dx, xt, A, y, T, k, w, n0,
-            wsum, ws, WS):
-    """Newton on x (in place) with the Jacobian kept while it contracts well (chord steps
-    without the variational equations: about a sixth of the cost of a pass with them) and a
-    fresh Jacobian with a backtracking line search otherwise. Every pass also writes the
-    output points ``pts[:m_out]`` (cheap: Hermite interpolation), so no final pass is needed
-    when the last pass was at the returned x.
-    Returns (residual, iterations, pts_at_x)."""
+def _derivative(model, y, Y, s, sens, dy, dY):
+    m = model
+    _rhs(y, Y, m.n, m.nx, s, m.k, m.w, m.eisum_inv, m.n0, m.wsum, sens, dy, dY)
+
+
+def _shoot(problem, x, sens, out_s, m_out, out_p, resid, jac):
+    p = problem
+    y, T, k, w, n0, wsum, ws, WS = p.work[:8]
+    K = p.work[12]
+    _integrate(p.alpha, p.beta, x, p.L, p.straight, p.kappa, p.EI, p.ratio, p.kink, p.W, p.F,
+               p.M, p.tpos, p.ttyp, p.tidx, out_s, m_out, p.step, sens, out_p, resid, jac, y, T,
+               k, w, n0, wsum, ws, WS, K)
+
+
+def _scaled(problem, lam, what):
+    p = problem
+    rs, Wl, Fl, Ml = p.work[8:12]
+    if what == LOADS:
+        for c in range(3):
+            Fl[c] = lam * p.F[c]
+            Ml[c] = lam * p.M[c]
+            for i in range(Wl.shape[0]):
+                Wl[i, c] = lam * p.W[i, c]
+        return LoadedProblem(p.alpha, p.beta, p.L, p.straight, p.kappa, p.EI, p.ratio, p.kink,
+                             Wl, Fl, Ml, p.step, p.tpos, p.ttyp, p.tidx, p.work)
+    for i in range(rs.shape[0]):
+        rs[i] = lam * p.ratio[i]
+    return LoadedProblem(p.alpha, p.beta, p.L, p.straight, p.kappa, p.EI, rs, p.kink, p.W, p.F,
+                         p.M, p.step, p.tpos, p.ttyp, p.tidx, p.work)
+
+
+register_model(LoadedRhs, LoadedProblem, _derivative, _shoot, _scaled, chords=True)
+
+
+# ----------------------------------------------------------------------------- the batch
+@njit(cache=True, error_model="numpy", inline="always")
+def _solve_row(prob, x, x0, xs, tol, max_iter, out_s, m, pts, nw):
+    """Newton from x0 (into x); where it fails, the load ramped up from the unloaded solution
+    xs (K = 8, then 32 stages); where that fails too, the torsional compliance ramped up from
+    the torsionally rigid loaded solution at full load (EI/GJ scaled by k/K, k = 0..K, K = 16
+    then 64: near snapping the loaded branch through the unloaded solution may end at a fold;
+    EI/GJ = 0 is well posed). Returns (residual, iterations, pts at x)."""
     nx = x.shape[0]
-    on, off = runtime(True), runtime(False)     # one compiled _integrate (see runtime)
-    _integrate(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx, out_s, m_out,
-               step, on, pts, resid, jac, y, T, k, w, n0, wsum, ws, WS)
-    r = _max_abs(resid)
-    it = 0
-    at_x = True             # the last pass (and so pts) was at x
-    fresh = True            # jac was evaluated at x
-    chord = True            # try the full step with the kept Jacobian first
-    while r >= tol and it < max_iter and math.isfinite(r):
-        it += 1
-        if not _newton_step(jac, resid, dx, A):
+    n = nx - 2
+    for i in range(nx):
+        x[i] = x0[i]
+    r, it, at_x = newton(prob, x, tol, max_iter, runtime(False), out_s, m, pts, nw)
+    for K in (8, 32):
+        if r < tol:
             break
-        if chord:
-            # the full step without the variational equations
-            for i in range(nx):
-                xt[i] = x[i] + dx[i]
-            _integrate(al, be, xt, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx,
-                       out_s, m_out, step, off, pts, resid_t, jac_t, y, T, k, w, n0, wsum,
-                       ws, WS)
-            rt = _max_abs(resid_t)
-            if rt < tol or rt < 0.1 * r:
-                for i in range(nx):
-                    x[i] = xt[i]
-                    resid[i] = resid_t[i]
-                r = rt
-                at_x = True
-                fresh = False
-                continue
-            # not contracting: Newton steps until they contract strongly again
-            chord = False
-            at_x = False
-        if not fresh:
-            _integrate(al, be, x, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx,
-                       out_s, m_out, step, on, pts, resid, jac, y, T, k, w, n0, wsum, ws, WS)
-            r = _max_abs(resid)
-            at_x = True
-            fresh = True
-            if not _newton_step(jac, resid, dx, A):
-                break
-        t = 1.0
-        accepted = False
-        for _ls in range(10):
-            for i in range(nx):
-                xt[i] = x[i] + t * dx[i]
-            _integrate(al, be, xt, L, straight, ka, ei, ra, kk, W, F, M, tpos, ttyp, tidx,
-                       out_s, m_out, step, on, pts, resid_t, jac_t, y, T, k, w, n0, wsum,
-                       ws, WS)
-            rt = _max_abs(resid_t)
-            if rt < r or rt < tol:
-                accepted = True
-                break
-            t *= 0.5
-        if not accepted:
-            at_x = False
-            break
-        chord = t == 1.0 and rt < 0.1 * r
         for i in range(nx):
-            x[i] = xt[i]
-            resid[i] = resid_t[i]
-            for c in range(nx):
-                jac[i, c] = jac_t[i, c]
-        r = rt
-        at_x = True
-        fresh = True
+            x[i] = xs[i]
+        r, itk, at_x = ramp(prob, x, 1, K, LOADS, tol, max_iter, runtime(False), out_s, m, pts,
+                            nw)
+        it += itk
+    for K in (16, 64):
+        if r < tol:
+            break
+        for i in range(n):
+            x[i] = 0.0
+        x[n] = x0[n]
+        x[n + 1] = x0[n + 1]
+        if not (math.isfinite(x[n]) and math.isfinite(x[n + 1])):
+            x[n] = 0.0
+            x[n + 1] = 0.0
+        r, itk, at_x = ramp(prob, x, 0, K, COMPLIANCE, tol, max_iter, runtime(False), out_s, m,
+                            pts, nw)
+        it += itk
     return r, it, at_x
 
 
@@ -457,119 +405,28 @@ def solve_loaded_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, W, F, M
     N mm^2, EI/GJ (0 = torsionally rigid); kink : (B, n, 2) rad; W : (B, n, 3) weight per unit
     length of each tube (N/mm, base frame); F : (B, 3) tip force N; M : (B, 3) tip moment N mm
     (base frame). x_init : (B, n + 2) first guess of (tau(0), mb_xy(0)) (N mm); x_start :
-    (B, n + 2) the unloaded solution's unknowns, from which the load is ramped up (k/K of it,
-    K = 8 then 32) where Newton from x_init fails; where that fails too, the torsional
-    compliance is ramped up (EI/GJ scaled by k/K, K = 16 then 64) from the torsionally rigid
-    loaded solution.
+    (B, n + 2) the unloaded solution's unknowns, from which the load is ramped up where Newton
+    from x_init fails (:func:`_solve_row`).
 
     Returns points (B, m, 3), s (B, m), x (B, n + 2), iterations (B,), residual (B,) (1/mm),
     ok (B,): converged (max residual < tol) and every point finite.
     """
     B, n = alpha.shape
-    nx = n + 2
-    N = 3 * n + 14
-    points = np.zeros((B, m, 3))
-    svals = np.zeros((B, m))
-    xout = np.zeros((B, nx))
-    iters = np.zeros(B, dtype=np.int64)
-    rnorm = np.zeros(B)
-    ok = np.zeros(B, dtype=np.bool_)
-    y = np.zeros(N)
-    T = np.zeros((N, nx))
-    ws = np.zeros((5, N))
-    WS = np.zeros((5, N, nx))
-    k = np.zeros(n)
-    w = np.zeros(n)
-    n0 = np.zeros(3)
-    wsum = np.zeros(3)
-    tpos = np.zeros(2 * n)
-    ttyp = np.zeros(2 * n, dtype=np.int64)
-    tidx = np.zeros(2 * n, dtype=np.int64)
-    resid = np.zeros(nx)
-    jac = np.zeros((nx, nx))
-    resid_t = np.zeros(nx)
-    jac_t = np.zeros((nx, nx))
-    A = np.zeros((nx, nx))
-    dx = np.zeros(nx)
-    x = np.zeros(nx)
-    xt = np.zeros(nx)
-    Wl = np.zeros((n, 3))
-    Fl = np.zeros(3)
-    Ml = np.zeros(3)
-    rs = np.zeros(n)
+    out = outputs(B, m, n + 2)
+    work = loaded_work(n)
+    tpos, ttyp, tidx = events(n)
+    nw = newton_work(n + 2)
     out_s = np.zeros(m)
+    x = np.zeros(n + 2)
     for bi in range(B):
-        al = alpha[bi]
-        be = beta[bi]
-        _tube_events(be, L, straight, tpos, ttyp, tidx)
-        tip = tpos[2 * n - 1]
-        for q in range(m):
-            out_s[q] = tip * q / (m - 1)
-        out_s[m - 1] = tip
-        for i in range(nx):
-            x[i] = x_init[bi, i]
-        r, it, at_x = _newton(al, be, x, L, straight, kappa[bi], EI[bi], ratio[bi], kink[bi],
-                              W[bi], F[bi], M[bi], tpos, ttyp, tidx, out_s, m, step, tol,
-                              max_iter, points[bi], resid, jac, resid_t, jac_t, dx, xt, A, y, T,
-                              k, w, n0, wsum, ws, WS)
-        for K in (8, 32):
-            if r < tol:
-                break
-            for i in range(nx):
-                x[i] = x_start[bi, i]
-            for kk in range(1, K + 1):
-                lam = kk / K
-                for c in range(3):
-                    Fl[c] = lam * F[bi, c]
-                    Ml[c] = lam * M[bi, c]
-                    for i in range(n):
-                        Wl[i, c] = lam * W[bi, i, c]
-                r, itk, at_x = _newton(al, be, x, L, straight, kappa[bi], EI[bi], ratio[bi],
-                                       kink[bi], Wl, Fl, Ml, tpos, ttyp, tidx, out_s, m, step,
-                                       tol, max_iter, points[bi], resid, jac, resid_t, jac_t, dx,
-                                       xt, A, y, T, k, w, n0, wsum, ws, WS)
-                it += itk
-                if not r < tol:
-                    at_x = at_x and kk == K
-                    break
-        for K in (16, 64):
-            # near snapping the loaded branch through the unloaded solution may end (a fold):
-            # continuation in the torsional compliance instead, from the torsionally rigid
-            # loaded solution (EI/GJ = 0, well posed) to the nominal EI/GJ, at full load
-            if r < tol:
-                break
-            for i in range(n):
-                x[i] = 0.0
-            x[n] = x_init[bi, n]
-            x[n + 1] = x_init[bi, n + 1]
-            if not (math.isfinite(x[n]) and math.isfinite(x[n + 1])):
-                x[n] = 0.0
-                x[n + 1] = 0.0
-            for kk in range(0, K + 1):
-                lam = kk / K
-                for i in range(n):
-                    rs[i] = lam * ratio[bi, i]
-                r, itk, at_x = _newton(al, be, x, L, straight, kappa[bi], EI[bi], rs, kink[bi],
-                                       W[bi], F[bi], M[bi], tpos, ttyp, tidx, out_s, m, step,
-                                       tol, max_iter, points[bi], resid, jac, resid_t, jac_t, dx,
-                                       xt, A, y, T, k, w, n0, wsum, ws, WS)
-                it += itk
-                if not r < tol:
-                    at_x = at_x and kk == K
-                    break
-        if not at_x:
-            _integrate(al, be, x, L, straight, kappa[bi], EI[bi], ratio[bi], kink[bi], W[bi],
-                       F[bi], M[bi], tpos, ttyp, tidx, out_s, m, step, runtime(False),
-                       points[bi], resid_t, jac_t, y, T, k, w, n0, wsum, ws, WS)
-        finite = True
-        for q in range(m):
-            svals[bi, q] = out_s[q]
-            for c in range(3):
-                if not math.isfinite(points[bi, q, c]):
-                    finite = False
-        for i in range(nx):
-            xout[bi, i] = x[i]
-        iters[bi] = it
-        rnorm[bi] = r
-        ok[bi] = r < tol and finite
-    return points, svals, xout, iters, rnorm, ok
+        prob = LoadedProblem(alpha[bi], beta[bi], L, straight, kappa[bi], EI[bi], ratio[bi],
+                             kink[bi], W[bi], F[bi], M[bi], step, tpos, ttyp, tidx, work)
+        row_grid(beta[bi], L, straight, m, tpos, ttyp, tidx, out_s)
+        pts = out[0][bi]
+        r, it, at_x = _solve_row(prob, x, x_init[bi], x_start[bi], tol, max_iter, out_s, m, pts,
+                                 nw)
+        finite = finish_row(prob, x, at_x, out_s, m, pts, nw)
+        store_row(out, bi, out_s, x, it, r, r < tol and finite)
+    return out
+
+# numba cache stamp: d8f966079f52654bec9904c45b481f0c7a18363c5bbb5d76c49e39122e994b7c

@@ -1,9 +1,9 @@
 """Shooting for the compliant model: Newton on the base torsions ``uz(0)`` over a batch.
 
-The integration passes (and the equations) are in :mod:`ctrplan.shape._kernel`; this module
-holds the n x n Newton step, the per-configuration Newton loop with its line search and the
-continuation fallback, and :func:`solve_batch`, the one entry point used by
-:class:`ctrplan.shape.physics.PhysicsModel`.
+The integration passes (and the equations) are in :mod:`ctrplan.shape._kernel`, the Newton
+driver and the continuation in a parameter in :mod:`ctrplan.shape._ode`; this module holds
+:func:`solve_batch`, the one entry point used by :class:`ctrplan.shape.physics.PhysicsModel`,
+with the compliance continuation fallback and the search for stable equilibria.
 
 Elastic stability of an unloaded equilibrium
 --------------------------------------------
@@ -46,166 +46,29 @@ import math
 import numpy as np
 from numba import njit
 
-from ctrplan.shape._kernel import _integrate, _tube_events, runtime
+from ctrplan.shape._kernel import UnloadedProblem, unloaded_work
+from ctrplan.shape._ode import (
+    COMPLIANCE,
+    det,
+    events,
+    finish_row,
+    max_abs,
+    newton,
+    newton_step,
+    newton_work,
+    outputs,
+    ramp,
+    row_grid,
+    runtime,
+    store_row,
+)
 
-# numba caches this module's kernels with the _kernel functions they call compiled in, and
-# checks only this file's time stamp: edit this file too when _kernel.py changes (last: the
-# tie order of tube ends in _tube_events).
-
-
-@njit(cache=True, error_model="numpy")
-def _max_abs(v):
-    m = 0.0
-    for i in range(v.shape[0]):
-        if not abs(v[i]) <= m:       # NaN propagates
-            m = abs(v[i])
-    return m
-
-
-@njit(cache=True, error_model="numpy")
-def _newton_step(jac, resid, dx, A):
-    """dx = -jac^{-1} resid by Gaussian elimination with partial pivoting (n is tiny).
-    Returns False when the Jacobian is singular or not finite."""
-    n = resid.shape[0]
-    for i in range(n):
-        for j in range(n):
-            A[i, j] = jac[i, j]
-        dx[i] = -resid[i]
-    for k in range(n):
-        p = k
-        big = abs(A[k, k])
-        for i in range(k + 1, n):
-            if abs(A[i, k]) > big:
-                big = abs(A[i, k])
-                p = i
-        if not (big > 0.0) or not math.isfinite(big):
-            return False
-        if p != k:
-            for j in range(n):
-                t = A[k, j]
-                A[k, j] = A[p, j]
-                A[p, j] = t
-            t = dx[k]
-            dx[k] = dx[p]
-            dx[p] = t
-        inv = 1.0 / A[k, k]
-        for i in range(k + 1, n):
-            f = A[i, k] * inv
-            if f != 0.0:
-                for j in range(k + 1, n):
-                    A[i, j] -= f * A[k, j]
-                dx[i] -= f * dx[k]
-    for k in range(n - 1, -1, -1):
-        t = dx[k]
-        for j in range(k + 1, n):
-            t -= A[k, j] * dx[j]
-        dx[k] = t / A[k, k]
-    for i in range(n):
-        if not math.isfinite(dx[i]):
-            return False
-    return True
+#: how far (x max kappa) the unstable root is pushed along its unstable mode, in this order
+#: (the first is usually beyond the residual's turning point)
+_SCALES = (1.0, 0.3, 3.0, 0.1)
 
 
-@njit(cache=True, error_model="numpy")
-def _det(jac, A):
-    """Determinant of the n x n matrix ``jac`` (Gaussian elimination with partial pivoting in
-    the workspace ``A``); NaN when ``jac`` is not finite."""
-    n = jac.shape[0]
-    for i in range(n):
-        for j in range(n):
-            A[i, j] = jac[i, j]
-    det = 1.0
-    for k in range(n):
-        p = k
-        big = abs(A[k, k])
-        for i in range(k + 1, n):
-            if abs(A[i, k]) > big:
-                big = abs(A[i, k])
-                p = i
-        if not math.isfinite(big):
-            return math.nan
-        if big == 0.0:
-            return 0.0
-        if p != k:
-            det = -det
-            for j in range(n):
-                t = A[k, j]
-                A[k, j] = A[p, j]
-                A[p, j] = t
-        det *= A[k, k]
-        inv = 1.0 / A[k, k]
-        for i in range(k + 1, n):
-            f = A[i, k] * inv
-            if f != 0.0:
-                for j in range(k + 1, n):
-                    A[i, j] -= f * A[k, j]
-    return det
-
-
-@njit(cache=True, error_model="numpy")
-def _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx, out_s, m, step, tol,
-            max_iter, may_shape, pts, resid, jac, resid_t, jac_t, dx, xt, A,
-            y, Y, a, w, pend, ws, WS, G):
-    """Shooting on uz(0) = x (updated in place) by Newton with a backtracking line search.
-
-    Returns (residual, iterations, shaped): ``shaped`` is True when the final frame pass
-    (points into ``pts``) has already been run at the returned x (only if ``may_shape``).
-    """
-    n = x.shape[0]
-    no_out = out_s[:0]
-    no_p = pts[:0]
-    on, off, zero = runtime(True), runtime(False), runtime(0)   # one compiled _integrate
-    _integrate(al, be, x, L, straight, ka, ei, ra, kk, on, tpos, ttyp, tidx,
-               no_out, zero, step, off, on, no_p, resid, jac, y, Y, a, w, pend, ws, WS, G)
-    r = _max_abs(resid)
-    it = 0
-    quad = -1.0         # estimate of C in |resid after a full step| ~ C |dx|^2
-    while r >= tol and it < max_iter and math.isfinite(r):
-        it += 1
-        if not _newton_step(jac, resid, dx, A):
-            break
-        dxn = _max_abs(dx)
-        if may_shape and quad > 0.0 and quad * dxn * dxn < 0.1 * tol:
-            # Newton is in its quadratic regime and predicts convergence: run the final
-            # frame pass at the full step and read the residual from it (same step grid, so
-            # the same residual), saving a sensitivity pass that would only confirm it
-            for i in range(n):
-                xt[i] = x[i] + dx[i]
-            _integrate(al, be, xt, L, straight, ka, ei, ra, kk, on, tpos, ttyp, tidx,
-                       out_s, m, step, on, off, pts, resid_t, jac_t,
-                       y, Y, a, w, pend, ws, WS, G)
-            rt = _max_abs(resid_t)
-            if rt < tol:
-                for i in range(n):
-                    x[i] = xt[i]
-                return rt, it, True
-        t = 1.0
-        accepted = False
-        rt = r
-        for _ls in range(8):
-            for i in range(n):
-                xt[i] = x[i] + t * dx[i]
-            _integrate(al, be, xt, L, straight, ka, ei, ra, kk, on, tpos, ttyp, tidx,
-                       no_out, zero, step, off, on, no_p, resid_t, jac_t,
-                       y, Y, a, w, pend, ws, WS, G)
-            rt = _max_abs(resid_t)
-            if rt < r or rt < tol:
-                accepted = True
-                break
-            t *= 0.5
-        if not accepted:
-            break
-        quad = rt / (dxn * dxn) if (t == 1.0 and dxn > 0.0) else -1.0
-        for i in range(n):
-            x[i] = xt[i]
-            resid[i] = resid_t[i]
-            for c in range(n):
-                jac[i, c] = jac_t[i, c]
-        r = rt
-    return r, it, False
-
-
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _unstable_direction(jac, ra, ei, d, v, A):
     """Direction of the unstable mode of an unstable equilibrium, in the torque-balanced
     hyperplane sum_i GJ_i uz_i(0) = 0 that holds every unloaded equilibrium (the total
@@ -227,7 +90,7 @@ def _unstable_direction(jac, ra, ei, d, v, A):
         for i in range(n):
             g = ei[i] / ra[i] if ra[i] > 0.0 else 0.0
             d[i] = d[i] - (gd / gg) * g if gg > 0.0 else d[i]
-        big = _max_abs(d)
+        big = max_abs(d)
         if not big > 0.0:
             for i in range(n):
                 d[i] = 1.0 if i == 0 else 0.0
@@ -236,10 +99,208 @@ def _unstable_direction(jac, ra, ei, d, v, A):
             d[i] /= big
         if it == 3:
             return
-        if not _newton_step(jac, d, v, A):      # v = -jac^{-1} d
+        if not newton_step(jac, d, v, A):      # v = -jac^{-1} d
             return
         for i in range(n):
             d[i] = v[i]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _solve_compliant(prob, x, tol, max_iter, out_s, m, pts, nw):
+    """Newton from x (in place); where it fails, continuation in the torsional compliance from
+    the rigid solution uz = 0 (EI/GJ scaled by k/K, k = 1..K, K = 8 then 32). Returns
+    (residual, iterations, shaped)."""
+    r, it, shaped = newton(prob, x, tol, max_iter, runtime(True), out_s, m, pts, nw)
+    for K in (8, 32):
+        if r < tol:
+            break
+        for i in range(x.shape[0]):
+            x[i] = 0.0
+        r, itk, shaped = ramp(prob, x, 1, K, COMPLIANCE, tol, max_iter, runtime(True), out_s, m,
+                              pts, nw)
+        it += itk
+    return r, it, shaped
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _amp(kappa):
+    amp = 0.0
+    for i in range(kappa.shape[0]):
+        amp = max(amp, abs(kappa[i]))
+    return amp
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def search_work(n):
+    """Workspace of the stable-root search: xu, d, v (n,), roots (2, n), their residuals and
+    Jacobian determinants (2,)."""
+    return np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((2, n)), np.zeros(2), np.zeros(2)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _keep_root(x, r2, d2, nfound, amp, sw):
+    """Store a stable root unless it is the one already found. Returns the number found."""
+    roots, rres, rdet = sw[3], sw[4], sw[5]
+    if nfound == 1:
+        diff = 0.0
+        for i in range(x.shape[0]):
+            diff = max(diff, abs(x[i] - roots[0, i]))
+        if diff <= 1e-6 * amp:
+            return nfound
+    for i in range(x.shape[0]):
+        roots[nfound, i] = x[i]
+    rres[nfound] = r2
+    rdet[nfound] = d2
+    return nfound + 1
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _both_sides(prob, x, amp, tol, max_iter, out_s, m, pts, nw, sw):
+    """Newton from the unstable root xu pushed along its unstable mode by t x amp, t in
+    :data:`_SCALES`, to each side; the first stable root per side is kept. Returns (number of
+    distinct stable roots, iterations)."""
+    xu, dvec = sw[0], sw[1]
+    jac, A = nw[1], nw[6]
+    _unstable_direction(jac, prob.ratio, prob.EI, dvec, sw[2], A)
+    nfound = 0
+    it = 0
+    for side in range(2):
+        sgn = 1.0 if side == 0 else -1.0
+        for t in _SCALES:
+            for i in range(x.shape[0]):
+                x[i] = xu[i] + sgn * t * amp * dvec[i]
+            r2, it2, _sh = newton(prob, x, tol, max_iter, runtime(False), out_s, m, pts, nw)
+            it += it2
+            if r2 < tol:
+                d2 = det(jac, A)
+                if d2 > 0.0:
+                    nfound = _keep_root(x, r2, d2, nfound, amp, sw)
+                    break
+    return nfound, it
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _from_rigid(prob, x, tol, max_iter, out_s, m, pts, nw, sw):
+    """Continuation in the compliance (K = 8) from the rigid solution; its root is kept if
+    stable. Returns (number found, iterations)."""
+    for i in range(x.shape[0]):
+        x[i] = 0.0
+    r2, it, _sh = ramp(prob, x, 1, 8, COMPLIANCE, tol, max_iter, runtime(False), out_s, m, pts,
+                       nw)
+    if r2 < tol:
+        d2 = det(nw[1], nw[6])
+        if d2 > 0.0:
+            return _keep_root(x, r2, d2, 0, 1.0, sw), it
+    return 0, it
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _stabilise(prob, x, x0, tol, max_iter, out_s, m, pts, nw, sw, alt):
+    """x (in place) is an unstable equilibrium: search stable ones to both sides of it
+    (:func:`_both_sides`), else by :func:`_from_rigid`; with two, return the one nearer x0
+    (max norm) and write the other into ``alt``. Returns (branch code, residual, det J,
+    iterations); code -1 (none stable found) leaves x."""
+    n = x.shape[0]
+    xu, roots, rres, rdet = sw[0], sw[3], sw[4], sw[5]
+    amp = _amp(prob.kappa)
+    for i in range(n):
+        xu[i] = x[i]
+    nfound, it = _both_sides(prob, x, amp, tol, max_iter, out_s, m, pts, nw, sw)
+    code = 1
+    if nfound == 0:
+        nfound, itk = _from_rigid(prob, x, tol, max_iter, out_s, m, pts, nw, sw)
+        it += itk
+        code = 3
+    if nfound == 0:
+        for i in range(n):
+            x[i] = xu[i]
+        return -1, math.nan, math.nan, it
+    pick = 0
+    if nfound == 2:
+        code = 2
+        # the one nearest the initial guess (max norm): with x_init = 0 the less twisted one;
+        # with a warm start from the previous configuration of a motion, the branch the robot
+        # is on
+        d0 = 0.0
+        d1 = 0.0
+        for i in range(n):
+            d0 = max(d0, abs(roots[0, i] - x0[i]))
+            d1 = max(d1, abs(roots[1, i] - x0[i]))
+        if d1 < d0:
+            pick = 1
+    for i in range(n):
+        x[i] = roots[pick, i]
+        if nfound == 2:
+            alt[i] = roots[1 - pick, i]
+    return code, rres[pick], rdet[pick], it
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _probe(prob, x, tol, max_iter, out_s, m, pts, nw, sw, alt):
+    """x is a stable equilibrium: where some pair of curved tubes is rotated apart by more than
+    90 deg at the actuators, Newton from the mirrored root pushed to the other side (1 and
+    0.5 x max kappa along the torque-balanced direction) looks for a second stable root,
+    written into ``alt``. x is left as it was. Returns True when one was found."""
+    n = x.shape[0]
+    ka, al = prob.kappa, prob.alpha
+    apart = False
+    for i in range(n):
+        for j in range(i + 1, n):
+            if ka[i] != 0.0 and ka[j] != 0.0 and math.cos(al[i] - al[j]) < 0.0:
+                apart = True
+    if not apart:
+        return False
+    xu, dvec = sw[0], sw[1]
+    jac, A = nw[1], nw[6]
+    amp = _amp(ka)
+    for i in range(n):
+        xu[i] = x[i]
+    _unstable_direction(jac, prob.ratio, prob.EI, dvec, sw[2], A)
+    c0 = 0.0
+    for i in range(n):
+        c0 += dvec[i] * xu[i]
+    sgn = -1.0 if c0 >= 0.0 else 1.0       # towards the other side
+    found = False
+    for t in (1.0, 0.5):
+        for i in range(n):
+            x[i] = -xu[i] + sgn * t * amp * dvec[i]
+        r2, _it2, _sh = newton(prob, x, tol, max_iter, runtime(False), out_s, m, pts, nw)
+        if r2 < tol and det(jac, A) > 0.0:
+            diff = 0.0
+            for i in range(n):
+                diff = max(diff, abs(x[i] - xu[i]))
+            if diff > 1e-6 * amp:
+                for i in range(n):
+                    alt[i] = x[i]
+                found = True
+                break
+    for i in range(n):
+        x[i] = xu[i]
+    return found
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _solve_row(prob, x, x0, stability, probe, tol, max_iter, out_s, m, pts, nw, sw, alt):
+    """One row of the compliant model (:func:`solve_batch`): x from x0 (in place). Returns
+    (residual, iterations, shaped, stable, det J, branch code)."""
+    r, it, shaped = _solve_compliant(prob, x, tol, max_iter, out_s, m, pts, nw)
+    dj = 1.0
+    code = 0
+    stable = True
+    if r < tol and stability:
+        dj = det(nw[1], nw[6])
+        if not dj > 0.0:
+            # an unstable equilibrium: search stable ones to both sides of it
+            code, r2, d2, it2 = _stabilise(prob, x, x0, tol, max_iter, out_s, m, pts, nw, sw, alt)
+            it += it2
+            stable = code != -1
+            if stable:
+                r = r2
+                dj = d2
+            shaped = False
+        elif probe and it > 0 and _probe(prob, x, tol, max_iter, out_s, m, pts, nw, sw, alt):
+            code = 4
+    return r, it, shaped, stable, dj, code
 
 
 @njit(cache=True, error_model="numpy")
@@ -289,58 +350,21 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
     root; the returned shape is unchanged.
     """
     B, n = alpha.shape
-    points = np.zeros((B, m, 3))
-    svals = np.zeros((B, m))
-    uz0 = np.zeros((B, n))
-    iters = np.zeros(B, dtype=np.int64)
-    rnorm = np.zeros(B)
-    ok = np.zeros(B, dtype=np.bool_)
+    out = outputs(B, m, n)
     detj = np.ones(B)
     branch = np.zeros(B, dtype=np.int8)
     uz0alt = np.full((B, n), np.nan)
-    # one workspace for the whole batch
-    nst = 3 * n + 12
-    y = np.zeros(nst)
-    Y = np.zeros((2 * n, n))
-    a = np.zeros(n)
-    w = np.zeros(n)
-    pend = np.zeros(n)
-    ws = np.zeros((5, nst))
-    WS = np.zeros((5, 2 * n, n))
-    G = np.zeros((3, 3))
-    tpos = np.zeros(2 * n)
-    ttyp = np.zeros(2 * n, dtype=np.int64)
-    tidx = np.zeros(2 * n, dtype=np.int64)
-    resid = np.zeros(n)
-    jac = np.zeros((n, n))
-    resid_t = np.zeros(n)
-    jac_t = np.zeros((n, n))
-    A = np.zeros((n, n))
-    dx = np.zeros(n)
-    x = np.zeros(n)
-    xt = np.zeros(n)
-    rs = np.zeros(n)
+    work = unloaded_work(n)
+    tpos, ttyp, tidx = events(n)
+    nw = newton_work(n)
+    sw = search_work(n)
     out_s = np.zeros(m)
-    xu = np.zeros(n)
-    dvec = np.zeros(n)
-    vtmp = np.zeros(n)
-    roots = np.zeros((2, n))
-    rres = np.zeros(2)
-    rdet = np.zeros(2)
-    scales = np.array([1.0, 0.3, 3.0, 0.1])
+    x = np.zeros(n)
     for bi in range(B):
-        al = alpha[bi]
-        be = beta[bi]
-        ka = kappa[bi]
-        ei = EI[bi]
-        ra = ratio[bi]
-        kk = kink[bi]
-        pts = points[bi]
-        _tube_events(be, L, straight, tpos, ttyp, tidx)
-        tip = tpos[2 * n - 1]
-        for k in range(m):
-            out_s[k] = tip * k / (m - 1) if m > 1 else tip
-        out_s[m - 1] = tip
+        prob = UnloadedProblem(alpha[bi], beta[bi], L, straight, kappa[bi], EI[bi], ratio[bi],
+                               kink[bi], torsion, step, tpos, ttyp, tidx, work)
+        row_grid(beta[bi], L, straight, m, tpos, ttyp, tidx, out_s)
+        pts = out[0][bi]
         for i in range(n):
             x[i] = x_init[bi, i] if torsion else 0.0
         shaped = False          # the final (frame) pass has been run at x
@@ -348,169 +372,13 @@ def solve_batch(alpha, beta, L, straight, kappa, EI, ratio, kink, torsion, m, st
         r = 0.0
         stable = True
         if torsion:
-            r, it, shaped = _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos, ttyp, tidx,
-                                    out_s, m, step, tol, max_iter, runtime(True), pts, resid, jac,
-                                    resid_t, jac_t, dx, xt, A, y, Y, a, w, pend, ws, WS, G)
-            for K in (8, 32):
-                if r < tol:
-                    break
-                for i in range(n):
-                    x[i] = 0.0
-                for k in range(1, K + 1):
-                    lam = k / K
-                    for i in range(n):
-                        rs[i] = ra[i] * lam
-                    r, itk, shaped = _newton(al, be, x, L, straight, ka, ei, rs, kk, tpos, ttyp,
-                                             tidx, out_s, m, step, tol, max_iter, k == K, pts,
-                                             resid, jac, resid_t, jac_t, dx, xt, A,
-                                             y, Y, a, w, pend, ws, WS, G)
-                    it += itk
-                    if not r < tol:
-                        break
-            if r < tol and stability:
-                dj = _det(jac, A)
-                detj[bi] = dj
-                if not dj > 0.0:
-                    # an unstable equilibrium: search stable ones to both sides of it
-                    amp = 0.0
-                    for i in range(n):
-                        amp = max(amp, abs(ka[i]))
-                    for i in range(n):
-                        xu[i] = x[i]
-                    _unstable_direction(jac, ra, ei, dvec, vtmp, A)
-                    nfound = 0
-                    for side in range(2):
-                        sgn = 1.0 if side == 0 else -1.0
-                        for t in scales:
-                            for i in range(n):
-                                x[i] = xu[i] + sgn * t * amp * dvec[i]
-                            r2, it2, _sh = _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos,
-                                                   ttyp, tidx, out_s, m, step, tol, max_iter,
-                                                   runtime(False), pts, resid, jac, resid_t,
-                                                   jac_t, dx, xt, A, y, Y, a, w, pend,
-                                                   ws, WS, G)
-                            it += it2
-                            if r2 < tol:
-                                d2 = _det(jac, A)
-                                if d2 > 0.0:
-                                    same = False
-                                    if nfound == 1:
-                                        diff = 0.0
-                                        for i in range(n):
-                                            diff = max(diff, abs(x[i] - roots[0, i]))
-                                        same = diff <= 1e-6 * amp
-                                    if not same:
-                                        for i in range(n):
-                                            roots[nfound, i] = x[i]
-                                        rres[nfound] = r2
-                                        rdet[nfound] = d2
-                                        nfound += 1
-                                    break
-                    code = 1
-                    if nfound == 0:
-                        # continuation in the compliance from the rigid solution
-                        for i in range(n):
-                            x[i] = 0.0
-                        K = 8
-                        r2 = math.inf
-                        for k in range(1, K + 1):
-                            for i in range(n):
-                                rs[i] = ra[i] * (k / K)
-                            r2, itk, _sh = _newton(al, be, x, L, straight, ka, ei, rs, kk, tpos,
-                                                   ttyp, tidx, out_s, m, step, tol, max_iter,
-                                                   runtime(False), pts, resid, jac, resid_t,
-                                                   jac_t, dx, xt, A, y, Y, a, w, pend,
-                                                   ws, WS, G)
-                            it += itk
-                            if not r2 < tol:
-                                break
-                        if r2 < tol:
-                            d2 = _det(jac, A)
-                            if d2 > 0.0:
-                                for i in range(n):
-                                    roots[0, i] = x[i]
-                                rres[0] = r2
-                                rdet[0] = d2
-                                nfound = 1
-                                code = 3
-                    if nfound == 0:
-                        stable = False
-                        branch[bi] = -1
-                        for i in range(n):
-                            x[i] = xu[i]
-                    else:
-                        pick = 0
-                        if nfound == 2:
-                            code = 2
-                            # the one nearest the initial guess (max norm): with x_init = 0
-                            # the less twisted one; with a warm start from the previous
-                            # configuration of a motion, the branch the robot is on
-                            d0 = 0.0
-                            d1 = 0.0
-                            for i in range(n):
-                                d0 = max(d0, abs(roots[0, i] - x_init[bi, i]))
-                                d1 = max(d1, abs(roots[1, i] - x_init[bi, i]))
-                            if d1 < d0:
-                                pick = 1
-                        branch[bi] = code
-                        for i in range(n):
-                            x[i] = roots[pick, i]
-                            if nfound == 2:
-                                uz0alt[bi, i] = roots[1 - pick, i]
-                        r = rres[pick]
-                        detj[bi] = rdet[pick]
-                    shaped = False
-                elif probe and it > 0:
-                    # stable first root: probe for a second stable one where some pair of
-                    # curved tubes is rotated apart by more than 90 deg at the actuators
-                    apart = False
-                    for i in range(n):
-                        for j in range(i + 1, n):
-                            if ka[i] != 0.0 and ka[j] != 0.0 and math.cos(al[i] - al[j]) < 0.0:
-                                apart = True
-                    if apart:
-                        amp = 0.0
-                        for i in range(n):
-                            amp = max(amp, abs(ka[i]))
-                        for i in range(n):
-                            xu[i] = x[i]
-                        _unstable_direction(jac, ra, ei, dvec, vtmp, A)
-                        c0 = 0.0
-                        for i in range(n):
-                            c0 += dvec[i] * xu[i]
-                        sgn = -1.0 if c0 >= 0.0 else 1.0       # towards the other side
-                        for t in (1.0, 0.5):
-                            for i in range(n):
-                                x[i] = -xu[i] + sgn * t * amp * dvec[i]
-                            r2, it2, _sh = _newton(al, be, x, L, straight, ka, ei, ra, kk, tpos,
-                                                   ttyp, tidx, out_s, m, step, tol, max_iter,
-                                                   runtime(False), pts, resid, jac, resid_t,
-                                                   jac_t, dx, xt, A, y, Y, a, w, pend,
-                                                   ws, WS, G)
-                            if r2 < tol and _det(jac, A) > 0.0:
-                                diff = 0.0
-                                for i in range(n):
-                                    diff = max(diff, abs(x[i] - xu[i]))
-                                if diff > 1e-6 * amp:
-                                    branch[bi] = 4
-                                    for i in range(n):
-                                        uz0alt[bi, i] = x[i]
-                                    break
-                        for i in range(n):
-                            x[i] = xu[i]
-        if not shaped:
-            _integrate(al, be, x, L, straight, ka, ei, ra, kk, torsion, tpos, ttyp, tidx,
-                       out_s, m, step, runtime(True), runtime(False), pts, resid_t, jac_t,
-                       y, Y, a, w, pend, ws, WS, G)
-        finite = True
-        for k in range(m):
-            svals[bi, k] = out_s[k]
-            for c in range(3):
-                if not math.isfinite(pts[k, c]):
-                    finite = False
-        for i in range(n):
-            uz0[bi, i] = x[i]
-        iters[bi] = it
-        rnorm[bi] = r
-        ok[bi] = r < tol and finite and stable
-    return points, svals, uz0, iters, rnorm, ok, detj, branch, uz0alt
+            r, it, shaped, stable, dj, code = _solve_row(prob, x, x_init[bi], stability, probe,
+                                                         tol, max_iter, out_s, m, pts, nw, sw,
+                                                         uz0alt[bi])
+            detj[bi] = dj
+            branch[bi] = code
+        finite = finish_row(prob, x, shaped, out_s, m, pts, nw)
+        store_row(out, bi, out_s, x, it, r, r < tol and finite and stable)
+    return out + (detj, branch, uz0alt)
+
+# numba cache stamp: d8f966079f52654bec9904c45b481f0c7a18363c5bbb5d76c49e39122e994b7c

@@ -9,6 +9,7 @@ from __future__ import annotations
 import subprocess
 import sys
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -205,6 +206,22 @@ class SolveInfo:
         return None if self.branch is None else (self.branch != 0) & (self.branch != 4)
 
 
+class _Batch(NamedTuple):
+    """The checked, contiguous arrays of one :meth:`PhysicsModel.solve` (shapes there)."""
+
+    alpha: np.ndarray
+    beta: np.ndarray
+    x0: np.ndarray
+    kappa: np.ndarray
+    EI: np.ndarray
+    ratio: np.ndarray
+    kink: np.ndarray
+    weight: np.ndarray | None
+    force: np.ndarray | None
+    moment: np.ndarray | None
+    loaded: np.ndarray
+
+
 class PhysicsModel:
     """Mechanics shape model of a concentric tube robot.
 
@@ -289,17 +306,31 @@ class PhysicsModel:
             return self._solve_chain(q, points, params, uz_init, chain)
         if points < 2:
             raise ValueError("points must be >= 2 (base and tip)")
-        r = self.robot
-        n = r.n
         q = np.ascontiguousarray(q, dtype=float)
+        b = self._checked(q, params, uz_init)
+        _wait_for_warmup()
+        moment0 = None
+        if not b.loaded.any():
+            pts, s, uz0, iters, resid, ok, detj, branch, uz0_alt = self._unloaded(b, None, int(points))
+        else:
+            (pts, s, uz0, iters, resid, ok, detj, branch, uz0_alt), moment0 = self._solve_mixed(
+                b, int(points))
+        ok = ok & np.all(np.isfinite(pts), axis=(1, 2))
+        ok &= chords_within_arc(pts, s)
+        self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid, moment0=moment0,
+                                   detj=detj, branch=branch, uz0_alt=uz0_alt)
+        return Shape(points=pts, s=s, radius=radius_along(self.robot, q, s), ok=ok,
+                     pad=self._pad(q, b, s, pts))
+
+    def _checked(self, q: np.ndarray, params: MechanicsParams, uz_init) -> _Batch:
+        """The kernels' arrays of a solve, contiguous, their shapes checked (the compiled
+        kernels do not bounds-check)."""
+        n = self.robot.n
         if q.ndim != 2 or q.shape[1] != 2 * n:
             raise ValueError(f"q must have shape (B, {2 * n}), got {q.shape}")
         B = len(q)
-        alpha = np.ascontiguousarray(q[:, :n])
-        beta = np.ascontiguousarray(q[:, n:])
 
         def arr(name: str, v, shape: tuple[int, ...]) -> np.ndarray:
-            # the compiled kernel does not bounds-check: shapes are checked here
             a = np.ascontiguousarray(v, dtype=float)
             if a.shape != shape:
                 raise ValueError(f"{name} must have shape {shape}, got {a.shape}")
@@ -313,85 +344,86 @@ class PhysicsModel:
         weight = None if params.weight is None else arr("weight", params.weight, (B, n, 3))
         force = None if params.force is None else arr("force", params.force, (B, 3))
         moment = None if params.moment is None else arr("moment", params.moment, (B, 3))
-        loaded = replace(params, weight=weight, force=force, moment=moment).loaded_rows()
-        _wait_for_warmup()
+        return _Batch(
+            alpha=np.ascontiguousarray(q[:, :n]), beta=np.ascontiguousarray(q[:, n:]), x0=x0,
+            kappa=kappa, EI=EI, ratio=ratio, kink=kink, weight=weight, force=force, moment=moment,
+            loaded=replace(params, weight=weight, force=force, moment=moment).loaded_rows())
 
-        def unloaded(rows, m):
-            # the unloaded kernels, on all rows or (index array) a subset, a chunk at a time:
-            # the kernel returns to Python every few thousand rows, where a pending SIGINT /
-            # SIGTERM is acted on (ctrplan.interrupt)
-            from ctrplan import interrupt
+    def _unloaded(self, b: _Batch, rows: np.ndarray | None, m: int) -> tuple:
+        """The unloaded kernel on all rows or (index array) a subset, a chunk at a time: the
+        kernel returns to Python every few thousand rows, where a pending SIGINT / SIGTERM is
+        acted on (ctrplan.interrupt). Returns the kernel's arrays."""
+        from ctrplan import interrupt
 
-            if rows is None and B <= interrupt.CHUNK:
-                return _shooting.solve_batch(
-                    alpha, beta, self._lengths, self._straight, kappa, EI, ratio, kink,
-                    self.torsion, m, float(self.config.step_mm), float(self.config.tol),
-                    int(self.config.max_iter), x0, bool(self.config.stability),
-                    bool(self.config.probe_bistable))
-            rows = np.arange(B) if rows is None else np.asarray(rows)
+        cfg = self.config
+        B = len(b.alpha)
+
+        def kernel(r_):
             c = np.ascontiguousarray
-            parts = []
-            for k in range(0, len(rows), interrupt.CHUNK):
-                interrupt.check()
-                r_ = rows[k:k + interrupt.CHUNK]
-                parts.append(_shooting.solve_batch(
-                    c(alpha[r_]), c(beta[r_]), self._lengths, self._straight, c(kappa[r_]),
-                    c(EI[r_]), c(ratio[r_]), c(kink[r_]), self.torsion, m,
-                    float(self.config.step_mm), float(self.config.tol), int(self.config.max_iter),
-                    c(x0[r_]), bool(self.config.stability), bool(self.config.probe_bistable)))
-            interrupt.check()
-            if len(parts) == 1:
-                return parts[0]
-            if not parts:
-                parts.append(_shooting.solve_batch(
-                    c(alpha[:0]), c(beta[:0]), self._lengths, self._straight, c(kappa[:0]),
-                    c(EI[:0]), c(ratio[:0]), c(kink[:0]), self.torsion, m,
-                    float(self.config.step_mm), float(self.config.tol), int(self.config.max_iter),
-                    c(x0[:0]), bool(self.config.stability), bool(self.config.probe_bistable)))
-                return parts[0]
-            return tuple(np.concatenate(z, axis=0) for z in zip(*parts))
+            pick = (lambda a: a) if r_ is None else (lambda a: c(a[r_]))   # noqa: E731
+            return _shooting.solve_batch(
+                pick(b.alpha), pick(b.beta), self._lengths, self._straight, pick(b.kappa),
+                pick(b.EI), pick(b.ratio), pick(b.kink), self.torsion, m, float(cfg.step_mm),
+                float(cfg.tol), int(cfg.max_iter), pick(b.x0), bool(cfg.stability),
+                bool(cfg.probe_bistable))
 
-        moment0 = None
-        if not loaded.any():
-            pts, s, uz0, iters, resid, ok, detj, branch, uz0_alt = unloaded(None, int(points))
-        else:
-            detj = np.full(B, np.nan)
-            branch = np.zeros(B, dtype=np.int8)
-            uz0_alt = np.full((B, n), np.nan)
-            pts = np.zeros((B, points, 3))
-            s = np.zeros((B, points))
-            uz0 = np.zeros((B, n))
-            iters = np.zeros(B, dtype=np.int64)
-            resid = np.zeros(B)
-            ok = np.zeros(B, dtype=bool)
-            free = np.flatnonzero(~loaded)
-            if len(free):
-                (pts[free], s[free], uz0[free], iters[free], resid[free], ok[free], detj[free],
-                 branch[free], uz0_alt[free]) = unloaded(free, int(points))
-            idx = np.flatnonzero(loaded)
-            W = np.zeros((B, n, 3)) if weight is None else weight
-            F = np.zeros((B, 3)) if force is None else force
-            M = np.zeros((B, 3)) if moment is None else moment
-            # first guess from the unloaded solution of the loaded rows (33 points)
-            gp, gs, guz, _, _, gok, _, _, _ = unloaded(idx, 33)
-            lp, ls, luz, lit, lres, lm = self._solve_loaded(
-                alpha[idx], beta[idx], kappa[idx], EI[idx], ratio[idx], kink[idx], W[idx],
-                F[idx], M[idx], gp, gs, guz, gok, int(points))
-            pts[idx], s[idx], uz0[idx], iters[idx], resid[idx] = lp, ls, luz, lit, lres
-            moment0 = np.zeros((B, 2))
-            moment0[idx] = lm
-            ok[idx] = lres < self.config.tol
-        ok = ok & np.all(np.isfinite(pts), axis=(1, 2))
-        ok &= chords_within_arc(pts, s)
-        self.last_info = SolveInfo(uz0=uz0, iterations=iters, residual=resid, moment0=moment0,
-                                   detj=detj, branch=branch, uz0_alt=uz0_alt)
+        if rows is None and B <= interrupt.CHUNK:
+            return kernel(None)
+        rows = np.arange(B) if rows is None else np.asarray(rows)
+        parts = []
+        for k in range(0, len(rows), interrupt.CHUNK):
+            interrupt.check()
+            parts.append(kernel(rows[k:k + interrupt.CHUNK]))
+        interrupt.check()
+        if len(parts) == 1:
+            return parts[0]
+        if not parts:
+            return kernel(rows[:0])
+        return tuple(np.concatenate(z, axis=0) for z in zip(*parts))
+
+    def _solve_mixed(self, b: _Batch, points: int) -> tuple[tuple, np.ndarray]:
+        """A batch with loaded rows: the unloaded kernel on the others, the loaded one (from
+        the unloaded solution) on those. Returns the arrays of :meth:`_unloaded` for the batch
+        and the base moment (B, 2)."""
+        B, n = b.alpha.shape
+        detj = np.full(B, np.nan)
+        branch = np.zeros(B, dtype=np.int8)
+        uz0_alt = np.full((B, n), np.nan)
+        pts = np.zeros((B, points, 3))
+        s = np.zeros((B, points))
+        uz0 = np.zeros((B, n))
+        iters = np.zeros(B, dtype=np.int64)
+        resid = np.zeros(B)
+        ok = np.zeros(B, dtype=bool)
+        free = np.flatnonzero(~b.loaded)
+        if len(free):
+            (pts[free], s[free], uz0[free], iters[free], resid[free], ok[free], detj[free],
+             branch[free], uz0_alt[free]) = self._unloaded(b, free, points)
+        idx = np.flatnonzero(b.loaded)
+        W = np.zeros((B, n, 3)) if b.weight is None else b.weight
+        F = np.zeros((B, 3)) if b.force is None else b.force
+        M = np.zeros((B, 3)) if b.moment is None else b.moment
+        # first guess from the unloaded solution of the loaded rows (33 points)
+        gp, gs, guz, _, _, gok, _, _, _ = self._unloaded(b, idx, 33)
+        lp, ls, luz, lit, lres, lm = self._solve_loaded(
+            b.alpha[idx], b.beta[idx], b.kappa[idx], b.EI[idx], b.ratio[idx], b.kink[idx], W[idx],
+            F[idx], M[idx], gp, gs, guz, gok, points)
+        pts[idx], s[idx], uz0[idx], iters[idx], resid[idx] = lp, ls, luz, lit, lres
+        moment0 = np.zeros((B, 2))
+        moment0[idx] = lm
+        ok[idx] = lres < self.config.tol
+        return (pts, s, uz0, iters, resid, ok, detj, branch, uz0_alt), moment0
+
+    def _pad(self, q: np.ndarray, b: _Batch, s: np.ndarray, pts: np.ndarray) -> np.ndarray:
+        """:func:`ctrplan.shape.bounds.continuity_pad` with the loads of the loaded rows."""
         W = F = M = None
-        if loaded.any():   # the loads' curvature on the loaded rows (zero loads elsewhere)
-            W = np.zeros((B, n, 3)) if weight is None else np.where(loaded[:, None, None], weight, 0.0)
-            F = np.zeros((B, 3)) if force is None else np.where(loaded[:, None], force, 0.0)
-            M = np.zeros((B, 3)) if moment is None else np.where(loaded[:, None], moment, 0.0)
-        pad = continuity_pad(q, self._lengths, s, pts, kappa, EI, kink, W, F, M)
-        return Shape(points=pts, s=s, radius=radius_along(r, q, s), ok=ok, pad=pad)
+        if b.loaded.any():   # the loads' curvature on the loaded rows (zero loads elsewhere)
+            B, n = b.alpha.shape
+            ld = b.loaded
+            W = np.zeros((B, n, 3)) if b.weight is None else np.where(ld[:, None, None], b.weight, 0.0)
+            F = np.zeros((B, 3)) if b.force is None else np.where(ld[:, None], b.force, 0.0)
+            M = np.zeros((B, 3)) if b.moment is None else np.where(ld[:, None], b.moment, 0.0)
+        return continuity_pad(q, self._lengths, s, pts, b.kappa, b.EI, b.kink, W, F, M)
 
     def _solve_chain(self, q, points, params, uz_init, chain) -> Shape:
         """The chained solve of :meth:`solve` (a chunk of rows at a time; a chunk continues
