@@ -9,6 +9,7 @@ runs them in order; see :mod:`ctrplan.planning.plan` for what each stage does.
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -109,8 +110,11 @@ def checks(run: Run, start) -> np.ndarray:
                                + (_hints.margin_start_hint(run, start, retracted, run.prep.world0)
                                   or _start_collision_hint(robot, validator, start))))
     tip_radius = float(robot.tubes[0].od) / 2.0
-    blocked = target_blocked(run.scene, run.world, run.target, tip_radius)
-    if blocked and run.cfg.approach:
+    if run.tip_goal is not None and run.tip_goal.back is not None:
+        blocked = _standoff_goal(run, tip_radius)
+    else:
+        blocked = target_blocked(run.scene, run.world, run.target, tip_radius)
+    if blocked and run.cfg.approach and run.tip_goal is None:
         moved = _approach_goal(run, tip_radius)
         if moved is not None:
             blocked = ""
@@ -118,6 +122,31 @@ def checks(run: Run, start) -> np.ndarray:
     if blocked:
         raise Stop(run.finish(PlanStatus.TARGET_IN_COLLISION, blocked))
     return start
+
+
+def _standoff_goal(run: Run, tip_radius: float) -> str:
+    """A tip goal standing off a surface (:class:`~ctrplan.planning.tipgoal.TipGoal` with a
+    normal or a direction): the tip's centre stays at least its radius + margin +
+    :data:`~ctrplan.planning.tipgoal.CONTACT_PAD_MM` from the surface point, along the goal's
+    normal (a smaller standoff, 0 = touching, is planned there and reported as
+    ``goal_shift_mm``). Returns why the tip cannot be at the planned point ("" if it can)."""
+    from ctrplan.planning.tipgoal import CONTACT_PAD_MM
+
+    goal = run.tip_goal
+    least = tip_radius + tip_margin(run) + CONTACT_PAD_MM
+    if goal.standoff_mm < least:
+        p = goal.point(least)
+        run.goal_base = run.scene.to_base(p[None])[0]
+        run.meta["goal_shift_mm"] = float(least - goal.standoff_mm)
+        run.meta["goal"] = [float(v) for v in p]
+    else:
+        p = run.target
+    blocked = target_blocked(run.scene, run.world, p, tip_radius)
+    return f"{blocked} (at the standoff point {_xyz(p)})" if blocked else ""
+
+
+def _xyz(p) -> str:
+    return "(" + ", ".join(f"{float(v):.2f}" for v in p) + ") mm"
 
 
 def _approach_goal(run: Run, tip_radius: float, steps: int = 48) -> np.ndarray | None:
@@ -174,11 +203,12 @@ def ik_goals(run: Run) -> tuple[GoalSource, np.ndarray]:
         def rank(q: np.ndarray) -> np.ndarray:   # goals with more room first
             return state_clearance(run.validator, field_, q)
     source = GoalSource(run.model, run.robot, run.validator, table, run.goal,
-                        run.tolerance_mm, run.cfg, np.random.default_rng([run.seed, 1]), rank=rank)
+                        run.tolerance_mm, run.cfg, np.random.default_rng([run.seed, 1]), rank=rank,
+                        **_cone(run))
     goals = source.next()
     while len(goals) == 0 and source.rounds < run.cfg.ik_rounds:
         goals = source.next()
-    if len(goals) == 0 and source.reaching > 0 and run.cfg.approach:
+    if len(goals) == 0 and source.reaching > 0 and run.cfg.approach and run.tip_goal is None:
         # every configuration reaching the goal collides with the margin: approach from further
         # inside the lumen (the tip probe thicker by a part of the margin), within the margin
         tip_radius = float(run.robot.tubes[0].od) / 2.0
@@ -198,6 +228,13 @@ def ik_goals(run: Run) -> tuple[GoalSource, np.ndarray]:
     run.counts.update(ik_rounds=source.rounds, ik_reaching=source.reaching,
                       ik_evaluations=source.evaluations, goals=len(goals))
     if len(goals) == 0:
+        if source.reaching == 0 and source.axis is not None:
+            off = (f"; the best reaching it points {source.best_angle_deg:.1f} deg off the approach"
+                   if math.isfinite(source.best_angle_deg) else "")
+            raise Stop(run.finish(
+                PlanStatus.UNREACHABLE, f"no configuration puts the tip within {run.tolerance_mm:g} "
+                f"mm of the target with its direction within the cone of {run.tip_goal.cone_deg:g} "
+                f"deg (best {source.best_error_mm:.2f} mm after {source.rounds} IK rounds{off})"))
         if source.reaching == 0:
             raise Stop(run.finish(
                 PlanStatus.UNREACHABLE, f"no configuration puts the tip within {run.tolerance_mm:g} "
@@ -212,6 +249,16 @@ def ik_goals(run: Run) -> tuple[GoalSource, np.ndarray]:
         raise Stop(run.finish(PlanStatus.GOAL_IN_COLLISION, f"{source.reaching} configurations "
                                "reach the target but all of them collide"))
     return source, goals
+
+
+def _cone(run: Run) -> dict:
+    """A tip pose goal's axis (base frame) and cone (rad) for the goal source ({} without)."""
+    goal = run.tip_goal
+    if goal is None or goal.direction is None:
+        return {}
+    from ctrplan.planning.tipgoal import to_base_vectors
+
+    return dict(axis=to_base_vectors(run.scene, np.asarray(goal.direction)), cone_rad=goal.cone_rad)
 
 
 def search(run: Run, start: np.ndarray, source: GoalSource,
@@ -308,9 +355,11 @@ def optimize(run: Run, path: np.ndarray) -> list[np.ndarray]:
         return []
     t0 = time.perf_counter()
     # the optimised goal's tip error stays within max(its IK error, 0.4 x the IK's threshold)
+    # a goal with a direction keeps its IK configuration (whose tangent is within the cone)
+    keep = run.tip_goal is not None and run.tip_goal.direction is not None
     res = _opt.optimize_path(run.validator, path, run.goal, cfg.objective, cfg.optimizer,
                              goal_tol_mm=0.4 * min(cfg.ik.stop_mm, 0.1 * run.tolerance_mm),
-                             deadline=run.deadline)
+                             deadline=run.deadline, keep_goal=keep)
     run.clock("optimization", t0)
     run.time_cap_hit |= res.time_cap_hit
     run.counts.update(optimizer_accepted=res.accepted, optimizer_trials=res.trials,
