@@ -36,6 +36,102 @@ def _overlap(q, bi, n, i, j, straight, L):
     return e - st, ie, is_
 
 
+@njit(cache=True, inline="always")
+def _features(q, bi, dirs, pairs, opairs, straight, oinv, n, outer, lo, inv, L, x):
+    """The network inputs of configuration ``bi`` written into x (nx,): per tube cos, sin of
+    alpha (relative to ``ref``) and the scaled beta, per pair cos, sin of the angle difference,
+    per overlap pair the scaled overlap and its products with them, then ``dirs[bi]``.
+    Returns (ref, length): the outermost tube's angle when ``outer`` (else 0) and the tip arc
+    length max(beta + L) mm."""
+    nd = dirs.shape[1]
+    npair = pairs.shape[0]
+    nov = opairs.shape[0]
+    nq = 3 * n + 2 * npair + 3 * nov
+    ref = q[bi, n - 1] if outer else 0.0
+    length = -1e300
+    for i in range(n):
+        a = q[bi, i] - ref
+        x[3 * i] = math.cos(a)
+        x[3 * i + 1] = math.sin(a)
+        x[3 * i + 2] = (q[bi, n + i] - lo[i]) * inv[i] - 1.0
+        e = q[bi, n + i] + L[i]
+        if e > length:
+            length = e
+    for p in range(npair):
+        a = q[bi, pairs[p, 0]] - q[bi, pairs[p, 1]]
+        x[3 * n + 2 * p] = math.cos(a)
+        x[3 * n + 2 * p + 1] = math.sin(a)
+    for p in range(nov):
+        i0 = opairs[p, 0]
+        i1 = opairs[p, 1]
+        ov, _, _ = _overlap(q, bi, n, i0, i1, straight, L)
+        ov = max(ov, 0.0) * oinv[p]
+        a = q[bi, i0] - q[bi, i1]
+        k0 = 3 * n + 2 * npair + 3 * p
+        x[k0] = ov
+        x[k0 + 1] = ov * math.cos(a)
+        x[k0 + 2] = ov * math.sin(a)
+    for k in range(nd):
+        x[nq + k] = dirs[bi, k]
+    return ref, length
+
+
+@njit(cache=True, inline="always")
+def _hidden(x, W0, Wh, bh, slopes, h, h2):
+    """The hidden layers (Linear + PReLU, ``depth`` of them) of inputs x (nx,): the last
+    one's activations in h (w,) (h2 (w,) is scratch). Row updates h += x_k W[k, :]
+    (contiguous inner loops: SIMD)."""
+    nx = x.shape[0]
+    w = W0.shape[1]
+    depth = bh.shape[0]
+    for j in range(w):
+        h[j] = bh[0, j]
+    for k in range(nx):
+        xk = x[k]
+        for j in range(w):
+            h[j] += xk * W0[k, j]
+    sl = slopes[0]
+    for j in range(w):
+        if h[j] < 0.0:
+            h[j] *= sl
+    for d in range(1, depth):
+        for j in range(w):
+            h2[j] = bh[d, j]
+        for k in range(w):
+            hk = h[k]
+            for j in range(w):
+                h2[j] += hk * Wh[d - 1, k, j]
+        sl = slopes[d]
+        for j in range(w):
+            v = h2[j]
+            h[j] = v if v > 0.0 else sl * v
+
+
+@njit(cache=True, inline="always")
+def _coefficients(h, Wl, bl, length, outer, ref, c):
+    """The basis coefficients c (3K,) mm of the last activations h (w,): the last layer
+    (de-normalisation folded in) times the tip length, turned by ``ref`` about z when
+    ``outer``."""
+    w = h.shape[0]
+    K3 = Wl.shape[1]
+    for j in range(K3):
+        c[j] = bl[j]
+    for k in range(w):
+        hk = h[k]
+        for j in range(K3):
+            c[j] += hk * Wl[k, j]
+    for j in range(K3):
+        c[j] *= length
+    if outer:
+        co = math.cos(ref)
+        si = math.sin(ref)
+        for k in range(K3 // 3):
+            cx = c[3 * k]
+            cy = c[3 * k + 1]
+            c[3 * k] = co * cx - si * cy
+            c[3 * k + 1] = si * cx + co * cy
+
+
 @njit(cache=True)
 def forward(q, dirs, pairs, opairs, straight, oinv, n, outer, lo, inv, L, W0, Wh, bh, slopes, Wl,
             bl, phi, out):
@@ -46,84 +142,17 @@ def forward(q, dirs, pairs, opairs, straight, oinv, n, outer, lo, inv, L, W0, Wh
     out (B, m, 3) written in place."""
     B = q.shape[0]
     w = W0.shape[1]
-    depth = bh.shape[0]
     K3 = Wl.shape[1]
     K = K3 // 3
     m = phi.shape[0]
-    nd = dirs.shape[1]
-    npair = pairs.shape[0]
-    nov = opairs.shape[0]
-    nq = 3 * n + 2 * npair + 3 * nov
-    nx = nq + nd
-    x = np.empty(nx)
+    x = np.empty(3 * n + 2 * pairs.shape[0] + 3 * opairs.shape[0] + dirs.shape[1])
     h = np.empty(w)
     h2 = np.empty(w)
     c = np.empty(K3)
     for bi in range(B):
-        ref = q[bi, n - 1] if outer else 0.0
-        length = -1e300
-        for i in range(n):
-            a = q[bi, i] - ref
-            x[3 * i] = math.cos(a)
-            x[3 * i + 1] = math.sin(a)
-            x[3 * i + 2] = (q[bi, n + i] - lo[i]) * inv[i] - 1.0
-            e = q[bi, n + i] + L[i]
-            if e > length:
-                length = e
-        for p in range(npair):
-            a = q[bi, pairs[p, 0]] - q[bi, pairs[p, 1]]
-            x[3 * n + 2 * p] = math.cos(a)
-            x[3 * n + 2 * p + 1] = math.sin(a)
-        for p in range(nov):
-            i0 = opairs[p, 0]
-            i1 = opairs[p, 1]
-            ov, _, _ = _overlap(q, bi, n, i0, i1, straight, L)
-            ov = max(ov, 0.0) * oinv[p]
-            a = q[bi, i0] - q[bi, i1]
-            k0 = 3 * n + 2 * npair + 3 * p
-            x[k0] = ov
-            x[k0 + 1] = ov * math.cos(a)
-            x[k0 + 2] = ov * math.sin(a)
-        for k in range(nd):
-            x[nq + k] = dirs[bi, k]
-        # layers as row updates h += x_k W[k, :] (contiguous inner loops: SIMD)
-        for j in range(w):
-            h[j] = bh[0, j]
-        for k in range(nx):
-            xk = x[k]
-            for j in range(w):
-                h[j] += xk * W0[k, j]
-        sl = slopes[0]
-        for j in range(w):
-            if h[j] < 0.0:
-                h[j] *= sl
-        for d in range(1, depth):
-            for j in range(w):
-                h2[j] = bh[d, j]
-            for k in range(w):
-                hk = h[k]
-                for j in range(w):
-                    h2[j] += hk * Wh[d - 1, k, j]
-            sl = slopes[d]
-            for j in range(w):
-                v = h2[j]
-                h[j] = v if v > 0.0 else sl * v
-        for j in range(K3):
-            c[j] = bl[j]
-        for k in range(w):
-            hk = h[k]
-            for j in range(K3):
-                c[j] += hk * Wl[k, j]
-        for j in range(K3):
-            c[j] *= length
-        if outer:
-            co = math.cos(ref)
-            si = math.sin(ref)
-            for k in range(K):
-                cx = c[3 * k]
-                cy = c[3 * k + 1]
-                c[3 * k] = co * cx - si * cy
-                c[3 * k + 1] = si * cx + co * cy
+        ref, length = _features(q, bi, dirs, pairs, opairs, straight, oinv, n, outer, lo, inv, L, x)
+        _hidden(x, W0, Wh, bh, slopes, h, h2)
+        _coefficients(h, Wl, bl, length, outer, ref, c)
         for p in range(m):
             for xyz in range(3):
                 s = 0.0
