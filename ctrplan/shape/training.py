@@ -434,6 +434,48 @@ def set_normalisation(model: LearnedModel, data: ShapeData) -> None:
     model.invalidate()
 
 
+def _optimiser(model: LearnedModel, cfg: TrainConfig, steps_per_epoch: int):
+    """(optimiser, one-cycle scheduler stepped per batch or None, plateau scheduler stepped
+    per epoch) for the trainable weights of ``model``: Adam, or AdamW with
+    ``cfg.weight_decay`` > 0; the plateau scheduler is used when there is no one-cycle one."""
+    params = [p for p in model.net.parameters() if p.requires_grad]
+    Opt = torch.optim.AdamW if cfg.weight_decay > 0 else torch.optim.Adam
+    kw = {"weight_decay": cfg.weight_decay} if cfg.weight_decay > 0 else {}
+    try:
+        opt = Opt(params, lr=cfg.lr, fused=True, **kw)
+    except (RuntimeError, TypeError):  # pragma: no cover - older torch / unsupported device
+        opt = Opt(params, lr=cfg.lr, **kw)
+    cycle = None
+    if cfg.schedule == "onecycle":
+        cycle = torch.optim.lr_scheduler.OneCycleLR(
+            opt, max_lr=cfg.lr, total_steps=cfg.epochs * steps_per_epoch, pct_start=0.05,
+            div_factor=25.0, final_div_factor=400.0)
+    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=max(1, cfg.patience // 3),
+                                                       min_lr=cfg.min_lr)
+    return opt, cycle, sched
+
+
+def _train_epoch(model: LearnedModel, opt: torch.optim.Optimizer, cycle: Any,
+                 data: tuple[torch.Tensor, ...], perm: torch.Tensor, bs: int, loss_kind: str) -> float:
+    """One pass over the training rows ``data`` (features, tip lengths, targets) in the order
+    ``perm``, batches of ``bs``; returns the summed loss (mean per batch times its rows). The
+    network is left in eval mode."""
+    x, length, pts = data
+    model.net.train()
+    tot = 0.0
+    for a in range(0, len(perm), bs):
+        idx = perm[a:a + bs]
+        loss = _loss(model, x[idx], length[idx], pts[idx], loss_kind)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if cycle is not None:
+            cycle.step()
+        tot += float(loss.detach()) * len(idx)
+    model.net.eval()
+    return tot
+
+
 def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
           config: TrainConfig | None = None) -> TrainResult:
     """Fit ``model`` in place; returns a :class:`TrainResult` (epochs run, best validation
@@ -449,22 +491,9 @@ def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
     dev = model.device
     xtr, ltr, ptr = _tensors(model, train_data)
     xva, lva, pva = _tensors(model, val_data)
-    params = [p for p in model.net.parameters() if p.requires_grad]
-    Opt = torch.optim.AdamW if cfg.weight_decay > 0 else torch.optim.Adam
-    kw = {"weight_decay": cfg.weight_decay} if cfg.weight_decay > 0 else {}
-    try:
-        opt = Opt(params, lr=cfg.lr, fused=True, **kw)
-    except (RuntimeError, TypeError):  # pragma: no cover - older torch / unsupported device
-        opt = Opt(params, lr=cfg.lr, **kw)
     N = len(train_data)
     bs = max(1, min(cfg.batch_size, N))
-    cycle = None
-    if cfg.schedule == "onecycle":
-        cycle = torch.optim.lr_scheduler.OneCycleLR(
-            opt, max_lr=cfg.lr, total_steps=cfg.epochs * math.ceil(N / bs), pct_start=0.05,
-            div_factor=25.0, final_div_factor=400.0)
-    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=max(1, cfg.patience // 3),
-                                                       min_lr=cfg.min_lr)
+    opt, cycle, sched = _optimiser(model, cfg, math.ceil(N / bs))
     best = math.inf
     best_state = copy.deepcopy(model.net.state_dict())
     best_epoch = 0
@@ -476,19 +505,8 @@ def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
         if not cfg.progress:
             pb.disable = True
         for epoch in range(1, cfg.epochs + 1):
-            model.net.train()
             perm = torch.randperm(N, generator=gen).to(dev)
-            tot = 0.0
-            for a in range(0, N, bs):
-                idx = perm[a:a + bs]
-                loss = _loss(model, xtr[idx], ltr[idx], ptr[idx], cfg.loss)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                if cycle is not None:
-                    cycle.step()
-                tot += float(loss.detach()) * len(idx)
-            model.net.eval()
+            tot = _train_epoch(model, opt, cycle, (xtr, ltr, ptr), perm, bs, cfg.loss)
             with torch.no_grad():
                 val = float(_loss(model, xva, lva, pva, cfg.loss))
             if cycle is None:
