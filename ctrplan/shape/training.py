@@ -33,7 +33,7 @@ import hashlib
 import logging
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -779,6 +779,64 @@ def _base_name(variant: str, sim_model: Any, residual_base: Any) -> str:
     return str(getattr(base, "name", type(base).__name__))
 
 
+def _check_candidates(cands: list[str], r_tr: ShapeData) -> list[str]:
+    """``cands`` after checking each is a variant the training data can train (ValueError)."""
+    if not cands:
+        raise ValueError("no candidate variants")
+    for v in cands:
+        if v not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {v!r}")
+        if v.endswith("direction") and r_tr.direction is None:
+            raise ValueError("a direction-aware variant needs measured data with directions")
+    return cands
+
+
+def _screen(robot: Robot, r_tr: ShapeData, r_va: ShapeData, cands: list[str],
+            stage: Callable[[str], TrainConfig], fine: TrainConfig, real_only: TrainConfig,
+            kw: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, tuple[LearnedModel, TrainResult]]]:
+    """Train each candidate variant with its stage's (``stage(v)``) epochs divided by the
+    number of candidates (``kw``: the :func:`fit_real` arguments). Returns (one table row per
+    candidate with its validation error, variant -> (model, TrainResult))."""
+    rows: list[dict[str, Any]] = []
+    models: dict[str, tuple[LearnedModel, TrainResult]] = {}
+    for v in cands:
+        budget = stage(v).epochs
+        screen = max(1, budget // len(cands))
+        model, res = fit_real(robot, r_tr, r_va, v,
+                              fine=fine.replace(epochs=screen, label=f"{fine.label} [{v}]"),
+                              real_only=real_only.replace(epochs=screen, label=f"{real_only.label} [{v}]"),
+                              **kw)
+        ev = evaluate(model, r_va)
+        models[v] = (model, res)
+        rows.append({"variant": v, "residual_base": _base_name(v, kw["sim_model"], kw["residual_base"]),
+                     "screen_epochs": res.epochs_run, "val_max_dev_mean_mm": ev["max_dev_mean"],
+                     "val_rows": ev["n"]})
+        log.info("variant %-18s validation max deviation %.3f mm (%d epochs)", v, ev["max_dev_mean"],
+                 res.epochs_run)
+    return rows, models
+
+
+def _selection_record(rows: list[dict[str, Any]], models: dict[str, tuple[LearnedModel, TrainResult]],
+                      model: LearnedModel, chosen: str, r_va: ShapeData, r_te: ShapeData | None,
+                      refit: bool) -> dict[str, Any]:
+    """The selection record of :func:`select_variant` (metadata ``selection``): the rows
+    marked with the choice and, with a test part ``r_te``, each candidate's test error (the
+    chosen one's final ``model``)."""
+    for r in rows:
+        r["chosen"] = r["variant"] == chosen
+        if r_te is not None:
+            m = model if r["chosen"] else models[r["variant"]][0]
+            r["test_max_dev_mean_mm"] = evaluate(m, r_te)["max_dev_mean"]
+    return {"mode": AUTO, "chosen": chosen, "by": SELECTION_METRIC,
+            "final_val_max_dev_mean_mm": evaluate(model, r_va)["max_dev_mean"],
+            "validation": _part(r_va), "test": None if r_te is None else _part(r_te),
+            "budget": "each candidate screened with 1/len(candidates) of its stage's epochs, "
+                      "the winner trained on for the rest" + (" and refitted" if refit else ""),
+            "candidates": rows,
+            "test_note": "test errors (the held-out test part) are listed for information "
+                         "only; they did not take part in the choice"}
+
+
 def select_variant(robot: Robot, r_tr: ShapeData, r_va: ShapeData, r_te: ShapeData | None = None,
                    candidates: Sequence[str] | None = None, sim_model: LearnedModel | None = None,
                    residual_base: Any = None, width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH,
@@ -798,14 +856,8 @@ def select_variant(robot: Robot, r_tr: ShapeData, r_va: ShapeData, r_te: ShapeDa
     record: candidates with their validation (and test) errors, the choice and the rule)."""
     from ctrplan.shape.physics import PhysicsModel
 
-    cands = list(candidates) if candidates is not None else candidate_variants(r_tr)
-    if not cands:
-        raise ValueError("no candidate variants")
-    for v in cands:
-        if v not in VARIANTS:
-            raise ValueError(f"variant must be one of {VARIANTS}, got {v!r}")
-        if v.endswith("direction") and r_tr.direction is None:
-            raise ValueError("a direction-aware variant needs measured data with directions")
+    cands = _check_candidates(list(candidates) if candidates is not None else candidate_variants(r_tr),
+                              r_tr)
     if residual_base is None and any(v.startswith("residual") for v in cands):
         residual_base = PhysicsModel(robot)
     fine = fine or TrainConfig(seed=seed, lr=5e-4, batch_size=128, label="fine-tune (real)")
@@ -816,22 +868,7 @@ def select_variant(robot: Robot, r_tr: ShapeData, r_va: ShapeData, r_te: ShapeDa
 
     kw = dict(sim_model=sim_model, residual_base=residual_base, width=width, depth=depth,
               terms=terms, seed=seed, frame=frame, device=device)
-    rows: list[dict[str, Any]] = []
-    models: dict[str, tuple[LearnedModel, TrainResult]] = {}
-    for v in cands:
-        budget = stage(v).epochs
-        screen = max(1, budget // len(cands))
-        model, res = fit_real(robot, r_tr, r_va, v,
-                              fine=fine.replace(epochs=screen, label=f"{fine.label} [{v}]"),
-                              real_only=real_only.replace(epochs=screen, label=f"{real_only.label} [{v}]"),
-                              **kw)
-        ev = evaluate(model, r_va)
-        models[v] = (model, res)
-        rows.append({"variant": v, "residual_base": _base_name(v, sim_model, residual_base),
-                     "screen_epochs": res.epochs_run, "val_max_dev_mean_mm": ev["max_dev_mean"],
-                     "val_rows": ev["n"]})
-        log.info("variant %-18s validation max deviation %.3f mm (%d epochs)", v, ev["max_dev_mean"],
-                 res.epochs_run)
+    rows, models = _screen(robot, r_tr, r_va, cands, stage, fine, real_only, kw)
     best = min(rows, key=lambda r: r["val_max_dev_mean_mm"])
     chosen = best["variant"]
     model, res = models[chosen]
@@ -845,19 +882,7 @@ def select_variant(robot: Robot, r_tr: ShapeData, r_va: ShapeData, r_te: ShapeDa
         if evaluate(more, r_va)["max_dev_mean"] < best["val_max_dev_mean_mm"]:
             model, res = more, res2
             models[chosen] = (model, res)
-    for r in rows:
-        r["chosen"] = r["variant"] == chosen
-        if r_te is not None:
-            m = model if r["chosen"] else models[r["variant"]][0]
-            r["test_max_dev_mean_mm"] = evaluate(m, r_te)["max_dev_mean"]
-    selection = {"mode": AUTO, "chosen": chosen, "by": SELECTION_METRIC,
-                 "final_val_max_dev_mean_mm": evaluate(model, r_va)["max_dev_mean"],
-                 "validation": _part(r_va), "test": None if r_te is None else _part(r_te),
-                 "budget": "each candidate screened with 1/len(candidates) of its stage's epochs, "
-                           "the winner trained on for the rest" + (" and refitted" if refit else ""),
-                 "candidates": rows,
-                 "test_note": "test errors (the held-out test part) are listed for information "
-                              "only; they did not take part in the choice"}
+    selection = _selection_record(rows, models, model, chosen, r_va, r_te, refit)
     log.info("chose variant %s (validation max deviation %.3f mm; candidates: %s)", chosen,
              best["val_max_dev_mean_mm"],
              ", ".join(f"{r['variant']} {r['val_max_dev_mean_mm']:.3f}" for r in rows))
