@@ -188,7 +188,6 @@ LONG_ALLOWED = {
     "commands/bench.py::summary_block": "issue 37 item 5",
     "commands/train.py::register": "issue 38 (train)",
     "commands/train.py::run": "issue 38 (train)",
-    "shape/training.py::pretrain_finetune": "issue 38 (learned model)",
 }
 
 

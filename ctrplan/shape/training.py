@@ -918,6 +918,49 @@ def selection_markdown(selection: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _pretrain(robot: Robot, sim: ShapeData, start: LearnedModel | None, pre: TrainConfig | None,
+              arch: tuple[int, int], terms: int, seed: int, device: str, frame: str,
+              sim_base: str | None, sim_pairs: bool) -> tuple[LearnedModel, TrainResult, tuple]:
+    """Pre-train ``start`` (default: a new network of ``arch`` (width, depth) over
+    ``sim_base``) on the simulated data's train / validation parts. Returns (the model, its
+    TrainResult, (train + validation, test part, "sim")) - what its error quantiles come from."""
+    s_tr, s_va, s_te = split(sim, seed=seed)
+    if start is None:
+        sw, sd = arch
+        start = new_model(robot, sw, sd, terms, seed, device, frame,
+                          base=sim_base_model(robot, sim_base), pairs=sim_pairs)
+        if sim_base is not None:
+            start.meta["sim_base"] = sim_base
+        set_normalisation(start, s_tr)
+    pre = pre or TrainConfig(seed=seed, label="pre-train (sim)")
+    return start, train(start, s_tr, s_va, pre), (_concat(s_tr, s_va), s_te, "sim")
+
+
+def _train_real(robot: Robot, real: ShapeData, start: LearnedModel | None, variant: str,
+                candidates: Sequence[str] | None, residual_base: Any, fine: TrainConfig | None,
+                real_only: TrainConfig | None, refit: bool, kw: dict[str, Any]):
+    """Train ``variant`` (or choose one: :data:`AUTO`) on the measured data's train /
+    validation parts, from the pre-trained ``start`` where the variant fine-tunes (``kw``:
+    width, depth, terms, seed, frame, device). Returns (model, the variant trained, the
+    selection record, the stage name, its TrainResult, (train + validation, test part,
+    "real"))."""
+    r_tr, r_va, r_te = split(real, seed=kw["seed"] + 1)
+    if variant.endswith("direction") and real.direction is None:
+        raise ValueError("a direction-aware variant needs measured data with directions")
+    if variant == AUTO:
+        model, res, selection = select_variant(
+            robot, r_tr, r_va, r_te, candidates=candidates, sim_model=start,
+            residual_base=residual_base, fine=fine, real_only=real_only, refit=refit, **kw)
+        variant = selection["chosen"]
+    else:
+        selection = {"mode": "explicit", "chosen": variant,
+                     "by": "given by the caller (no comparison)"}
+        model, res = fit_real(robot, r_tr, r_va, variant, sim_model=start, residual_base=residual_base,
+                              fine=fine, real_only=real_only, refit=refit, **kw)
+    stage = "finetune" if (start is not None and not variant.startswith("residual")) else "real"
+    return model, variant, selection, stage, res, (_concat(r_tr, r_va), r_te, "real")
+
+
 def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData | None,
                       width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH,
                       terms: int = basis.DEFAULT_TERMS, seed: int = 0,
@@ -966,46 +1009,20 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
         data["init"] = dict(getattr(base, "meta", {}).get("data", {}))
     model: LearnedModel | None = start
     if sim is not None:
-        s_tr, s_va, s_te = split(sim, seed=seed)
-        if start is None:
-            sw, sd = sim_arch if sim_arch is not None else (width, depth)
-            start = new_model(robot, sw, sd, terms, seed, device, frame,
-                              base=sim_base_model(robot, sim_base), pairs=sim_pairs)
-            if sim_base is not None:
-                start.meta["sim_base"] = sim_base
-            set_normalisation(start, s_tr)
-        pre = pre or TrainConfig(seed=seed, label="pre-train (sim)")
-        stages["pretrain"] = train(start, s_tr, s_va, pre)
+        start, stages["pretrain"], eq_data = _pretrain(
+            robot, sim, start, pre, sim_arch if sim_arch is not None else (width, depth), terms,
+            seed, device, frame, sim_base, sim_pairs)
         data["sim"] = sim.describe()
-        metrics["sim_test"] = summary_metrics(evaluate(start, s_te))
+        metrics["sim_test"] = summary_metrics(evaluate(start, eq_data[1]))
         model = start
-        eq_data = (_concat(s_tr, s_va), s_te, "sim")
     if real is not None:
-        r_tr, r_va, r_te = split(real, seed=seed + 1)
-        if variant.endswith("direction") and real.direction is None:
-            raise ValueError("a direction-aware variant needs measured data with directions")
-        if variant == AUTO:
-            model, res, selection = select_variant(
-                robot, r_tr, r_va, r_te, candidates=candidates, sim_model=start,
-                residual_base=residual_base, width=width, depth=depth, terms=terms, seed=seed,
-                frame=frame, device=device, fine=fine,
-                real_only=real_only or (fine if start is None else None), refit=refit)
-            variant = selection["chosen"]
-        else:
-            model = None
-            selection = {"mode": "explicit", "chosen": variant,
-                         "by": "given by the caller (no comparison)"}
-        stage = "finetune" if (start is not None and not variant.startswith("residual")) else "real"
-        if model is None:
-            model, stages[stage] = fit_real(
-                robot, r_tr, r_va, variant, sim_model=start, residual_base=residual_base, width=width,
-                depth=depth, terms=terms, seed=seed, frame=frame, device=device,
-                fine=fine, real_only=real_only or (fine if start is None else None), refit=refit)
-        else:
-            stages[stage] = res
+        model, variant, selection, stage, res, eq_data = _train_real(
+            robot, real, start, variant, candidates, residual_base, fine,
+            real_only or (fine if start is None else None), refit,
+            dict(width=width, depth=depth, terms=terms, seed=seed, frame=frame, device=device))
+        stages[stage] = res
         data["real"] = real.describe()
-        metrics["real_test"] = summary_metrics(evaluate(model, r_te))
-        eq_data = (_concat(r_tr, r_va), r_te, "real")
+        metrics["real_test"] = summary_metrics(evaluate(model, eq_data[1]))
     elif variant != "pure":
         raise ValueError(f"variant {variant!r} needs measured data")
     assert model is not None
