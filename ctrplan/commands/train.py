@@ -22,44 +22,57 @@ from ctrplan.errors import InputError
 log = logging.getLogger("ctrplan")
 
 
+#: ``ctrplan train --help``: what the command does
+DESCRIPTION = ("Pre-train the learned shape network on simulated shapes (by default "
+               "1,000,000 uniform valid configurations of the compliant physics model; a "
+               "4 x 64 network with pair inputs learns their difference to the closed-form "
+               "rigid model, one cycle of the learning rate over 30 epochs, loss with the "
+               "largest point distance along the shaft: the recipe of "
+               "ctrplan/data/models/README.md, minutes of one CPU core), then fine-tune it on "
+               "measured shapes (a measured CSV with backbone columns p1_x..pM_z). Each data set is "
+               "split 80/10/10 into train/validation/test (measured rows by whole sweeps, or with "
+               "fewer than 8 sweeps by contiguous blocks of the motion with the rows next to a "
+               "test block left out, as diagnose splits); training on measured data minimises "
+               "the sum of squared point distances with Adam and stops early on the validation "
+               "loss. A robot with two stable equilibria somewhere (probed on 2,000 "
+               "configurations) gets a warning: the network follows one branch. "
+               "Writes a model file (.pt) with its metadata, the held-out error quantiles "
+               "(p50/p95/p99/max of the max deviation along the shaft; error_bound says "
+               "where they were measured: 'measured' with --real, a calibrated model; "
+               "'surrogate' from simulation alone, the network's surrogate error against "
+               "the physics model, uncalibrated) and the training "
+               "domain (joint ranges seen; the model answers ok=False outside). "
+               "With --real and no variant flags the variant is chosen by held-out error: "
+               "the candidates (pure; direction-aware when the rows show motion with "
+               "reversals; residual over physics; residual + direction) are each trained "
+               "with a share of the epochs, the one with the lowest mean max deviation on "
+               "the validation sweeps (not used for training) is trained on and kept; the "
+               "table goes to MODEL.variants.json / .md beside the model and into its "
+               "metadata ('selection'). --variant NAME, --direction or --residual choose "
+               "the variant instead: --direction adds the direction of the last motion of "
+               "each joint as inputs (from row order within each sweep of the CSV); "
+               "--residual learns the difference to a base model. With shapes measured "
+               "the model also stores error_profile (p50/p95/p99/max per arc-length "
+               "fraction of the point deviation on the held-out test split). With --sweep: train Sim-only, and Real-only and "
+               "Sim+Real for each variant (pure, direction-aware, residual, both) for several "
+               "architectures, evaluated on held-out whole sweeps, and write tables "
+               "(results.md, results.json) and plots (PNG) to the --out folder.")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "train", help="train a learned shape model (or run the evaluation sweep)",
-        description="Pre-train the learned shape network on simulated shapes (by default "
-                    "1,000,000 uniform valid configurations of the compliant physics model; a "
-                    "4 x 64 network with pair inputs learns their difference to the closed-form "
-                    "rigid model, one cycle of the learning rate over 30 epochs, loss with the "
-                    "largest point distance along the shaft: the recipe of "
-                    "ctrplan/data/models/README.md, minutes of one CPU core), then fine-tune it on "
-                    "measured shapes (a measured CSV with backbone columns p1_x..pM_z). Each data set is "
-                    "split 80/10/10 into train/validation/test (measured rows by whole sweeps, or with "
-                    "fewer than 8 sweeps by contiguous blocks of the motion with the rows next to a "
-                    "test block left out, as diagnose splits); training on measured data minimises "
-                    "the sum of squared point distances with Adam and stops early on the validation "
-                    "loss. A robot with two stable equilibria somewhere (probed on 2,000 "
-                    "configurations) gets a warning: the network follows one branch. "
-                    "Writes a model file (.pt) with its metadata, the held-out error quantiles "
-                    "(p50/p95/p99/max of the max deviation along the shaft; error_bound says "
-                    "where they were measured: 'measured' with --real, a calibrated model; "
-                    "'surrogate' from simulation alone, the network's surrogate error against "
-                    "the physics model, uncalibrated) and the training "
-                    "domain (joint ranges seen; the model answers ok=False outside). "
-                    "With --real and no variant flags the variant is chosen by held-out error: "
-                    "the candidates (pure; direction-aware when the rows show motion with "
-                    "reversals; residual over physics; residual + direction) are each trained "
-                    "with a share of the epochs, the one with the lowest mean max deviation on "
-                    "the validation sweeps (not used for training) is trained on and kept; the "
-                    "table goes to MODEL.variants.json / .md beside the model and into its "
-                    "metadata ('selection'). --variant NAME, --direction or --residual choose "
-                    "the variant instead: --direction adds the direction of the last motion of "
-                    "each joint as inputs (from row order within each sweep of the CSV); "
-                    "--residual learns the difference to a base model. With shapes measured "
-                    "the model also stores error_profile (p50/p95/p99/max per arc-length "
-                    "fraction of the point deviation on the held-out test split). With --sweep: train Sim-only, and Real-only and "
-                    "Sim+Real for each variant (pure, direction-aware, residual, both) for several "
-                    "architectures, evaluated on held-out whole sweeps, and write tables "
-                    "(results.md, results.json) and plots (PNG) to the --out folder.")
+        description=DESCRIPTION)
     add_robot_arg(p)
+    _data_args(p)
+    _training_args(p)
+    _variant_args(p)
+    p.add_argument("--out", required=True, help="model file (.pt), or a folder with --sweep")
+    p.set_defaults(func=run)
+
+
+def _data_args(p: argparse.ArgumentParser) -> None:
+    """What to train on: simulated and measured data, a model to start from."""
     p.add_argument("--sim", type=int_arg(0, 100_000_000), default=None,
                    help="simulated configurations for pre-training (default 1000000, with --sweep "
                         "100000; 0 = none)")
@@ -76,6 +89,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--real-sim", type=int_arg(1, 100_000_000), default=3000,
                    help="--sweep without --real: rows of simulated 'real' data with hidden "
                         "effects (default 3000)")
+
+
+def _training_args(p: argparse.ArgumentParser) -> None:
+    """The network, its optimiser and where it trains."""
     p.add_argument("--width", type=int_arg(1, 4096), default=None,
                    help="neurons per hidden layer (default 64 for the network pre-trained on "
                         "simulation, 30 for networks trained on measured data alone)")
@@ -110,6 +127,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="cpu",
                    help="torch device for training: cpu (default), cuda[:N] or auto (cuda when "
                         "torch sees a GPU)")
+
+
+def _variant_args(p: argparse.ArgumentParser) -> None:
+    """The model variant (direction inputs, residual base) and the evaluation sweep."""
     p.add_argument("--direction", action="store_true",
                    help="direction-aware inputs: the sign of the last motion of each joint, from "
                         "the row order within each sweep of the --real CSV")
@@ -131,8 +152,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sweep", action="store_true", help="run the evaluation sweep; --out is a folder")
     p.add_argument("--archs", default=None,
                    help="--sweep architectures DEPTHxWIDTH,... (default all of {3,5,7}x{15,30,60})")
-    p.add_argument("--out", required=True, help="model file (.pt), or a folder with --sweep")
-    p.set_defaults(func=run)
 
 
 def _check(args: argparse.Namespace) -> None:
