@@ -186,7 +186,6 @@ LONG_ALLOWED = {
     "collision/field.py::_capsule_bounds": "issue 41 (collision/)",
     "collision/labels.py::scene_from_labels": "issue 41 (collision/, scene from-labels)",
     "commands/bench.py::summary_block": "issue 37 item 5",
-    "commands/train.py::run": "issue 38 (train)",
 }
 
 
