@@ -185,7 +185,6 @@ def test_no_function_in_calibration_exceeds_the_limit():
 LONG_ALLOWED = {
     "collision/field.py::_capsule_bounds": "issue 41 (collision/)",
     "collision/labels.py::scene_from_labels": "issue 41 (collision/, scene from-labels)",
-    "commands/bench.py::summary_block": "issue 37 item 5",
 }
 
 
