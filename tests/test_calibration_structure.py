@@ -183,7 +183,6 @@ def test_no_function_in_calibration_exceeds_the_limit():
 #: splits it. The list only shrinks: an entry no longer over the limit must be removed (the test
 #: says which), and no function may join it.
 LONG_ALLOWED = {
-    "collision/field.py::_capsule_bounds": "issue 41 (collision/)",
     "collision/labels.py::scene_from_labels": "issue 41 (collision/, scene from-labels)",
 }
 
