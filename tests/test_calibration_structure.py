@@ -182,9 +182,7 @@ def test_no_function_in_calibration_exceeds_the_limit():
 #: Functions still over MAX_LINES outside ctrplan/calibration, each with the issue whose work
 #: splits it. The list only shrinks: an entry no longer over the limit must be removed (the test
 #: says which), and no function may join it.
-LONG_ALLOWED = {
-    "collision/labels.py::scene_from_labels": "issue 41 (collision/, scene from-labels)",
-}
+LONG_ALLOWED: dict[str, str] = {}
 
 
 def function_lengths(root: Path) -> dict[str, int]:
