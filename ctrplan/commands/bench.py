@@ -166,14 +166,12 @@ def _gpu_result(results: Path) -> dict | None:
 
 def _shape_rows(sh: dict) -> list[str]:
     """The mechanics row (suite ``shape``)."""
-    rows: list[str] = []
     ps = sh["per_shape_s"]
-    rows.append(f"| compliant mechanics, batch 10,000 ({sh['robot']}, {sh['points']} points) | "
-                f"{ps['compliant']['10000'] * 1e6:.1f} µs per shape (rigid "
-                f"{ps['rigid']['10000'] * 1e6:.1f} µs); published anchor "
-                f"{sh['published_anchor_s_per_shape'] * 1e3:.2f} ms | "
-                f"≤ {sh['target_compliant_10k_s'] * 1e6:.0f} µs |")
-    return rows
+    return [f"| compliant mechanics, batch 10,000 ({sh['robot']}, {sh['points']} points) | "
+            f"{ps['compliant']['10000'] * 1e6:.1f} µs per shape (rigid "
+            f"{ps['rigid']['10000'] * 1e6:.1f} µs); published anchor "
+            f"{sh['published_anchor_s_per_shape'] * 1e3:.2f} ms | "
+            f"≤ {sh['target_compliant_10k_s'] * 1e6:.0f} µs |"]
 
 
 def _learned_rows(le: dict) -> list[str]:
@@ -196,14 +194,12 @@ def _learned_rows(le: dict) -> list[str]:
 
 def _gpu_rows(gpu: dict) -> list[str]:
     """The learned model on a GPU row (the GPU JSON)."""
-    rows: list[str] = []
     g = {r["batch"]: r for r in gpu["table"]}
     which = "" if "architecture" in gpu else ", the previous 3 x 30 network"
-    rows.append(f"| learned model on a GPU ({gpu['device']}{which}), forward pass on the device | "
-                f"{g[100000]['forward_on_device_us_per_shape']:.3f} µs per shape at 10^5; "
-                f"`backbone()` with numpy in/out {g[100000]['backbone_us_per_shape']:.2f} µs at "
-                f"10^5; batch 1: {g[1]['backbone_call_ms']:.2f} ms | – |")
-    return rows
+    return [f"| learned model on a GPU ({gpu['device']}{which}), forward pass on the device | "
+            f"{g[100000]['forward_on_device_us_per_shape']:.3f} µs per shape at 10^5; "
+            f"`backbone()` with numpy in/out {g[100000]['backbone_us_per_shape']:.2f} µs at "
+            f"10^5; batch 1: {g[1]['backbone_call_ms']:.2f} ms | – |"]
 
 
 def _collision_rows(co: dict) -> list[str]:
