@@ -182,18 +182,7 @@ def test_no_function_in_calibration_exceeds_the_limit():
 #: Functions still over MAX_LINES outside ctrplan/calibration, each with the issue whose work
 #: splits it. The list only shrinks: an entry no longer over the limit must be removed (the test
 #: says which), and no function may join it.
-LONG_ALLOWED = {
-    "collision/field.py::_capsule_bounds": "issue 41 (collision/)",
-    "collision/labels.py::scene_from_labels": "issue 41 (collision/, scene from-labels)",
-    "commands/bench.py::summary_block": "issue 37 item 5",
-    "commands/train.py::register": "issue 38 (train)",
-    "commands/train.py::run": "issue 38 (train)",
-    "design/__init__.py::design": "issue 40 (design/)",
-    "planning/space.py::_solve": "issue 37 item 1 (Planner)",
-    "shape/_learned_kernel.py::tip_jacobian": "issue 38 (learned model)",
-    "shape/training.py::select_variant": "issue 38 (learned model)",
-    "shape/training.py::pretrain_finetune": "issue 38 (learned model)",
-}
+LONG_ALLOWED: dict[str, str] = {}
 
 
 def function_lengths(root: Path) -> dict[str, int]:

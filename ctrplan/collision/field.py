@@ -297,12 +297,80 @@ def _nearest_bound(lb, side, origin, h, x, y, z):
     return lv, side[i, j, k] if lv > 0.0 else 0
 
 
+# Compiled without numba's reference counting (as the mechanics kernels' steppers, see
+# ctrplan/shape/_ode.py): it allocates nothing and returns scalars only, and without it every
+# sample's lookups would count references to the six grid arrays (measured on 2,000 x 19
+# capsules against a sphere's field: inlined with counting, the split ran 1.1-1.4x slower than
+# the walk written inside _capsule_bounds; compiled so, 1.5-2x faster).
+@nb.njit(cache=True, _nrt=False)
+def _walk_axis(ax, ay, az, vx, vy, vz, rk, lb, ub, side, bad_side, origin, h, box_lo, box_hi,
+               sample_mm, min_step, eps, trace, clear, depth):
+    """Walk one capsule axis from (ax, ay, az) along (vx, vy, vz) (mm), radius rk, updating
+    the configuration's ``clear`` and ``depth`` bounds (see :func:`_capsule_bounds`).
+    Returns (clear, depth, unsure: the axis was not proven free, done: depth > eps was
+    proven, the configuration collides)."""
+    seg = math.sqrt(vx * vx + vy * vy + vz * vz)
+    inv = 1.0 / seg if seg > 0.0 else 0.0
+    n = int(math.ceil(seg / sample_mm)) + 1
+    delta = seg / (n - 1)
+    half = 0.5 * delta
+    unsure = False
+    done = False
+    pos = 0.0
+    while True:
+        t = pos * inv
+        px = ax + t * vx
+        py = ay + t * vy
+        pz = az + t * vz
+        if trace:
+            # cheap first look: the nearest grid node alone (one lookup, not eight)
+            q_lo, q_sd = _nearest_bound(lb, side, origin, h, px, py, pz)
+            q_slack = q_lo - rk - eps
+            if q_slack >= min_step and (bad_side == 0 or q_sd != bad_side):
+                if q_slack < clear:
+                    clear = q_slack
+                if pos >= seg:
+                    break
+                pos = min(pos + q_slack, seg)
+                continue
+        lo_b, up_b, sd = _bounds_at(lb, ub, side, origin, h, box_lo, box_hi, px, py, pz)
+        d = rk - up_b
+        if bad_side != 0 and sd == bad_side:
+            d = max(d, lo_b + rk)
+        if d > depth:
+            depth = d
+        if depth > eps:
+            done = True
+            break
+        if trace:
+            slack = lo_b - rk - eps
+            if slack < min_step:
+                unsure = True
+                step = delta
+            else:
+                step = slack
+            if slack < clear:
+                clear = slack
+        else:
+            c = lo_b - rk - half
+            if c < clear:
+                clear = c
+            if c <= eps:
+                unsure = True
+            step = delta
+        if pos >= seg:
+            break
+        pos = min(pos + step, seg) if step > 0.0 else seg
+    return clear, depth, unsure, done
+
+
 @nb.njit(cache=True)
 def _capsule_bounds(a, b, r, active, lb, ub, side, bad_side, origin, h, box_lo, box_hi,
                     sample_mm, eps, trace, bit, clear_out, depth_out, unsure_out):
     """Bounds of every active configuration against one mesh.
 
-    Walks each capsule axis. With ``trace`` False, samples are ``delta <= sample_mm`` apart and
+    Walks each capsule axis (:func:`_walk_axis`). With ``trace`` False, samples are
+    ``delta <= sample_mm`` apart and
     clear_out gets the lower bound of the clearance (min of lb - r - delta / 2). With ``trace``
     True (verdicts only) it sphere-traces: a sample with slack ``lb - r - eps`` proves the
     axis free for that distance on both sides, so the walk jumps ahead by the slack (clear_out
@@ -319,66 +387,14 @@ def _capsule_bounds(a, b, r, active, lb, ub, side, bad_side, origin, h, box_lo, 
             continue
         clear = clear_out[bi]
         depth = depth_out[bi]
-        done = False
         for kk in range(K):
             ax = a[bi, kk, 0]
             ay = a[bi, kk, 1]
             az = a[bi, kk, 2]
-            vx = b[bi, kk, 0] - ax
-            vy = b[bi, kk, 1] - ay
-            vz = b[bi, kk, 2] - az
-            seg = math.sqrt(vx * vx + vy * vy + vz * vz)
-            inv = 1.0 / seg if seg > 0.0 else 0.0
-            n = int(math.ceil(seg / sample_mm)) + 1
-            delta = seg / (n - 1)
-            half = 0.5 * delta
-            rk = r[bi, kk]
-            unsure = False
-            pos = 0.0
-            while True:
-                t = pos * inv
-                px = ax + t * vx
-                py = ay + t * vy
-                pz = az + t * vz
-                if trace:
-                    # cheap first look: the nearest grid node alone (one lookup, not eight)
-                    q_lo, q_sd = _nearest_bound(lb, side, origin, h, px, py, pz)
-                    q_slack = q_lo - rk - eps
-                    if q_slack >= min_step and (bad_side == 0 or q_sd != bad_side):
-                        if q_slack < clear:
-                            clear = q_slack
-                        if pos >= seg:
-                            break
-                        pos = min(pos + q_slack, seg)
-                        continue
-                lo_b, up_b, sd = _bounds_at(lb, ub, side, origin, h, box_lo, box_hi, px, py, pz)
-                d = rk - up_b
-                if bad_side != 0 and sd == bad_side:
-                    d = max(d, lo_b + rk)
-                if d > depth:
-                    depth = d
-                if depth > eps:
-                    done = True
-                    break
-                if trace:
-                    slack = lo_b - rk - eps
-                    if slack < min_step:
-                        unsure = True
-                        step = delta
-                    else:
-                        step = slack
-                    if slack < clear:
-                        clear = slack
-                else:
-                    c = lo_b - rk - half
-                    if c < clear:
-                        clear = c
-                    if c <= eps:
-                        unsure = True
-                    step = delta
-                if pos >= seg:
-                    break
-                pos = min(pos + step, seg) if step > 0.0 else seg
+            clear, depth, unsure, done = _walk_axis(
+                ax, ay, az, b[bi, kk, 0] - ax, b[bi, kk, 1] - ay, b[bi, kk, 2] - az, r[bi, kk],
+                lb, ub, side, bad_side, origin, h, box_lo, box_hi, sample_mm, min_step, eps, trace,
+                clear, depth)
             if done:
                 break
             if unsure:

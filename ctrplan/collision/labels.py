@@ -316,6 +316,114 @@ def _check_out(out: Path) -> None:
                          "scene folder): choose a new or empty folder")
 
 
+def _label_groups(wall, obstacle, landmark, table: dict[str, int] | None,
+                  table_src: str) -> dict[str, list[tuple[str, int]]]:
+    """role -> (name, value) of its labels; a label may have one role only (InputError)."""
+    groups = {"wall": resolve_labels(wall, table, table_src, "--wall")}
+    for role, refs in (("obstacle", obstacle), ("landmark", landmark)):
+        if _given(refs):
+            groups[role] = resolve_labels(refs, table, table_src, f"--{role}")
+    seen: dict[int, str] = {}
+    for role, labs in groups.items():
+        for _, v in labs:
+            if v in seen and seen[v] != role:
+                raise InputError(f"--{role}", "", f"label {v} is also given as {seen[v]}")
+            seen[v] = role
+    return groups
+
+
+class _Boxes(dict):
+    """label value -> voxel bounding box (lo, hi) of a label image, found once per label."""
+
+    def __init__(self, img: LabelImage):
+        super().__init__()
+        self.img = img
+
+    def of(self, v: int, lname: str, fieldname: str) -> tuple[np.ndarray, np.ndarray]:
+        """The box of label ``v``; InputError naming ``fieldname`` when it has no voxels."""
+        if v not in self:
+            bb = _bbox(self.img.data == v)
+            if bb is None:
+                raise InputError(self.img.path, fieldname, f"label {v} ({lname}) has no voxels")
+            self[v] = bb
+        return self[v]
+
+
+def _resolve_targets(targets, img: LabelImage, boxes: _Boxes, table: dict[str, int] | None,
+                     table_src: str) -> list[tuple[str, np.ndarray]]:
+    """(name, position mm) of every target: points as given (named t01, t02, ...), label
+    references at the label voxel nearest its centroid."""
+    if _bare_target(targets):
+        targets = [targets]             # one target given bare: a name, a value or a point
+    tgt = []
+    for k, t in enumerate(targets or ()):
+        if _is_point(t):
+            tgt.append((f"t{k + 1:02d}", _point(t, "--targets")))
+            continue
+        for lname, v in resolve_labels(t, table, table_src, "--targets"):
+            tgt.append((_safe_name(lname), _label_target(img, v, boxes.of(v, lname, "--targets"))))
+    return tgt
+
+
+def _mesh_job(img: LabelImage, role: str, labs: list[tuple[str, int]], boxes: _Boxes, used: set,
+              bound: float, config: LabelSceneConfig, bar):
+    """The surface mesh of one job (the wall labels together, or one other label): cropped to
+    the labels' boxes, named uniquely (``used``), shown on the progress ``bar`` while it is
+    meshed. Returns (LabelMesh, the mesh)."""
+    from ctrplan.collision.label_mesh import label_surface
+
+    values = [v for _, v in labs]
+    lo = np.min([boxes[v][0] for v in values], axis=0)
+    hi = np.max([boxes[v][1] for v in values], axis=0)
+    sub = img.data[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    crop = np.zeros(sub.shape, dtype=bool)
+    for v in values:            # (a loop of == beats np.isin's sort here)
+        crop |= sub == v
+    mname = _safe_name("_".join(n for n, _ in labs) if role != "wall" or len(labs) == 1
+                       else "lumen_" + "_".join(n for n, _ in labs))
+    while mname in used:
+        mname += "_"
+    used.add(mname)
+    bar.set_postfix_str(mname)
+    mesh, stats = label_surface(crop, img.affine, lo, bound, config.smoothing_iterations)
+    voxels = int(crop.sum())
+    log.info("%s (%s, labels %s): %d voxels -> %d triangles, within %.3f mm of the voxel "
+             "surface", mname, role, values, voxels, stats.faces, stats.max_shift_mm)
+    return LabelMesh(mname, role, tuple(values), voxels, f"{mname}.ply", stats), mesh
+
+
+def _scene_doc(img: LabelImage, meshes: list[LabelMesh], pose: np.ndarray, tgt: list, bound: float,
+               name: str | None, table_src: str, config: LabelSceneConfig, command: str) -> dict:
+    """The scene.yaml document: frame, provenance (the label map's digest), meshes, base pose
+    and targets."""
+    from ctrplan.collision.scene import matrix_to_quaternion
+
+    src = img.path
+    stem = Path(src).name
+    digest = hashlib.sha256(Path(src).read_bytes()).hexdigest()[:16]
+    vs = img.voxel_size
+    return {
+        "name": name or _safe_name(re.sub(r"\.nii(\.gz)?$", "", stem, flags=re.I)),
+        "units": "mm",
+        "frame": f"scanner frame of {stem} ({img.affine_source} affine; NIfTI RAS+: x right, "
+                 "y anterior, z superior), mm",
+        "description": f"from the label map {stem} ({' x '.join(map(str, img.data.shape))} voxels "
+                       f"of {vs[0]:.4g} x {vs[1]:.4g} x {vs[2]:.4g} mm); surfaces within "
+                       f"{bound:.4g} mm of the voxel surfaces",
+        "meshes": [{"name": m.name, "file": m.file, "role": m.role,
+                    "description": f"label(s) {', '.join(map(str, m.labels))}: {m.voxels} voxels, "
+                                   f"{m.stats.faces} triangles, at most {m.stats.max_shift_mm:.3f} mm "
+                                   f"from the marching-cubes surface (bound {m.stats.bound_mm:.3f} mm)"}
+                   for m in meshes],
+        "base_pose": {"position": [round(float(x), 6) for x in pose[:3, 3]],
+                      "quaternion": [round(float(x), 10) for x in matrix_to_quaternion(pose[:3, :3])]},
+        "targets": [{"name": n, "position": [round(float(x), 6) for x in p]} for n, p in tgt],
+        "source": f"label map {stem} (sha256 {digest}...); label table: {table_src}",
+        "licence": config.licence,
+        "generator": command or "ctrplan.scene_from_labels",
+    }
+
+
 def scene_from_labels(image: str | os.PathLike, out: str | os.PathLike, *, wall, entry, toward,
                       obstacle=(), landmark=(), targets=(), name: str | None = None,
                       config: LabelSceneConfig | None = None, command: str = "") -> LabelSceneResult:
@@ -330,8 +438,6 @@ def scene_from_labels(image: str | os.PathLike, out: str | os.PathLike, *, wall,
     Raises :class:`InputError` for bad input; nothing is written then.
     """
     from ctrplan import progress
-    from ctrplan.collision.label_mesh import label_surface
-    from ctrplan.collision.scene import matrix_to_quaternion
 
     config = config or LabelSceneConfig()
     out = Path(out)
@@ -339,98 +445,34 @@ def scene_from_labels(image: str | os.PathLike, out: str | os.PathLike, *, wall,
     entry_p, toward_p = _point(entry, "--entry"), _point(toward, "--toward")
     pose = pose_from_entry(entry_p, toward_p)
     img = read_label_image(image, config.max_mb)
-    src = img.path
     table_path = Path(config.label_table) if config.label_table else find_label_table(image)
     table, table_src = None, "none beside the image"
     if table_path is not None:
         table, table_src = read_label_table(table_path), str(table_path)
-    groups = {"wall": resolve_labels(wall, table, table_src, "--wall")}
-    for role, refs in (("obstacle", obstacle), ("landmark", landmark)):
-        if _given(refs):
-            groups[role] = resolve_labels(refs, table, table_src, f"--{role}")
-    seen: dict[int, str] = {}
-    for role, labs in groups.items():
-        for _, v in labs:
-            if v in seen and seen[v] != role:
-                raise InputError(f"--{role}", "", f"label {v} is also given as {seen[v]}")
-            seen[v] = role
+    groups = _label_groups(wall, obstacle, landmark, table, table_src)
     bound = config.max_shift_mm or 0.5 * float(img.voxel_size.min())
     # mesh jobs: all wall labels together, every other label alone
     jobs = [("wall", groups["wall"])] + [(role, [lab]) for role in ("obstacle", "landmark")
                                          for lab in groups.get(role, [])]
     # every label and target is checked before the (slow) meshing starts
-    boxes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-
-    def box(v: int, lname: str, fieldname: str):
-        if v not in boxes:
-            bb = _bbox(img.data == v)
-            if bb is None:
-                raise InputError(src, fieldname, f"label {v} ({lname}) has no voxels")
-            boxes[v] = bb
-        return boxes[v]
-
+    boxes = _Boxes(img)
     for role, labs in jobs:
         for lname, v in labs:
-            box(v, lname, f"--{role}")
-    if _bare_target(targets):
-        targets = [targets]             # one target given bare: a name, a value or a point
-    tgt = []
-    for k, t in enumerate(targets or ()):
-        if _is_point(t):
-            tgt.append((f"t{k + 1:02d}", _point(t, "--targets")))
-            continue
-        for lname, v in resolve_labels(t, table, table_src, "--targets"):
-            tgt.append((_safe_name(lname), _label_target(img, v, box(v, lname, "--targets"))))
+            boxes.of(v, lname, f"--{role}")
+    tgt = _resolve_targets(targets, img, boxes, table, table_src)
     with progress.bar(total=len(jobs) + 1, desc="from-labels", unit="mesh") as bar:
         meshes, built, used = [], [], set()
         for role, labs in jobs:
-            values = [v for _, v in labs]
-            lo = np.min([boxes[v][0] for v in values], axis=0)
-            hi = np.max([boxes[v][1] for v in values], axis=0)
-            sub = img.data[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-            crop = np.zeros(sub.shape, dtype=bool)
-            for v in values:            # (a loop of == beats np.isin's sort here)
-                crop |= sub == v
-            mname = _safe_name("_".join(n for n, _ in labs) if role != "wall" or len(labs) == 1
-                               else "lumen_" + "_".join(n for n, _ in labs))
-            while mname in used:
-                mname += "_"
-            used.add(mname)
-            bar.set_postfix_str(mname)
-            mesh, stats = label_surface(crop, img.affine, lo, bound, config.smoothing_iterations)
-            voxels = int(crop.sum())
-            meshes.append(LabelMesh(mname, role, tuple(values), voxels, f"{mname}.ply", stats))
+            lm, mesh = _mesh_job(img, role, labs, boxes, used, bound, config, bar)
+            meshes.append(lm)
             built.append(mesh)
-            log.info("%s (%s, labels %s): %d voxels -> %d triangles, within %.3f mm of the voxel "
-                     "surface", mname, role, values, voxels, stats.faces, stats.max_shift_mm)
             bar.update(1)
-        stem = Path(src).name
-        digest = hashlib.sha256(Path(src).read_bytes()).hexdigest()[:16]
-        vs = img.voxel_size
-        doc = {
-            "name": name or _safe_name(re.sub(r"\.nii(\.gz)?$", "", stem, flags=re.I)),
-            "units": "mm",
-            "frame": f"scanner frame of {stem} ({img.affine_source} affine; NIfTI RAS+: x right, "
-                     "y anterior, z superior), mm",
-            "description": f"from the label map {stem} ({' x '.join(map(str, img.data.shape))} voxels "
-                           f"of {vs[0]:.4g} x {vs[1]:.4g} x {vs[2]:.4g} mm); surfaces within "
-                           f"{bound:.4g} mm of the voxel surfaces",
-            "meshes": [{"name": m.name, "file": m.file, "role": m.role,
-                        "description": f"label(s) {', '.join(map(str, m.labels))}: {m.voxels} voxels, "
-                                       f"{m.stats.faces} triangles, at most {m.stats.max_shift_mm:.3f} mm "
-                                       f"from the marching-cubes surface (bound {m.stats.bound_mm:.3f} mm)"}
-                       for m in meshes],
-            "base_pose": {"position": [round(float(x), 6) for x in pose[:3, 3]],
-                          "quaternion": [round(float(x), 10) for x in matrix_to_quaternion(pose[:3, :3])]},
-            "targets": [{"name": n, "position": [round(float(x), 6) for x in p]} for n, p in tgt],
-            "source": f"label map {stem} (sha256 {digest}...); label table: {table_src}",
-            "licence": config.licence,
-            "generator": command or "ctrplan.scene_from_labels",
-        }
+        doc = _scene_doc(img, meshes, pose, tgt, bound, name, table_src, config, command)
         scene = _write_scene(out, doc, meshes, built, pose)
         bar.update(1)
     return LabelSceneResult(success=True, path=str(out), scene=scene, meshes=tuple(meshes),
-                            voxel_size_mm=tuple(float(x) for x in vs), max_shift_mm=float(bound),
+                            voxel_size_mm=tuple(float(x) for x in img.voxel_size),
+                            max_shift_mm=float(bound),
                             targets=tuple((n, tuple(float(x) for x in p)) for n, p in tgt))
 
 

@@ -164,101 +164,131 @@ def _gpu_result(results: Path) -> dict | None:
     return None if old is None else {**old, "_file": "learned_gpu_h100.json"}
 
 
+def _shape_rows(sh: dict) -> list[str]:
+    """The mechanics row (suite ``shape``)."""
+    ps = sh["per_shape_s"]
+    return [f"| compliant mechanics, batch 10,000 ({sh['robot']}, {sh['points']} points) | "
+            f"{ps['compliant']['10000'] * 1e6:.1f} µs per shape (rigid "
+            f"{ps['rigid']['10000'] * 1e6:.1f} µs); published anchor "
+            f"{sh['published_anchor_s_per_shape'] * 1e3:.2f} ms | "
+            f"≤ {sh['target_compliant_10k_s'] * 1e6:.0f} µs |"]
+
+
+def _learned_rows(le: dict) -> list[str]:
+    """The learned model rows: time per shape and the ratio to physics (suite ``learned``)."""
+    rows: list[str] = []
+    by = {r["batch"]: r for r in le["table"]}
+    big = by[le["largest_batch"]]
+    rows.append(f"| learned model, batch {le['largest_batch']:,} | "
+                f"{big['learned_us_per_shape']:.2f} µs per shape; batch-1 latency "
+                f"{le['batch1_latency_us']['learned']:.0f} µs | ≤ 1 µs |")
+    sp = [by[b]["speedup"] for b in sorted(by) if b >= 10000]
+    met = "met" if le.get("target_ge_100x_at_100k") else (
+        f"**not met**: the network's matrix products alone "
+        f"({le['floor']['network_products_us_per_shape']:.2f} µs per shape at batch "
+        f"{le['floor']['batch']:,}) cap the ratio at {le['ratio_bound_from_floor']:.0f}x")
+    rows.append(f"| learned vs batched compliant physics, same run | {_rng(sp, '.0f')}x at "
+                f"batch 10^4–10^5 | ≥ 100x — {met} |")
+    return rows
+
+
+def _gpu_rows(gpu: dict) -> list[str]:
+    """The learned model on a GPU row (the GPU JSON)."""
+    g = {r["batch"]: r for r in gpu["table"]}
+    which = "" if "architecture" in gpu else ", the previous 3 x 30 network"
+    return [f"| learned model on a GPU ({gpu['device']}{which}), forward pass on the device | "
+            f"{g[100000]['forward_on_device_us_per_shape']:.3f} µs per shape at 10^5; "
+            f"`backbone()` with numpy in/out {g[100000]['backbone_us_per_shape']:.2f} µs at "
+            f"10^5; batch 1: {g[1]['backbone_call_ms']:.2f} ms | – |"]
+
+
+def _collision_rows(co: dict) -> list[str]:
+    """The shape + collision rows, random and near the targets (suite ``collision``)."""
+    rows: list[str] = []
+    for kind, what, tgt in (("reach", "shape + collision, learned model, random reachable "
+                             "configurations", "≥ 50k/s, ≥ 20x"),
+                            ("near_targets", "the same near the targets (tight lumens)", "–")):
+        rs = [r for r in co["table"] if r["configs"] == kind and r["model"] == "learned"]
+        if rs:
+            if tgt != "–":
+                short = [f"{r['scene']} {r['prefilter_fcl_per_s'] / 1000:.0f}k/s, "
+                         f"{r['speedup']:.0f}x" for r in rs
+                         if r["prefilter_fcl_per_s"] < 50_000 or r["speedup"] < 20]
+                tgt += " — met" if not short else f" — **not met**: {'; '.join(short)}"
+            cs = [r["collision_speedup"] for r in rs if "collision_speedup" in r]
+            alone = f" (collision alone {_rng(cs, '.0f')}x)" if cs else ""
+            rows.append(f"| {what} | {_rng([r['prefilter_fcl_per_s'] / 1000 for r in rs], '.0f')}k "
+                        f"configurations/s per scene; {_rng([r['speedup'] for r in rs], '.0f')}x "
+                        f"shape + FCL alone{alone}; "
+                        f"{_rng([100 * r['to_fcl_fraction'] for r in rs], '.1f')} % of "
+                        f"states need FCL | {tgt} |")
+    return rows
+
+
+def _planning_rows(pl: dict) -> list[str]:
+    """The planning row (suite ``planning``)."""
+    rows: list[str] = []
+    by = {(r["scene"], r["model"]): r for r in pl["table"]}
+    parts = []
+    for m in ("physics", "learned"):
+        r = by.get(("all", m))
+        if r is None:
+            continue
+        ok = round(r["success_rate"] * r["plans"])
+        txt = (f"{m}{' (the default)' if m == 'physics' else ''}: {ok}/{r['plans']} success, "
+               f"median {r['median_s']:.2f} s, p90 {r['p90_s']:.2f} s per plan")
+        if r.get("rechecked"):
+            txt += (f"; {r['rechecked'] - r['recheck_failures']}/{r['rechecked']} successful "
+                    "paths free in the independent re-check")
+        parts.append(txt)
+    if ("all", "physics") in by:
+        parts.append(f"{100 * by[('all', 'physics')]['direct_fraction']:.0f} % of the physics "
+                     "plans are a single direct joint-space edge")
+    n_t = len({p["target"] for p in pl["plans"]})
+    short = [f"{m} {100 * r['success_rate']:.0f} %, median {r['median_s']:.2f} s "
+             f"({r['statuses']})" for (sc, m), r in sorted(by.items())
+             if sc == "all" and (r["success_rate"] < 0.95 or r["median_s"] >= 1.0)]
+    met = "met" if not short else f"**not met**: {'; '.join(short)}"
+    rows.append(f"| planning, {len(pl['scenes'])} scenes x {n_t} targets x {len(pl['seeds'])} seeds "
+                f"(`bench_planning.py`) | {'; '.join(parts)} | "
+                f"≥ 95 %, median < 1 s — {met} |")
+    return rows
+
+
+def _diagnose_rows(dg: dict) -> list[str]:
+    """The diagnose rows: the simulated case and the 5,000-row recording (suite ``diagnose``)."""
+    rows: list[str] = []
+    r = next((r for r in dg["table"] if r["hidden"] != "none"), None)
+    if r:
+        rows.append(f"| diagnose, {r['rows']:,} samples, hidden {r['hidden']}, {dg['robot']} | "
+                    f"{r['wall_s']:.1f} s; found {r['found']}; held-out error "
+                    f"{r['error_before_mm']:.2f} → {r['error_after_mm']:.2f} mm | < 2 min |")
+    rr = dg.get("real_5000")
+    if rr:
+        met = "met" if rr["under_2_min"] else "**not met**"
+        rows.append(f"| diagnose, {rr['rows']:,}-row continuous recording ({rr['hidden']}), "
+                    f"{dg['robot']} | {rr['wall_s']:.0f} s ({rr['cpu_s']:.0f} s CPU); "
+                    f"held-out error {rr['error_before_mm']:.2f} → "
+                    f"{rr['error_after_mm']:.2f} mm ({rr['percent_of_length']:.2f} % of the "
+                    f"length) on {rr['independent_test_blocks']} test blocks | < 2 min — "
+                    f"{met} |")
+    return rows
+
+
 def summary_block(bench: dict, gpu: dict | None) -> str:
     """The performance summary table (what | measured | target) from bench.json (one run) and
     the GPU JSON."""
     su = bench["suites"]
     rows = ["| what | measured | target |", "|---|---|---|"]
-    sh = su.get("shape")
-    if sh:
-        ps = sh["per_shape_s"]
-        rows.append(f"| compliant mechanics, batch 10,000 ({sh['robot']}, {sh['points']} points) | "
-                    f"{ps['compliant']['10000'] * 1e6:.1f} µs per shape (rigid "
-                    f"{ps['rigid']['10000'] * 1e6:.1f} µs); published anchor "
-                    f"{sh['published_anchor_s_per_shape'] * 1e3:.2f} ms | "
-                    f"≤ {sh['target_compliant_10k_s'] * 1e6:.0f} µs |")
-    le = su.get("learned")
-    if le:
-        by = {r["batch"]: r for r in le["table"]}
-        big = by[le["largest_batch"]]
-        rows.append(f"| learned model, batch {le['largest_batch']:,} | "
-                    f"{big['learned_us_per_shape']:.2f} µs per shape; batch-1 latency "
-                    f"{le['batch1_latency_us']['learned']:.0f} µs | ≤ 1 µs |")
-        sp = [by[b]["speedup"] for b in sorted(by) if b >= 10000]
-        met = "met" if le.get("target_ge_100x_at_100k") else (
-            f"**not met**: the network's matrix products alone "
-            f"({le['floor']['network_products_us_per_shape']:.2f} µs per shape at batch "
-            f"{le['floor']['batch']:,}) cap the ratio at {le['ratio_bound_from_floor']:.0f}x")
-        rows.append(f"| learned vs batched compliant physics, same run | {_rng(sp, '.0f')}x at "
-                    f"batch 10^4–10^5 | ≥ 100x — {met} |")
+    for name, part in (("shape", _shape_rows), ("learned", _learned_rows)):
+        if su.get(name):
+            rows += part(su[name])
     if gpu:
-        g = {r["batch"]: r for r in gpu["table"]}
-        which = "" if "architecture" in gpu else ", the previous 3 x 30 network"
-        rows.append(f"| learned model on a GPU ({gpu['device']}{which}), forward pass on the device | "
-                    f"{g[100000]['forward_on_device_us_per_shape']:.3f} µs per shape at 10^5; "
-                    f"`backbone()` with numpy in/out {g[100000]['backbone_us_per_shape']:.2f} µs at "
-                    f"10^5; batch 1: {g[1]['backbone_call_ms']:.2f} ms | – |")
-    co = su.get("collision")
-    if co:
-        for kind, what, tgt in (("reach", "shape + collision, learned model, random reachable "
-                                 "configurations", "≥ 50k/s, ≥ 20x"),
-                                ("near_targets", "the same near the targets (tight lumens)", "–")):
-            rs = [r for r in co["table"] if r["configs"] == kind and r["model"] == "learned"]
-            if rs:
-                if tgt != "–":
-                    short = [f"{r['scene']} {r['prefilter_fcl_per_s'] / 1000:.0f}k/s, "
-                             f"{r['speedup']:.0f}x" for r in rs
-                             if r["prefilter_fcl_per_s"] < 50_000 or r["speedup"] < 20]
-                    tgt += " — met" if not short else f" — **not met**: {'; '.join(short)}"
-                cs = [r["collision_speedup"] for r in rs if "collision_speedup" in r]
-                alone = f" (collision alone {_rng(cs, '.0f')}x)" if cs else ""
-                rows.append(f"| {what} | {_rng([r['prefilter_fcl_per_s'] / 1000 for r in rs], '.0f')}k "
-                            f"configurations/s per scene; {_rng([r['speedup'] for r in rs], '.0f')}x "
-                            f"shape + FCL alone{alone}; "
-                            f"{_rng([100 * r['to_fcl_fraction'] for r in rs], '.1f')} % of "
-                            f"states need FCL | {tgt} |")
-    pl = su.get("planning")
-    if pl:
-        by = {(r["scene"], r["model"]): r for r in pl["table"]}
-        parts = []
-        for m in ("physics", "learned"):
-            r = by.get(("all", m))
-            if r is None:
-                continue
-            ok = round(r["success_rate"] * r["plans"])
-            txt = (f"{m}{' (the default)' if m == 'physics' else ''}: {ok}/{r['plans']} success, "
-                   f"median {r['median_s']:.2f} s, p90 {r['p90_s']:.2f} s per plan")
-            if r.get("rechecked"):
-                txt += (f"; {r['rechecked'] - r['recheck_failures']}/{r['rechecked']} successful "
-                        "paths free in the independent re-check")
-            parts.append(txt)
-        if ("all", "physics") in by:
-            parts.append(f"{100 * by[('all', 'physics')]['direct_fraction']:.0f} % of the physics "
-                         "plans are a single direct joint-space edge")
-        n_t = len({p["target"] for p in pl["plans"]})
-        short = [f"{m} {100 * r['success_rate']:.0f} %, median {r['median_s']:.2f} s "
-                 f"({r['statuses']})" for (sc, m), r in sorted(by.items())
-                 if sc == "all" and (r["success_rate"] < 0.95 or r["median_s"] >= 1.0)]
-        met = "met" if not short else f"**not met**: {'; '.join(short)}"
-        rows.append(f"| planning, {len(pl['scenes'])} scenes x {n_t} targets x {len(pl['seeds'])} seeds "
-                    f"(`bench_planning.py`) | {'; '.join(parts)} | "
-                    f"≥ 95 %, median < 1 s — {met} |")
-    dg = su.get("diagnose")
-    if dg:
-        r = next((r for r in dg["table"] if r["hidden"] != "none"), None)
-        if r:
-            rows.append(f"| diagnose, {r['rows']:,} samples, hidden {r['hidden']}, {dg['robot']} | "
-                        f"{r['wall_s']:.1f} s; found {r['found']}; held-out error "
-                        f"{r['error_before_mm']:.2f} → {r['error_after_mm']:.2f} mm | < 2 min |")
-        rr = dg.get("real_5000")
-        if rr:
-            met = "met" if rr["under_2_min"] else "**not met**"
-            rows.append(f"| diagnose, {rr['rows']:,}-row continuous recording ({rr['hidden']}), "
-                        f"{dg['robot']} | {rr['wall_s']:.0f} s ({rr['cpu_s']:.0f} s CPU); "
-                        f"held-out error {rr['error_before_mm']:.2f} → "
-                        f"{rr['error_after_mm']:.2f} mm ({rr['percent_of_length']:.2f} % of the "
-                        f"length) on {rr['independent_test_blocks']} test blocks | < 2 min — "
-                        f"{met} |")
+        rows += _gpu_rows(gpu)
+    for name, part in (("collision", _collision_rows), ("planning", _planning_rows),
+                       ("diagnose", _diagnose_rows)):
+        if su.get(name):
+            rows += part(su[name])
     m = bench["machine"]
     rows += ["", f"Measured {m['date']} on {m['cpu']}, {m['cores']} cores (`benchmarks/results/bench.json`"
              + (f", `benchmarks/results/{gpu.get('_file', 'learned_gpu_h100.json')}`" if gpu else "") + ")."]

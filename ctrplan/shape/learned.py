@@ -62,7 +62,7 @@ import json
 import os
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -880,79 +880,32 @@ class LearnedModel:
 
     @classmethod
     def _from_object(cls, obj: Any, src: str, robot: Robot | str | None, depth_left: int = 4) -> LearnedModel:
-        if not isinstance(obj, dict) or not isinstance(obj.get("format"), str) \
-                or obj.get("format") != FORMAT:
-            raise InputError(src, "format", f"not a {FORMAT} file")
-        if not isinstance(obj.get("version"), int) or obj.get("version") not in READ_VERSIONS:
-            raise InputError(src, "version", f"unsupported version {obj.get('version')!r} "
-                                             f"(reads {', '.join(map(str, READ_VERSIONS))})")
-        try:
-            meta = json.loads(obj["meta_json"])
-            arch, bas, norm = meta["architecture"], meta["basis"], meta["normalisation"]
-            width, depth, terms = int(arch["width"]), int(arch["depth"]), int(bas["terms"])
-            frame = str(arch.get("frame", "base"))
-            if frame not in FRAMES:
-                raise ValueError(f"unknown frame {frame!r}")
-            direction = bool((meta.get("inputs") or {}).get("direction", False))
-            pairs = arch.get("pair_inputs", False)
-            if not isinstance(pairs, bool):
-                raise ValueError("architecture.pair_inputs must be true or false")
-            base_spec = meta.get("residual")
-            if base_spec is not None and not isinstance(base_spec, dict):
-                raise ValueError("residual is not a mapping")
-            eq = _check_quantiles(meta.get("error_quantiles"))
-            profile = meta.get("error_profile")
-            if profile is not None:
-                from ctrplan.shape.error_bounds import profile_from_dict
-
-                profile = profile_from_dict(profile).to_dict()
-            domain = _check_domain(meta.get("domain"))
-        except (KeyError, TypeError, ValueError, AttributeError) as exc:
-            raise InputError(src, "meta_json", f"missing or malformed metadata ({exc})") from None
-        bound_kind = _check_error_bound(meta, eq or profile, src)
-        try:
-            stored = robot_from_dict(meta.get("robot"), source=f"{src} (robot)")
-        except InputError as exc:
-            raise InputError(src, "robot", exc.message) from None
-        if robot is not None:
-            robot = load_robot(robot)
-            if robot.to_dict()["tubes"] != stored.to_dict()["tubes"]:
-                raise InputError(src, "robot", f"the model was trained for robot {stored.name!r}, "
-                                               f"whose tubes differ from {robot.name!r}")
-        else:
-            robot = stored
+        """The model stored in ``obj`` (a loaded model file; :class:`InputError` naming ``src``
+        and the field when anything is missing or malformed). ``depth_left``: how many learned
+        bases deep a residual model may nest."""
+        meta, arch = _read_header(obj, src)
+        bound_kind = _check_error_bound(meta, arch.error_quantiles or arch.error_profile, src)
+        robot = _stored_robot(meta, src, robot)
         base = None
-        if base_spec is not None:
-            base = _load_base(base_spec, obj, src, robot, depth_left)
+        if arch.base_spec is not None:
+            base = _load_base(arch.base_spec, obj, src, robot, depth_left)
         try:
-            model = cls(robot, width=width, depth=depth, terms=terms, seed=None, frame=frame,
-                        direction=direction, base=base, base_spec=base_spec, pairs=pairs)
-            state = obj["state"]
-            if not isinstance(state, dict):
-                raise TypeError("state is not a mapping")
-            model.net.load_state_dict(state, strict=True)
-            K3 = 3 * terms
-            for name in ("coef_mean", "coef_std"):
-                v = torch.tensor(norm[name], dtype=torch.float32)
-                if v.shape != (K3,):
-                    raise ValueError(f"{name} has shape {tuple(v.shape)}, expected ({K3},)")
-                setattr(model, name, v)
-            for name in ("beta_lo", "beta_span"):
-                v = torch.tensor(norm[name + "_mm"], dtype=torch.float32)
-                if v.shape != (robot.n,):
-                    raise ValueError(f"{name}_mm has shape {tuple(v.shape)}, expected ({robot.n},)")
-                setattr(model, name, v)
+            model = cls(robot, width=arch.width, depth=arch.depth, terms=arch.terms, seed=None,
+                        frame=arch.frame, direction=arch.direction, base=base,
+                        base_spec=arch.base_spec, pairs=arch.pairs)
+            _load_weights(model, obj["state"], arch.normalisation)
         except (RuntimeError, KeyError, TypeError, ValueError, AttributeError) as exc:
             raise InputError(src, "state", f"weights do not match the stored architecture ({exc})".replace("\n", " ")[:400]) from None
         for t in list(model.net.state_dict().values()) + [model.coef_mean, model.coef_std, model.beta_span]:
             if not torch.all(torch.isfinite(t)):
                 raise InputError(src, "state", "contains non-finite weights")
         _check_normalisation(model, src)
+        domain = arch.domain
         if domain is not None and any(len(domain[k]) != robot.n for k in
                                       ("beta_min_mm", "beta_max_mm", "alpha_arcs_rad")):
             raise InputError(src, "domain", f"expects {robot.n} tubes")
-        model.error_quantiles = eq
-        model.error_profile = profile
+        model.error_quantiles = arch.error_quantiles
+        model.error_profile = arch.error_profile
         model.error_bound = bound_kind
         model.domain = domain
         keep = ("training", "metrics", "data", "created", "command", "ctrplan_version",
@@ -1182,6 +1135,96 @@ def _check_domain(dom: Any) -> dict[str, Any] | None:
     if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not (0 <= tol <= 1.0):
         raise ValueError("domain.tolerance must be a number in [0, 1]")
     return dom
+
+
+class _StoredArchitecture(NamedTuple):
+    """What a model file's metadata says about the network (checked by :func:`_read_header`)."""
+
+    width: int
+    depth: int
+    terms: int
+    frame: str
+    direction: bool
+    pairs: bool
+    #: the residual base's spec (None: not a residual model)
+    base_spec: dict | None
+    error_quantiles: dict[str, float] | None
+    error_profile: dict | None
+    domain: dict[str, Any] | None
+    #: ``normalisation``: coef_mean, coef_std, beta_lo_mm, beta_span_mm (not yet checked)
+    normalisation: dict
+
+
+def _read_header(obj: Any, src: str) -> tuple[dict, _StoredArchitecture]:
+    """The format, version and metadata of a loaded model file: (the metadata, its network
+    description). :class:`InputError` (``format``, ``version``, ``meta_json``) otherwise."""
+    if not isinstance(obj, dict) or not isinstance(obj.get("format"), str) \
+            or obj.get("format") != FORMAT:
+        raise InputError(src, "format", f"not a {FORMAT} file")
+    if not isinstance(obj.get("version"), int) or obj.get("version") not in READ_VERSIONS:
+        raise InputError(src, "version", f"unsupported version {obj.get('version')!r} "
+                                         f"(reads {', '.join(map(str, READ_VERSIONS))})")
+    try:
+        meta = json.loads(obj["meta_json"])
+        arch, bas, norm = meta["architecture"], meta["basis"], meta["normalisation"]
+        width, depth, terms = int(arch["width"]), int(arch["depth"]), int(bas["terms"])
+        frame = str(arch.get("frame", "base"))
+        if frame not in FRAMES:
+            raise ValueError(f"unknown frame {frame!r}")
+        direction = bool((meta.get("inputs") or {}).get("direction", False))
+        pairs = arch.get("pair_inputs", False)
+        if not isinstance(pairs, bool):
+            raise ValueError("architecture.pair_inputs must be true or false")
+        base_spec = meta.get("residual")
+        if base_spec is not None and not isinstance(base_spec, dict):
+            raise ValueError("residual is not a mapping")
+        eq = _check_quantiles(meta.get("error_quantiles"))
+        profile = meta.get("error_profile")
+        if profile is not None:
+            from ctrplan.shape.error_bounds import profile_from_dict
+
+            profile = profile_from_dict(profile).to_dict()
+        domain = _check_domain(meta.get("domain"))
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise InputError(src, "meta_json", f"missing or malformed metadata ({exc})") from None
+    return meta, _StoredArchitecture(width, depth, terms, frame, direction, pairs, base_spec, eq,
+                                     profile, domain, norm)
+
+
+def _stored_robot(meta: dict, src: str, robot: Robot | str | None) -> Robot:
+    """The robot stored in the file's metadata; with ``robot``, that robot after checking
+    that its tubes are the stored ones (:class:`InputError` ``robot`` otherwise)."""
+    try:
+        stored = robot_from_dict(meta.get("robot"), source=f"{src} (robot)")
+    except InputError as exc:
+        raise InputError(src, "robot", exc.message) from None
+    if robot is None:
+        return stored
+    robot = load_robot(robot)
+    if robot.to_dict()["tubes"] != stored.to_dict()["tubes"]:
+        raise InputError(src, "robot", f"the model was trained for robot {stored.name!r}, "
+                                       f"whose tubes differ from {robot.name!r}")
+    return robot
+
+
+def _load_weights(model: LearnedModel, state: Any, norm: dict) -> None:
+    """Load the stored network weights ``state`` and the output / input normalisation
+    ``norm`` into ``model`` (RuntimeError, TypeError, ValueError, ... when they do not fit
+    its architecture)."""
+    if not isinstance(state, dict):
+        raise TypeError("state is not a mapping")
+    model.net.load_state_dict(state, strict=True)
+    K3 = 3 * model.terms
+    for name in ("coef_mean", "coef_std"):
+        v = torch.tensor(norm[name], dtype=torch.float32)
+        if v.shape != (K3,):
+            raise ValueError(f"{name} has shape {tuple(v.shape)}, expected ({K3},)")
+        setattr(model, name, v)
+    for name in ("beta_lo", "beta_span"):
+        v = torch.tensor(norm[name + "_mm"], dtype=torch.float32)
+        if v.shape != (model.robot.n,):
+            raise ValueError(f"{name}_mm has shape {tuple(v.shape)}, expected ({model.robot.n},)")
+        setattr(model, name, v)
 
 
 def _load_base(spec: dict, obj: dict, src: str, robot: Robot, depth_left: int) -> Any:

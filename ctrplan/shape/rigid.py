@@ -49,6 +49,126 @@ def _arc(k2, t):
     return math.sin(x) / k, (1.0 - math.cos(x)) / k2
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _break_points(q, b, L, straight, ca, sa, ev):
+    """The pieces of configuration b: cos, sin of each tube's alpha into ca, sa (n,), the
+    break points inside (0, tip) (curve starts, tube ends) sorted into ev[:ne] and the tip
+    arc length into ev[ne] (mm). Returns (ne, tip)."""
+    n = L.shape[0]
+    tip = -1e300
+    for i in range(n):
+        ca[i] = math.cos(q[b, i])
+        sa[i] = math.sin(q[b, i])
+        e = q[b, n + i] + L[i]
+        if e > tip:
+            tip = e
+    ne = 0
+    for i in range(n):
+        for v in (q[b, n + i] + straight[i], q[b, n + i] + L[i]):
+            if v > 0.0 and v < tip:
+                ev[ne] = v
+                ne += 1
+    for k in range(1, ne):                     # insertion sort of the break points
+        v = ev[k]
+        j = k - 1
+        while j >= 0 and ev[j] > v:
+            ev[j + 1] = ev[j]
+            j -= 1
+        ev[j + 1] = v
+    ev[ne] = tip
+    return ne, tip
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _curvature(q, b, L, straight, kappa, EI, ca, sa, mid):
+    """(ux, uy) 1/mm: the bending curvature of the piece around arc length ``mid``, the
+    EI-weighted mean of the rotated precurvatures of the tubes present."""
+    n = L.shape[0]
+    eis = 0.0
+    ux = 0.0
+    uy = 0.0
+    for i in range(n):
+        if q[b, n + i] + L[i] > mid:
+            eis += EI[i]
+            if q[b, n + i] + straight[i] < mid:
+                ux -= EI[i] * kappa[i] * sa[i]
+                uy += EI[i] * kappa[i] * ca[i]
+    if eis > 0.0:
+        ux /= eis
+        uy /= eis
+    return ux, uy
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _arc_points(out, b, j, m, h, tip, s_a, s_b, last, ux, uy, k2, R, px, py, pz):
+    """Write the output points j, j + 1, ... that lie on the piece [s_a, s_b] (all remaining
+    ones on the ``last`` piece) into out[b]: the arc of curvature (ux, uy) from the frame
+    (R, p) at s_a. Returns the next point's index."""
+    k = math.sqrt(k2)
+    series = k * (s_b - s_a) < _SERIES_BELOW or k * (tip - s_a) < _SERIES_BELOW
+    first = True
+    chh = 1.0
+    shh = 0.0
+    cdh = 1.0
+    sdh = 0.0
+    while j < m and (last or j * h <= s_b):
+        t = (tip if j == m - 1 else j * h) - s_a
+        if series:
+            A, C = _arc(k2, t)
+        else:
+            # half angles x / 2 = k t / 2 advanced by k h / 2 from point to point
+            # (no trig per point); sin x = 2 s c, 1 - cos x = 2 s^2 (no cancellation)
+            if first or j == m - 1:
+                chh = math.cos(0.5 * k * t)
+                shh = math.sin(0.5 * k * t)
+                if first:
+                    cdh = math.cos(0.5 * k * h)
+                    sdh = math.sin(0.5 * k * h)
+            A = 2.0 * shh * chh / k
+            C = 2.0 * shh * shh / k2
+            c_next = chh * cdh - shh * sdh
+            shh = shh * cdh + chh * sdh
+            chh = c_next
+        first = False
+        dx = C * uy
+        dy = -C * ux
+        out[b, j, 0] = px + R[0, 0] * dx + R[0, 1] * dy + R[0, 2] * A
+        out[b, j, 1] = py + R[1, 0] * dx + R[1, 1] * dy + R[1, 2] * A
+        out[b, j, 2] = pz + R[2, 0] * dx + R[2, 1] * dy + R[2, 2] * A
+        j += 1
+    return j
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _advance(R, Rn, px, py, pz, ux, uy, k2, t):
+    """The frame at the end of an arc of length t mm and curvature (ux, uy): R (3, 3) updated
+    in place (Rn (3, 3) is scratch); returns the new position (px, py, pz) mm."""
+    A, C = _arc(k2, t)
+    dx = C * uy
+    dy = -C * ux
+    px += R[0, 0] * dx + R[0, 1] * dy + R[0, 2] * A
+    py += R[1, 0] * dx + R[1, 1] * dy + R[1, 2] * A
+    pz += R[2, 0] * dx + R[2, 1] * dy + R[2, 2] * A
+    # E = I + A [u]x + C [u]x^2, [u]x^2 = u u^T - k^2 I (uz = 0)
+    e00 = 1.0 + C * (ux * ux - k2)
+    e01 = C * ux * uy
+    e02 = A * uy
+    e11 = 1.0 + C * (uy * uy - k2)
+    e12 = -A * ux
+    e22 = 1.0 - C * k2
+    for r in range(3):
+        r0 = R[r, 0]
+        r1 = R[r, 1]
+        r2 = R[r, 2]
+        Rn[r, 0] = r0 * e00 + r1 * e01 - r2 * e02
+        Rn[r, 1] = r0 * e01 + r1 * e11 - r2 * e12
+        Rn[r, 2] = r0 * e02 + r1 * e12 + r2 * e22
+    for r in range(3):
+        for c in range(3):
+            R[r, c] = Rn[r, c]
+    return px, py, pz
+
+
 @njit(cache=True, error_model="numpy")
 def rigid_points(q, L, straight, kappa, EI, m, out):
     """Backbones of the torsionally rigid model.
@@ -64,27 +184,7 @@ def rigid_points(q, L, straight, kappa, EI, m, out):
     R = np.empty((3, 3))
     Rn = np.empty((3, 3))
     for b in range(B):
-        tip = -1e300
-        for i in range(n):
-            ca[i] = math.cos(q[b, i])
-            sa[i] = math.sin(q[b, i])
-            e = q[b, n + i] + L[i]
-            if e > tip:
-                tip = e
-        ne = 0
-        for i in range(n):
-            for v in (q[b, n + i] + straight[i], q[b, n + i] + L[i]):
-                if v > 0.0 and v < tip:
-                    ev[ne] = v
-                    ne += 1
-        for k in range(1, ne):                     # insertion sort of the break points
-            v = ev[k]
-            j = k - 1
-            while j >= 0 and ev[j] > v:
-                ev[j + 1] = ev[j]
-                j -= 1
-            ev[j + 1] = v
-        ev[ne] = tip
+        ne, tip = _break_points(q, b, L, straight, ca, sa, ev)
         for r in range(3):
             for c in range(3):
                 R[r, c] = 1.0 if r == c else 0.0
@@ -99,78 +199,12 @@ def rigid_points(q, L, straight, kappa, EI, m, out):
             last = seg == ne
             if s_b <= s_a and not last:
                 continue
-            mid = 0.5 * (s_a + s_b)
-            eis = 0.0
-            ux = 0.0
-            uy = 0.0
-            for i in range(n):
-                if q[b, n + i] + L[i] > mid:
-                    eis += EI[i]
-                    if q[b, n + i] + straight[i] < mid:
-                        ux -= EI[i] * kappa[i] * sa[i]
-                        uy += EI[i] * kappa[i] * ca[i]
-            if eis > 0.0:
-                ux /= eis
-                uy /= eis
+            ux, uy = _curvature(q, b, L, straight, kappa, EI, ca, sa, 0.5 * (s_a + s_b))
             k2 = ux * ux + uy * uy
-            k = math.sqrt(k2)
-            series = k * (s_b - s_a) < _SERIES_BELOW or k * (tip - s_a) < _SERIES_BELOW
-            first = True
-            chh = 1.0
-            shh = 0.0
-            cdh = 1.0
-            sdh = 0.0
-            while j < m and (last or j * h <= s_b):
-                t = (tip if j == m - 1 else j * h) - s_a
-                if series:
-                    A, C = _arc(k2, t)
-                else:
-                    # half angles x / 2 = k t / 2 advanced by k h / 2 from point to point
-                    # (no trig per point); sin x = 2 s c, 1 - cos x = 2 s^2 (no cancellation)
-                    if first or j == m - 1:
-                        chh = math.cos(0.5 * k * t)
-                        shh = math.sin(0.5 * k * t)
-                        if first:
-                            cdh = math.cos(0.5 * k * h)
-                            sdh = math.sin(0.5 * k * h)
-                    A = 2.0 * shh * chh / k
-                    C = 2.0 * shh * shh / k2
-                    c_next = chh * cdh - shh * sdh
-                    shh = shh * cdh + chh * sdh
-                    chh = c_next
-                first = False
-                dx = C * uy
-                dy = -C * ux
-                out[b, j, 0] = px + R[0, 0] * dx + R[0, 1] * dy + R[0, 2] * A
-                out[b, j, 1] = py + R[1, 0] * dx + R[1, 1] * dy + R[1, 2] * A
-                out[b, j, 2] = pz + R[2, 0] * dx + R[2, 1] * dy + R[2, 2] * A
-                j += 1
+            j = _arc_points(out, b, j, m, h, tip, s_a, s_b, last, ux, uy, k2, R, px, py, pz)
             if last:
                 break
-            t = s_b - s_a
-            A, C = _arc(k2, t)
-            dx = C * uy
-            dy = -C * ux
-            px += R[0, 0] * dx + R[0, 1] * dy + R[0, 2] * A
-            py += R[1, 0] * dx + R[1, 1] * dy + R[1, 2] * A
-            pz += R[2, 0] * dx + R[2, 1] * dy + R[2, 2] * A
-            # E = I + A [u]x + C [u]x^2, [u]x^2 = u u^T - k^2 I (uz = 0)
-            e00 = 1.0 + C * (ux * ux - k2)
-            e01 = C * ux * uy
-            e02 = A * uy
-            e11 = 1.0 + C * (uy * uy - k2)
-            e12 = -A * ux
-            e22 = 1.0 - C * k2
-            for r in range(3):
-                r0 = R[r, 0]
-                r1 = R[r, 1]
-                r2 = R[r, 2]
-                Rn[r, 0] = r0 * e00 + r1 * e01 - r2 * e02
-                Rn[r, 1] = r0 * e01 + r1 * e11 - r2 * e12
-                Rn[r, 2] = r0 * e02 + r1 * e12 + r2 * e22
-            for r in range(3):
-                for c in range(3):
-                    R[r, c] = Rn[r, c]
+            px, py, pz = _advance(R, Rn, px, py, pz, ux, uy, k2, s_b - s_a)
             s_a = s_b
 
 

@@ -33,7 +33,7 @@ import hashlib
 import logging
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -434,6 +434,48 @@ def set_normalisation(model: LearnedModel, data: ShapeData) -> None:
     model.invalidate()
 
 
+def _optimiser(model: LearnedModel, cfg: TrainConfig, steps_per_epoch: int):
+    """(optimiser, one-cycle scheduler stepped per batch or None, plateau scheduler stepped
+    per epoch) for the trainable weights of ``model``: Adam, or AdamW with
+    ``cfg.weight_decay`` > 0; the plateau scheduler is used when there is no one-cycle one."""
+    params = [p for p in model.net.parameters() if p.requires_grad]
+    Opt = torch.optim.AdamW if cfg.weight_decay > 0 else torch.optim.Adam
+    kw = {"weight_decay": cfg.weight_decay} if cfg.weight_decay > 0 else {}
+    try:
+        opt = Opt(params, lr=cfg.lr, fused=True, **kw)
+    except (RuntimeError, TypeError):  # pragma: no cover - older torch / unsupported device
+        opt = Opt(params, lr=cfg.lr, **kw)
+    cycle = None
+    if cfg.schedule == "onecycle":
+        cycle = torch.optim.lr_scheduler.OneCycleLR(
+            opt, max_lr=cfg.lr, total_steps=cfg.epochs * steps_per_epoch, pct_start=0.05,
+            div_factor=25.0, final_div_factor=400.0)
+    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=max(1, cfg.patience // 3),
+                                                       min_lr=cfg.min_lr)
+    return opt, cycle, sched
+
+
+def _train_epoch(model: LearnedModel, opt: torch.optim.Optimizer, cycle: Any,
+                 data: tuple[torch.Tensor, ...], perm: torch.Tensor, bs: int, loss_kind: str) -> float:
+    """One pass over the training rows ``data`` (features, tip lengths, targets) in the order
+    ``perm``, batches of ``bs``; returns the summed loss (mean per batch times its rows). The
+    network is left in eval mode."""
+    x, length, pts = data
+    model.net.train()
+    tot = 0.0
+    for a in range(0, len(perm), bs):
+        idx = perm[a:a + bs]
+        loss = _loss(model, x[idx], length[idx], pts[idx], loss_kind)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if cycle is not None:
+            cycle.step()
+        tot += float(loss.detach()) * len(idx)
+    model.net.eval()
+    return tot
+
+
 def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
           config: TrainConfig | None = None) -> TrainResult:
     """Fit ``model`` in place; returns a :class:`TrainResult` (epochs run, best validation
@@ -449,22 +491,9 @@ def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
     dev = model.device
     xtr, ltr, ptr = _tensors(model, train_data)
     xva, lva, pva = _tensors(model, val_data)
-    params = [p for p in model.net.parameters() if p.requires_grad]
-    Opt = torch.optim.AdamW if cfg.weight_decay > 0 else torch.optim.Adam
-    kw = {"weight_decay": cfg.weight_decay} if cfg.weight_decay > 0 else {}
-    try:
-        opt = Opt(params, lr=cfg.lr, fused=True, **kw)
-    except (RuntimeError, TypeError):  # pragma: no cover - older torch / unsupported device
-        opt = Opt(params, lr=cfg.lr, **kw)
     N = len(train_data)
     bs = max(1, min(cfg.batch_size, N))
-    cycle = None
-    if cfg.schedule == "onecycle":
-        cycle = torch.optim.lr_scheduler.OneCycleLR(
-            opt, max_lr=cfg.lr, total_steps=cfg.epochs * math.ceil(N / bs), pct_start=0.05,
-            div_factor=25.0, final_div_factor=400.0)
-    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=max(1, cfg.patience // 3),
-                                                       min_lr=cfg.min_lr)
+    opt, cycle, sched = _optimiser(model, cfg, math.ceil(N / bs))
     best = math.inf
     best_state = copy.deepcopy(model.net.state_dict())
     best_epoch = 0
@@ -476,19 +505,8 @@ def train(model: LearnedModel, train_data: ShapeData, val_data: ShapeData,
         if not cfg.progress:
             pb.disable = True
         for epoch in range(1, cfg.epochs + 1):
-            model.net.train()
             perm = torch.randperm(N, generator=gen).to(dev)
-            tot = 0.0
-            for a in range(0, N, bs):
-                idx = perm[a:a + bs]
-                loss = _loss(model, xtr[idx], ltr[idx], ptr[idx], cfg.loss)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                if cycle is not None:
-                    cycle.step()
-                tot += float(loss.detach()) * len(idx)
-            model.net.eval()
+            tot = _train_epoch(model, opt, cycle, (xtr, ltr, ptr), perm, bs, cfg.loss)
             with torch.no_grad():
                 val = float(_loss(model, xva, lva, pva, cfg.loss))
             if cycle is None:
@@ -761,6 +779,64 @@ def _base_name(variant: str, sim_model: Any, residual_base: Any) -> str:
     return str(getattr(base, "name", type(base).__name__))
 
 
+def _check_candidates(cands: list[str], r_tr: ShapeData) -> list[str]:
+    """``cands`` after checking each is a variant the training data can train (ValueError)."""
+    if not cands:
+        raise ValueError("no candidate variants")
+    for v in cands:
+        if v not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {v!r}")
+        if v.endswith("direction") and r_tr.direction is None:
+            raise ValueError("a direction-aware variant needs measured data with directions")
+    return cands
+
+
+def _screen(robot: Robot, r_tr: ShapeData, r_va: ShapeData, cands: list[str],
+            stage: Callable[[str], TrainConfig], fine: TrainConfig, real_only: TrainConfig,
+            kw: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, tuple[LearnedModel, TrainResult]]]:
+    """Train each candidate variant with its stage's (``stage(v)``) epochs divided by the
+    number of candidates (``kw``: the :func:`fit_real` arguments). Returns (one table row per
+    candidate with its validation error, variant -> (model, TrainResult))."""
+    rows: list[dict[str, Any]] = []
+    models: dict[str, tuple[LearnedModel, TrainResult]] = {}
+    for v in cands:
+        budget = stage(v).epochs
+        screen = max(1, budget // len(cands))
+        model, res = fit_real(robot, r_tr, r_va, v,
+                              fine=fine.replace(epochs=screen, label=f"{fine.label} [{v}]"),
+                              real_only=real_only.replace(epochs=screen, label=f"{real_only.label} [{v}]"),
+                              **kw)
+        ev = evaluate(model, r_va)
+        models[v] = (model, res)
+        rows.append({"variant": v, "residual_base": _base_name(v, kw["sim_model"], kw["residual_base"]),
+                     "screen_epochs": res.epochs_run, "val_max_dev_mean_mm": ev["max_dev_mean"],
+                     "val_rows": ev["n"]})
+        log.info("variant %-18s validation max deviation %.3f mm (%d epochs)", v, ev["max_dev_mean"],
+                 res.epochs_run)
+    return rows, models
+
+
+def _selection_record(rows: list[dict[str, Any]], models: dict[str, tuple[LearnedModel, TrainResult]],
+                      model: LearnedModel, chosen: str, r_va: ShapeData, r_te: ShapeData | None,
+                      refit: bool) -> dict[str, Any]:
+    """The selection record of :func:`select_variant` (metadata ``selection``): the rows
+    marked with the choice and, with a test part ``r_te``, each candidate's test error (the
+    chosen one's final ``model``)."""
+    for r in rows:
+        r["chosen"] = r["variant"] == chosen
+        if r_te is not None:
+            m = model if r["chosen"] else models[r["variant"]][0]
+            r["test_max_dev_mean_mm"] = evaluate(m, r_te)["max_dev_mean"]
+    return {"mode": AUTO, "chosen": chosen, "by": SELECTION_METRIC,
+            "final_val_max_dev_mean_mm": evaluate(model, r_va)["max_dev_mean"],
+            "validation": _part(r_va), "test": None if r_te is None else _part(r_te),
+            "budget": "each candidate screened with 1/len(candidates) of its stage's epochs, "
+                      "the winner trained on for the rest" + (" and refitted" if refit else ""),
+            "candidates": rows,
+            "test_note": "test errors (the held-out test part) are listed for information "
+                         "only; they did not take part in the choice"}
+
+
 def select_variant(robot: Robot, r_tr: ShapeData, r_va: ShapeData, r_te: ShapeData | None = None,
                    candidates: Sequence[str] | None = None, sim_model: LearnedModel | None = None,
                    residual_base: Any = None, width: int = DEFAULT_WIDTH, depth: int = DEFAULT_DEPTH,
@@ -780,14 +856,8 @@ def select_variant(robot: Robot, r_tr: ShapeData, r_va: ShapeData, r_te: ShapeDa
     record: candidates with their validation (and test) errors, the choice and the rule)."""
     from ctrplan.shape.physics import PhysicsModel
 
-    cands = list(candidates) if candidates is not None else candidate_variants(r_tr)
-    if not cands:
-        raise ValueError("no candidate variants")
-    for v in cands:
-        if v not in VARIANTS:
-            raise ValueError(f"variant must be one of {VARIANTS}, got {v!r}")
-        if v.endswith("direction") and r_tr.direction is None:
-            raise ValueError("a direction-aware variant needs measured data with directions")
+    cands = _check_candidates(list(candidates) if candidates is not None else candidate_variants(r_tr),
+                              r_tr)
     if residual_base is None and any(v.startswith("residual") for v in cands):
         residual_base = PhysicsModel(robot)
     fine = fine or TrainConfig(seed=seed, lr=5e-4, batch_size=128, label="fine-tune (real)")
@@ -798,22 +868,7 @@ def select_variant(robot: Robot, r_tr: ShapeData, r_va: ShapeData, r_te: ShapeDa
 
     kw = dict(sim_model=sim_model, residual_base=residual_base, width=width, depth=depth,
               terms=terms, seed=seed, frame=frame, device=device)
-    rows: list[dict[str, Any]] = []
-    models: dict[str, tuple[LearnedModel, TrainResult]] = {}
-    for v in cands:
-        budget = stage(v).epochs
-        screen = max(1, budget // len(cands))
-        model, res = fit_real(robot, r_tr, r_va, v,
-                              fine=fine.replace(epochs=screen, label=f"{fine.label} [{v}]"),
-                              real_only=real_only.replace(epochs=screen, label=f"{real_only.label} [{v}]"),
-                              **kw)
-        ev = evaluate(model, r_va)
-        models[v] = (model, res)
-        rows.append({"variant": v, "residual_base": _base_name(v, sim_model, residual_base),
-                     "screen_epochs": res.epochs_run, "val_max_dev_mean_mm": ev["max_dev_mean"],
-                     "val_rows": ev["n"]})
-        log.info("variant %-18s validation max deviation %.3f mm (%d epochs)", v, ev["max_dev_mean"],
-                 res.epochs_run)
+    rows, models = _screen(robot, r_tr, r_va, cands, stage, fine, real_only, kw)
     best = min(rows, key=lambda r: r["val_max_dev_mean_mm"])
     chosen = best["variant"]
     model, res = models[chosen]
@@ -827,19 +882,7 @@ def select_variant(robot: Robot, r_tr: ShapeData, r_va: ShapeData, r_te: ShapeDa
         if evaluate(more, r_va)["max_dev_mean"] < best["val_max_dev_mean_mm"]:
             model, res = more, res2
             models[chosen] = (model, res)
-    for r in rows:
-        r["chosen"] = r["variant"] == chosen
-        if r_te is not None:
-            m = model if r["chosen"] else models[r["variant"]][0]
-            r["test_max_dev_mean_mm"] = evaluate(m, r_te)["max_dev_mean"]
-    selection = {"mode": AUTO, "chosen": chosen, "by": SELECTION_METRIC,
-                 "final_val_max_dev_mean_mm": evaluate(model, r_va)["max_dev_mean"],
-                 "validation": _part(r_va), "test": None if r_te is None else _part(r_te),
-                 "budget": "each candidate screened with 1/len(candidates) of its stage's epochs, "
-                           "the winner trained on for the rest" + (" and refitted" if refit else ""),
-                 "candidates": rows,
-                 "test_note": "test errors (the held-out test part) are listed for information "
-                              "only; they did not take part in the choice"}
+    selection = _selection_record(rows, models, model, chosen, r_va, r_te, refit)
     log.info("chose variant %s (validation max deviation %.3f mm; candidates: %s)", chosen,
              best["val_max_dev_mean_mm"],
              ", ".join(f"{r['variant']} {r['val_max_dev_mean_mm']:.3f}" for r in rows))
@@ -873,6 +916,49 @@ def selection_markdown(selection: dict[str, Any]) -> str:
             line += f" {t:.3f} |" if t is not None else " - |"
         lines.append(line + (" yes |" if r.get("chosen") else " |"))
     return "\n".join(lines) + "\n"
+
+
+def _pretrain(robot: Robot, sim: ShapeData, start: LearnedModel | None, pre: TrainConfig | None,
+              arch: tuple[int, int], terms: int, seed: int, device: str, frame: str,
+              sim_base: str | None, sim_pairs: bool) -> tuple[LearnedModel, TrainResult, tuple]:
+    """Pre-train ``start`` (default: a new network of ``arch`` (width, depth) over
+    ``sim_base``) on the simulated data's train / validation parts. Returns (the model, its
+    TrainResult, (train + validation, test part, "sim")) - what its error quantiles come from."""
+    s_tr, s_va, s_te = split(sim, seed=seed)
+    if start is None:
+        sw, sd = arch
+        start = new_model(robot, sw, sd, terms, seed, device, frame,
+                          base=sim_base_model(robot, sim_base), pairs=sim_pairs)
+        if sim_base is not None:
+            start.meta["sim_base"] = sim_base
+        set_normalisation(start, s_tr)
+    pre = pre or TrainConfig(seed=seed, label="pre-train (sim)")
+    return start, train(start, s_tr, s_va, pre), (_concat(s_tr, s_va), s_te, "sim")
+
+
+def _train_real(robot: Robot, real: ShapeData, start: LearnedModel | None, variant: str,
+                candidates: Sequence[str] | None, residual_base: Any, fine: TrainConfig | None,
+                real_only: TrainConfig | None, refit: bool, kw: dict[str, Any]):
+    """Train ``variant`` (or choose one: :data:`AUTO`) on the measured data's train /
+    validation parts, from the pre-trained ``start`` where the variant fine-tunes (``kw``:
+    width, depth, terms, seed, frame, device). Returns (model, the variant trained, the
+    selection record, the stage name, its TrainResult, (train + validation, test part,
+    "real"))."""
+    r_tr, r_va, r_te = split(real, seed=kw["seed"] + 1)
+    if variant.endswith("direction") and real.direction is None:
+        raise ValueError("a direction-aware variant needs measured data with directions")
+    if variant == AUTO:
+        model, res, selection = select_variant(
+            robot, r_tr, r_va, r_te, candidates=candidates, sim_model=start,
+            residual_base=residual_base, fine=fine, real_only=real_only, refit=refit, **kw)
+        variant = selection["chosen"]
+    else:
+        selection = {"mode": "explicit", "chosen": variant,
+                     "by": "given by the caller (no comparison)"}
+        model, res = fit_real(robot, r_tr, r_va, variant, sim_model=start, residual_base=residual_base,
+                              fine=fine, real_only=real_only, refit=refit, **kw)
+    stage = "finetune" if (start is not None and not variant.startswith("residual")) else "real"
+    return model, variant, selection, stage, res, (_concat(r_tr, r_va), r_te, "real")
 
 
 def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData | None,
@@ -923,46 +1009,20 @@ def pretrain_finetune(robot: Robot | str, sim: ShapeData | None, real: ShapeData
         data["init"] = dict(getattr(base, "meta", {}).get("data", {}))
     model: LearnedModel | None = start
     if sim is not None:
-        s_tr, s_va, s_te = split(sim, seed=seed)
-        if start is None:
-            sw, sd = sim_arch if sim_arch is not None else (width, depth)
-            start = new_model(robot, sw, sd, terms, seed, device, frame,
-                              base=sim_base_model(robot, sim_base), pairs=sim_pairs)
-            if sim_base is not None:
-                start.meta["sim_base"] = sim_base
-            set_normalisation(start, s_tr)
-        pre = pre or TrainConfig(seed=seed, label="pre-train (sim)")
-        stages["pretrain"] = train(start, s_tr, s_va, pre)
+        start, stages["pretrain"], eq_data = _pretrain(
+            robot, sim, start, pre, sim_arch if sim_arch is not None else (width, depth), terms,
+            seed, device, frame, sim_base, sim_pairs)
         data["sim"] = sim.describe()
-        metrics["sim_test"] = summary_metrics(evaluate(start, s_te))
+        metrics["sim_test"] = summary_metrics(evaluate(start, eq_data[1]))
         model = start
-        eq_data = (_concat(s_tr, s_va), s_te, "sim")
     if real is not None:
-        r_tr, r_va, r_te = split(real, seed=seed + 1)
-        if variant.endswith("direction") and real.direction is None:
-            raise ValueError("a direction-aware variant needs measured data with directions")
-        if variant == AUTO:
-            model, res, selection = select_variant(
-                robot, r_tr, r_va, r_te, candidates=candidates, sim_model=start,
-                residual_base=residual_base, width=width, depth=depth, terms=terms, seed=seed,
-                frame=frame, device=device, fine=fine,
-                real_only=real_only or (fine if start is None else None), refit=refit)
-            variant = selection["chosen"]
-        else:
-            model = None
-            selection = {"mode": "explicit", "chosen": variant,
-                         "by": "given by the caller (no comparison)"}
-        stage = "finetune" if (start is not None and not variant.startswith("residual")) else "real"
-        if model is None:
-            model, stages[stage] = fit_real(
-                robot, r_tr, r_va, variant, sim_model=start, residual_base=residual_base, width=width,
-                depth=depth, terms=terms, seed=seed, frame=frame, device=device,
-                fine=fine, real_only=real_only or (fine if start is None else None), refit=refit)
-        else:
-            stages[stage] = res
+        model, variant, selection, stage, res, eq_data = _train_real(
+            robot, real, start, variant, candidates, residual_base, fine,
+            real_only or (fine if start is None else None), refit,
+            dict(width=width, depth=depth, terms=terms, seed=seed, frame=frame, device=device))
+        stages[stage] = res
         data["real"] = real.describe()
-        metrics["real_test"] = summary_metrics(evaluate(model, r_te))
-        eq_data = (_concat(r_tr, r_va), r_te, "real")
+        metrics["real_test"] = summary_metrics(evaluate(model, eq_data[1]))
     elif variant != "pure":
         raise ValueError(f"variant {variant!r} needs measured data")
     assert model is not None
