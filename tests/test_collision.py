@@ -239,3 +239,31 @@ def test_empty_world_raises(tmp_path):
         CollisionWorld(empty)
     with pytest.raises(InputError):
         CollisionWorld(scene, margin_mm=-1.0)
+
+
+@pytest.mark.parametrize("trace", [False, True])
+def test_a_zero_length_capsule_is_bounded_as_a_sphere(trace):
+    """Coinciding backbone points give a capsule of zero length (a sphere): its bounds come
+    from the one point, against trimesh's exact closest point on the mesh (the walk divided
+    by zero there). Inside an obstacle it is a proven collision; near the surface within its
+    radius never free; far away free with a clearance no larger than the true one."""
+    import trimesh
+
+    from ctrplan.collision.field import build_field, capsule_bounds
+
+    m = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    f = build_field(np.asarray(m.vertices), np.asarray(m.faces), watertight=True)
+    pts = np.array([[0.0, 0.0, 0.0], [9.6, 0.0, 0.0], [30.0, 0.0, 0.0]])
+    true = trimesh.proximity.closest_point(m, pts)[1]
+    for p, d in zip(pts, true):
+        a = p.reshape(1, 1, 3)
+        clear, depth = np.full(1, np.inf), np.full(1, -np.inf)
+        unsure = np.zeros((1, 1), np.uint64)
+        capsule_bounds(f, a, a.copy(), np.ones((1, 1)), np.ones(1, bool), clear, depth, 1.0,
+                       bad_side=-1, trace=trace, unsure=unsure)
+        if p[0] == 0.0:
+            assert depth[0] > 0                                 # inside the obstacle
+        elif d < 1.0:
+            assert depth[0] > 0 or unsure[0, 0]                 # within the radius: never free
+        else:
+            assert not unsure[0, 0] and 0 < clear[0] <= d - 1.0 + 1e-6

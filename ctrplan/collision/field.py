@@ -311,7 +311,7 @@ def _walk_axis(ax, ay, az, vx, vy, vz, rk, lb, ub, side, bad_side, origin, h, bo
     proven, the configuration collides)."""
     seg = math.sqrt(vx * vx + vy * vy + vz * vz)
     inv = 1.0 / seg if seg > 0.0 else 0.0
-    n = int(math.ceil(seg / sample_mm)) + 1
+    n = max(int(math.ceil(seg / sample_mm)) + 1, 2)     # a zero-length axis is one point
     delta = seg / (n - 1)
     half = 0.5 * delta
     unsure = False
