@@ -324,6 +324,20 @@ class _Problem:
         return True
 
 
+def _descent(prob, path, costs, tip, keep_goal: bool):
+    """The cost's gradient G (K, 2n), the tip Jacobian J of the goal state and the descent
+    direction D (largest row: 1 mm in the metric; None where the gradient vanishes). The goal
+    moves only along the tip's null space (not at all with ``keep_goal``)."""
+    G, J = prob.gradient(path, costs, tip)
+    JJ = J @ J.T
+    if np.linalg.cond(JJ) < 1e12 and not keep_goal:
+        G[-1] -= J.T @ np.linalg.solve(JJ, J @ G[-1])
+    else:
+        G[-1] = 0.0
+    norm = float(np.max(np.linalg.norm(G, axis=1)))
+    return G, J, (-G / norm if norm > 0 else None)
+
+
 def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.ndarray,
                   objective: str = "clearance", config: OptimizeConfig | None = None,
                   check_resolution_mm: float | None = None,
@@ -363,17 +377,9 @@ def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.n
             capped = True
             break
         if G is None:
-            G, J = prob.gradient(path, costs, tips[-1])
-            # the goal moves only along the tip's null space
-            JJ = J @ J.T
-            if np.linalg.cond(JJ) < 1e12 and not keep_goal:
-                G[-1] -= J.T @ np.linalg.solve(JJ, J @ G[-1])
-            else:
-                G[-1] = 0.0
-            norm = float(np.max(np.linalg.norm(G, axis=1)))
-            if not norm > 0:
+            G, J, D = _descent(prob, path, costs, tips[-1], keep_goal)
+            if D is None:
                 break
-            D = -G / norm                                   # largest row: 1 mm (metric)
         trials += 1
         cand = path + step * D / prob.w[None]
         cand = prob.project(path, cand)
