@@ -1,0 +1,427 @@
+"""Reachability maps: which points of the anatomy's surface the robot can put its tip at.
+
+``ctrplan scene reach`` (:func:`reach_map`) samples the surface (:func:`ctrplan.collision.surface.
+sample_surface`: area-weighted, seeded, or a region near named targets) and decides per point
+whether the robot reaches it: the tip at the **goal** ``point + standoff_mm * normal`` (the
+normal points into the lumen), and, with an approach cone, the tip's tangent within
+``cone_deg`` of the approach direction (``normal``: straight at the surface, ``-normal``; or a
+fixed direction in the scene frame).
+
+Two stages:
+
+1. **Screen** (:func:`screen`, in the driving process): batched IK over all points at once
+   (``ik_seeds`` workspace samples nearest each goal as seeds, every seed with its own target in
+   one :func:`~ctrplan.planning.ik.solve_ik`), then the direction filter and the planning
+   world's collision check of the converged configurations. A point passes when one
+   configuration puts the tip within the tolerance of the goal, its direction within the cone,
+   collision-free.
+2. **Plan**: a full plan (:meth:`Planner.plan <ctrplan.planning.planner.Planner.plan>`, the
+   retracted start, the same seed for every point) to every point that passed, on the same
+   pool / Ray path as plan-batch (:func:`~ctrplan.planning.batch.run_tasks`). The map's verdict
+   is the plan's: ``reachable`` only for a plan with status SUCCESS whose final tip direction
+   is within the cone. A point that fails the screen is ``reachable = false`` with status
+   ``NO_POSE`` and is not planned.
+
+Resumable like plan-batch: each point's result is written durably to ``<out>/points/<id>.json``
+as it is decided (the id is the point's index plus a hash of the point and every setting); a
+rerun with the same settings skips the points whose file exists and decides the rest.
+``reach.csv``, ``reach.html`` and ``reach.png`` are written (atomically) only once every point
+is decided, so an interrupted run leaves no partial map.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from ctrplan.errors import ArgumentError, InputError
+
+log = logging.getLogger("ctrplan")
+
+#: Status of a point the screen found no pose for (it is not planned).
+NO_POSE = "NO_POSE"
+#: Status of a plan that succeeded but whose final tip direction is outside the cone.
+OUTSIDE_CONE = "OUTSIDE_CONE"
+#: Backbone points used for the tip direction (the last segment's chord; its angle to the true
+#: tangent is at most curvature x segment / 2: 0.3 deg for 0.02 /mm over 250 mm).
+DIRECTION_POINTS = 400
+
+
+@dataclass(frozen=True)
+class ReachSettings:
+    """One map's settings (all of them go into each point's id).
+
+    scene, robot, model : as for ``plan`` (names or paths).
+    standoff_mm : the goal lies this far from the surface point along its normal (mm).
+    approach : "" (no direction goal), "normal" (the tip pointing at the surface: its tangent
+        within ``cone_deg`` of ``-normal``) or "x,y,z" (a fixed tangent, scene frame).
+    cone_deg : half-angle of the approach cone (deg); required with an approach.
+    tolerance_mm, time_limit, planner, margin, objective : each plan's, as for ``plan``.
+    seed : the surface sample's and every plan's seed.
+    ik_seeds : IK seeds per point in the screen.
+    """
+
+    scene: str
+    robot: str = "seed1"
+    model: str = "physics"
+    standoff_mm: float = 2.0
+    approach: str = ""
+    cone_deg: float | None = None
+    tolerance_mm: float = 1.0
+    time_limit: float = 2.0
+    planner: str = "rrtconnect"
+    margin: str = "auto"
+    objective: str = "clearance"
+    seed: int = 0
+    ik_seeds: int = 16
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.standoff_mm) and self.standoff_mm >= 0):
+            raise ArgumentError("standoff_mm", f"must be a number >= 0 (mm), got {self.standoff_mm!r}")
+        if self.approach and self.cone_deg is None:
+            raise ArgumentError("cone_deg", "an approach direction needs a cone (deg)")
+        if self.cone_deg is not None and not (0 < self.cone_deg <= 180):
+            raise ArgumentError("cone_deg", f"must be in (0, 180] deg, got {self.cone_deg!r}")
+        if self.approach and self.approach != "normal":
+            parse_direction(self.approach)
+        if not (isinstance(self.ik_seeds, int) and self.ik_seeds >= 1):
+            raise ArgumentError("ik_seeds", f"must be an integer >= 1, got {self.ik_seeds!r}")
+
+
+def parse_direction(text: str) -> np.ndarray:
+    """A unit direction from ``"x,y,z"``; ArgumentError naming ``approach`` otherwise."""
+    try:
+        v = np.array([float(x) for x in str(text).split(",")], dtype=float)
+    except ValueError:
+        v = np.zeros(0)
+    if v.shape != (3,) or not np.all(np.isfinite(v)) or not np.linalg.norm(v) > 0:
+        raise ArgumentError("approach", f"must be 'normal' or a non-zero direction X,Y,Z, got {text!r}")
+    return v / np.linalg.norm(v)
+
+
+def approach_directions(settings: ReachSettings, normals: np.ndarray) -> np.ndarray | None:
+    """(P, 3) unit tip tangents asked for (scene frame), or None without an approach."""
+    if not settings.approach:
+        return None
+    if settings.approach == "normal":
+        return -np.asarray(normals, dtype=float)
+    return np.repeat(parse_direction(settings.approach)[None], len(normals), axis=0)
+
+
+def point_id(settings: ReachSettings, index: int, point, normal) -> str:
+    """``p<index>__<hash>``: the hash covers the point, its normal and every setting."""
+    spec = json.dumps({"settings": asdict(settings), "point": [float(v) for v in point],
+                       "normal": [float(v) for v in normal]}, sort_keys=True)
+    return f"p{int(index):05d}__{hashlib.sha1(spec.encode()).hexdigest()[:10]}"
+
+
+# ---------------------------------------------------------------------- the screen
+@dataclass(frozen=True)
+class ScreenResult:
+    """Per point (P,): passed; best tip error (mm) of the IK; direction error (deg) and
+    clearance (mm) of the best passing configuration (nan where none passed)."""
+
+    passed: np.ndarray
+    tip_error_mm: np.ndarray
+    direction_error_deg: np.ndarray
+    clearance_mm: np.ndarray
+
+
+def tip_directions(model, q: np.ndarray) -> np.ndarray:
+    """(B, 3) unit tip tangents (robot base frame) of configurations ``q`` (B, 2n)."""
+    if len(q) == 0:
+        return np.zeros((0, 3))
+    pts = model.shape(q, points=DIRECTION_POINTS).points
+    d = pts[:, -1] - pts[:, -2]
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(B,) angles (deg) between unit vectors a, b (B, 3)."""
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
+
+
+def screen(planner, goals: np.ndarray, directions: np.ndarray | None, cone_deg: float | None,
+           tolerance_mm: float, seeds: int = 16) -> ScreenResult:
+    """The screen (module docstring) of goals (P, 3) mm, scene frame, with tip tangents
+    ``directions`` (P, 3) scene frame (None: any direction) within ``cone_deg``."""
+    from ctrplan.planning.ik import solve_ik
+
+    goals = np.asarray(goals, dtype=float).reshape(-1, 3)
+    P = len(goals)
+    nan = np.full(P, np.nan)
+    if P == 0:
+        return ScreenResult(np.zeros(0, bool), nan, nan, nan)
+    robot, model, scene = planner.robot, planner.model, planner.scene
+    table = planner.workspace_table()
+    base = scene.to_base(goals)
+    q0 = np.concatenate([table.nearest(g, seeds) for g in base])
+    per = len(q0) // P
+    owner = np.repeat(np.arange(P), per)
+    cfg = planner.config
+    ikc = replace(cfg.ik, stop_mm=min(cfg.ik.stop_mm, 0.1 * tolerance_mm))
+    res = solve_ik(model, robot, base[owner], q0, ikc)
+    err = res.error_mm
+    best_err = np.full(P, np.inf)
+    np.minimum.at(best_err, owner, np.where(np.isfinite(err), err, np.inf))
+    validator = planner.validator(tracking=False)
+    ok = (err <= tolerance_mm) & validator.joint_valid(res.q)
+    dir_err = np.full(len(err), np.nan)
+    if directions is not None:
+        rot = scene.base_pose[:3, :3]
+        idx = np.flatnonzero(ok)
+        d = tip_directions(model, res.q[idx]) @ rot.T
+        dir_err[idx] = angle_deg(d, np.asarray(directions, dtype=float)[owner[idx]])
+        ok[idx] &= dir_err[idx] <= cone_deg
+    clear = np.full(len(err), -np.inf)
+    idx = np.flatnonzero(ok)
+    if len(idx):
+        collides, clearance, _ = validator.check_states(res.q[idx])
+        ok[idx] &= ~np.asarray(collides, dtype=bool)
+        clear[idx] = np.where(ok[idx], np.asarray(clearance, dtype=float), -np.inf)
+    passed = np.zeros(P, dtype=bool)
+    np.logical_or.at(passed, owner, ok)
+    best_clear = np.full(P, -np.inf)
+    np.maximum.at(best_clear, owner, clear)
+    best_dir = np.full(P, np.nan)
+    for p in np.flatnonzero(passed):      # the direction error of the clearest passing pose
+        rows = np.flatnonzero((owner == p) & ok)
+        best_dir[p] = dir_err[rows[np.argmax(clear[rows])]]
+    return ScreenResult(passed=passed, tip_error_mm=np.where(np.isfinite(best_err), best_err, np.nan),
+                        direction_error_deg=best_dir,
+                        clearance_mm=np.where(passed, best_clear, np.nan))
+
+
+# ---------------------------------------------------------------------- one point's plan
+def plan_point(task: dict, planners=None) -> dict:
+    """Plan to one screened point (a task dict: ``settings``, ``id``, ``goal``, ``direction``)
+    with a planner of ``planners`` (None: this worker's); the point's result fields."""
+    from ctrplan.planning.planner import PlannerConfig, worker_planners
+
+    s = ReachSettings(**task["settings"])
+    planners = planners if planners is not None else worker_planners()
+    margin = None if s.margin == "auto" else float(s.margin)
+    planner = planners.get(s.robot, s.scene, s.model, PlannerConfig(margin_mm=margin, objective=s.objective))
+    result = planner.plan(np.asarray(task["goal"], dtype=float), seed=s.seed, planner=s.planner,
+                          time_limit=s.time_limit, tolerance_mm=s.tolerance_mm)
+    status = result.status.value
+    dir_err = None
+    if len(result.path) and task.get("direction") is not None:
+        d = tip_directions(planner.model, np.asarray(result.path[-1:], dtype=float))
+        d = d @ planner.scene.base_pose[:3, :3].T
+        dir_err = float(angle_deg(d, np.asarray(task["direction"], dtype=float)[None])[0])
+        if status == "SUCCESS" and dir_err > float(s.cone_deg):
+            status = OUTSIDE_CONE
+    return {"id": task["id"], "status": status, "reachable": status == "SUCCESS",
+            "planned": True, "message": result.message,
+            "tip_error_mm": _num(result.tip_error_mm), "direction_error_deg": _num(dir_err),
+            "clearance_mm": _num(result.min_clearance_mm),
+            "planning_time_s": _num(result.planning_time_s),
+            "goal_shift_mm": _num(getattr(result, "goal_shift_mm", None))}
+
+
+def _plan_point_json(task: dict) -> dict:
+    """plan_point in a worker process (pool or Ray) with the worker's planners."""
+    return plan_point(task)
+
+
+def _num(v) -> float | None:
+    if v is None:
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+# ---------------------------------------------------------------------- the map
+@dataclass(frozen=True)
+class ReachSummary:
+    """What a map run did: points in total, skipped (already decided), screened out now,
+    planned now, reachable in total; rows: one dict per point (reach.csv's columns)."""
+
+    total: int
+    skipped: int
+    screened_out: int
+    planned: int
+    reachable: int
+    rows: list[dict]
+    out: Path
+
+
+#: reach.csv's columns, in order (docs/conventions.md describes each).
+COLUMNS = ("point", "mesh", "x", "y", "z", "nx", "ny", "nz", "goal_x", "goal_y", "goal_z",
+           "standoff_mm", "cone_deg", "reachable", "status", "screen", "screen_clearance_mm",
+           "tip_error_mm", "direction_error_deg", "clearance_mm", "planning_time_s", "id")
+
+
+def reach_map(settings: ReachSettings, samples, out, workers: int = 1,
+              ray_address: str | None = None, planners=None) -> ReachSummary:
+    """Decide every sampled point (module docstring) and write ``out``/reach.csv (the views are
+    the command's: :mod:`ctrplan.commands.reach`). ``samples``: a
+    :class:`~ctrplan.collision.surface.SurfaceSamples` in the scene's frame."""
+    from ctrplan import interrupt, progress
+    from ctrplan.planning.batch import _folder_lock, run_tasks, write_job_file
+    from ctrplan.planning.planner import Planners
+
+    out = Path(out)
+    pdir = out / "points"
+    pdir.mkdir(parents=True, exist_ok=True)
+    pts, nrm = np.asarray(samples.points, float), np.asarray(samples.normals, float)
+    goals = pts + settings.standoff_mm * nrm
+    dirs = approach_directions(settings, nrm)
+    ids = [point_id(settings, i, p, n) for i, (p, n) in enumerate(zip(pts, nrm))]
+    with _folder_lock(out):
+        for stale in pdir.glob(".*"):
+            if stale.is_file():
+                stale.unlink()
+        done: dict[str, dict] = {}
+        for i, pid in enumerate(ids):
+            data = read_point_file(pdir / f"{pid}.json", pid)
+            if data is not None:
+                done[pid] = data
+        todo = [i for i, pid in enumerate(ids) if pid not in done]
+        skipped = len(ids) - len(todo)
+        if todo:
+            for name in ("reach.csv", "reach.html", "reach.png"):
+                (out / name).unlink(missing_ok=True)
+        planners = planners if planners is not None else Planners()
+        screened_out = planned = 0
+        if todo:
+            margin = None if settings.margin == "auto" else float(settings.margin)
+            from ctrplan.planning.planner import PlannerConfig
+
+            planner = planners.get(settings.robot, settings.scene, settings.model,
+                                   PlannerConfig(margin_mm=margin, objective=settings.objective))
+            log.info("reach: screening %d points (%d already decided)", len(todo), skipped)
+            sc = screen(planner, goals[todo], None if dirs is None else dirs[todo],
+                        settings.cone_deg, settings.tolerance_mm, settings.ik_seeds)
+            interrupt.check()
+            screen_of: dict[str, dict] = {}
+            tasks = []
+            for k, i in enumerate(todo):
+                info = {"screen": bool(sc.passed[k]), "screen_clearance_mm": _num(sc.clearance_mm[k]),
+                        "screen_tip_error_mm": _num(sc.tip_error_mm[k]),
+                        "screen_direction_error_deg": _num(sc.direction_error_deg[k])}
+                screen_of[ids[i]] = {**_point_fields(settings, i, ids[i], samples, goals, dirs), **info}
+                if sc.passed[k]:
+                    tasks.append({"settings": asdict(settings), "id": ids[i], "goal": goals[i].tolist(),
+                                  "direction": None if dirs is None else dirs[i].tolist()})
+            bar = progress.bar(total=len(tasks), desc="reach", unit="point")
+
+            def record(res: dict) -> None:
+                rec = {**screen_of[res["id"]], **res}
+                write_job_file(pdir / f"{res['id']}.json", rec)
+                done[res["id"]] = rec
+                bar.update(1)
+
+            for k, i in enumerate(todo):      # the screened-out points are decided now
+                if not sc.passed[k]:
+                    write_job_file(pdir / f"{ids[i]}.json", {
+                        **screen_of[ids[i]], "status": NO_POSE, "reachable": False, "planned": False,
+                        "message": "no collision-free pose with the tip at the goal (and its "
+                                   "direction in the cone) was found by the screen",
+                        "tip_error_mm": _num(sc.tip_error_mm[k]), "direction_error_deg": None,
+                        "clearance_mm": None, "planning_time_s": None, "goal_shift_mm": None})
+                    done[ids[i]] = read_point_file(pdir / f"{ids[i]}.json", ids[i])
+                    screened_out += 1
+            try:
+                if workers <= 1 and not ray_address:
+                    run_tasks(lambda t: plan_point(t, planners), tasks, 1, None, record)
+                else:
+                    run_tasks(_plan_point_json, tasks, workers, ray_address, record)
+            finally:
+                bar.close()
+            planned = len(tasks)
+        rows = [csv_row(done[pid]) for pid in ids]
+        from ctrplan.io import write_csv_atomic
+
+        write_csv_atomic(out / "reach.csv", COLUMNS,
+                         [["" if r[c] is None else r[c] for c in COLUMNS] for r in rows])
+    return ReachSummary(total=len(ids), skipped=skipped, screened_out=screened_out, planned=planned,
+                        reachable=sum(bool(r["reachable"]) for r in rows), rows=rows, out=out)
+
+
+def _point_fields(settings: ReachSettings, i: int, pid: str, samples, goals, dirs) -> dict:
+    return {"id": pid, "point": int(i), "mesh": str(samples.mesh[i]),
+            "position": [float(v) for v in samples.points[i]],
+            "normal": [float(v) for v in samples.normals[i]],
+            "goal": [float(v) for v in goals[i]],
+            "direction": None if dirs is None else [float(v) for v in dirs[i]],
+            "standoff_mm": float(settings.standoff_mm), "cone_deg": settings.cone_deg,
+            "settings": asdict(settings)}
+
+
+def csv_row(rec: dict) -> dict:
+    """A point's reach.csv row (a dict keyed by :data:`COLUMNS`)."""
+    x, y, z = rec["position"]
+    nx, ny, nz = rec["normal"]
+    gx, gy, gz = rec["goal"]
+    return {"point": rec["point"], "mesh": rec["mesh"], "x": x, "y": y, "z": z, "nx": nx, "ny": ny,
+            "nz": nz, "goal_x": gx, "goal_y": gy, "goal_z": gz, "standoff_mm": rec["standoff_mm"],
+            "cone_deg": rec["cone_deg"], "reachable": int(bool(rec["reachable"])),
+            "status": rec["status"], "screen": int(bool(rec["screen"])),
+            "screen_clearance_mm": rec.get("screen_clearance_mm"),
+            "tip_error_mm": rec.get("tip_error_mm"), "direction_error_deg": rec.get("direction_error_deg"),
+            "clearance_mm": rec.get("clearance_mm"), "planning_time_s": rec.get("planning_time_s"),
+            "id": rec["id"]}
+
+
+# ---------------------------------------------------------------------- resume
+_STATUSES = None
+
+
+def read_point_file(path: Path, pid: str) -> dict | None:
+    """The decided result of point ``pid`` in ``path``, or None when it must be decided (no
+    file, not JSON, another point). A file of this point with a field that does not hold is
+    refused (InputError naming the file and field): it may have been edited."""
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(data, dict) or data.get("id") != pid or "status" not in data:
+        return None
+    return validate_point(path, data)
+
+
+def validate_point(path, data: dict) -> dict:
+    """``data`` when every field reach.csv uses holds; InputError naming the file and field."""
+    from ctrplan.planning.result import PlanStatus
+
+    hint = "(delete the file to decide the point again)"
+
+    def bad(field: str, what: str) -> InputError:
+        return InputError(str(path), field, f"{what} {hint}")
+
+    statuses = {s.value for s in PlanStatus} | {NO_POSE, OUTSIDE_CONE}
+    if data.get("status") not in statuses:
+        raise bad("status", f"must be one of {', '.join(sorted(statuses))}")
+    for key in ("reachable", "screen", "planned"):
+        if not isinstance(data.get(key), bool):
+            raise bad(key, "must be true or false")
+    if data["reachable"] != (data["status"] == "SUCCESS"):
+        raise bad("reachable", f"must be {str(data['status'] == 'SUCCESS').lower()} for status {data['status']}")
+    if data["status"] == NO_POSE and (data["screen"] or data["planned"]):
+        raise bad("screen", f"a point of status {NO_POSE} failed the screen and was not planned")
+    for key in ("position", "normal", "goal"):
+        v = data.get(key)
+        if not (isinstance(v, list) and len(v) == 3 and all(_finite(x) for x in v)):
+            raise bad(key, "must be three finite numbers (mm)")
+    if not isinstance(data.get("point"), int) or isinstance(data.get("point"), bool) or data["point"] < 0:
+        raise bad("point", "must be an index >= 0")
+    if not isinstance(data.get("mesh"), str):
+        raise bad("mesh", "must be a mesh name")
+    for key in ("standoff_mm", "cone_deg", "screen_clearance_mm", "tip_error_mm",
+                "direction_error_deg", "clearance_mm", "planning_time_s"):
+        v = data.get(key)
+        if v is not None and not _finite(v):
+            raise bad(key, "must be a finite number or null")
+    return data
+
+
+def _finite(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))
