@@ -40,6 +40,7 @@ _EXPORTS = {
     "PlanResult": "ctrplan.planning.result",
     "PlanStatus": "ctrplan.planning.result",
     "PlanConfig": "ctrplan.planning.planner",
+    "TipGoal": "ctrplan.planning.tipgoal",
     "plan_trajectory": "ctrplan.planning.trajectory",
     "Trajectory": "ctrplan.planning.trajectory",
     "diagnose": "ctrplan.calibration.diagnose",

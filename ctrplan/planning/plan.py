@@ -54,11 +54,12 @@ from ctrplan.planning.arguments import (
 )
 from ctrplan.planning.planner import PlanConfig, Planner, PlannerConfig, Planners
 from ctrplan.planning.result import PlanResult, PlanStatus, robot_record_of
+from ctrplan.planning.tipgoal import TipGoal, split_goal
 from ctrplan.planning.verify import path_min_clearance
 from ctrplan.robot import Robot
 
 __all__ = ["MAX_TARGET_MM", "PlanConfig", "PlanResult", "PlanStatus", "Planner", "PlannerConfig",
-           "Planners", "check_objective", "check_start", "check_target", "path_min_clearance",
+           "Planners", "TipGoal", "check_objective", "check_start", "check_target", "path_min_clearance",
            "plan_to_target", "planning_model_of", "resolve_model", "robot_record_of",
            "scene_by_name", "world_for"]
 
@@ -96,7 +97,7 @@ def plan_to_target(
         check_objective(objective)
     check_plan_args(time_limit, tolerance_mm, seed)
     check_planner(planner)
-    check_target(target)
+    split_goal(target)
     prepared = Planner(robot, scene, model, config, world=world)
     return prepared.plan(target, seed=seed, start=start, planner=planner, time_limit=time_limit,
                          tolerance_mm=tolerance_mm, objective=objective)

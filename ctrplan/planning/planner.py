@@ -33,9 +33,10 @@ from ctrplan.planning import ik as _ik
 from ctrplan.planning import optimize as _opt
 from ctrplan.planning import stages as _stages
 from ctrplan.planning import verify as _verify
-from ctrplan.planning.arguments import check_objective, check_plan_args, check_target
+from ctrplan.planning.arguments import check_objective, check_plan_args
 from ctrplan.planning.result import PlanResult
 from ctrplan.planning.run import Run, Stop
+from ctrplan.planning.tipgoal import split_goal
 from ctrplan.planning.validator import BatchValidator, ValidatorConfig
 from ctrplan.robot import Robot, load_robot
 from ctrplan.shape.planning_model import PlanningModel, planning_model
@@ -294,7 +295,7 @@ class Planner:
         t_call, self._unbilled = time.perf_counter() - self._unbilled, 0.0
         check_plan_args(time_limit, tolerance_mm, seed)
         requested = check_planner(planner)
-        target = check_target(target)
+        target, tip_goal = split_goal(target)
         cfg = self.config
         if objective is not None and check_objective(objective) != cfg.objective:
             cfg = replace(cfg, objective=check_objective(objective))
@@ -307,16 +308,27 @@ class Planner:
                     reference_model=self.reference_label, objective=cfg.objective,
                     calibrated=m.calibrated, surrogate_error=m.surrogate_error,
                     measured_insertion=m.measured_insertion)
+        if tip_goal is not None:
+            meta.update(_tip_goal_meta(tip_goal))
         run = Run(prep=self, robot=self.robot, scene=self.scene, target=target,
                   target_base=self.scene.to_base(target[None])[0], model=m,
                   reference=self.reference, world=self.world, validator=self.validator(),
                   cfg=cfg, planner=requested, seed=int(seed), tolerance_mm=float(tolerance_mm),
                   time_limit=float(time_limit), t_call=t_call, margin_mm=self.margin_mm,
-                  margin_auto=self.margin_auto, curvature=self.curvature, meta=meta)
+                  margin_auto=self.margin_auto, curvature=self.curvature, meta=meta,
+                  tip_goal=tip_goal)
         run.timings = {"setup": time.perf_counter() - t_call, "checks": 0.0, "ik": 0.0, "planning": 0.0,
                        "simplification": 0.0, "optimization": 0.0, "verification": 0.0,
                        "total": 0.0}
         return run
+
+
+def _tip_goal_meta(goal) -> dict:
+    """plan.json's record of a :class:`~ctrplan.planning.tipgoal.TipGoal` (the goal as given
+    and the standoff asked for; what the plan achieved is added by the output)."""
+    return dict(tip_goal=goal.record(), standoff_requested_mm=goal.standoff_mm,
+                cone_deg=goal.cone_deg,
+                approach_direction=None if goal.direction is None else list(goal.direction))
 
 
 #: ``PlanConfig``: the name of :class:`PlannerConfig` before there was a Planner (kept).

@@ -96,6 +96,16 @@ class PlanResult:
     duration_s : the duration (s) of the time-parameterised trajectory along ``path`` within
         the robot's actuator limits (:func:`ctrplan.planning.trajectory.plan_trajectory`);
         nan (null in plan.json) until one is made.
+    tip_direction : (3,) unit tip tangent at the final state (scene frame; planning model,
+        :func:`~ctrplan.planning.tipgoal.tip_frames`), None without a path.
+    tip_goal, approach_direction, cone_deg, standoff_requested_mm : a
+        :class:`~ctrplan.planning.tipgoal.TipGoal`'s record (``TipGoal.record()``), its
+        direction (scene frame, unit), cone (deg) and standoff (mm) as asked; None for a point.
+    direction_error_deg : the angle (deg) between ``tip_direction`` and ``approach_direction``
+        (nan without a direction or a path). A tip outside the cone is not SUCCESS
+        (``OUTSIDE_TOLERANCE``).
+    standoff_mm : the standoff achieved: the final tip's distance from the goal's surface point
+        along its normal (or back along its direction), planning model; nan for a point goal.
     """
 
     success: bool
@@ -141,6 +151,13 @@ class PlanResult:
     branch: list | None = None
     stability: list | None = None
     duration_s: float = math.nan
+    tip_direction: np.ndarray | None = None
+    direction_error_deg: float = math.nan
+    standoff_mm: float = math.nan
+    standoff_requested_mm: float | None = None
+    cone_deg: float | None = None
+    approach_direction: list | None = None
+    tip_goal: dict | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The plan.json fields of docs/conventions.md (plus diagnostics), JSON-ready (no NaN: null instead)."""
@@ -176,6 +193,15 @@ class PlanResult:
             "start_rotated": bool(self.start_rotated),
             "goal_shift_mm": float(self.goal_shift_mm),
             "goal": None if self.goal is None else [float(v) for v in self.goal],
+            # tip pose goals (ctrplan.planning.tipgoal): the goal, and what the plan achieved
+            "tip_goal": None if self.tip_goal is None else dict(self.tip_goal),
+            "tip_direction": _vec(self.tip_direction),
+            "approach_direction": _vec(self.approach_direction),
+            "cone_deg": None if self.cone_deg is None else float(self.cone_deg),
+            "direction_error_deg": _num(self.direction_error_deg),
+            "standoff_requested_mm": (None if self.standoff_requested_mm is None
+                                      else float(self.standoff_requested_mm)),
+            "standoff_mm": _num(self.standoff_mm),
             "measured_insertion": self.measured_insertion,
             "outside_measured_states": self.outside_measured_states,
             "seed": int(self.seed),
@@ -198,6 +224,13 @@ def robot_record_of(spec: dict) -> dict[str, Any]:
     from ctrplan.robot import robot_digest
 
     return {"robot_spec": spec, "robot_sha256": robot_digest(spec)}
+
+
+def _vec(v) -> list | None:
+    if v is None:
+        return None
+    a = np.asarray(v, dtype=float).reshape(-1)
+    return [float(x) for x in a] if a.size and np.all(np.isfinite(a)) else None
 
 
 def _num(v: float) -> float | None:

@@ -65,6 +65,7 @@ class Run:
     goal_base: np.ndarray | None = None   # where the tip is planned to (None: target_base)
     start_branch: int | None = None       # the branch given with the start (Start.branch)
     start_uz: dict = field(default_factory=dict)   # id(model) -> the start's equilibrium
+    tip_goal: Any = None                  # the TipGoal (ctrplan.planning.tipgoal), None: a point
 
     @property
     def goal(self) -> np.ndarray:

@@ -109,8 +109,11 @@ def checks(run: Run, start) -> np.ndarray:
                                + (_hints.margin_start_hint(run, start, retracted, run.prep.world0)
                                   or _start_collision_hint(robot, validator, start))))
     tip_radius = float(robot.tubes[0].od) / 2.0
-    blocked = target_blocked(run.scene, run.world, run.target, tip_radius)
-    if blocked and run.cfg.approach:
+    if run.tip_goal is not None and run.tip_goal.back is not None:
+        blocked = _standoff_goal(run, tip_radius)
+    else:
+        blocked = target_blocked(run.scene, run.world, run.target, tip_radius)
+    if blocked and run.cfg.approach and run.tip_goal is None:
         moved = _approach_goal(run, tip_radius)
         if moved is not None:
             blocked = ""
@@ -118,6 +121,31 @@ def checks(run: Run, start) -> np.ndarray:
     if blocked:
         raise Stop(run.finish(PlanStatus.TARGET_IN_COLLISION, blocked))
     return start
+
+
+def _standoff_goal(run: Run, tip_radius: float) -> str:
+    """A tip goal standing off a surface (:class:`~ctrplan.planning.tipgoal.TipGoal` with a
+    normal or a direction): the tip's centre stays at least its radius + margin +
+    :data:`~ctrplan.planning.tipgoal.CONTACT_PAD_MM` from the surface point, along the goal's
+    normal (a smaller standoff, 0 = touching, is planned there and reported as
+    ``goal_shift_mm``). Returns why the tip cannot be at the planned point ("" if it can)."""
+    from ctrplan.planning.tipgoal import CONTACT_PAD_MM
+
+    goal = run.tip_goal
+    least = tip_radius + tip_margin(run) + CONTACT_PAD_MM
+    if goal.standoff_mm < least:
+        p = goal.point(least)
+        run.goal_base = run.scene.to_base(p[None])[0]
+        run.meta["goal_shift_mm"] = float(least - goal.standoff_mm)
+        run.meta["goal"] = [float(v) for v in p]
+    else:
+        p = run.target
+    blocked = target_blocked(run.scene, run.world, p, tip_radius)
+    return f"{blocked} (at the standoff point {_xyz(p)})" if blocked else ""
+
+
+def _xyz(p) -> str:
+    return "(" + ", ".join(f"{float(v):.2f}" for v in p) + ") mm"
 
 
 def _approach_goal(run: Run, tip_radius: float, steps: int = 48) -> np.ndarray | None:
@@ -178,7 +206,7 @@ def ik_goals(run: Run) -> tuple[GoalSource, np.ndarray]:
     goals = source.next()
     while len(goals) == 0 and source.rounds < run.cfg.ik_rounds:
         goals = source.next()
-    if len(goals) == 0 and source.reaching > 0 and run.cfg.approach:
+    if len(goals) == 0 and source.reaching > 0 and run.cfg.approach and run.tip_goal is None:
         # every configuration reaching the goal collides with the margin: approach from further
         # inside the lumen (the tip probe thicker by a part of the margin), within the margin
         tip_radius = float(run.robot.tubes[0].od) / 2.0

@@ -146,14 +146,48 @@ def output(run: Run, path: np.ndarray, solver: str, check: PathCheck,
     # SUCCESS means the tip within the tolerance of the target asked for (planning model),
     # whatever moved the goal (the approach off the wall, the optimiser)
     status, message = PlanStatus.SUCCESS, "ok"
+    pose = tip_pose(run, out_q[-1], eq.get("uz0"))
     if not tip_err <= run.tolerance_mm:
         status = PlanStatus.OUTSIDE_TOLERANCE
         message = _hints.outside_tolerance(run, tip_err, tip_margin(run))
-    return run.finish(status, message, path=out_q, backbones=backbones,
+    elif run.tip_goal is not None and run.tip_goal.cone_deg is not None and not (
+            pose["direction_error_deg"] <= run.tip_goal.cone_deg):
+        status = PlanStatus.OUTSIDE_TOLERANCE
+        message = (f"the tip points {pose['direction_error_deg']:.2f} deg from the approach "
+                   f"direction, outside the cone of {run.tip_goal.cone_deg:g} deg "
+                   f"(direction_error_deg); the verified path is kept")
+    return run.finish(status, message, **pose, path=out_q, backbones=backbones,
                       tip_path=backbones[:, -1, :], tip_error_mm=tip_err,
                       tip_error_physics_mm=tip_err_phys, clearance_profile=profile,
                       objective_value=value, branch=eq.get("branch"),
                       stability=eq.get("stability"), **extra)
+
+
+def tip_pose(run: Run, q: np.ndarray, uz0=None) -> dict:
+    """The final state's tip pose for plan.json: ``tip_direction`` (scene frame, unit; the
+    planning model's tip tangent on the equilibrium the robot is on, ``uz0`` (B, n) the output
+    states' where tracked), ``direction_error_deg`` (against a TipGoal's direction) and
+    ``standoff_mm`` (the tip's distance from a TipGoal's surface point along its normal, or
+    back along its direction)."""
+    from ctrplan.planning.tipgoal import TANGENT_POINTS, angle_deg, tip_tangents, to_scene_vectors
+
+    q = np.asarray(q, dtype=float)[None]
+    if uz0 is not None and run.model.tracks_branches:
+        pts = run.model.settle(q, np.asarray(uz0)[-1:], TANGENT_POINTS).shape.points
+    else:
+        pts = run.model.shape(q, points=TANGENT_POINTS).points
+    t = to_scene_vectors(run.scene, tip_tangents(pts))[0]
+    tip = run.scene.to_scene(pts[:, -1])[0]
+    out = dict(tip_direction=t, direction_error_deg=math.nan, standoff_mm=math.nan)
+    goal = run.tip_goal
+    if goal is None:
+        return out
+    if goal.direction is not None:
+        out["direction_error_deg"] = float(angle_deg(t[None], np.asarray(goal.direction))[0])
+    back = goal.back
+    if back is not None:
+        out["standoff_mm"] = float(np.dot(tip - np.asarray(goal.position), back))
+    return out
 
 
 def _output_equilibria(run: Run, out_q: np.ndarray, check: PathCheck,
