@@ -2,10 +2,11 @@
 
 ``ctrplan scene reach`` (:func:`reach_map`) samples the surface (:func:`ctrplan.collision.surface.
 sample_surface`: area-weighted, seeded, or a region near named targets) and decides per point
-whether the robot reaches it: the tip at the **goal** ``point + standoff_mm * normal`` (the
-normal points into the lumen), and, with an approach cone, the tip's tangent within
-``cone_deg`` of the approach direction (``normal``: straight at the surface, ``-normal``; or a
-fixed direction in the scene frame).
+whether the robot reaches it: a :class:`~ctrplan.planning.tipgoal.TipGoal` at the point with
+its normal (into the lumen), ``standoff_mm`` (the tip at ``point + standoff_mm * normal``, the
+**goal**; a standoff below the tip's radius + margin is planned at that distance, as ``plan``
+does) and, with an approach, the tip's tangent within ``cone_deg`` of the approach direction
+(``normal``: straight at the surface, ``-normal``; or a fixed direction in the scene frame).
 
 Two stages:
 
@@ -13,13 +14,14 @@ Two stages:
    (``ik_seeds`` workspace samples nearest each goal as seeds, every seed with its own target in
    one :func:`~ctrplan.planning.ik.solve_ik`), then the direction filter and the planning
    world's collision check of the converged configurations. A point passes when one
-   configuration puts the tip within the tolerance of the goal, its direction within the cone,
+   configuration puts the tip within the tolerance of the goal, its direction within the cone
+   (:func:`~ctrplan.planning.tipgoal.tip_frames`, the same tangent the plan reports),
    collision-free.
 2. **Plan**: a full plan (:meth:`Planner.plan <ctrplan.planning.planner.Planner.plan>`, the
    retracted start, the same seed for every point) to every point that passed, on the same
    pool / Ray path as plan-batch (:func:`~ctrplan.planning.batch.run_tasks`). The map's verdict
-   is the plan's: ``reachable`` only for a plan with status SUCCESS whose final tip direction
-   is within the cone. A point that fails the screen is ``reachable = false`` with status
+   is the plan's: ``reachable`` only for a plan with status SUCCESS (the tip within the
+   tolerance of the goal and, with a cone, its direction within it). A point that fails the screen is ``reachable = false`` with status
    ``NO_POSE`` and is not planned.
 
 Resumable like plan-batch: each point's result is written durably to ``<out>/points/<id>.json``
@@ -46,11 +48,6 @@ log = logging.getLogger("ctrplan")
 
 #: Status of a point the screen found no pose for (it is not planned).
 NO_POSE = "NO_POSE"
-#: Status of a plan that succeeded but whose final tip direction is outside the cone.
-OUTSIDE_CONE = "OUTSIDE_CONE"
-#: Backbone points used for the tip direction (the last segment's chord; its angle to the true
-#: tangent is at most curvature x segment / 2: 0.3 deg for 0.02 /mm over 250 mm).
-DIRECTION_POINTS = 400
 
 
 @dataclass(frozen=True)
@@ -61,7 +58,7 @@ class ReachSettings:
     standoff_mm : the goal lies this far from the surface point along its normal (mm).
     approach : "" (no direction goal), "normal" (the tip pointing at the surface: its tangent
         within ``cone_deg`` of ``-normal``) or "x,y,z" (a fixed tangent, scene frame).
-    cone_deg : half-angle of the approach cone (deg); required with an approach.
+    cone_deg : half-angle of the approach cone (deg, in (0, 90]); required with an approach.
     tolerance_mm, time_limit, planner, margin, objective : each plan's, as for ``plan``.
     seed : the surface sample's and every plan's seed.
     ik_seeds : IK seeds per point in the screen.
@@ -86,8 +83,10 @@ class ReachSettings:
             raise ArgumentError("standoff_mm", f"must be a number >= 0 (mm), got {self.standoff_mm!r}")
         if self.approach and self.cone_deg is None:
             raise ArgumentError("cone_deg", "an approach direction needs a cone (deg)")
-        if self.cone_deg is not None and not (0 < self.cone_deg <= 180):
-            raise ArgumentError("cone_deg", f"must be in (0, 180] deg, got {self.cone_deg!r}")
+        if self.cone_deg is not None and not self.approach:
+            raise ArgumentError("cone_deg", "a cone needs an approach direction (approach)")
+        if self.cone_deg is not None and not (0 < self.cone_deg <= 90):
+            raise ArgumentError("cone_deg", f"must be in (0, 90] deg, got {self.cone_deg!r}")
         if self.approach and self.approach != "normal":
             parse_direction(self.approach)
         if not (isinstance(self.ik_seeds, int) and self.ik_seeds >= 1):
@@ -133,52 +132,55 @@ class ScreenResult:
     clearance_mm: np.ndarray
 
 
-def tip_directions(model, q: np.ndarray) -> np.ndarray:
-    """(B, 3) unit tip tangents (robot base frame) of configurations ``q`` (B, 2n)."""
-    if len(q) == 0:
-        return np.zeros((0, 3))
-    pts = model.shape(q, points=DIRECTION_POINTS).points
-    d = pts[:, -1] - pts[:, -2]
-    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+def planned_goals(planner, points: np.ndarray, normals: np.ndarray, standoff_mm: float) -> np.ndarray:
+    """(P, 3) mm, scene frame: where a plan puts the tip for a TipGoal at ``points`` with
+    ``normals`` and ``standoff_mm`` (at least the tip's radius + margin +
+    :data:`~ctrplan.planning.tipgoal.CONTACT_PAD_MM` off the surface, as the planner does)."""
+    from ctrplan.planning.run import tip_margin
+    from ctrplan.planning.tipgoal import CONTACT_PAD_MM
 
-
-def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(B,) angles (deg) between unit vectors a, b (B, 3)."""
-    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
+    least = float(planner.robot.tubes[0].od) / 2.0 + tip_margin(planner) + CONTACT_PAD_MM
+    return points + max(float(standoff_mm), least) * normals
 
 
 def screen(planner, goals: np.ndarray, directions: np.ndarray | None, cone_deg: float | None,
-           tolerance_mm: float, seeds: int = 16) -> ScreenResult:
+           tolerance_mm: float, seeds: int = 16, planned: np.ndarray | None = None) -> ScreenResult:
     """The screen (module docstring) of goals (P, 3) mm, scene frame, with tip tangents
-    ``directions`` (P, 3) scene frame (None: any direction) within ``cone_deg``."""
+    ``directions`` (P, 3) scene frame (None: any direction) within ``cone_deg``. ``planned``
+    (P, 3): where IK puts the tip when that differs from the goal (a standoff below the tip's
+    radius + margin); the tolerance applies to ``goals``."""
     from ctrplan.planning.ik import solve_ik
+    from ctrplan.planning.tipgoal import angle_deg, tip_frames, to_scene_vectors
 
     goals = np.asarray(goals, dtype=float).reshape(-1, 3)
+    planned = goals if planned is None else np.asarray(planned, dtype=float).reshape(-1, 3)
     P = len(goals)
     nan = np.full(P, np.nan)
     if P == 0:
         return ScreenResult(np.zeros(0, bool), nan, nan, nan)
     robot, model, scene = planner.robot, planner.model, planner.scene
     table = planner.workspace_table()
-    base = scene.to_base(goals)
+    base = scene.to_base(planned)
     q0 = np.concatenate([table.nearest(g, seeds) for g in base])
     per = len(q0) // P
     owner = np.repeat(np.arange(P), per)
     cfg = planner.config
     ikc = replace(cfg.ik, stop_mm=min(cfg.ik.stop_mm, 0.1 * tolerance_mm))
     res = solve_ik(model, robot, base[owner], q0, ikc)
-    err = res.error_mm
+    err = np.linalg.norm(res.tip - scene.to_base(goals)[owner], axis=1)
+    err = np.where(np.isfinite(res.error_mm), err, np.inf)
     best_err = np.full(P, np.inf)
     np.minimum.at(best_err, owner, np.where(np.isfinite(err), err, np.inf))
     validator = planner.validator(tracking=False)
     ok = (err <= tolerance_mm) & validator.joint_valid(res.q)
     dir_err = np.full(len(err), np.nan)
     if directions is not None:
-        rot = scene.base_pose[:3, :3]
         idx = np.flatnonzero(ok)
-        d = tip_directions(model, res.q[idx]) @ rot.T
-        dir_err[idx] = angle_deg(d, np.asarray(directions, dtype=float)[owner[idx]])
-        ok[idx] &= dir_err[idx] <= cone_deg
+        if len(idx):
+            _, t, good = tip_frames(model, res.q[idx])
+            dir_err[idx] = angle_deg(to_scene_vectors(scene, t),
+                                     np.asarray(directions, dtype=float)[owner[idx]])
+            ok[idx] &= good & (dir_err[idx] <= cone_deg)
     clear = np.full(len(err), -np.inf)
     idx = np.flatnonzero(ok)
     if len(idx):
@@ -200,27 +202,25 @@ def screen(planner, goals: np.ndarray, directions: np.ndarray | None, cone_deg: 
 
 # ---------------------------------------------------------------------- one point's plan
 def plan_point(task: dict, planners=None) -> dict:
-    """Plan to one screened point (a task dict: ``settings``, ``id``, ``goal``, ``direction``)
-    with a planner of ``planners`` (None: this worker's); the point's result fields."""
+    """Plan to one screened point (a task dict: ``settings``, ``id``, ``position``, ``normal``,
+    ``direction``) with a planner of ``planners`` (None: this worker's); the point's result
+    fields."""
     from ctrplan.planning.planner import PlannerConfig, worker_planners
+    from ctrplan.planning.tipgoal import TipGoal
 
     s = ReachSettings(**task["settings"])
     planners = planners if planners is not None else worker_planners()
     margin = None if s.margin == "auto" else float(s.margin)
     planner = planners.get(s.robot, s.scene, s.model, PlannerConfig(margin_mm=margin, objective=s.objective))
-    result = planner.plan(np.asarray(task["goal"], dtype=float), seed=s.seed, planner=s.planner,
-                          time_limit=s.time_limit, tolerance_mm=s.tolerance_mm)
+    goal = TipGoal(position=task["position"], normal=task["normal"], standoff_mm=s.standoff_mm,
+                   direction=task.get("direction"), cone_deg=s.cone_deg if task.get("direction") else None)
+    result = planner.plan(goal, seed=s.seed, planner=s.planner, time_limit=s.time_limit,
+                          tolerance_mm=s.tolerance_mm)
     status = result.status.value
-    dir_err = None
-    if len(result.path) and task.get("direction") is not None:
-        d = tip_directions(planner.model, np.asarray(result.path[-1:], dtype=float))
-        d = d @ planner.scene.base_pose[:3, :3].T
-        dir_err = float(angle_deg(d, np.asarray(task["direction"], dtype=float)[None])[0])
-        if status == "SUCCESS" and dir_err > float(s.cone_deg):
-            status = OUTSIDE_CONE
     return {"id": task["id"], "status": status, "reachable": status == "SUCCESS",
             "planned": True, "message": result.message,
-            "tip_error_mm": _num(result.tip_error_mm), "direction_error_deg": _num(dir_err),
+            "tip_error_mm": _num(result.tip_error_mm),
+            "direction_error_deg": _num(getattr(result, "direction_error_deg", None)),
             "clearance_mm": _num(result.min_clearance_mm),
             "planning_time_s": _num(result.planning_time_s),
             "goal_shift_mm": _num(getattr(result, "goal_shift_mm", None))}
@@ -299,7 +299,8 @@ def reach_map(settings: ReachSettings, samples, out, workers: int = 1,
                                    PlannerConfig(margin_mm=margin, objective=settings.objective))
             log.info("reach: screening %d points (%d already decided)", len(todo), skipped)
             sc = screen(planner, goals[todo], None if dirs is None else dirs[todo],
-                        settings.cone_deg, settings.tolerance_mm, settings.ik_seeds)
+                        settings.cone_deg, settings.tolerance_mm, settings.ik_seeds,
+                        planned=planned_goals(planner, pts[todo], nrm[todo], settings.standoff_mm))
             interrupt.check()
             screen_of: dict[str, dict] = {}
             tasks = []
@@ -309,7 +310,8 @@ def reach_map(settings: ReachSettings, samples, out, workers: int = 1,
                         "screen_direction_error_deg": _num(sc.direction_error_deg[k])}
                 screen_of[ids[i]] = {**_point_fields(settings, i, ids[i], samples, goals, dirs), **info}
                 if sc.passed[k]:
-                    tasks.append({"settings": asdict(settings), "id": ids[i], "goal": goals[i].tolist(),
+                    tasks.append({"settings": asdict(settings), "id": ids[i], "position": pts[i].tolist(),
+                                  "normal": nrm[i].tolist(),
                                   "direction": None if dirs is None else dirs[i].tolist()})
             bar = progress.bar(total=len(tasks), desc="reach", unit="point")
 
@@ -397,7 +399,7 @@ def validate_point(path, data: dict) -> dict:
     def bad(field: str, what: str) -> InputError:
         return InputError(str(path), field, f"{what} {hint}")
 
-    statuses = {s.value for s in PlanStatus} | {NO_POSE, OUTSIDE_CONE}
+    statuses = {s.value for s in PlanStatus} | {NO_POSE}
     if data.get("status") not in statuses:
         raise bad("status", f"must be one of {', '.join(sorted(statuses))}")
     for key in ("reachable", "screen", "planned"):
