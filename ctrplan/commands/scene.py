@@ -1,4 +1,5 @@
-"""``ctrplan scene``: list the shipped scenes, or render one (optionally with robot shapes)."""
+"""``ctrplan scene``: list the shipped scenes, or render one (optionally with robot shapes);
+``scene reach`` (:mod:`ctrplan.commands.reach`) maps what a robot reaches in one."""
 
 from __future__ import annotations
 
@@ -67,6 +68,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     allow_negative_values(fl)
     fl.set_defaults(func=run_from_labels)
+    from ctrplan.commands import reach
+
+    reach.register(ss)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 
 

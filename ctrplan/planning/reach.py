@@ -327,7 +327,7 @@ def reach_map(settings: ReachSettings, samples, out, workers: int = 1,
                         **screen_of[ids[i]], "status": NO_POSE, "reachable": False, "planned": False,
                         "message": "no collision-free pose with the tip at the goal (and its "
                                    "direction in the cone) was found by the screen",
-                        "tip_error_mm": _num(sc.tip_error_mm[k]), "direction_error_deg": None,
+                        "tip_error_mm": None, "direction_error_deg": None,
                         "clearance_mm": None, "planning_time_s": None, "goal_shift_mm": None})
                     done[ids[i]] = read_point_file(pdir / f"{ids[i]}.json", ids[i])
                     screened_out += 1
