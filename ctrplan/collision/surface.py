@@ -5,8 +5,10 @@ can put its tip there. :func:`sample_surface` draws the points: triangles of the
 and obstacle meshes with probability proportional to their area, a point uniform on each (barycentric
 coordinates ``(1 - sqrt(u), sqrt(u) (1 - v), sqrt(u) v)``), all from one seeded generator, so
 the same seed gives the same points on any machine. The surface is that of every mesh
-the robot must not touch (walls and obstacles); landmarks are not sampled. Optionally only triangles near given
-points (``near``, ``radius_mm``) are drawn: a region around named targets.
+the robot must not touch (walls and obstacles); landmarks are not sampled. Optionally only the
+surface within ``radius_mm`` of given points (``near``: a region around named targets) is
+sampled: triangles that come that near, and of their points only those that lie that near
+(rejection), so the points are uniform on the part of the surface inside the balls.
 
 Each point's normal points into the lumen, the side the robot is on: of the triangle's two
 sides, the one whose point ``side_mm`` away lies inside the walls (:func:`inside_walls`) and
@@ -56,12 +58,12 @@ def triangle_areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
 
 def sample_surface(scene, count: int, seed: int = 0, near: np.ndarray | None = None,
                    radius_mm: float = 20.0, side_mm: float = SIDE_MM,
-                   max_rounds: int = 20) -> SurfaceSamples:
+                   max_rounds: int = 50) -> SurfaceSamples:
     """``count`` points on the scene's wall and obstacle meshes (the collision meshes),
     area-weighted, with normals into the lumen.
 
-    near : (K, 3) mm, scene frame: draw only on triangles with a corner within ``radius_mm`` of
-        one of these points (None: the whole wall surface).
+    near : (K, 3) mm, scene frame: only the surface within ``radius_mm`` of one of these
+        points (None: the whole surface).
     Raises ArgumentError when the region holds no wall triangle or too few points have a
     lumen side after ``max_rounds`` draws.
     """
@@ -99,7 +101,10 @@ def sample_surface(scene, count: int, seed: int = 0, near: np.ndarray | None = N
         tri = rng.choice(len(areas), size=draw, p=p_face)
         u, w = rng.random(draw), rng.random(draw)
         pts, nrm = _points_on(verts, faces, owner[tri], local[tri], u, w)
-        side = lumen_side(scene, pts, nrm, side_mm)
+        if near is not None:      # the region: points within the radius only
+            inside = _within(pts, near, radius_mm)
+            tri, pts, nrm = tri[inside], pts[inside], nrm[inside]
+        side = lumen_side(scene, pts, nrm, side_mm) if len(pts) else np.zeros(0, dtype=int)
         ok = side != 0
         got.append((pts[ok], nrm[ok] * side[ok, None], owner[tri][ok], local[tri][ok]))
         have += int(ok.sum())
@@ -111,12 +116,25 @@ def sample_surface(scene, count: int, seed: int = 0, near: np.ndarray | None = N
 
 
 def _near_faces(v: np.ndarray, f: np.ndarray, near: np.ndarray, radius_mm: float) -> np.ndarray:
-    """(F,) whether a corner of each triangle lies within ``radius_mm`` of a ``near`` point."""
-    from scipy.spatial import cKDTree
+    """(F,) whether some point of each triangle lies within ``radius_mm`` of a ``near`` point."""
+    from trimesh.triangles import closest_point
 
-    d, _ = cKDTree(near).query(v, k=1)
-    close = d <= radius_mm
-    return close[f].any(axis=1)
+    tri = v[f]
+    keep = np.zeros(len(f), dtype=bool)
+    for c in near:
+        # triangles whose bounding sphere reaches the ball, then their exact closest points
+        cand = np.flatnonzero(~keep & (np.linalg.norm(tri.mean(axis=1) - c, axis=1)
+                                       <= radius_mm + np.max(np.linalg.norm(tri - tri.mean(axis=1, keepdims=True), axis=2), axis=1)))
+        if len(cand):
+            cp = closest_point(tri[cand], np.repeat(c[None], len(cand), axis=0))
+            keep[cand[np.linalg.norm(cp - c, axis=1) <= radius_mm]] = True
+    return keep
+
+
+def _within(points: np.ndarray, near: np.ndarray, radius_mm: float) -> np.ndarray:
+    """(P,) whether each point lies within ``radius_mm`` of one of ``near`` (K, 3)."""
+    d = np.linalg.norm(points[:, None, :] - near[None, :, :], axis=2)
+    return d.min(axis=1) <= radius_mm
 
 
 def _points_on(verts, faces, mesh_idx, face_idx, u, w) -> tuple[np.ndarray, np.ndarray]:
