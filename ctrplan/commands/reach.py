@@ -103,10 +103,7 @@ def run(args: argparse.Namespace) -> int:
     if args.approach is not None:
         approach = args.approach.strip().lower()
         if approach != "normal":
-            try:
-                approach = ",".join(repr(float(v)) for v in parse_direction(args.approach))
-            except InputError as exc:
-                raise InputError("--approach", "", exc.message) from None
+            approach = ",".join(repr(float(v)) for v in parse_direction(args.approach))
     check_scene_spec(args.scene)
     load_robot(args.robot)
     margin = parse_margin(args.margin)
@@ -133,32 +130,16 @@ def run(args: argparse.Namespace) -> int:
 
 
 def sample_for(args: argparse.Namespace):
-    """The command's surface sample (the whole surface, or near the region's targets)."""
+    """The command's surface sample (the whole surface, or near the region's targets); the
+    library's errors name their arguments, the command line shows the flags
+    (:mod:`ctrplan.commands._names`)."""
     from ctrplan.collision.scene import load_scene
     from ctrplan.collision.surface import sample_surface
-    from ctrplan.errors import ArgumentError
+    from ctrplan.planning.reach import region_points
 
     scene = load_scene(args.scene)
-    near = None
-    if args.near_targets:
-        near = scene.target_positions()
-        if not len(near):
-            raise InputError("--near-targets", "", f"scene {scene.name!r} has no named targets")
-    elif args.region:
-        pts = []
-        for name in (n.strip() for n in args.region.split(",")):
-            t = scene.find_target(name) if name else None
-            if t is None:
-                raise InputError("--region", "", f"no target {name!r} in scene {scene.name!r} "
-                                                 f"({scene.target_names()})")
-            pts.append(t.position)
-        near = np.array(pts, dtype=float)
-    try:
-        return sample_surface(scene, args.points, seed=args.seed, near=near, radius_mm=args.radius)
-    except ArgumentError as exc:
-        flag = {"region": "--region" if args.region else "--near-targets", "count": "--points",
-                "scene": "--scene"}.get(exc.source, exc.source)
-        raise InputError(flag, "", exc.message) from None
+    near = region_points(scene, args.region, args.near_targets)
+    return sample_surface(scene, args.points, seed=args.seed, near=near, radius_mm=args.radius)
 
 
 # ---------------------------------------------------------------------- views

@@ -113,6 +113,30 @@ def approach_directions(settings: ReachSettings, normals: np.ndarray) -> np.ndar
     return np.repeat(parse_direction(settings.approach)[None], len(normals), axis=0)
 
 
+def region_points(scene, region: str | None = None, near_targets: bool = False) -> np.ndarray | None:
+    """The points a sampled region lies around ((K, 3) mm, scene frame), for
+    :func:`~ctrplan.collision.surface.sample_surface`'s ``near``: the named targets in
+    ``region`` (names or ids, comma-separated), every named target with ``near_targets``, or
+    None (the whole surface). ArgumentError naming ``region`` / ``near_targets`` otherwise."""
+    if region and near_targets:
+        raise ArgumentError("region", "give `region` or `near_targets`, not both")
+    if near_targets:
+        pts = scene.target_positions()
+        if not len(pts):
+            raise ArgumentError("near_targets", f"scene {scene.name!r} has no named targets")
+        return pts
+    if not region:
+        return None
+    pts = []
+    for name in (n.strip() for n in str(region).split(",")):
+        t = scene.find_target(name) if name else None
+        if t is None:
+            raise ArgumentError("region", f"no target {name!r} in scene {scene.name!r} "
+                                          f"({scene.target_names()})")
+        pts.append(np.asarray(t.position, dtype=float))
+    return np.array(pts)
+
+
 def point_id(settings: ReachSettings, index: int, point, normal) -> str:
     """``p<index>__<hash>``: the hash covers the point, its normal and every setting."""
     spec = json.dumps({"settings": asdict(settings), "point": [float(v) for v in point],
