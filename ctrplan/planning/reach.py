@@ -287,89 +287,97 @@ def reach_map(settings: ReachSettings, samples, out, workers: int = 1,
               ray_address: str | None = None, planners=None) -> ReachSummary:
     """Decide every sampled point (module docstring) and write ``out``/reach.csv (the views are
     the command's: :mod:`ctrplan.commands.reach`). ``samples``: a
-    :class:`~ctrplan.collision.surface.SurfaceSamples` in the scene's frame."""
-    from ctrplan import interrupt, progress
-    from ctrplan.planning.batch import _folder_lock, run_tasks, write_job_file
+    :class:`~ctrplan.collision.surface.SurfaceSamples` in the scene's frame; ``workers`` /
+    ``ray_address``: where the plans run (:func:`~ctrplan.planning.batch.run_tasks`);
+    ``planners``: the in-process :class:`~ctrplan.planning.planner.Planners` (None: this run's)."""
+    from ctrplan.io import write_csv_atomic
+    from ctrplan.planning.batch import _folder_lock
     from ctrplan.planning.planner import Planners
 
     out = Path(out)
     pdir = out / "points"
     pdir.mkdir(parents=True, exist_ok=True)
     pts, nrm = np.asarray(samples.points, float), np.asarray(samples.normals, float)
-    goals = pts + settings.standoff_mm * nrm
-    dirs = approach_directions(settings, nrm)
     ids = [point_id(settings, i, p, n) for i, (p, n) in enumerate(zip(pts, nrm))]
     with _folder_lock(out):
-        for stale in pdir.glob(".*"):
+        for stale in pdir.glob(".*"):          # temporaries of a run that was killed
             if stale.is_file():
                 stale.unlink()
         done: dict[str, dict] = {}
         for i, pid in enumerate(ids):
-            data = read_point_file(pdir / f"{pid}.json", pid)
+            data = read_point_file(pdir / f"{pid}.json", pid, pts[i])
             if data is not None:
                 done[pid] = data
         todo = [i for i, pid in enumerate(ids) if pid not in done]
-        skipped = len(ids) - len(todo)
+        screened_out = planned = 0
         if todo:
             for name in ("reach.csv", "reach.html", "reach.png"):
                 (out / name).unlink(missing_ok=True)
-        planners = planners if planners is not None else Planners()
-        screened_out = planned = 0
-        if todo:
-            margin = None if settings.margin == "auto" else float(settings.margin)
-            from ctrplan.planning.planner import PlannerConfig
-
-            planner = planners.get(settings.robot, settings.scene, settings.model,
-                                   PlannerConfig(margin_mm=margin, objective=settings.objective))
-            log.info("reach: screening %d points (%d already decided)", len(todo), skipped)
-            sc = screen(planner, goals[todo], None if dirs is None else dirs[todo],
-                        settings.cone_deg, settings.tolerance_mm, settings.ik_seeds,
-                        planned=planned_goals(planner, pts[todo], nrm[todo], settings.standoff_mm))
-            interrupt.check()
-            screen_of: dict[str, dict] = {}
-            tasks = []
-            for k, i in enumerate(todo):
-                info = {"screen": bool(sc.passed[k]), "screen_clearance_mm": _num(sc.clearance_mm[k]),
-                        "screen_tip_error_mm": _num(sc.tip_error_mm[k]),
-                        "screen_direction_error_deg": _num(sc.direction_error_deg[k])}
-                screen_of[ids[i]] = {**_point_fields(settings, i, ids[i], samples, goals, dirs), **info}
-                if sc.passed[k]:
-                    tasks.append({"settings": asdict(settings), "id": ids[i], "position": pts[i].tolist(),
-                                  "normal": nrm[i].tolist(),
-                                  "direction": None if dirs is None else dirs[i].tolist()})
-            bar = progress.bar(total=len(tasks), desc="reach", unit="point")
-
-            def record(res: dict) -> None:
-                rec = {**screen_of[res["id"]], **res}
-                write_job_file(pdir / f"{res['id']}.json", rec)
-                done[res["id"]] = rec
-                bar.update(1)
-
-            for k, i in enumerate(todo):      # the screened-out points are decided now
-                if not sc.passed[k]:
-                    write_job_file(pdir / f"{ids[i]}.json", {
-                        **screen_of[ids[i]], "status": NO_POSE, "reachable": False, "planned": False,
-                        "message": "no collision-free pose with the tip at the goal (and its "
-                                   "direction in the cone) was found by the screen",
-                        "tip_error_mm": None, "direction_error_deg": None,
-                        "clearance_mm": None, "planning_time_s": None, "goal_shift_mm": None})
-                    done[ids[i]] = read_point_file(pdir / f"{ids[i]}.json", ids[i])
-                    screened_out += 1
-            try:
-                if workers <= 1 and not ray_address:
-                    run_tasks(lambda t: plan_point(t, planners), tasks, 1, None, record)
-                else:
-                    run_tasks(_plan_point_json, tasks, workers, ray_address, record)
-            finally:
-                bar.close()
-            planned = len(tasks)
+            planners = planners if planners is not None else Planners()
+            log.info("reach: screening %d points (%d already decided)", len(todo), len(ids) - len(todo))
+            screened_out, planned = _decide(settings, samples, ids, todo, pdir, done, planners,
+                                            workers, ray_address)
         rows = [csv_row(done[pid]) for pid in ids]
-        from ctrplan.io import write_csv_atomic
-
         write_csv_atomic(out / "reach.csv", COLUMNS,
                          [["" if r[c] is None else r[c] for c in COLUMNS] for r in rows])
-    return ReachSummary(total=len(ids), skipped=skipped, screened_out=screened_out, planned=planned,
-                        reachable=sum(bool(r["reachable"]) for r in rows), rows=rows, out=out)
+    return ReachSummary(total=len(ids), skipped=len(ids) - len(todo), screened_out=screened_out,
+                        planned=planned, reachable=sum(bool(r["reachable"]) for r in rows), rows=rows,
+                        out=out)
+
+
+def _decide(settings, samples, ids, todo, pdir, done, planners, workers, ray_address) -> tuple[int, int]:
+    """Screen the points ``todo`` (indices), record the screened-out ones, plan the rest on the
+    pool / Ray path; every decided point's file is written as it is decided and put in
+    ``done``. Returns (screened out, planned)."""
+    from ctrplan import interrupt, progress
+    from ctrplan.planning.batch import run_tasks, write_job_file
+    from ctrplan.planning.planner import PlannerConfig
+
+    pts, nrm = np.asarray(samples.points, float), np.asarray(samples.normals, float)
+    goals = pts + settings.standoff_mm * nrm
+    dirs = approach_directions(settings, nrm)
+    margin = None if settings.margin == "auto" else float(settings.margin)
+    planner = planners.get(settings.robot, settings.scene, settings.model,
+                           PlannerConfig(margin_mm=margin, objective=settings.objective))
+    sc = screen(planner, goals[todo], None if dirs is None else dirs[todo], settings.cone_deg,
+                settings.tolerance_mm, settings.ik_seeds,
+                planned=planned_goals(planner, pts[todo], nrm[todo], settings.standoff_mm))
+    interrupt.check()
+    base: dict[str, dict] = {}
+    tasks = []
+    for k, i in enumerate(todo):
+        base[ids[i]] = {**_point_fields(settings, i, ids[i], samples, goals, dirs),
+                        "screen": bool(sc.passed[k]), "screen_clearance_mm": _num(sc.clearance_mm[k]),
+                        "screen_tip_error_mm": _num(sc.tip_error_mm[k]),
+                        "screen_direction_error_deg": _num(sc.direction_error_deg[k])}
+        if sc.passed[k]:
+            tasks.append({"settings": asdict(settings), "id": ids[i], "position": pts[i].tolist(),
+                          "normal": nrm[i].tolist(),
+                          "direction": None if dirs is None else dirs[i].tolist()})
+        else:   # decided now: no pose
+            rec = {**base[ids[i]], "status": NO_POSE, "reachable": False, "planned": False,
+                   "message": "the screen found no collision-free pose with the tip at the goal "
+                              "(and its direction in the cone)",
+                   "tip_error_mm": None, "direction_error_deg": None, "clearance_mm": None,
+                   "planning_time_s": None, "goal_shift_mm": None}
+            write_job_file(pdir / f"{ids[i]}.json", rec)
+            done[ids[i]] = rec
+    bar = progress.bar(total=len(tasks), desc="reach", unit="point")
+
+    def record(res: dict) -> None:
+        rec = {**base[res["id"]], **res}
+        write_job_file(pdir / f"{res['id']}.json", rec)
+        done[res["id"]] = rec
+        bar.update(1)
+
+    try:
+        if workers <= 1 and not ray_address:     # in this process, with the caller's planners
+            run_tasks(lambda t: plan_point(t, planners), tasks, 1, None, record)
+        else:
+            run_tasks(_plan_point_json, tasks, workers, ray_address, record)
+    finally:
+        bar.close()
+    return len(todo) - len(tasks), len(tasks)
 
 
 def _point_fields(settings: ReachSettings, i: int, pid: str, samples, goals, dirs) -> dict:
@@ -398,20 +406,24 @@ def csv_row(rec: dict) -> dict:
 
 
 # ---------------------------------------------------------------------- resume
-_STATUSES = None
 
 
-def read_point_file(path: Path, pid: str) -> dict | None:
+def read_point_file(path: Path, pid: str, position=None) -> dict | None:
     """The decided result of point ``pid`` in ``path``, or None when it must be decided (no
-    file, not JSON, another point). A file of this point with a field that does not hold is
-    refused (InputError naming the file and field): it may have been edited."""
+    file, not JSON, another point). A file of this point with a field that does not hold, or
+    (``position`` (3,) given) another position than the sampled point's, is refused
+    (InputError naming the file and field): it may have been edited."""
     try:
         data = json.loads(Path(path).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
     if not isinstance(data, dict) or data.get("id") != pid or "status" not in data:
         return None
-    return validate_point(path, data)
+    data = validate_point(path, data)
+    if position is not None and not np.allclose(data["position"], position, rtol=0, atol=1e-9):
+        raise InputError(str(path), "position", "is not the sampled point's (delete the file to "
+                                                "decide the point again)")
+    return data
 
 
 def validate_point(path, data: dict) -> dict:
