@@ -302,6 +302,16 @@ MAKERS = {
     "robot-actuator-count": lambda i, o: _robot(i, o, _one_tube() + "actuators: [{}, {}]\n"),
     "plan-rate": lambda i, o: ["plan", "--scene", "airway", "--target", "carina", "--rate", "0",
                                "--trajectory", str(o / "t.csv"), "--out", str(o / "p.json")],
+    "plan-standoff": lambda i, o: ["plan", "--scene", "airway", "--target", "carina", "--standoff",
+                                   "-1", "--out", str(o / "p.json")],
+    "plan-approach": lambda i, o: ["plan", "--scene", "airway", "--target", "carina", "--approach",
+                                   "0,0,0", "--out", str(o / "p.json")],
+    "plan-cone": lambda i, o: ["plan", "--scene", "airway", "--target", "carina", "--approach",
+                               "normal", "--cone", "120", "--out", str(o / "p.json")],
+    "plan-cone-alone": lambda i, o: ["plan", "--scene", "airway", "--target", "carina", "--cone",
+                                     "10", "--out", str(o / "p.json")],
+    "plan-snap-far": lambda i, o: ["plan", "--scene", "neuro", "--target", "t01", "--standoff", "1",
+                                   "--out", str(o / "p.json")],
     "view-trajectory-other-plan": lambda i, o: [*_view(i, o), "--trajectory", str(_w(
         i / "t.csv", f"t,{HEADER}\n0,0,0,0,-150,-100,-50\n0.01,0.1,0.2,0.3,-150,-100,-50\n"))],
     "view-trajectory-time": lambda i, o: [*_view(i, o), "--trajectory", str(_w(

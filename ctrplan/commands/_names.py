@@ -48,6 +48,7 @@ class Name:
 _PLANNER = "ctrplan.planning.planner:Planner"
 _PLAN = "ctrplan.planning.planner:Planner.plan"
 _CONFIG = "ctrplan.planning.planner:PlannerConfig"
+_TIPGOAL = "ctrplan.planning.tipgoal:TipGoal"
 
 #: Planning (``plan``, ``plan-batch``): the Python side is ``Planner(robot, scene, model,
 #: PlannerConfig(...)).plan(target, seed=..., ...)``; the file is plan.json.
@@ -69,6 +70,12 @@ PLANNING: tuple[Name, ...] = (
          "plan.json: path[0], the start used"),
     Name("--branch", "plan", "branch", "ctrplan.planning.stability:Start", "branch", "plan.json",
          "Start(q, branch); plan.json: branch per path state"),
+    Name("--standoff", "plan", "standoff_mm", _TIPGOAL, "standoff_requested_mm", "plan.json",
+         "TipGoal(standoff_mm=...); plan.json: standoff_mm is the standoff achieved"),
+    Name("--approach", "plan", "direction", _TIPGOAL, "approach_direction", "plan.json",
+         "normal on the command line: minus the snapped surface's normal (TipGoal.normal)"),
+    Name("--cone", "plan", "cone_deg", _TIPGOAL, "cone_deg", "plan.json",
+         "degrees; plan.json: direction_error_deg is the angle achieved"),
     Name("--seed", "plan", "seed", _PLAN, "seed", "plan.json"),
     Name("--planner", "plan, plan-batch", "planner", _PLAN, "requested_planner", "plan.json",
          "plan.json's planner is what solved it (direct for the straight edge)"),

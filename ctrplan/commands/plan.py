@@ -105,7 +105,24 @@ def summary_line(plan: dict, model: str, robot: str) -> str:
     text = (f"{head}{moved}{',' if plan.get('success') else ';'} closest approach "
             f"{'n/a' if clear is None else f'{clear:.2f}'} mm to the anatomy (objective "
             f"{plan.get('objective', '?')})")
-    return text + _relative_to(plan, model, robot) + _start_note(plan) + _motion_note(plan)
+    return (text + _pose_note(plan) + _relative_to(plan, model, robot) + _start_note(plan)
+            + _motion_note(plan))
+
+
+def _pose_note(plan: dict) -> str:
+    """A tip pose goal's outcome: where the target was snapped to, the tip's direction error
+    against the cone and the standoff achieved."""
+    parts = []
+    if plan.get("snap_distance_mm") is not None:
+        parts.append(f"target snapped {plan['snap_distance_mm']:.2f} mm onto "
+                     f"{plan.get('snap_mesh') or 'the anatomy'}")
+    err, cone = plan.get("direction_error_deg"), plan.get("cone_deg")
+    if err is not None and cone is not None:
+        parts.append(f"tip direction {err:.1f} deg from the approach (cone {cone:g} deg)")
+    if plan.get("standoff_mm") is not None:
+        parts.append(f"standoff {plan['standoff_mm']:.2f} mm (asked "
+                     f"{float(plan.get('standoff_requested_mm') or 0.0):.2f})")
+    return "; " + ", ".join(parts) if parts else ""
 
 
 def _motion_note(plan: dict) -> str:
@@ -209,6 +226,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "the path; plan.json gives its duration_s either way")
     p.add_argument("--rate", default=None, metavar="HZ",
                    help="trajectory sampling rate, Hz (default 100)")
+    add_tip_goal_args(p)
     allow_negative_values(p)
     p.set_defaults(func=run)
 
@@ -287,6 +305,102 @@ def parse_target(text: str, scene) -> tuple[list[float], str]:
                                      f"({scene.target_names()}), got {excerpt(text)}")
 
 
+def add_tip_goal_args(p: argparse.ArgumentParser) -> None:
+    """``--standoff``, ``--approach`` and ``--cone`` (a tip pose goal)."""
+    p.add_argument("--standoff", default=None, metavar="MM",
+                   help="stop the tip this far from the tissue, mm, along the surface normal: "
+                        "--target is snapped to the nearest wall or obstacle point (the snap "
+                        "distance is reported); default 0 (the tip's centre never comes nearer "
+                        "than its radius + margin: a smaller standoff is planned there and "
+                        "reported as goal_shift_mm)")
+    p.add_argument("--approach", default=None, metavar="X,Y,Z|normal",
+                   help="the direction the tip must point (scene frame; normalised): 'normal' = "
+                        "into the tissue, against the snapped surface's normal; the tip tangent "
+                        "must end within --cone of it")
+    p.add_argument("--cone", default=None, metavar="DEG",
+                   help=f"half-angle of the cone around --approach, degrees in (0, 90] "
+                        f"(default {_default_cone():g})")
+
+
+def _default_cone() -> float:
+    from ctrplan.planning.tipgoal import DEFAULT_CONE_DEG
+
+    return DEFAULT_CONE_DEG
+
+
+def parse_tip_goal_args(standoff, approach, cone) -> tuple:
+    """``--standoff`` (mm >= 0 or None), ``--approach`` ("normal", (3,) floats or None) and
+    ``--cone`` (deg in (0, 90] or None), each checked (InputError naming the flag)."""
+    from ctrplan.planning.tipgoal import MAX_STANDOFF_MM
+
+    s = None
+    if standoff is not None:
+        try:
+            s = strict_float(standoff)
+        except ValueError:
+            s = math.nan
+        if not (math.isfinite(s) and 0 <= s <= MAX_STANDOFF_MM):
+            raise InputError("--standoff", "", f"must be a distance in [0, {MAX_STANDOFF_MM:g}] mm, "
+                                               f"got {excerpt(standoff)}")
+    a = None
+    if approach is not None:
+        if str(approach).strip().lower() == "normal":
+            a = "normal"
+        else:
+            a = _numbers(approach, "--approach", 3)
+            if a is None or not math.hypot(*a) > 1e-12:
+                raise InputError("--approach", "", f"must be a non-zero direction X,Y,Z or "
+                                                   f"'normal', got {excerpt(approach)}")
+    c = None
+    if cone is not None:
+        try:
+            c = strict_float(cone)
+        except ValueError:
+            c = math.nan
+        if not (math.isfinite(c) and 0 < c <= 90):
+            raise InputError("--cone", "", f"must be a half-angle in (0, 90] degrees, got {excerpt(cone)}")
+        if a is None:
+            raise InputError("--cone", "", "needs --approach (the cone's axis)")
+    return s, a, c
+
+
+#: the farthest (mm) a --target is snapped onto the anatomy for --standoff / --approach normal
+MAX_SNAP_MM = 5.0
+
+
+def tip_goal(target, scene, standoff, approach, cone) -> tuple:
+    """The plan's goal from ``--target`` and the tip pose flags: the point itself when none is
+    given (a point goal, unchanged), else a :class:`~ctrplan.planning.tipgoal.TipGoal`. With
+    ``--standoff`` or ``--approach normal`` the target is snapped to the nearest wall or obstacle
+    point (with its normal into the lumen), at most :data:`MAX_SNAP_MM` away unless an explicit
+    ``--approach X,Y,Z`` lets a free target stand off along it. Returns (goal, plan.json's
+    ``snap_distance_mm``, ``snap_mesh``, ``target_given``)."""
+    from ctrplan.planning.tipgoal import TipGoal, snap_to_surface
+
+    if standoff is None and approach is None:
+        return target, {}
+    direction = None if approach in (None, "normal") else approach
+    snap = None
+    if standoff is not None or approach == "normal":
+        snap = snap_to_surface(scene, target)
+        if snap.distance_mm > MAX_SNAP_MM:
+            if approach == "normal" or direction is None:
+                raise InputError("--target", "", f"is {snap.distance_mm:.2f} mm from the nearest "
+                                 f"surface ({snap.mesh!r}), more than {MAX_SNAP_MM:g} mm: give a "
+                                 f"point on the tissue for --standoff / --approach normal, or "
+                                 f"--approach X,Y,Z to stand off a free target along it")
+            snap = None
+    if snap is None:
+        return TipGoal(target, direction=direction, cone_deg=cone,
+                       standoff_mm=standoff or 0.0), {}
+    if approach == "normal":
+        direction = -snap.normal
+    goal = TipGoal(snap.point, direction=direction, cone_deg=cone, standoff_mm=standoff or 0.0,
+                   normal=snap.normal)
+    return goal, {"snap_distance_mm": float(snap.distance_mm), "snap_mesh": snap.mesh,
+                  "target_given": [float(v) for v in target]}
+
+
 def one_thread() -> None:
     """Planning makes many small model calls: torch's intra-op thread pool only adds latency
     (25x slower on a busy 2-core machine). Set before torch is first imported."""
@@ -351,6 +465,7 @@ def run(args: argparse.Namespace) -> int:
     traj_out = (output_path(args.trajectory, (".csv",), "--trajectory")
                 if args.trajectory is not None else None)
     rate = parse_rate(args.rate)
+    pose = parse_tip_goal_args(args.standoff, args.approach, args.cone)
     device = device_arg(args.device)
     check_planner(args.planner)
     objective = parse_objective(args.objective)
@@ -359,6 +474,7 @@ def run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     scene = load_scene(args.scene)
     target, name = parse_target(args.target, scene)
+    goal, snap = tip_goal(target, scene, *pose)
     start = parse_start(args.start, robot, args.branch)
     config = PlannerConfig(margin_mm=parse_margin(args.margin), objective=objective)
     stability = parse_stability_margin(args.stability_margin)
@@ -377,9 +493,10 @@ def run(args: argparse.Namespace) -> int:
         where = using_device(device)
     with where:
         planner = Planner(robot, scene, args.model, config)
-        result = planner.plan(target, seed=args.seed, start=start, planner=args.planner,
+        result = planner.plan(goal, seed=args.seed, start=start, planner=args.planner,
                               time_limit=args.time, tolerance_mm=args.tolerance)
     plan = result.to_json()
+    plan.update(snap)
     plan["scene"] = args.scene
     plan["robot"] = str(args.robot)   # the name or path given; robot_spec holds the robot itself
     if name:  # the anatomical name where the scene has one; target_id is t01..

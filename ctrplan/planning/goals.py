@@ -100,10 +100,16 @@ class GoalSource:
     #: ones) are handed out highest first (e.g. their clearance); None keeps the order of
     #: increasing tip error
     rank: Any = None
+    #: a tip pose goal's axis (3,) unit, base frame, and cone (rad): goals keep the tip's
+    #: tangent within it (None: position only)
+    axis: Any = None
+    cone_rad: float | None = None
     rounds: int = 0
     reaching: int = 0
     evaluations: int = 0
     best_error_mm: float = math.inf
+    #: the smallest tangent angle (deg) from the axis among configurations reaching the target
+    best_angle_deg: float = math.inf
     goals: list[np.ndarray] = field(default_factory=list)
     #: configurations that reached the target but failed the validator (for the status)
     rejected: list[np.ndarray] = field(default_factory=list)
@@ -113,7 +119,10 @@ class GoalSource:
         target, the collision-free ones first (IK from a free configuration nearby tends to stay
         free), then jittered copies of them, then the colliding ones."""
         pool = 2 * count
-        cand = self.table.nearest(self.target_base, pool, skip=self.rounds * pool)
+        if self.axis is not None:
+            cand = self._cone_seeds(pool)
+        else:
+            cand = self.table.nearest(self.target_base, pool, skip=self.rounds * pool)
         if len(cand) == 0:
             return cand
         free = self.validator.states_valid(cand)
@@ -131,6 +140,28 @@ class GoalSource:
             out.append(bad[:need])
         return np.concatenate(out, axis=0)
 
+    def _cone_seeds(self, pool: int) -> np.ndarray:
+        """For a goal with a direction: among the next ``4 pool`` workspace samples nearest the
+        target, the ``pool`` whose tips are nearest it counting ``alpha_weight_mm`` mm per rad
+        of the tangent beyond the cone (one batched shape call)."""
+        from ctrplan.planning.tipgoal import angle_deg, tip_frames
+
+        wide = self.table.nearest(self.target_base, 4 * pool, skip=self.rounds * 4 * pool)
+        if len(wide) == 0:
+            return wide
+        tip, t, ok = tip_frames(self.model, wide)
+        beyond = np.maximum(0.0, np.radians(angle_deg(t, self.axis)) - self.cone_rad)
+        cost = np.linalg.norm(tip - self.target_base[None], axis=1) \
+            + self.config.ik.alpha_weight_mm * beyond
+        cost = np.where(ok, cost, np.inf)
+        return wide[np.argsort(cost, kind="stable")[:pool]]
+
+    def _solve(self, seeds: np.ndarray, ikc) -> _ik.IKResult:
+        if self.axis is None:
+            return _ik.solve_ik(self.model, self.robot, self.target_base, seeds, ikc)
+        return _ik.solve_ik_cone(self.model, self.robot, self.target_base, seeds, self.axis,
+                                 self.cone_rad, ikc)
+
     def next(self) -> np.ndarray:
         """Run one IK round; return new collision-free goal configurations (G, 2n)."""
         c = self.config
@@ -139,11 +170,17 @@ class GoalSource:
         if len(seeds) == 0:
             return np.zeros((0, self.robot.dof))
         ikc = replace(c.ik, stop_mm=min(c.ik.stop_mm, 0.1 * self.tolerance_mm))
-        res = _ik.solve_ik(self.model, self.robot, self.target_base, seeds, ikc)
+        res = self._solve(seeds, ikc)
         self.evaluations += res.evaluations
         if np.isfinite(res.error_mm).any():
             self.best_error_mm = min(self.best_error_mm, float(np.nanmin(res.error_mm)))
         reach = res.error_mm <= self.tolerance_mm
+        if self.axis is not None:   # goals outside the cone are rejected
+            within = res.angle_deg <= np.degrees(self.cone_rad)
+            if (reach & np.isfinite(res.angle_deg)).any():
+                self.best_angle_deg = min(self.best_angle_deg, float(np.min(
+                    np.where(reach, res.angle_deg, np.inf))))
+            reach &= within
         reach &= self.validator.joint_valid(res.q)
         self.reaching += int(reach.sum())
         if not reach.any():

@@ -62,7 +62,8 @@ class IKResult:
 
     q : (B, 2n) rad and mm (inside the joint constraints); tip : (B, 3) mm base frame;
     error_mm : (B,) distance to the target (inf where the model failed); iterations : int;
-    evaluations : configurations evaluated (shape or tip+Jacobian rows).
+    evaluations : configurations evaluated (shape or tip+Jacobian rows); angle_deg : (B,) the
+    tip tangent's angle (deg) from the goal's axis (:func:`solve_ik_cone`; None otherwise).
     """
 
     q: np.ndarray
@@ -70,6 +71,7 @@ class IKResult:
     error_mm: np.ndarray
     iterations: int
     evaluations: int
+    angle_deg: np.ndarray | None = None
 
 
 def tip_and_jacobian(model, q: np.ndarray, config: IKConfig | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -154,6 +156,99 @@ def solve_ik(model, robot: Robot, target: np.ndarray, q0: np.ndarray,
         rej = active[~better]
         lam[rej] = np.minimum(lam[rej] * 4.0, 1e4)
     return IKResult(q=q, tip=tip, error_mm=err, iterations=iterations, evaluations=evaluations)
+
+
+# ---------------------------------------------------------------------- tip direction
+#: the cone IK aims inside: the cone less this fraction of it (at most CONE_SLACK_DEG), so the
+#: goals keep their direction when the tangent is measured again (another point count, physics)
+CONE_SLACK_FRACTION = 0.25
+CONE_SLACK_DEG = 1.0
+
+
+def aim_cone_rad(cone_rad: float) -> float:
+    """The cone (rad) :func:`solve_ik_cone` aims inside for a goal's cone ``cone_rad``."""
+    return cone_rad - min(CONE_SLACK_FRACTION * cone_rad, np.radians(CONE_SLACK_DEG))
+
+
+def pose_and_jacobian(model, q: np.ndarray, axis: np.ndarray, cone_rad: float,
+                      config: IKConfig | None = None):
+    """Tips (B, 3), the tangent's angle beyond the cone (B,) rad, the Jacobian (B, 4, 2n) of
+    [tip; excess] and ok (B,), by forward differences in one batched shape call of
+    ``B * (2n + 1)`` configurations with :data:`~ctrplan.planning.tipgoal.TANGENT_POINTS`
+    points (the tangent: :func:`~ctrplan.planning.tipgoal.tip_tangents`). ``excess`` =
+    max(0, angle(tangent, axis) - cone_rad); ``axis`` (3,) unit, base frame."""
+    from ctrplan.planning.tipgoal import TANGENT_POINTS, angle_deg, tip_tangents
+
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    B, d = q.shape
+    c = config or IKConfig()
+    n = d // 2
+    h = np.concatenate([np.full(n, c.fd_alpha), np.full(n, -c.fd_beta)])
+    stack = np.repeat(q[:, None, :], d + 1, axis=1)
+    stack[:, 1:, :] += np.diag(h)[None]
+    shape = model.shape(stack.reshape(-1, d), points=TANGENT_POINTS)
+    tips = shape.tip.reshape(B, d + 1, 3)
+    t = tip_tangents(shape.points)
+    ang = np.radians(angle_deg(t, axis)).reshape(B, d + 1)
+    excess = np.maximum(0.0, ang - cone_rad)
+    ok = (np.asarray(shape.ok, dtype=bool) & np.isfinite(ang).reshape(-1)).reshape(B, d + 1).all(axis=1)
+    f = np.concatenate([tips, excess[:, :, None]], axis=2)           # (B, d+1, 4)
+    J = (f[:, 1:, :] - f[:, :1, :]).transpose(0, 2, 1) / h[None, None, :]
+    return tips[:, 0, :], excess[:, 0], ang[:, 0], J, ok
+
+
+def solve_ik_cone(model, robot: Robot, target: np.ndarray, q0: np.ndarray, axis: np.ndarray,
+                  cone_rad: float, config: IKConfig | None = None) -> IKResult:
+    """:func:`solve_ik` with the tip's direction: the residual is the tip's offset from
+    ``target`` (3,) mm and ``alpha_weight_mm`` times the angle (rad) by which the tip tangent
+    lies beyond :func:`aim_cone_rad` of ``cone_rad`` around ``axis`` (3,) unit, base frame
+    (0 inside it). A seed stops once the residual's norm is below ``stop_mm``. Returns the
+    position error in ``error_mm`` and the tangent's angle from the axis in ``angle_deg``."""
+    c = config or IKConfig()
+    model = planning_model(model, fit=False)
+    target = np.asarray(target, dtype=float).reshape(3)
+    axis = np.asarray(axis, dtype=float).reshape(3)
+    aim = aim_cone_rad(float(cone_rad))
+    w = float(c.alpha_weight_mm)
+    n = robot.n
+    q = project_joints(robot, np.atleast_2d(np.asarray(q0, dtype=float)))
+    B = len(q)
+    scale = np.concatenate([np.full(n, 1.0 / c.alpha_weight_mm), np.ones(n)])
+    wrow = np.array([1.0, 1.0, 1.0, w])
+
+    def evaluate(qq):
+        tip_, exc, ang_, J_, ok_ = pose_and_jacobian(model, qq, axis, aim, c)
+        e_ = np.concatenate([target - tip_, -exc[:, None]], axis=1) * wrow
+        return tip_, ang_, e_, J_ * wrow[None, :, None], np.where(ok_, np.linalg.norm(e_, axis=1), np.inf)
+
+    tip, ang, e, J, err = evaluate(q)
+    evaluations = B * (2 * n + 1)
+    lam = np.full(B, float(c.damping))
+    eye = np.eye(4)
+    iterations = 0
+    for _ in range(c.max_iter):
+        active = np.flatnonzero(np.isfinite(err) & (err > c.stop_mm))
+        if len(active) == 0 or (c.enough and np.sum(err <= c.stop_mm) >= c.enough):
+            break
+        iterations += 1
+        Js = J[active] * scale[None, None, :]                        # (A, 4, d)
+        A = Js @ Js.transpose(0, 2, 1) + (lam[active] ** 2)[:, None, None] * eye
+        dz = np.einsum("aij,ai->aj", Js, np.linalg.solve(A, e[active][:, :, None])[:, :, 0])
+        norm = np.linalg.norm(dz, axis=1)
+        dz *= np.minimum(1.0, c.max_step_mm / np.maximum(norm, 1e-300))[:, None]
+        cand = project_joints(robot, q[active] + dz * scale[None, :])
+        tip_c, ang_c, e_c, J_c, err_c = evaluate(cand)
+        evaluations += len(active) * (2 * n + 1)
+        better = err_c < err[active]
+        acc = active[better]
+        q[acc], tip[acc], ang[acc], e[acc] = cand[better], tip_c[better], ang_c[better], e_c[better]
+        J[acc], err[acc] = J_c[better], err_c[better]
+        lam[acc] = np.maximum(lam[acc] * 0.5, 1e-4)
+        rej = active[~better]
+        lam[rej] = np.minimum(lam[rej] * 4.0, 1e4)
+    pos = np.where(np.isfinite(err), np.linalg.norm(target - tip, axis=1), np.inf)
+    return IKResult(q=q, tip=tip, error_mm=pos, iterations=iterations, evaluations=evaluations,
+                    angle_deg=np.degrees(ang))
 
 
 # ---------------------------------------------------------------------- workspace table

@@ -327,13 +327,14 @@ class _Problem:
 def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.ndarray,
                   objective: str = "clearance", config: OptimizeConfig | None = None,
                   check_resolution_mm: float | None = None,
-                  goal_tol_mm: float | None = None, deadline: float = math.inf) -> OptimizeResult:
+                  goal_tol_mm: float | None = None, deadline: float = math.inf,
+                  keep_goal: bool = False) -> OptimizeResult:
     """Optimise a collision-free waypoint path (K, 2n) for ``objective`` (see the module
     docstring). ``target_base`` (3,) mm, robot base frame: the goal's tip target.
     ``check_resolution_mm`` : edge resolution of the collision check of every iterate (default:
     the validator's). ``deadline`` : a ``time.perf_counter()`` value; only a cap (the budget is
-    ``config.iterations`` trials). Returns the best accepted iterate (the resampled input if
-    none)."""
+    ``config.iterations`` trials). ``keep_goal`` : the goal state never moves (a goal whose tip
+    direction matters). Returns the best accepted iterate (the resampled input if none)."""
     cfg = config or OptimizeConfig()
     if objective not in ("clearance", "length"):
         raise ValueError(f"objective must be 'clearance' or 'length', got {objective!r}")
@@ -365,7 +366,7 @@ def optimize_path(validator: BatchValidator, path: np.ndarray, target_base: np.n
             G, J = prob.gradient(path, costs, tips[-1])
             # the goal moves only along the tip's null space
             JJ = J @ J.T
-            if np.linalg.cond(JJ) < 1e12:
+            if np.linalg.cond(JJ) < 1e12 and not keep_goal:
                 G[-1] -= J.T @ np.linalg.solve(JJ, J @ G[-1])
             else:
                 G[-1] = 0.0

@@ -9,6 +9,7 @@ runs them in order; see :mod:`ctrplan.planning.plan` for what each stage does.
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -202,7 +203,8 @@ def ik_goals(run: Run) -> tuple[GoalSource, np.ndarray]:
         def rank(q: np.ndarray) -> np.ndarray:   # goals with more room first
             return state_clearance(run.validator, field_, q)
     source = GoalSource(run.model, run.robot, run.validator, table, run.goal,
-                        run.tolerance_mm, run.cfg, np.random.default_rng([run.seed, 1]), rank=rank)
+                        run.tolerance_mm, run.cfg, np.random.default_rng([run.seed, 1]), rank=rank,
+                        **_cone(run))
     goals = source.next()
     while len(goals) == 0 and source.rounds < run.cfg.ik_rounds:
         goals = source.next()
@@ -226,6 +228,13 @@ def ik_goals(run: Run) -> tuple[GoalSource, np.ndarray]:
     run.counts.update(ik_rounds=source.rounds, ik_reaching=source.reaching,
                       ik_evaluations=source.evaluations, goals=len(goals))
     if len(goals) == 0:
+        if source.reaching == 0 and source.axis is not None:
+            off = (f"; the best reaching it points {source.best_angle_deg:.1f} deg off the approach"
+                   if math.isfinite(source.best_angle_deg) else "")
+            raise Stop(run.finish(
+                PlanStatus.UNREACHABLE, f"no configuration puts the tip within {run.tolerance_mm:g} "
+                f"mm of the target with its direction within the cone of {run.tip_goal.cone_deg:g} "
+                f"deg (best {source.best_error_mm:.2f} mm after {source.rounds} IK rounds{off})"))
         if source.reaching == 0:
             raise Stop(run.finish(
                 PlanStatus.UNREACHABLE, f"no configuration puts the tip within {run.tolerance_mm:g} "
@@ -240,6 +249,16 @@ def ik_goals(run: Run) -> tuple[GoalSource, np.ndarray]:
         raise Stop(run.finish(PlanStatus.GOAL_IN_COLLISION, f"{source.reaching} configurations "
                                "reach the target but all of them collide"))
     return source, goals
+
+
+def _cone(run: Run) -> dict:
+    """A tip pose goal's axis (base frame) and cone (rad) for the goal source ({} without)."""
+    goal = run.tip_goal
+    if goal is None or goal.direction is None:
+        return {}
+    from ctrplan.planning.tipgoal import to_base_vectors
+
+    return dict(axis=to_base_vectors(run.scene, np.asarray(goal.direction)), cone_rad=goal.cone_rad)
 
 
 def search(run: Run, start: np.ndarray, source: GoalSource,
@@ -336,9 +355,11 @@ def optimize(run: Run, path: np.ndarray) -> list[np.ndarray]:
         return []
     t0 = time.perf_counter()
     # the optimised goal's tip error stays within max(its IK error, 0.4 x the IK's threshold)
+    # a goal with a direction keeps its IK configuration (whose tangent is within the cone)
+    keep = run.tip_goal is not None and run.tip_goal.direction is not None
     res = _opt.optimize_path(run.validator, path, run.goal, cfg.objective, cfg.optimizer,
                              goal_tol_mm=0.4 * min(cfg.ik.stop_mm, 0.1 * run.tolerance_mm),
-                             deadline=run.deadline)
+                             deadline=run.deadline, keep_goal=keep)
     run.clock("optimization", t0)
     run.time_cap_hit |= res.time_cap_hit
     run.counts.update(optimizer_accepted=res.accepted, optimizer_trials=res.trials,

@@ -244,20 +244,27 @@ def lumen_orientation(scene, rays: int = 256) -> np.ndarray:
     winding is consistent: the loader's meshes are closed surfaces). A mesh no ray meets first
     keeps its own outward orientation (its signed volume): an obstacle's outward normals point
     into the lumen, a wall's inward ones do."""
-    import trimesh
-
     from ctrplan.collision._raycast import fibonacci_directions
 
     meshes = list(scene.collision_meshes)
-    merged = trimesh.util.concatenate([m.mesh for m in meshes])
-    owner = np.repeat(np.arange(len(meshes)), [len(m.mesh.faces) for m in meshes])
-    dirs = fibonacci_directions(rays) if rays else np.zeros((0, 3))
+    dirs = fibonacci_directions(rays)
     origin = np.repeat(scene.base_pose[:3, 3][None], len(dirs), axis=0)
-    tri = merged.ray.intersects_first(origin, dirs)
+    first = np.full(len(dirs), np.inf)           # the nearest hit along each ray, over meshes
+    owner = np.full(len(dirs), -1)
+    facing = np.zeros(len(dirs))
+    for k, m in enumerate(meshes):               # (each mesh keeps its own ray tree: trimesh)
+        tri, ray, loc = m.mesh.ray.intersects_id(origin, dirs, multiple_hits=False,
+                                                 return_locations=True)
+        if not len(tri):
+            continue
+        dist = np.linalg.norm(loc - origin[ray], axis=1)
+        near = dist < first[ray]
+        ray, tri, dist = ray[near], tri[near], dist[near]
+        first[ray], owner[ray] = dist, k
+        facing[ray] = -np.sum(m.mesh.face_normals[tri] * dirs[ray], axis=1)
     votes = np.zeros(len(meshes))
-    hit = tri >= 0
-    facing = -np.sum(merged.face_normals[tri[hit]] * dirs[hit], axis=1)
-    np.add.at(votes, owner[tri[hit]], np.sign(facing))
+    hit = owner >= 0
+    np.add.at(votes, owner[hit], np.sign(facing[hit]))
     out = np.empty(len(meshes))
     for k, m in enumerate(meshes):
         if votes[k] != 0:
