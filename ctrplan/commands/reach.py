@@ -65,8 +65,9 @@ def register(ss: argparse._SubParsersAction) -> None:
     for a in p._actions:
         if a.dest == "time":
             a.help = "time limit per plan, s (default 2)"
-    p.add_argument("--ik-seeds", type=int_arg(1, 1024), default=16, metavar="K",
-                   help="IK seeds per point in the screen (default 16)")
+    p.add_argument("--ik-seeds", type=int_arg(1, 1024), default=None, metavar="K",
+                   help="IK seeds per point and round in the screen (default: the planner's, "
+                        "as a plan's goal rounds)")
     p.add_argument("--seed", type=int_arg(0, 2**31 - 1), default=0,
                    help="seed of the surface sample and of every plan (default 0)")
     where = p.add_mutually_exclusive_group()

@@ -10,10 +10,13 @@ does) and, with an approach, the tip's tangent within ``cone_deg`` of the approa
 
 Two stages:
 
-1. **Screen** (:func:`screen`, in the driving process): batched IK over all points at once
-   (``ik_seeds`` workspace samples nearest each goal as seeds, every seed with its own target in
-   one :func:`~ctrplan.planning.ik.solve_ik`), then the direction filter and the planning
-   world's collision check of the converged configurations. A point passes when one
+1. **Screen** (:func:`screen`, in the driving process): batched IK over all points at once,
+   in the rounds a plan's IK goals are found in (the planner's ``ik_rounds`` rounds of
+   ``ik.seeds`` workspace samples nearest each goal, collision-free ones first; a round only
+   for the points not passed yet; without a direction every seed of every point refined toward
+   its own goal in one :func:`~ctrplan.planning.ik.solve_ik`, with one by
+   :func:`~ctrplan.planning.ik.solve_ik_cone` per point), then the direction filter and the
+   planning world's collision check of the converged configurations. A point passes when one
    configuration puts the tip within the tolerance of the goal, its direction within the cone
    (:func:`~ctrplan.planning.tipgoal.tip_frames`, the same tangent the plan reports),
    collision-free.
@@ -61,7 +64,8 @@ class ReachSettings:
     cone_deg : half-angle of the approach cone (deg, in (0, 90]); required with an approach.
     tolerance_mm, time_limit, planner, margin, objective : each plan's, as for ``plan``.
     seed : the surface sample's and every plan's seed.
-    ik_seeds : IK seeds per point in the screen.
+    ik_seeds : IK seeds per point and round in the screen (None: the planner's, ``ik.seeds``;
+        rounds: ``ik_rounds``, as a plan's goal rounds).
     """
 
     scene: str
@@ -76,7 +80,7 @@ class ReachSettings:
     margin: str = "auto"
     objective: str = "clearance"
     seed: int = 0
-    ik_seeds: int = 16
+    ik_seeds: int | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.standoff_mm) and self.standoff_mm >= 0):
@@ -89,8 +93,8 @@ class ReachSettings:
             raise ArgumentError("cone_deg", f"must be in (0, 90] deg, got {self.cone_deg!r}")
         if self.approach and self.approach != "normal":
             parse_direction(self.approach)
-        if not (isinstance(self.ik_seeds, int) and self.ik_seeds >= 1):
-            raise ArgumentError("ik_seeds", f"must be an integer >= 1, got {self.ik_seeds!r}")
+        if self.ik_seeds is not None and not (isinstance(self.ik_seeds, int) and self.ik_seeds >= 1):
+            raise ArgumentError("ik_seeds", f"must be an integer >= 1 or None, got {self.ik_seeds!r}")
 
 
 def parse_direction(text: str) -> np.ndarray:
@@ -167,48 +171,124 @@ def planned_goals(planner, points: np.ndarray, normals: np.ndarray, standoff_mm:
     return points + max(float(standoff_mm), least) * normals
 
 
+def screen_seeds(planner, targets: np.ndarray, axes: np.ndarray | None, cone_deg: float | None,
+                 seeds: int, round_: int, alpha_weight_mm: float) -> np.ndarray:
+    """IK seeds (P, S, 2n) for round ``round_`` of every target (P, 3) mm, base frame, chosen as
+    the planner's goal rounds choose them (:class:`~ctrplan.planning.goals.GoalSource`): among
+    the next ``2 S`` workspace samples nearest the target (with a direction: the ``2 S`` of the
+    next ``8 S`` nearest counting ``alpha_weight_mm`` mm per rad of tangent beyond the cone, one
+    batched shape call for all targets), the collision-free ones first."""
+    from ctrplan.planning.tipgoal import angle_deg, tip_frames
+
+    table = planner.workspace_table()
+    pool = 2 * seeds
+    if axes is None:
+        cand = np.stack([table.nearest(g, pool, skip=round_ * pool) for g in targets])
+    else:
+        cone = math.radians(float(cone_deg))
+        wide = np.stack([table.nearest(g, 4 * pool, skip=round_ * 4 * pool) for g in targets])
+        W = wide.shape[1]
+        tip, t, ok = tip_frames(planner.model, wide.reshape(-1, wide.shape[-1]))
+        beyond = np.maximum(0.0, np.radians(angle_deg(t, np.repeat(axes, W, axis=0))) - cone)
+        cost = np.linalg.norm(tip - np.repeat(targets, W, axis=0), axis=1) + alpha_weight_mm * beyond
+        cost = np.where(ok, cost, np.inf).reshape(len(targets), W)
+        order = np.argsort(cost, axis=1, kind="stable")[:, :pool]
+        cand = np.take_along_axis(wide, order[:, :, None], axis=1)
+    P, C, d = cand.shape
+    free = planner.validator(tracking=False).states_valid(cand.reshape(-1, d)).reshape(P, C)
+    order = np.argsort(~free, axis=1, kind="stable")[:, :seeds]
+    return np.take_along_axis(cand, order[:, :, None], axis=1)
+
+
+def screen_ik(planner, targets: np.ndarray, q0: np.ndarray, axes: np.ndarray | None,
+              cone_deg: float | None, ikc) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """IK toward every target (P, 3) mm, base frame, from its seeds ``q0`` (P, S, 2n):
+    (q (P*S, 2n), tips (P*S, 3) base frame (NaN where the model failed), owner (P*S,)).
+
+    Without a direction (``axes`` None) one :func:`~ctrplan.planning.ik.solve_ik` refines the
+    seeds of all targets together (each row toward its own target); with one (``axes`` (P, 3)
+    unit, base frame) :func:`~ctrplan.planning.ik.solve_ik_cone` per target (its seeds
+    batched)."""
+    from ctrplan.planning.ik import solve_ik, solve_ik_cone
+
+    robot, model = planner.robot, planner.model
+    P, S, d = q0.shape
+    owner = np.repeat(np.arange(P), S)
+    if axes is None:
+        res = solve_ik(model, robot, targets[owner], q0.reshape(-1, d), ikc)
+        return res.q, np.where(np.isfinite(res.error_mm)[:, None], res.tip, np.nan), owner
+    qs, tips = [], []
+    for p in range(P):
+        res = solve_ik_cone(model, robot, targets[p], q0[p], axes[p], math.radians(float(cone_deg)), ikc)
+        qs.append(res.q)
+        tips.append(np.where(np.isfinite(res.error_mm)[:, None], res.tip, np.nan))
+    return np.concatenate(qs), np.concatenate(tips), owner
+
+
 def screen(planner, goals: np.ndarray, directions: np.ndarray | None, cone_deg: float | None,
-           tolerance_mm: float, seeds: int = 16, planned: np.ndarray | None = None) -> ScreenResult:
+           tolerance_mm: float, seeds: int | None = None, planned: np.ndarray | None = None,
+           rounds: int | None = None) -> ScreenResult:
     """The screen (module docstring) of goals (P, 3) mm, scene frame, with tip tangents
     ``directions`` (P, 3) scene frame (None: any direction) within ``cone_deg``. ``planned``
     (P, 3): where IK puts the tip when that differs from the goal (a standoff below the tip's
-    radius + margin); the tolerance applies to ``goals``."""
-    from ctrplan.planning.ik import solve_ik
-    from ctrplan.planning.tipgoal import angle_deg, tip_frames, to_scene_vectors
+    radius + margin); the tolerance applies to ``goals``. ``seeds`` per round and ``rounds``
+    (None: the planner's ``ik.seeds`` and ``ik_rounds``, so the screen searches as widely as a
+    plan's goal rounds); a round runs only for the points not passed yet."""
+    from ctrplan.planning.tipgoal import to_base_vectors
 
     goals = np.asarray(goals, dtype=float).reshape(-1, 3)
     planned = goals if planned is None else np.asarray(planned, dtype=float).reshape(-1, 3)
     P = len(goals)
-    nan = np.full(P, np.nan)
-    if P == 0:
-        return ScreenResult(np.zeros(0, bool), nan, nan, nan)
-    robot, model, scene = planner.robot, planner.model, planner.scene
-    table = planner.workspace_table()
-    base = scene.to_base(planned)
-    q0 = np.concatenate([table.nearest(g, seeds) for g in base])
-    per = len(q0) // P
-    owner = np.repeat(np.arange(P), per)
     cfg = planner.config
+    seeds = int(seeds or cfg.ik.seeds)
+    rounds = int(rounds or cfg.ik_rounds)
+    out = ScreenResult(np.zeros(P, bool), np.full(P, np.nan), np.full(P, np.nan), np.full(P, np.nan))
+    scene = planner.scene
+    axes = None if directions is None else to_base_vectors(scene, np.asarray(directions, dtype=float))
     ikc = replace(cfg.ik, stop_mm=min(cfg.ik.stop_mm, 0.1 * tolerance_mm))
-    res = solve_ik(model, robot, base[owner], q0, ikc)
-    err = np.linalg.norm(res.tip - scene.to_base(goals)[owner], axis=1)
-    err = np.where(np.isfinite(res.error_mm), err, np.inf)
+    for r in range(rounds):
+        left = np.flatnonzero(~out.passed)
+        if len(left) == 0:
+            break
+        base = scene.to_base(planned[left])
+        ax = None if axes is None else axes[left]
+        q0 = screen_seeds(planner, base, ax, cone_deg, seeds, r, ikc.alpha_weight_mm)
+        q, tip, owner = screen_ik(planner, base, q0, ax, cone_deg, ikc)
+        got = _judge(planner, q, tip, owner, goals[left],
+                     None if directions is None else np.asarray(directions, dtype=float)[left],
+                     cone_deg, tolerance_mm)
+        out.tip_error_mm[left] = np.fmin(out.tip_error_mm[left], got.tip_error_mm)
+        new = left[got.passed]
+        out.passed[new] = True
+        out.direction_error_deg[new] = got.direction_error_deg[got.passed]
+        out.clearance_mm[new] = got.clearance_mm[got.passed]
+    return out
+
+
+def _judge(planner, q, tip, owner, goals, directions, cone_deg, tolerance_mm) -> ScreenResult:
+    """Which of the targets ``goals`` (P, 3) scene frame the IK rows (q, tips in the base
+    frame, owner) reach: the tip within the tolerance, in the joint limits, the direction in
+    the cone, collision-free in the planning world; per target the best values."""
+    from ctrplan.planning.tipgoal import angle_deg, tip_frames, to_scene_vectors
+
+    scene = planner.scene
+    P = len(goals)
+    err = np.linalg.norm(tip - scene.to_base(goals)[owner], axis=1)
+    err = np.where(np.isfinite(err), err, np.inf)
     best_err = np.full(P, np.inf)
-    np.minimum.at(best_err, owner, np.where(np.isfinite(err), err, np.inf))
+    np.minimum.at(best_err, owner, err)
     validator = planner.validator(tracking=False)
-    ok = (err <= tolerance_mm) & validator.joint_valid(res.q)
+    ok = (err <= tolerance_mm) & validator.joint_valid(q)
     dir_err = np.full(len(err), np.nan)
-    if directions is not None:
-        idx = np.flatnonzero(ok)
-        if len(idx):
-            _, t, good = tip_frames(model, res.q[idx])
-            dir_err[idx] = angle_deg(to_scene_vectors(scene, t),
-                                     np.asarray(directions, dtype=float)[owner[idx]])
-            ok[idx] &= good & (dir_err[idx] <= cone_deg)
+    idx = np.flatnonzero(ok)
+    if directions is not None and len(idx):
+        _, t, good = tip_frames(planner.model, q[idx])
+        dir_err[idx] = angle_deg(to_scene_vectors(scene, t), directions[owner[idx]])
+        ok[idx] &= good & (dir_err[idx] <= cone_deg)
     clear = np.full(len(err), -np.inf)
     idx = np.flatnonzero(ok)
     if len(idx):
-        collides, clearance, _ = validator.check_states(res.q[idx])
+        collides, clearance, _ = validator.check_states(q[idx])
         ok[idx] &= ~np.asarray(collides, dtype=bool)
         clear[idx] = np.where(ok[idx], np.asarray(clearance, dtype=float), -np.inf)
     passed = np.zeros(P, dtype=bool)
@@ -220,8 +300,7 @@ def screen(planner, goals: np.ndarray, directions: np.ndarray | None, cone_deg: 
         rows = np.flatnonzero((owner == p) & ok)
         best_dir[p] = dir_err[rows[np.argmax(clear[rows])]]
     return ScreenResult(passed=passed, tip_error_mm=np.where(np.isfinite(best_err), best_err, np.nan),
-                        direction_error_deg=best_dir,
-                        clearance_mm=np.where(passed, best_clear, np.nan))
+                        direction_error_deg=best_dir, clearance_mm=np.where(passed, best_clear, np.nan))
 
 
 # ---------------------------------------------------------------------- one point's plan
