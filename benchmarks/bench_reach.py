@@ -9,6 +9,7 @@ pose, the plan reached the point), ``plan_varies`` (planned in the map, another 
 otherwise). ``tests/test_reach_statistical.py`` runs the same comparison on fewer points in CI.
 
     python benchmarks/bench_reach.py [--points 200] [--scenes airway,...] [--out benchmarks/results/reach.json]
+    python benchmarks/bench_reach.py --approach normal --cone 45 --out benchmarks/results/reach_cone.json
 """
 
 from __future__ import annotations
@@ -70,6 +71,8 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=200)
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--out", default="benchmarks/results/reach.json")
+    ap.add_argument("--approach", default="", help="'normal' or X,Y,Z (default: any direction)")
+    ap.add_argument("--cone", type=float, default=None, help="cone half-angle, deg")
     args = ap.parse_args()
     import subprocess
 
@@ -78,12 +81,14 @@ def main() -> None:
     rows = []
     with TemporaryDirectory() as tmp:
         for s in args.scenes.split(","):
-            rows.append(compare(s, args.points, Path(tmp) / s))
+            rows.append(compare(s, args.points, Path(tmp) / s, approach=args.approach,
+                                cone_deg=args.cone))
             print(json.dumps(rows[-1]), flush=True)
     total = sum(r["points"] for r in rows)
     result = {"what": "reach map verdict vs a full plan attempt with another seed, points sampled "
                       "near the named targets (radius 20 mm), standoff 2 mm, 1 s per plan, seed1 "
-                      "robot, physics model, one core",
+                      "robot, physics model, one core" + (
+                          f", approach {args.approach} within {args.cone:g} deg" if args.approach else ""),
               "revision": rev, "date": time.strftime("%Y-%m-%d %H:%M"), "points_per_scene": args.points,
               "scenes": rows, "agreement_all": sum(r["agree"] for r in rows) / total,
               "agreement_min": min(r["agreement"] for r in rows)}

@@ -129,7 +129,7 @@ def small_map(tmp_path_factory):
     from ctrplan.planning.reach import reach_map
 
     scene = load_scene("skull_base")
-    samples = sample_surface(scene, 30, seed=0, near=scene.target_positions(), radius_mm=20.0)
+    samples = sample_surface(scene, 20, seed=0, near=scene.target_positions(), radius_mm=20.0)
     out = tmp_path_factory.mktemp("reach") / "map"
     return samples, out, reach_map(_settings(), samples, out)
 
@@ -144,8 +144,8 @@ def test_map_rows_are_the_plans_and_screen(small_map):
 
     samples, out, summary = small_map
     rows = _csv(out / "reach.csv")
-    assert tuple(rows[0].keys()) == COLUMNS and len(rows) == 30
-    assert summary.screened_out + summary.planned == 30 and summary.planned > 0
+    assert tuple(rows[0].keys()) == COLUMNS and len(rows) == 20
+    assert summary.screened_out + summary.planned == 20 and summary.planned > 0
     for r, p, n in zip(rows, samples.points, samples.normals):
         assert np.allclose([float(r[c]) for c in "xyz"], p)
         goal = np.array([float(r[f"goal_{c}"]) for c in "xyz"])
@@ -188,15 +188,15 @@ def test_rerun_resumes_only_what_is_left_and_refuses_an_edited_file(small_map, t
     shutil.copytree(out, folder)
     before = (folder / "reach.csv").read_text()
     again = reach_map(_settings(), samples, folder)
-    assert (again.skipped, again.screened_out, again.planned) == (30, 0, 0)
+    assert (again.skipped, again.screened_out, again.planned) == (20, 0, 0)
     files = sorted((folder / "points").iterdir())
-    assert len(files) == 30
+    assert len(files) == 20
     gone = files[:3]
     for f in gone:
         f.unlink()
     (folder / "points" / ".p00001__x.json.abc.tmp").write_text("{")   # a killed run's temporary
     third = reach_map(_settings(), samples, folder)
-    assert third.skipped == 27 and third.screened_out + third.planned == 3
+    assert third.skipped == 17 and third.screened_out + third.planned == 3
     assert not any(p.name.startswith(".") for p in (folder / "points").iterdir())
 
     def strip(text):   # planning times differ between runs
@@ -204,9 +204,13 @@ def test_rerun_resumes_only_what_is_left_and_refuses_an_edited_file(small_map, t
         return [{k: v for k, v in r.items() if k != "planning_time_s"} for r in rows]
 
     assert strip((folder / "reach.csv").read_text()) == strip(before)
-    # another setting is another map: every point decided again
-    other = reach_map(_settings(standoff_mm=3.0), samples, tmp_path / "other")
-    assert other.skipped == 0
+    # another setting is another point id: a map with it decides every point again
+    from ctrplan.planning.reach import point_id
+
+    p, n = samples.points[0], samples.normals[0]
+    ids = {point_id(s, 0, p, n) for s in (_settings(), _settings(standoff_mm=3.0),
+                                          _settings(approach="normal", cone_deg=30.0), _settings(seed=1))}
+    assert len(ids) == 4
     # an edited point file is refused, naming the file and field
     f = files[5]
     data = json.loads(f.read_text())
