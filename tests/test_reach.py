@@ -316,6 +316,9 @@ def _interrupt_once(args, cwd: Path, sig: int, points: Path, after: int) -> set[
     err = err.decode()
     assert p.returncode == 128 + sig, err
     assert "Traceback" not in err
+    from tests.test_interrupt import survivors
+
+    assert survivors(p.pid) == []                               # no worker left behind
     for name in ("reach.csv", "reach.html", "reach.png"):
         assert not (cwd / "m" / name).exists()
     done = {f.name for f in points.iterdir()}
@@ -328,8 +331,8 @@ def _interrupt_once(args, cwd: Path, sig: int, points: Path, after: int) -> set[
 def test_interrupted_map_exits_130_or_143_leaves_no_map_and_resumes(tmp_path):
     """SIGINT (to the group, as Ctrl-C) while the pool plans, then SIGTERM on the resumed run,
     then a run that finishes with the points of the two before it already done."""
-    args = ("--scene", "skull_base", "--points", "30", "--near-targets", "--time", "1",
-            "--workers", "2", "--out", "m")
+    args = ("--scene", "skull_base", "--points", "20", "--near-targets", "--time", "10",
+            "--ik-seeds", "8", "--workers", "2", "--out", "m")
     points = tmp_path / "m" / "points"
     first = _interrupt_once(args, tmp_path, signal.SIGINT, points, after=2)
     if first is None:
@@ -342,4 +345,4 @@ def test_interrupted_map_exits_130_or_143_leaves_no_map_and_resumes(tmp_path):
     assert p.returncode == 0, err.decode()
     if second is not None:
         assert f"{len(done)} were already done" in out.decode()
-    assert len(_csv(tmp_path / "m" / "reach.csv")) == 30
+    assert len(_csv(tmp_path / "m" / "reach.csv")) == 20
