@@ -353,8 +353,9 @@ def write_job_file(path: Path, res: dict) -> None:
 
 
 @contextlib.contextmanager
-def _folder_lock(out: Path):
-    """An exclusive lock on ``out/.lock`` for the run (released by the OS if the process dies)."""
+def _folder_lock(out: Path, what: str = "plan-batch"):
+    """An exclusive lock on ``out/.lock`` for the run (released by the OS if the process dies);
+    ``what`` names the command in the refusal."""
     try:
         import fcntl
     except ImportError:  # pragma: no cover - not POSIX
@@ -367,7 +368,7 @@ def _folder_lock(out: Path):
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
             os.close(fd)
-            raise ArgumentError("out", f"another plan-batch is writing to {str(out)!r} "
+            raise ArgumentError("out", f"another {what} is writing to {str(out)!r} "
                                           f"(wait for it, or use another folder)") from None
         try:   # the file may have been removed by the run that held it: lock the one there now
             if os.stat(path).st_ino == os.fstat(fd).st_ino:

@@ -378,7 +378,7 @@ def reach_map(settings: ReachSettings, samples, out, workers: int = 1,
     pdir.mkdir(parents=True, exist_ok=True)
     pts, nrm = np.asarray(samples.points, float), np.asarray(samples.normals, float)
     ids = [point_id(settings, i, p, n) for i, (p, n) in enumerate(zip(pts, nrm))]
-    with _folder_lock(out):
+    with _folder_lock(out, "scene reach"):
         for stale in pdir.glob(".*"):          # temporaries of a run that was killed
             if stale.is_file():
                 stale.unlink()
