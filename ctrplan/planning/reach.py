@@ -24,8 +24,8 @@ Two stages:
    retracted start, the same seed for every point) to every point that passed, on the same
    pool / Ray path as plan-batch (:func:`~ctrplan.planning.batch.run_tasks`). The map's verdict
    is the plan's: ``reachable`` only for a plan with status SUCCESS (the tip within the
-   tolerance of the goal and, with a cone, its direction within it). A point that fails the screen is ``reachable = false`` with status
-   ``NO_POSE`` and is not planned.
+   tolerance of the goal and, with a cone, its direction within it). A point that fails the
+   screen is ``reachable = false`` with status ``NO_POSE`` and is not planned.
 
 Resumable like plan-batch: each point's result is written durably to ``<out>/points/<id>.json``
 as it is decided (the id is the point's index plus a hash of the point and every setting); a
