@@ -193,6 +193,7 @@ def render_html(scene, rows, out: Path, settings) -> None:
                                    hoverinfo="text"))
     fig = go.Figure(data=traces)
     fig.update_layout(title=_title(scene, rows, settings), margin={"l": 0, "r": 0, "t": 40, "b": 0},
+                      legend={"x": 0.01, "y": 0.95, "bgcolor": "rgba(255,255,255,0.6)"},
                       scene={"aspectmode": "data", "xaxis_title": "x (mm)", "yaxis_title": "y (mm)",
                              "zaxis_title": "z (mm)"})
     write_text_atomic(out, fig.to_html(include_plotlyjs=True, full_html=True,
