@@ -479,6 +479,7 @@ COMMANDS = {
                                          "--entry=0,0,0", "--toward=0,0,1", "--out", out],
     "plan": lambda i, out: ["plan", "--scene", "airway", AIRWAY_TARGET, "--out", f"{out}.json"],
     "plan-batch": lambda i, out: ["plan-batch", "--targets", "examples", "--out", out],
+    "scene-reach": lambda i, out: ["scene", "reach", "--scene", "skull_base", "--points", "5", "--out", out],
     "view": lambda i, out: ["view", str(i / "plan.json"), "--out", f"{out}.html"],
     "diagnose": lambda i, out: ["diagnose", "--robot", "seed1", "--data", str(i / "c.csv"), "--out", out],
     "demo": lambda i, out: ["demo", "--out", out],

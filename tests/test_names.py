@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ctrplan.commands._names import FLAGS, PLANNING, TABLES, for_command_line, markdown
+from ctrplan.commands._names import FLAGS, TABLES, for_command_line, markdown
 from ctrplan.errors import ArgumentError, InputError
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "conventions.md"
@@ -37,8 +37,10 @@ def _options(command: str) -> set[str]:
     from ctrplan.cli import build_parser
 
     parser = build_parser()
-    sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
-    return set(sub.choices[command]._option_string_actions)
+    for word in command.split():      # "scene reach": a subcommand's subcommand
+        sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
+        parser = sub.choices[word]
+    return set(parser._option_string_actions)
 
 
 def _plan_json() -> dict:
@@ -76,12 +78,13 @@ def test_one_flag_per_argument():
     assert FLAGS == seen
 
 
-def test_the_docs_print_the_table():
+@pytest.mark.parametrize("table", sorted(TABLES))
+def test_the_docs_print_the_table(table):
     text = DOCS.read_text(encoding="utf-8")
-    block = re.search(r"<!-- names:planning -->\n(.*?)<!-- /names -->", text, re.S)
-    assert block, "docs/conventions.md has no names table"
+    block = re.search(rf"<!-- names:{table} -->\n(.*?)<!-- /names -->", text, re.S)
+    assert block, f"docs/conventions.md has no names table {table}"
     lines = block.group(1).strip().splitlines()[2:]        # after the header and its rule
-    assert lines == markdown(PLANNING)
+    assert lines == markdown(TABLES[table])
 
 
 def test_errors_are_mapped_for_the_command_line():

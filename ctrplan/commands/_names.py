@@ -95,8 +95,30 @@ PLANNING: tuple[Name, ...] = (
          "plan writes the file, plan-batch a folder"),
 )
 
+_REACH = "ctrplan.planning.reach:ReachSettings"
+_SAMPLE = "ctrplan.collision.surface:sample_surface"
+_REGION = "ctrplan.planning.reach:region_points"
+_MAP = "ctrplan.planning.reach:reach_map"
+
+#: Reachability maps (``scene reach``): ``reach_map(ReachSettings(...), sample_surface(...),
+#: out)``; the file is reach.csv (the flags shared with plan, such as --time, are in PLANNING).
+REACH: tuple[Name, ...] = (
+    Name("--points", "scene reach", "count", _SAMPLE, "point", "reach.csv",
+         "reach.csv: point is each row's index"),
+    Name("--region", "scene reach", "region", _REGION, "", "reach.csv",
+         "target names or ids, comma-separated"),
+    Name("--near-targets", "scene reach", "near_targets", _REGION, "", "reach.csv"),
+    Name("--radius", "scene reach", "radius_mm", _SAMPLE, "", "reach.csv", "mm"),
+    Name("--standoff", "scene reach", "standoff_mm", _REACH, "standoff_mm", "reach.csv",
+         "mm; TipGoal's standoff_mm"),
+    Name("--approach", "scene reach", "approach", _REACH, "", "reach.csv",
+         "normal or X,Y,Z (scene frame); TipGoal's direction"),
+    Name("--cone", "scene reach", "cone_deg", _REACH, "cone_deg", "reach.csv", "deg"),
+    Name("--ik-seeds", "scene reach", "ik_seeds", _REACH, "", "reach.csv"),
+)
+
 #: every table of names (another file's rows go here too)
-TABLES: dict[str, tuple[Name, ...]] = {"planning": PLANNING}
+TABLES: dict[str, tuple[Name, ...]] = {"planning": PLANNING, "reach": REACH}
 
 #: Python argument -> command-line flag
 FLAGS: dict[str, str] = {n.argument: n.flag for rows in TABLES.values() for n in rows if n.flag}

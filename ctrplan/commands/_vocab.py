@@ -19,7 +19,7 @@ MODEL_ALIASES = {"compliant": "physics"}
 DEFAULT_OUT = {
     "plan": "plan.json", "shape": "shape.csv", "check": "verdicts.csv", "simulate": "measured.csv",
     "view": "plan.html", "diagnose": "report", "plan-batch": "batch", "design": "design",
-    "scene show": "scene.png", "scene from-labels": "scene",
+    "scene show": "scene.png", "scene from-labels": "scene", "scene reach": "reach",
 }
 
 

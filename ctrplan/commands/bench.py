@@ -431,8 +431,18 @@ def _m_design_infeasible(res: Path) -> str | None:
     return f"{d['infeasible_named']}/{d['infeasible_total']} anatomies (`design_generated.json`)"
 
 
+def _m_reach_agreement(res: Path) -> str | None:
+    d = _load(res / "reach.json")
+    if not d:
+        return None
+    per = ", ".join(f"{r['scene']} {r['agree']}/{r['points']}" for r in d["scenes"])
+    return (f"{100 * d['agreement_min']:.1f} % on the lowest scene ({per}; "
+            f"{d['points_per_scene']} points per scene, {d['date']}, `reach.json`)")
+
+
 #: claim ``measured`` key -> its value as text, computed from the JSON in benchmarks/results/
 MEASURED = {
+    "reach_agreement": _m_reach_agreement,
     "design_generated": _m_design_generated,
     "design_infeasible": _m_design_infeasible,
     "fresh_single": measured_fresh("single"),

@@ -1,4 +1,5 @@
-"""``ctrplan scene``: list the shipped scenes, or render one (optionally with robot shapes)."""
+"""``ctrplan scene``: list the shipped scenes, or render one (optionally with robot shapes);
+``scene reach`` (:mod:`ctrplan.commands.reach`) maps what a robot reaches in one."""
 
 from __future__ import annotations
 
@@ -14,11 +15,12 @@ log = logging.getLogger("ctrplan")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("scene", help="list or render anatomy scenes",
+    p = sub.add_parser("scene", help="list or render anatomy scenes; map what a robot reaches in one",
                        description="List the shipped anatomy scenes, or render one as a PNG "
                                    "(matplotlib) or a self-contained HTML view (plotly, works "
                                    "offline): meshes by role, the robot base pose, the example "
-                                   "targets and optionally robot shapes.")
+                                   "targets and optionally robot shapes; or map which surface "
+                                   "points a robot reaches ('scene reach').")
     ss = p.add_subparsers(dest="scene_command", metavar="ACTION")
     ls = ss.add_parser("list", help="list the shipped scenes", description="List the shipped scenes.")
     ls.set_defaults(func=run_list)
@@ -67,6 +69,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     allow_negative_values(fl)
     fl.set_defaults(func=run_from_labels)
+    from ctrplan.commands import reach
+
+    reach.register(ss)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 
 

@@ -353,8 +353,9 @@ def write_job_file(path: Path, res: dict) -> None:
 
 
 @contextlib.contextmanager
-def _folder_lock(out: Path):
-    """An exclusive lock on ``out/.lock`` for the run (released by the OS if the process dies)."""
+def _folder_lock(out: Path, what: str = "plan-batch"):
+    """An exclusive lock on ``out/.lock`` for the run (released by the OS if the process dies);
+    ``what`` names the command in the refusal."""
     try:
         import fcntl
     except ImportError:  # pragma: no cover - not POSIX
@@ -367,7 +368,7 @@ def _folder_lock(out: Path):
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
             os.close(fd)
-            raise ArgumentError("out", f"another plan-batch is writing to {str(out)!r} "
+            raise ArgumentError("out", f"another {what} is writing to {str(out)!r} "
                                           f"(wait for it, or use another folder)") from None
         try:   # the file may have been removed by the run that held it: lock the one there now
             if os.stat(path).st_ino == os.fstat(fd).st_ino:
@@ -383,8 +384,35 @@ def _folder_lock(out: Path):
         os.close(fd)
 
 
-def _run_pool(todo: Sequence[Job], workers: int, record) -> None:
-    """Run the jobs in a pool of spawned worker processes, recording each result as it comes.
+def run_tasks(fn, args: Sequence[dict], workers: int = 1, ray_address: str | None = None,
+              record=None) -> None:
+    """``record(fn(a))`` for every ``a`` in ``args`` (JSON-ready dicts), as each finishes: on Ray
+    (``ray_address``), a pool of ``workers`` spawned processes, or in this process
+    (``workers <= 1``). The one parallel path of plan-batch and ``scene reach``: ``fn`` is a
+    module-level function (it crosses the process boundary by name) that keeps its state in
+    the worker (:func:`~ctrplan.planning.planner.worker_planners`)."""
+    from ctrplan import interrupt
+
+    if not args:
+        return
+    if ray_address:
+        from ctrplan.planning.ray_pool import ray_as_completed, ray_session
+
+        with ray_session(ray_address, num_cpus=max(1, workers)), \
+                contextlib.closing(ray_as_completed(fn, list(args))) as results:
+            for _, res in results:
+                record(res)
+    elif workers <= 1:
+        for a in args:
+            record(fn(a))
+            interrupt.check()
+    else:
+        _run_pool(args, workers, record, fn)
+
+
+def _run_pool(todo: Sequence[Any], workers: int, record, fn=None) -> None:
+    """Run the jobs (or ``fn`` over argument dicts) in a pool of spawned worker processes,
+    recording each result as it comes.
 
     On SIGINT / SIGTERM (KeyboardInterrupt here) or any error the workers are killed at once
     (``Pool.terminate``: a job in the middle of planning is not waited for) and joined, so no
@@ -401,7 +429,8 @@ def _run_pool(todo: Sequence[Job], workers: int, record) -> None:
                                             initializer=_worker_init)
     finished = False
     try:
-        for res in pool.imap_unordered(_run_job_json, [asdict(job) for job in todo]):
+        args = [asdict(job) for job in todo] if fn is None else list(todo)
+        for res in pool.imap_unordered(fn or _run_job_json, args):
             record(res)
             interrupt.check()
         finished = True

@@ -108,7 +108,8 @@ def _evaluations_per_row(model: PlanningModel, q_dim: int, config: IKConfig) -> 
 
 def solve_ik(model, robot: Robot, target: np.ndarray, q0: np.ndarray,
              config: IKConfig | None = None) -> IKResult:
-    """Refine seeds ``q0`` (B, 2n) so the tip reaches ``target`` (3,) mm, robot base frame.
+    """Refine seeds ``q0`` (B, 2n) so the tip reaches ``target`` (3,) mm, robot base frame, or
+    each seed its own target (``target`` (B, 3): many targets in one batched solve).
 
     Damped least squares with per-seed Levenberg-Marquardt damping: a step is kept only if it
     reduces the seed's error. Converged seeds stop; the loop ends after ``max_iter`` iterations,
@@ -116,11 +117,12 @@ def solve_ik(model, robot: Robot, target: np.ndarray, q0: np.ndarray,
     """
     c = config or IKConfig()
     model = planning_model(model, fit=False)
-    target = np.asarray(target, dtype=float).reshape(3)
+    target = np.asarray(target, dtype=float)
     n = robot.n
     d = 2 * n
     q = project_joints(robot, np.atleast_2d(np.asarray(q0, dtype=float)))
     B = len(q)
+    target = np.broadcast_to(target.reshape(-1, 3) if target.size != 3 else target.reshape(1, 3), (B, 3))
     scale = np.concatenate([np.full(n, 1.0 / c.alpha_weight_mm), np.ones(n)])  # q = scale * z
     per_row = _evaluations_per_row(model, d, c)
     tip, J, ok = tip_and_jacobian(model, q, c)
@@ -138,7 +140,7 @@ def solve_ik(model, robot: Robot, target: np.ndarray, q0: np.ndarray,
         iterations += 1
         qa = q[active]
         Js = J[active] * scale[None, None, :]                    # (A, 3, d)
-        e = (target - tip[active])                               # (A, 3)
+        e = (target[active] - tip[active])                               # (A, 3)
         A = Js @ Js.transpose(0, 2, 1) + (lam[active] ** 2)[:, None, None] * eye
         dz = np.einsum("aij,ai->aj", Js, np.linalg.solve(A, e[:, :, None])[:, :, 0])
         norm = np.linalg.norm(dz, axis=1)
@@ -146,7 +148,7 @@ def solve_ik(model, robot: Robot, target: np.ndarray, q0: np.ndarray,
         cand = project_joints(robot, qa + dz * scale[None, :])
         tip_c, J_c, ok_c = tip_and_jacobian(model, cand, c)
         evaluations += len(active) * per_row
-        err_c = np.where(ok_c, np.linalg.norm(target - tip_c, axis=1), np.inf)
+        err_c = np.where(ok_c, np.linalg.norm(target[active] - tip_c, axis=1), np.inf)
         better = err_c < err[active]
         acc = active[better]
         q[acc], tip[acc], J[acc], err[acc] = cand[better], tip_c[better], J_c[better], err_c[better]
