@@ -90,6 +90,11 @@ class PlannerConfig:
         plan.json says by how much; ``tip_error_mm`` stays the distance to the target asked
         for, and the tolerance applies to it: a shift that leaves the tip farther than
         ``tolerance_mm`` from the target gives ``OUTSIDE_TOLERANCE``, not SUCCESS.
+    goal_rescue : a surrogate's target or goals that only its margin blocks are decided by
+        the physics model at margin 0 (:mod:`ctrplan.planning.rescue`: the target planned to
+        as given, IK goals the physics model finds free, the states near them judged by it,
+        the whole path re-verified by it as always); False refuses them
+        (``TARGET_IN_COLLISION`` / ``GOAL_IN_COLLISION``).
     """
 
     validator: ValidatorConfig = field(default_factory=ValidatorConfig)
@@ -117,6 +122,7 @@ class PlannerConfig:
     optimizer: _opt.OptimizeConfig = field(default_factory=_opt.OptimizeConfig)
     goals_by_clearance: bool = True
     approach: bool = True
+    goal_rescue: bool = True
 
     def __post_init__(self) -> None:
         check_objective(self.objective)

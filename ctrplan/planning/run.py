@@ -79,6 +79,8 @@ class Run:
     def finish(self, status: PlanStatus, message: str, **kw) -> PlanResult:
         self.timings["total"] = time.perf_counter() - self.t_call
         self.counts.update({f"validator_{k}": v for k, v in self.validator.counters.as_dict().items()})
+        if self.validator.rescue is not None:   # states the reference decided (rescue.py)
+            self.counts["rescue_decided"] = self.validator.rescue.decided
         n = self.robot.n
         fields_ = dict(path=np.zeros((0, 2 * n)), backbones=np.zeros((0, self.cfg.output_points, 3)),
                        tip_path=np.zeros((0, 3)), tip_error_mm=math.nan,

@@ -17,6 +17,7 @@ import numpy as np
 from ctrplan.planning import hints as _hints
 from ctrplan.planning import ik as _ik
 from ctrplan.planning import optimize as _opt
+from ctrplan.planning import rescue as _rescue
 from ctrplan.planning import stability as _stab
 from ctrplan.planning.arguments import check_start
 from ctrplan.planning.goals import GoalSource, target_blocked, target_outside_lumen
@@ -118,10 +119,23 @@ def checks(run: Run, start) -> np.ndarray:
         moved = _approach_goal(run, tip_radius)
         if moved is not None:
             blocked = ""
+    if blocked and _margin_alone(run, tip_radius):
+        blocked = ""          # planned to as given; the reference model decides (rescue.py)
+        run.counts["target_rescued"] = 1
     run.clock("checks", t0)
     if blocked:
         raise Stop(run.finish(PlanStatus.TARGET_IN_COLLISION, blocked))
     return start
+
+
+def _margin_alone(run: Run, tip_radius: float) -> bool:
+    """Whether only a surrogate's margin blocks the target: its tip probe is free in the
+    reference world (margin 0) and the plan may rescue goals (:mod:`ctrplan.planning.rescue`)."""
+    if not run.cfg.goal_rescue or (run.tip_goal is not None and run.tip_goal.back is not None):
+        return False
+    if not _rescue.allowed(run.model, run.reference, run.meta.get("reference_model", "")):
+        return False
+    return not target_blocked(run.scene, run.prep.reference_world(), run.target, tip_radius)
 
 
 def _standoff_goal(run: Run, tip_radius: float) -> str:
@@ -208,6 +222,9 @@ def ik_goals(run: Run) -> tuple[GoalSource, np.ndarray]:
     goals = source.next()
     while len(goals) == 0 and source.rounds < run.cfg.ik_rounds:
         goals = source.next()
+    if len(goals) == 0 and source.reaching > 0:
+        # only the planning model rejects them? a surrogate's reference decides (rescue.py)
+        goals = _rescue.rescue_goals(run, source)
     if len(goals) == 0 and source.reaching > 0 and run.cfg.approach and run.tip_goal is None:
         # every configuration reaching the goal collides with the margin: approach from further
         # inside the lumen (the tip probe thicker by a part of the margin), within the margin

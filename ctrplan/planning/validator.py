@@ -210,6 +210,9 @@ class PathCheck:
     #: (models that track branches, :mod:`ctrplan.planning.tracking`), else None
     uz0: np.ndarray | None = None
     stability: np.ndarray | None = None
+    #: (S,) bool: states this check rejected in a rescued goal's region, left to the reference
+    #: model's check (:mod:`ctrplan.planning.rescue`), or None
+    deferred: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:
@@ -253,6 +256,9 @@ class BatchValidator:
             self.plan_world = world.with_motion(self.config.motion_floor_mm)
         self.n = robot.n
         self.counters = Counters()
+        #: a :class:`~ctrplan.planning.rescue.GoalRescue` once a plan rescued goals: it decides
+        #: the states this validator rejects in their regions (None: this validator decides all)
+        self.rescue = None
         self._cache: OrderedDict[bytes, bool] = OrderedDict()
         from ctrplan.planning.tracking import BranchTracker
 
@@ -325,6 +331,8 @@ class BatchValidator:
                 shape = self.shapes(q[idx], direction=d)
                 self.counters.collision_calls += 1
                 free &= ~np.asarray(self.plan_world.collides(shape), dtype=bool)
+            if self.rescue is not None:
+                free |= self.rescue.overrule(q[idx], ~free)
             ok[idx] = free
         return ok
 
@@ -371,6 +379,8 @@ class BatchValidator:
         if k0 == 0:
             return 0
         first = k0 if k0 < len(q) else -1
+        if self.rescue is not None and self.rescue.near(q[:k0]).any():
+            return self._first_invalid_rescued(q, k0, first, direction)
         for d in self.variants(q[:k0], direction):
             shape = self.shapes(q[:k0], direction=d)
             self.counters.collision_calls += 1
@@ -378,6 +388,13 @@ class BatchValidator:
             if k >= 0:
                 first = k if first < 0 else min(first, k)
         return first
+
+    def _first_invalid_rescued(self, q, k0, first, direction) -> int:
+        """first_invalid where states lie in a rescued goal's region: every state's verdict,
+        those rejected there decided by the rescue's reference check."""
+        hit = ~self.states_valid(q[:k0], direction)
+        k = int(np.argmax(hit)) if hit.any() else -1
+        return first if k < 0 else k
 
     # ------------------------------------------------------------------ OMPL callbacks
     def edge_states(self, q0: np.ndarray, q1: np.ndarray, resolution_mm: float | None = None) -> np.ndarray:
@@ -515,12 +532,30 @@ class BatchValidator:
             why = track.why != ""
             contact[why] = track.why[why]
             collides |= why
+        deferred = self._deferred(states, collides & jv)
+        collides &= ~deferred
+        contact[deferred] = ""
         if c.motion_bound and not collides.any() and S > 1:
             self._check_motion(states, seg, direction, clearance, collides, contact, points,
                                None if track is None else track.uz0)
+            if deferred.any():    # the motion next to a deferred state: the reference's too
+                near = deferred[:-1] | deferred[1:]
+                collides[:-1][near] = False
+                contact[:-1][near] = ""
         bad = np.flatnonzero(collides)
         first = int(bad[0]) if len(bad) else -1
         return PathCheck(states, seg, collides, clearance, contact, first,
                          sorted({int(s) for s in seg[bad]}), direction,
                          None if track is None else track.uz0,
-                         None if track is None else track.stability)
+                         None if track is None else track.stability, deferred)
+
+    def _deferred(self, states: np.ndarray, rejected: np.ndarray) -> np.ndarray:
+        """(S,) bool: rejected states in a rescued goal's region, left to the reference
+        model's dense check (:mod:`ctrplan.planning.rescue`; all False without a rescue)."""
+        if self.rescue is None or not rejected.any():
+            return np.zeros(len(states), dtype=bool)
+        near = np.zeros(len(states), dtype=bool)
+        idx = np.flatnonzero(rejected)
+        # grown by one edge resolution: the states between an edge's checked states
+        near[idx] = self.rescue.near(states[idx], self.config.resolution_mm)
+        return near

@@ -43,7 +43,7 @@ def verify_optimized(run: Run, path: np.ndarray,
     objective)."""
     for k, candidate in enumerate(optimized):
         try:
-            return _verification(run, candidate, repair=False)
+            return _verification(run, candidate, allow_repair=False)
         except Stop:
             run.counts["optimizer_fallbacks"] = k + 1
             log.debug("plan: optimised path %d failed verification; trying the next", k)
@@ -51,26 +51,32 @@ def verify_optimized(run: Run, path: np.ndarray,
 
 
 def _verification(run: Run, path: np.ndarray,
-                        repair: bool = True) -> tuple[PathCheck, PathCheck | None, np.ndarray]:
+                        allow_repair: bool = True) -> tuple[PathCheck, PathCheck | None, np.ndarray]:
     """Stage 5: exact check on the planning model at the fine resolution (failing segments
-    re-planned unless ``repair`` is False), then the reference model's check at margin 0."""
+    re-planned unless ``allow_repair`` is False; the parameter was ``repair``, which shadowed
+    :func:`repair` and made every repair a TypeError), then the reference model's check at
+    margin 0."""
     cfg, validator = run.cfg, run.validator
     t0 = time.perf_counter()
     vres = cfg.validator.resolution_mm / max(1, cfg.verify_factor)
     vpoints = cfg.verify_points or cfg.validator.points
     check = validator.check_path(path, vres, points=vpoints, fcl_all=cfg.verify_fcl_all)
     attempts = 0
-    while not check.ok and repair and attempts < cfg.repair_attempts:
+    while not check.ok and allow_repair and attempts < cfg.repair_attempts:
         attempts += 1
         repaired = repair(run.robot, run.model, run.world, path, check.bad_segments, cfg,
                            run.seed + attempts, vres / (2 * attempts),
                            budget=max(0.5, run.deadline - time.perf_counter()),
-                           tracker=_remember_waypoints(validator, path, check))
+                           tracker=_remember_waypoints(validator, path, check),
+                           rescue=validator.rescue)
         if repaired is None:
             break
         path = repaired
         check = validator.check_path(path, vres, points=vpoints, fcl_all=cfg.verify_fcl_all)
     run.counts.update(verification_states=len(check.states), repairs=attempts, waypoints=len(path))
+    if check.deferred is not None and check.deferred.any():
+        # states of a rescued goal's region: the reference model's check below decides them
+        run.counts["verification_deferred"] = int(check.deferred.sum())
     if not check.ok:
         run.clock("verification", t0)
         bad = check.contact[check.first_bad] if check.first_bad >= 0 else ""
@@ -296,14 +302,17 @@ def _remember_waypoints(validator: BatchValidator, path: np.ndarray, check: Path
 
 
 def repair(robot, model, world, path: np.ndarray, bad_segments: list[int], cfg: Any,
-            seed: int, resolution_mm: float, budget: float, tracker=None) -> np.ndarray | None:
+            seed: int, resolution_mm: float, budget: float, tracker=None,
+            rescue=None) -> np.ndarray | None:
     """Re-plan the segments that failed verification with a finer validator; None on failure.
     Each segment's search is budgeted in states (``cfg.repair_states``); ``budget`` (s) is a cap.
-    ``tracker`` : the planning validator's branch tracker (its remembered equilibria)."""
+    ``tracker`` : the planning validator's branch tracker (its remembered equilibria);
+    ``rescue`` : its :class:`~ctrplan.planning.rescue.GoalRescue` (rescued goals' regions)."""
     from ctrplan.planning import space as _space
 
     strict = BatchValidator(robot, model, world, replace(cfg.validator, resolution_mm=resolution_mm),
                             tracking=tracker if tracker is not None else True)
+    strict.rescue = rescue
     pieces: list[np.ndarray] = []
     last = 0
     for j in bad_segments:

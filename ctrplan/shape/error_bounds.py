@@ -48,6 +48,7 @@ came from is a ``surrogate``: calibration is a claim that needs its evidence.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -83,11 +84,18 @@ class ErrorProfile:
         f1 = np.asarray(f1, dtype=float)
         lo, hi = np.minimum(f0, f1), np.maximum(f0, f1)
         out = np.maximum(self.at(lo, quantile), self.at(hi, quantile))
-        v = np.asarray(self.values[quantile], dtype=float)
-        for fk, vk in zip(self.fractions, v):
-            inside = (lo < fk) & (fk < hi)
-            out = np.where(inside, np.maximum(out, vk), out)
-        return out
+        # the knots strictly inside (lo, hi) are fractions[i0:i1]: their largest value from a
+        # table of range maxima (-inf for an empty range), the same numbers as a knot loop
+        fr = np.asarray(self.fractions, dtype=float)
+        i0 = np.searchsorted(fr, lo, side="right")
+        i1 = np.searchsorted(fr, hi, side="left")
+        return np.maximum(out, self._range_max[quantile][i0, i1])
+
+    @functools.cached_property
+    def _range_max(self) -> dict[str, np.ndarray]:
+        """Per quantile, the (M + 1, M + 1) table whose entry [i, j] is max(values[i:j]),
+        -inf where i >= j (M is a few dozen knots at most; kept by this profile)."""
+        return {k: _range_max(np.asarray(v, dtype=float)) for k, v in self.values.items()}
 
     @property
     def peak_mm(self) -> float:
@@ -118,6 +126,16 @@ class ErrorProfile:
         """A hashable identity (for caches keyed by margin)."""
         return ("profile",) + tuple(float(v) for v in self.fractions) + tuple(
             float(v) for k in QUANTILES for v in self.values[k])
+
+
+def _range_max(v: np.ndarray) -> np.ndarray:
+    """(M + 1, M + 1) table: entry [i, j] is max(v[i:j]), -inf where i >= j."""
+    m = len(v)
+    out = np.full((m + 1, m + 1), -np.inf)
+    for i in range(m):
+        out[i, i + 1:] = np.maximum.accumulate(v[i:])
+    out.setflags(write=False)
+    return out
 
 
 def profile_from_dict(data: Any, source: str = "error_profile") -> ErrorProfile:
