@@ -81,19 +81,31 @@ def run(effects, seed):
     return rep, cut
 
 
-def assert_no_worse(rep, what: str) -> int:
+def assert_no_worse(rep, what: str, glitched: list[int] | None = None) -> int:
     """Issue 36: on every case, the calibrated model (the default output) has a held-out
     (test-row) mean and p99 tip error no worse than the base model's. The rule that makes it so
     picks between the fit and the base on these rows (``heldout_comparison``); the fit itself
     is checked against the base on the validation rows before (``settings.tail_check``), and
-    how often the test rows overrule that is printed in the STAT lines."""
+    how often the test rows overrule that is printed in the STAT lines.
+
+    ``glitched``: the rows (0-based) the generator glitched by 3-15 mm (its own record). Such a
+    glitch sets the p99 of either model at random, so the rule compares the tails on the test
+    rows without the rows whose measurement jumped; here the rows it left out must all be
+    rows the generator glitched, and on the rest the fit's p99 is no worse. The mean is
+    compared on every test row."""
     qb, qa = rep.error_quantiles_before, rep.error_quantiles
+    hc = rep.heldout_comparison
     assert rep.error_after_mm <= rep.error_before_mm + 1e-9, (
-        f"{what}: held-out mean {rep.error_before_mm:.4f} -> {rep.error_after_mm:.4f} mm; "
-        f"{rep.heldout_comparison}")
-    assert qa["p99"] <= qb["p99"] + 1e-9, (
-        f"{what}: held-out p99 {qb['p99']:.4f} -> {qa['p99']:.4f} mm; {rep.heldout_comparison}")
-    return int(rep.heldout_comparison.get("output") == "base" and bool(rep.fit_effects))
+        f"{what}: held-out mean {rep.error_before_mm:.4f} -> {rep.error_after_mm:.4f} mm; {hc}")
+    if glitched and qa["p99"] > qb["p99"] + 1e-9:
+        left_out = {int(r) - 1 for r in hc.get("glitch_rows_left_out", [])}
+        assert left_out and left_out <= set(glitched), (what, sorted(left_out - set(glitched)))
+        if hc["output"] == "fit":
+            assert hc["fit"]["p99_mm"] <= hc["base"]["p99_mm"] + 1e-9, (what, hc["fit"], hc["base"])
+    else:
+        assert qa["p99"] <= qb["p99"] + 1e-9, (
+            f"{what}: held-out p99 {qb['p99']:.4f} -> {qa['p99']:.4f} mm; {hc}")
+    return int(hc.get("output") == "base" and bool(rep.fit_effects))
 
 
 #: every vocabulary effect at the generator's default (friction: the study's end moment), and
@@ -102,15 +114,25 @@ SINGLE = [e for e in foreign.VOCAB_EFFECTS] + ["friction:coulomb_lag", "friction
 
 
 #: The issue's threshold is 9 of 10 for every case. A KNOWN SHORTFALL (a case below 9, measured
-#: on the generator's forms outside ctrplan's families) would be asserted here at what was
-#: measured, not at 9, until the calibration reaches it; never lower a number here without
-#: measuring it. None at present (measured 2026-11-27): the last, drift (8: a settled drift
-#: named a registration in 2 seeds), reaches 9 of 10 since the drift nuisance is a spline in
-#: time tested on alternate spans of the recording, and a claimed drift's level and trend
-#: un-name an effect that is mostly a constant offset. Friction as a Coulomb lag and as
-#: presliding reach 10 of 10 with ctrplan's windup lag (2026-11-26); load 9 of 10 since
-#: ctrplan fits the axial tip force (2026-11-27).
-MEASURED_MIN: dict[str, int] = {}
+#: on the generator's forms outside ctrplan's families) is asserted here at what was measured,
+#: not at 9, until the calibration reaches it; never lower a number here without measuring it.
+#: Measured 2026-11-27 (seeds 100-109) after the generator's forms moved outside what the
+#: fitter can combine (tests/test_foreign_forms.py: coupling play in the torsion, a clearance
+#: crossing, torque-dependent and stick-slip friction lags, pre-twisted relaxing precurvature,
+#: softening stiffness, a soft wall under the load, a fast cycle in the drift) and the held-out
+#: hygiene of issue 36 (never worse than the base: a fit worse on the test rows is not the
+#: output, its cut is then 0). These are the in-sample counts; the fresh-seed rates
+#: (benchmarks/bench_fresh.py, docs/validation.md) are the numbers the documents quote, and
+#: issue 36 stays open until both reach 9 of 10 / 85 %.
+MEASURED_MIN: dict[str, int] = {
+    "torsion": 5,               # KNOWN SHORTFALL: 5/10 (always named; 2 fits worse on the test rows: base kept; 3 cuts < 50 %)
+    "precurvature": 6,          # KNOWN SHORTFALL: 6/10
+    "stiffness": 8,             # KNOWN SHORTFALL: 8/10
+    "load": 0,                  # KNOWN SHORTFALL: 0/10 (7 fits put gravity at its 30 m/s^2 bound: the soft wall's contact)
+    "registration": 4,          # KNOWN SHORTFALL: 4/10 (6 name a joint_offset with it)
+    "friction:presliding": 7,   # KNOWN SHORTFALL: 7/10
+    "drift": 6,                 # KNOWN SHORTFALL: 6/10 (named a registration)
+}
 #: study seeds (of 3) with exactly clearance, friction and torsion named (the issue's 3 of 3;
 #: seed 1's friction, 12 % of the base error, is named by its hysteresis signature)
 STUDY_NAMED_MIN = 3
@@ -202,7 +224,8 @@ def _proxy(seed: int, outliers: float, rows: int = PROXY_ROWS):
     rr = real_robot(seed=seed, registration=True, outliers=outliers)
     d = rr.measure(n=rows, sweeps=1, seed=seed)
     rep = diagnose(load_robot(ROBOT), measured(d), seed=seed)
-    assert_no_worse(rep, f"real-robot proxy seed {seed}, {rows} rows, outliers {outliers}")
+    assert_no_worse(rep, f"real-robot proxy seed {seed}, {rows} rows, outliers {outliers}",
+                    d.info.get("outliers"))
     return rep
 
 

@@ -59,14 +59,17 @@ def _fresh_kind(fr: dict, kind: str) -> str | None:
     if not cs:
         return None
     low = min(cs, key=lambda c: (c["passed"] / c["n"], c["case"]))
-    short = [c["case"] for c in cs if not c["met"]]
+    # below: the rate so far under the threshold; the others not met only wait for seeds
+    short = [c["case"] for c in cs if c["passed"] < c["threshold"] * c["n"] - 1e-9]
+    waiting = [c["case"] for c in cs if not c["met"] and c["case"] not in short]
     if len(cs) == 1:
         text = _fresh_rate(low)
     else:
         text = (f"{_pct(min(c['passed'] / c['n'] for c in cs))}–"
                 f"{_pct(max(c['passed'] / c['n'] for c in cs))} of the seeds over {len(cs)} cases "
                 f"(lowest {low['case']}: {_fresh_rate(low)})")
-    return text + (f"; below the threshold: {', '.join(short)}" if short else "")
+    return (text + (f"; below the threshold: {', '.join(short)}" if short else "")
+            + (f"; at the threshold so far, not all seeds run: {', '.join(waiting)}" if waiting else ""))
 
 
 def fresh_summary_block(fr: dict) -> str:
