@@ -28,7 +28,7 @@ P99_MM = 0.3
 N_FRESH = 10_000
 FRESH_SEED = 3838
 POINTS = 41
-PLAIN_TORSION = {"torsion": {"gj_scale": 1.0, "coupling": 0.0}}
+PLAIN_TORSION = {"torsion": {"gj_scale": 1.0, "coupling": 0.0, "play": 0.0}}
 
 
 def oracle_deviation(model, robot_name: str, q: np.ndarray, points: int = POINTS) -> np.ndarray:
