@@ -188,6 +188,18 @@ def _shaded(tri: np.ndarray, colour: str, alpha: float) -> np.ndarray:
     return np.concatenate([rgb, np.full((len(tri), 1), alpha)], axis=1)
 
 
+def cube_axes(ax, lo: np.ndarray, hi: np.ndarray) -> None:
+    """A matplotlib 3D axis showing the box lo..hi (3,) mm as a cube (equal scales), labelled
+    in mm (the scene frame)."""
+    ctr, half = (lo + hi) / 2, (hi - lo).max() / 2
+    ax.set_xlim(ctr[0] - half, ctr[0] + half)
+    ax.set_ylim(ctr[1] - half, ctr[1] + half)
+    ax.set_zlim(ctr[2] - half, ctr[2] + half)
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_zlabel("z (mm)")
+
+
 def plan_png(
     path: str | os.PathLike,
     meshes: Sequence[ViewMesh],
@@ -237,14 +249,7 @@ def plan_png(
     if target is not None:
         t = np.asarray(target).reshape(3)
         ax.scatter([t[0]], [t[1]], [t[2]], color=TARGET_COLOUR, s=60, marker="D", label="target")
-    ctr = (lo + hi) / 2
-    half = (hi - lo).max() / 2
-    ax.set_xlim(ctr[0] - half, ctr[0] + half)
-    ax.set_ylim(ctr[1] - half, ctr[1] + half)
-    ax.set_zlim(ctr[2] - half, ctr[2] + half)
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_zlabel("z (mm)")
+    cube_axes(ax, lo, hi)
     ax.set_title(title)
     ax.legend(loc="upper left")
     save_figure(fig, path)

@@ -209,7 +209,7 @@ def render_png(scene, rows, out: Path, settings) -> None:
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     from ctrplan.io import save_figure
-    from ctrplan.viz import ROLE_COLOURS
+    from ctrplan.viz import ROLE_COLOURS, cube_axes
 
     xyz, reach, screened, clear = _split(rows)
     fig = plt.figure(figsize=(8, 7), dpi=110)
@@ -232,13 +232,7 @@ def render_png(scene, rows, out: Path, settings) -> None:
         sc = ax.scatter(*xyz[reach].T, c=np.nan_to_num(clear[reach]), cmap=CLEARANCE_SCALE.lower(),
                         s=16, label="reachable", depthshade=False)
         fig.colorbar(sc, ax=ax, shrink=0.6, label="clearance (mm)")
-    ctr, half = (lo + hi) / 2, (hi - lo).max() / 2
-    ax.set_xlim(ctr[0] - half, ctr[0] + half)
-    ax.set_ylim(ctr[1] - half, ctr[1] + half)
-    ax.set_zlim(ctr[2] - half, ctr[2] + half)
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_zlabel("z (mm)")
+    cube_axes(ax, lo, hi)
     ax.set_title(_title(scene, rows, settings), fontsize=9)
     ax.legend(loc="upper left", fontsize=8)
     save_figure(fig, out)

@@ -200,7 +200,7 @@ def render_png(scene, out, backbones: np.ndarray) -> None:
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     from ctrplan.io import save_figure
-    from ctrplan.viz import ROBOT_COLOUR, ROLE_COLOURS, TARGET_COLOUR
+    from ctrplan.viz import ROBOT_COLOUR, ROLE_COLOURS, TARGET_COLOUR, cube_axes
 
     fig = plt.figure(figsize=(8, 7), dpi=110)
     ax3 = fig.add_subplot(111, projection="3d")
@@ -221,13 +221,7 @@ def render_png(scene, out, backbones: np.ndarray) -> None:
         ax3.scatter(t[:, 0], t[:, 1], t[:, 2], color=TARGET_COLOUR, s=18, label="targets")
     for k, b in enumerate(backbones):
         ax3.plot(b[:, 0], b[:, 1], b[:, 2], color=ROBOT_COLOUR, lw=1.5, label="robot" if k == 0 else None)
-    ctr, half = (lo + hi) / 2, (hi - lo).max() / 2
-    ax3.set_xlim(ctr[0] - half, ctr[0] + half)
-    ax3.set_ylim(ctr[1] - half, ctr[1] + half)
-    ax3.set_zlim(ctr[2] - half, ctr[2] + half)
-    ax3.set_xlabel("x (mm)")
-    ax3.set_ylabel("y (mm)")
-    ax3.set_zlabel("z (mm)")
+    cube_axes(ax3, lo, hi)
     ax3.set_title(f"scene {scene.name}")
     ax3.legend(loc="upper left")
     save_figure(fig, out)
