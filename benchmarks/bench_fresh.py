@@ -22,9 +22,10 @@ Resumable: every (case, seed) result is appended to a journal (``--out`` with
 ``.journal.jsonl``; one JSON line each, flushed; not committed) as soon as it is known, and a
 run with the same master seed skips what the journal, or the summary's own records, hold; the
 summary (``--out``, default ``benchmarks/results/fresh.json``, committed) is rewritten after
-every result. One process, one core:
-about 5-30 s per diagnose, hours for the whole set on a shared machine (run it with nohup).
-``--fresh-start`` ignores the journal.
+every result. One process, one core by default: about 5-30 s per diagnose, hours for the whole
+set on a shared machine (run it with nohup); ``--jobs N`` runs N diagnoses at a time in worker
+processes (each (case, seed) is independent, so the records do not depend on N; the order they
+reach the journal does). ``--fresh-start`` ignores the journal.
 
 A case passes on a seed when: ``single`` the effect is named alone (``effects == [name]``) and
 the held-out mean tip error is cut by at least half; ``none`` nothing is named; ``outside`` no
@@ -146,7 +147,12 @@ def revision() -> dict:
             return ""
     status = git("status", "--porcelain", "--untracked-files=no", "--", "ctrplan", "tests",
                  "examples", "benchmarks/bench_fresh.py")
-    return {"commit": git("rev-parse", "HEAD") or None, "dirty": bool(status)}
+    commit = git("rev-parse", "HEAD") or None
+    if commit is None and os.environ.get("CTRPLAN_REVISION", "").strip():
+        # a copy of the tree without its .git (another machine): the caller names the commit
+        return {"commit": os.environ["CTRPLAN_REVISION"].strip(), "dirty": None,
+                "host": platform.node()}
+    return {"commit": commit, "dirty": bool(status)}
 
 
 def robot_arg(name: str) -> str:
@@ -263,8 +269,24 @@ def read_journal(path: Path, master: int, summary: Path | None = None) -> dict:
     return got
 
 
+def _results(todo: list, jobs: int):
+    """((case, seed), record) for every item of ``todo``: in order with one job, as they finish
+    with several (worker processes; OMP threads stay at 1 in each)."""
+    if jobs <= 1:
+        for c, s in todo:
+            yield (c, s), run_one(c, s)
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as pool:
+        futs = {pool.submit(run_one, c, s): (c, s) for c, s in todo}
+        for fut in as_completed(futs):
+            yield futs[fut], fut.result()
+
+
 def run(quick: bool = False, seeds: int = SEEDS, cases: list[str] | None = None,
-        out: Path = OUT, fresh_start: bool = False) -> dict:
+        out: Path = OUT, fresh_start: bool = False, jobs: int = 1) -> dict:
     """Run (or resume) the benchmark; returns the summary (also written to ``out``)."""
     from ctrplan.io import write_json_atomic
 
@@ -290,8 +312,7 @@ def run(quick: bool = False, seeds: int = SEEDS, cases: list[str] | None = None,
     rev = revision()
     out.parent.mkdir(parents=True, exist_ok=True)
     t_run = time.perf_counter()
-    for k, (c, s) in enumerate(todo):
-        rec = run_one(c, s)
+    for k, ((c, s), rec) in enumerate(_results(todo, jobs)):
         rec["revision"] = rev
         journal[(c["case"], s)] = rec
         with open(jpath, "a", encoding="utf-8") as f:
@@ -318,9 +339,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=str(OUT), help="summary JSON (journal beside it)")
     ap.add_argument("--quick", action="store_true", help="2 seeds, 3 cases (a smoke run)")
     ap.add_argument("--fresh-start", action="store_true", help="ignore the journal")
+    ap.add_argument("--jobs", type=int, default=1, help="diagnoses at a time (processes)")
     a = ap.parse_args(argv)
     res = run(a.quick, a.seeds, a.cases.split(",") if a.cases else None, Path(a.out),
-              a.fresh_start)
+              a.fresh_start, max(1, a.jobs))
     for r in res["table"]:
         print(f"{r['case']:32s} {r['passed']:>6s}  95 % CI {100 * r['ci95'][0]:.0f}-"
               f"{100 * r['ci95'][1]:.0f} %  need {100 * r['threshold']:.0f} %  "
