@@ -25,7 +25,8 @@ summary (``--out``, default ``benchmarks/results/fresh.json``, committed) is rew
 every result. One process, one core by default: about 5-30 s per diagnose, hours for the whole
 set on a shared machine (run it with nohup); ``--jobs N`` runs N diagnoses at a time in worker
 processes (each (case, seed) is independent, so the records do not depend on N; the order they
-reach the journal does). ``--fresh-start`` ignores the journal.
+reach the journal does). ``--fresh-start`` ignores the journal. On a copy of the tree elsewhere,
+``CTRPLAN_REVISION=<commit>`` names the commit the records ran at.
 
 A case passes on a seed when: ``single`` the effect is named alone (``effects == [name]``) and
 the held-out mean tip error is cut by at least half; ``none`` nothing is named; ``outside`` no
@@ -147,12 +148,12 @@ def revision() -> dict:
             return ""
     status = git("status", "--porcelain", "--untracked-files=no", "--", "ctrplan", "tests",
                  "examples", "benchmarks/bench_fresh.py")
-    commit = git("rev-parse", "HEAD") or None
-    if commit is None and os.environ.get("CTRPLAN_REVISION", "").strip():
-        # a copy of the tree without its .git (another machine): the caller names the commit
+    if os.environ.get("CTRPLAN_REVISION", "").strip():
+        # a copy of the tree on another machine (its .git missing or stale): the caller names
+        # the commit the tree is
         return {"commit": os.environ["CTRPLAN_REVISION"].strip(), "dirty": None,
                 "host": platform.node()}
-    return {"commit": commit, "dirty": bool(status)}
+    return {"commit": git("rev-parse", "HEAD") or None, "dirty": bool(status)}
 
 
 def robot_arg(name: str) -> str:
