@@ -594,6 +594,36 @@ def test_presliding_builds_up_after_a_reversal():
     assert lag[-1] < -0.04 and np.all(np.diff(lag[41:]) < 0)
 
 
+def test_presliding_lag_never_exceeds_its_breakaway_limit_when_the_limit_drops():
+    """The presliding lag is a friction displacement: it cannot exceed the breakaway limit c.
+    Where c depends on the configuration (here: the share of the curved section held inside
+    the outer tube, through ``growth``) and drops while the tube turns on, the contact slides
+    down to the limit. (Before the clamp, the Dahl update ran away there: a 0.04 rad lag became
+    6 rad within 0.02 rad of rotation on a real-robot re-check path.)"""
+    from tests.foreign.core import _alpha_lag, _held_curved
+    from tests.foreign.designs import directions
+
+    spec = load_spec("seed1")
+    n = spec.n
+    k = 400
+    rng = np.random.default_rng(7)
+    a1 = np.linspace(0.0, -2.0, k)                 # the inner tube turns one way throughout
+    beta = np.stack([np.linspace(-200.0, -100.0, k),   # while it is pushed out of the others:
+                     np.full(k, -120.0), np.full(k, -60.0)], axis=1)   # its held share drops
+    q = np.c_[a1, rng.uniform(-0.01, 0.01, (k, 1)), np.zeros((k, 1)), beta]
+    sweep = np.array(["s0"] * k)
+    lag, growth = 0.04, 30.0
+    eff = {"friction": {"form": "presliding", "lag": [lag, 0.0, 0.0], "angle": 0.0025,
+                        "growth": [growth, 0.0, 0.0], "moment": 0.0}}
+    qe = _alpha_lag(eff, q, n, directions(q, sweep), sweep, spec)
+    held = _held_curved(spec, q)[:, 0]
+    limit = lag * (1.0 + growth * held)            # the breakaway limit row by row
+    assert np.ptp(limit) > 0.5 * limit.max()       # the limit really drops along the motion
+    z = q[:, 0] - qe[:, 0]
+    assert np.all(np.abs(z) <= limit + 1e-12)
+    assert np.all(np.isfinite(qe))
+
+
 def test_robot_from_yaml_path_equals_shipped_name(tmp_path):
     src = Path(__file__).parents[1] / "ctrplan" / "data" / "robots" / "seed1.yaml"
     p = tmp_path / "my_robot.yaml"

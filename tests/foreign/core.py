@@ -151,6 +151,12 @@ def _alpha_lag(eff, q, n, direction, sweep, spec=None):
             ci = c[i]
             with np.errstate(invalid="ignore", divide="ignore"):
                 w = np.where(ci > 0, 1.0 - z * sg / np.where(ci > 0, ci, 1.0), 0.0)
+            # the held lag cannot exceed the breakaway limit: where the limit c (it depends on
+            # the configuration) dropped below |z| while moving on, the contact slides until
+            # the lag is at the limit (w = 0). Without this, w < 0 makes the update below run
+            # away within a finite motion (w / (1 + w |dalpha| / angle) has a pole), turning a
+            # few-hundredths-rad lag into radians.
+            w = np.maximum(w, 0.0)
             # Dahl exponent 2: dw/d|alpha| = -w^2 / angle  ->  w / (1 + w |dalpha| / angle)
             w = w / (1.0 + w * np.abs(da) / ang)
             z = np.where(sg != 0, ci * sg * (1.0 - w), z)
