@@ -22,21 +22,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 from bench_real_robot import THRESHOLDS, default_reduced, run  # noqa: E402
 
-#: KNOWN SHORTFALL (measured 2026-11-27; issue 36 open): the target is 0 states inside the
-#: truth's walls (THRESHOLDS["calibrated_penetrating_max"]); one of the 12 plans (bronchial_tree
-#: t01) has 9 re-checked states up to 0.65 mm inside. Bisected: passes at f1e782e, fails at
-#: fd382fe; between them the calibration hygiene changed what diagnose names on this truth
-#: (precurvature + friction + joint_offset, held-out max 0.82 mm, became stiffness + friction +
-#: joint_offset, max 0.59 mm), so the margin and the path changed. Cause, traced on the path:
-#: the calibrated model is within 0.45 mm of the truth at every state when each state is solved
-#: on its own (the 0.58 mm margin covers that), but the truth, continued along the motion, is
-#: bistable there: its equilibrium runs away from the calibrated model's by up to 21.6 mm over
-#: 0.2 mm of motion (a near-fold passage), 0.8-1.1 mm past the largest insertion of the inner
-#: tube that was measured, where the calibrated model finds one equilibrium with stability 1.4
-#: (strongly stable). The measured error bound says nothing about an elastic instability the
-#: calibrated model lacks (torsion was not named: fresh-seed torsion rates are issue 36's);
-#: asserted at what was measured so that it cannot grow.
-KNOWN_PENETRATING_MAX = 9
 
 # one worker runs this file (`make test-stat` distributes by xdist group): its module fixtures
 # are computed once
@@ -59,8 +44,7 @@ def test_calibrate_then_plan_is_safe_and_reaches_the_targets_on_the_truth(result
     s = result["calibrated"]["summary"]
     assert s["plans"] == 12
     assert s["success_rate"] >= THRESHOLDS["calibrated_success_min"], s
-    # the issue's target is THRESHOLDS["calibrated_penetrating_max"] (0); see KNOWN_PENETRATING_MAX
-    assert s["penetrating_states"] <= KNOWN_PENETRATING_MAX, s
+    assert s["penetrating_states"] <= THRESHOLDS["calibrated_penetrating_max"], s
     assert s["tip_error_truth_median_mm"] <= THRESHOLDS["calibrated_tip_error_median_max_mm"], s
 
 
