@@ -167,6 +167,8 @@ class DesignResult:
     space derived from it (None with ``derive=False``); blocked : per target not reached, what
     blocks it (:func:`ctrplan.design.explain.explain`); closest : the closest design found (the
     best by the search's ranking; with ``robot`` None, the only design there is to show).
+    schedule : the jobs' submission and wait log with each job's seconds
+    (:meth:`ctrplan.design.runner.Runner.schedule`; the scaling benchmark replays it).
     """
 
     success: bool
@@ -187,6 +189,7 @@ class DesignResult:
     space: dict | None = None
     blocked: tuple[dict, ...] = ()
     closest: dict | None = None
+    schedule: dict | None = None
 
     @property
     def reached(self) -> int:
@@ -430,7 +433,8 @@ def _finish(search, space, sc, names, pts, cfg, final, fixed, stock, anatomy, t0
                         seed=cfg.seed, scene=str(sc.path), time_cap_hit=search.time_cap_hit, config=cfg,
                         anatomy=anatomy.to_json(),
                         space=None if space.derived is None else space.derived.to_json(stock),
-                        blocked=tuple(blocked), closest=_closest_json(search.closest()))
+                        blocked=tuple(blocked), closest=_closest_json(search.closest()),
+                        schedule=search.schedule)
 
 
 class _CallableModule(types.ModuleType):
