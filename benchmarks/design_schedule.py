@@ -63,7 +63,9 @@ def predict(schedule: dict, serial_s: float, worker_counts: list[int], startup_s
             clock: str = "cpu") -> dict:
     """Predicted wall seconds and parallel efficiency per worker count: ``serial_s`` (the
     command's time outside the runner: anatomy, outputs) plus the simulated makespan; one
-    worker runs in this process (no start-up), more on a pool that starts its workers."""
+    worker runs in this process (no start-up), more on a pool that starts its workers while the
+    command reads the anatomy (the log's ``head_s`` of the start-up is hidden)."""
+    startup_s = max(0.0, startup_s - schedule.get("head_s", 0.0))
     t1 = serial_s + simulate(schedule, 1, clock=clock)
     out = {}
     for w in worker_counts:

@@ -302,9 +302,8 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
         Unknown scene or target, a scene without a wall, infeasible bounds (named), a
         ``start_from`` robot beyond the strain limit.
     """
-    from ctrplan import progress as _progress
     from ctrplan.design.evaluate import EvalSettings
-    from ctrplan.design.search import STATE_FILE, Search
+    from ctrplan.design.runner import Runner
     from ctrplan.robot import load_robot
 
     cfg = config or DesignConfig()
@@ -323,16 +322,29 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
     stock = load_stock(cfg.stock)
     make_space(cfg.bounds, stock, fixed, cfg.tubes, source=src)      # bad bounds: before any work
     kbound = max([cfg.bounds.curvature[1]] + [abs(t.curvature) for t in fixed])
-    t_an = time.perf_counter()
-    anatomy, derived = read_anatomy(sc, names, pts, cfg, stock, kbound)
-    space = make_space(cfg.bounds, stock, fixed, cfg.tubes, source=src,
-                       derived=derived if cfg.derive else None)
-    t_an = time.perf_counter() - t_an
     settings = EvalSettings(screen_samples=cfg.screen_samples, tolerance_mm=cfg.tolerance_mm,
                             margin_mm=cfg.margin_mm, plan_time_s=cfg.plan_time_s,
                             plan_states=cfg.plan_states, stability_step_mm=cfg.stability_step_mm,
                             stability_step_rad=cfg.stability_step_rad, curvature_bound=float(kbound),
                             screen_tolerance_mm=cfg.tolerance_mm)
+    # the workers start (and load the scene) while this process reads the anatomy
+    with Runner(cfg.workers, cfg.ray_address, warm=(str(sc.path), settings.__dict__)) as runner:
+        t_an = time.perf_counter()
+        anatomy, derived = read_anatomy(sc, names, pts, cfg, stock, kbound)
+        space = make_space(cfg.bounds, stock, fixed, cfg.tubes, source=src,
+                           derived=derived if cfg.derive else None)
+        t_an = time.perf_counter() - t_an
+        search, final = _search(runner, sc, names, pts, cfg, settings, fixed, stock, anatomy, space,
+                                out, progress)
+    return _finish(search, space, sc, names, pts, cfg, final, fixed, stock, anatomy, t0, t_an)
+
+
+def _search(runner, sc, names, pts, cfg, settings, fixed, stock, anatomy, space, out, progress):
+    """The search (:class:`~ctrplan.design.search.Search`) on ``runner``'s workers, then the
+    final plans on the same workers; returns (search, final plans)."""
+    from ctrplan import progress as _progress
+    from ctrplan.design.search import STATE_FILE, Search
+
     plan_budget = cfg.plan_budget or max(4, min(24, cfg.budget // 6))
     state_path = Path(out) / STATE_FILE if out is not None else None
     if state_path is not None:
@@ -356,10 +368,10 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
         final["s"] = time.perf_counter() - t
 
     try:
-        search.run(cfg.workers, cfg.ray_address, finish=finish)
+        search.run(finish=finish, runner=runner)
     finally:
         bar.close()
-    return _finish(search, space, sc, names, pts, cfg, final, fixed, stock, anatomy, t0, t_an)
+    return search, final
 
 
 def _final_plans(search, space, sc, names, pts, cfg, runner):

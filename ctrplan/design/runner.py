@@ -47,6 +47,11 @@ def timed_job(job: dict, planners=None) -> tuple[dict, dict]:
                  "load_cpu_s": c1 - c0, "cpu_s": time.process_time() - c1}
 
 
+def warm_worker(scene_spec, settings: dict) -> None:
+    """Load the scene and its collision world into this worker (what its first job would)."""
+    context(scene_spec, EvalSettings(**settings))
+
+
 def _worker_init() -> None:
     import os
 
@@ -62,10 +67,15 @@ class Runner:
     Ray (``ray_address``); see the module's docstring. ``fn(job, planners=None) -> (result,
     seconds)`` runs one job (:func:`timed_job`; a module-level function, for the pool)."""
 
-    def __init__(self, workers: int, ray_address: str | None = None, fn: Callable = timed_job):
+    def __init__(self, workers: int, ray_address: str | None = None, fn: Callable = timed_job,
+                 warm: tuple | None = None):
         from ctrplan.planning.planner import Planners
 
         self.fn = fn            # fn(job, planners=None) -> (result, seconds): timed_job
+        #: (scene spec, settings dict): start the workers and load the scene in each on entry,
+        #: so they get ready while the caller does its own work (reads the anatomy)
+        self.warm = warm
+        self._warming: list = []
         self.workers = int(workers)
         self.ray_address = ray_address
         self._ex = None
@@ -82,10 +92,12 @@ class Runner:
         self._next = 0
         self._events: list[dict] = []
         self._seconds: dict[int, dict] = {}
-        self._mark = self._entered = time.perf_counter()
+        self._mark = self._entered = self._opened = time.perf_counter()
+        self._head = 0.0
 
     # ------------------------------------------------------------------ lifetime
     def __enter__(self) -> Runner:
+        self._opened = time.perf_counter()
         if self.ray_address:
             from ctrplan.planning.ray_pool import ray_session
 
@@ -94,6 +106,9 @@ class Runner:
             self._ray = self._ray_session.__enter__()
             self._remote = self._ray.remote(num_cpus=1)(self.fn)
             self._capacity = max(1, int(self._ray.cluster_resources().get("CPU", 1)))
+            if self.warm is not None:
+                task = self._ray.remote(num_cpus=1)(warm_worker)
+                self._warming = [task.remote(*self.warm) for _ in range(self._capacity)]
         elif self.workers > 1:
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor
@@ -102,14 +117,19 @@ class Runner:
             self._ex = ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context("spawn"),
                                            initializer=_worker_init)
             self._capacity = self.workers
-        self._mark = self._entered = time.perf_counter()
+            if self.warm is not None:
+                from ctrplan import interrupt
+
+                with interrupt.spawning():   # workers start on demand, SIGINT ignored (the parent stops them)
+                    self._warming = [self._ex.submit(warm_worker, *self.warm) for _ in range(self.workers)]
+        self.start_log()
         return self
 
     def __exit__(self, *exc) -> None:
         if self._ray is not None:
             ray, self._ray = self._ray, None
             if exc[0] is not None:
-                for ref in self._running:       # a cluster keeps running what is not cancelled
+                for ref in [*self._running, *self._warming]:   # a cluster runs on what is not cancelled
                     with contextlib.suppress(Exception):
                         ray.cancel(ref, force=True)
             self._ray_session.__exit__(*exc)    # shuts down a local instance: its workers end with it
@@ -157,10 +177,18 @@ class Runner:
 
     def schedule(self) -> dict:
         """The log so far: ``events`` (submit: ticket, stage, priority; wait: ticket; caller:
-        seconds the caller spent outside the runner), ``seconds`` (ticket -> :func:`timed_job`'s) and
-        ``wall_s`` (since the runner was entered)."""
+        seconds the caller spent outside the runner), ``seconds`` (ticket -> :func:`timed_job`'s),
+        ``wall_s`` (since the log started) and ``head_s`` (from entering the runner, when the
+        workers started, to the log's start: the start-up the caller's own work hid)."""
         return {"events": list(self._events), "seconds": {t: dict(s) for t, s in self._seconds.items()},
-                "wall_s": time.perf_counter() - self._entered}
+                "wall_s": time.perf_counter() - self._entered, "head_s": self._head}
+
+    def start_log(self) -> None:
+        """Start the schedule log afresh (the caller's time counts from now)."""
+        self._events.clear()
+        self._seconds.clear()
+        self._mark = self._entered = time.perf_counter()
+        self._head = self._entered - self._opened
 
     def _caller_time(self) -> None:
         self._events.append({"event": "caller", "s": time.perf_counter() - self._mark})

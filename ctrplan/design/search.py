@@ -28,6 +28,7 @@ already evaluated from there, so Ctrl-C loses at most one generation.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -332,20 +333,25 @@ class Search:
                     for e in self.evaluations if e["planned"]), default=None)
 
     def run(self, workers: int = 1, ray_address: str | None = None,
-            finish: Callable[[Runner], None] | None = None, lag: int | None = None) -> None:
+            finish: Callable[[Runner], None] | None = None, lag: int | None = None,
+            runner: Runner | None = None) -> None:
         """Search until the budget (a count) is used, the time cap hits, or every target is
         reached and ``patience`` generations brought no progress. Each generation screens its
         candidates (and waits for them), absorbs the plans due at its end, tells CMA-ES the
         screen fitness (:meth:`fitness`) and submits the plans of the designs it chooses; those
         are absorbed ``lag`` generations later (None: :data:`PLAN_LAG`), so plans run beside later
         screens. At the end every plan in flight is absorbed in submission order.
-        ``finish(runner)`` runs on the same workers before they stop (the final plans)."""
+        ``finish(runner)`` runs on the same workers before they stop (the final plans).
+        ``runner``: an entered :class:`Runner` to use (else one for ``workers`` /
+        ``ray_address`` is started here and stopped at the end)."""
         lag = PLAN_LAG if lag is None else int(lag)
         t0 = time.perf_counter()
         stale, best_score, T = 0, None, len(self.targets)
         strategies = self._strategies() if self.space.k_max else []
         inflight: list[dict] = []
-        with Runner(workers, ray_address, self.job_fn) as runner:
+        own = runner is None
+        with (Runner(workers, ray_address, self.job_fn) if own else contextlib.nullcontext(runner)) as runner:
+            runner.start_log()
             while len(self.evaluations) < self.budget:
                 if time.perf_counter() - t0 > self.time_limit:
                     self.time_cap_hit = True
@@ -378,6 +384,7 @@ class Search:
             if finish is not None:
                 finish(runner)
             self.schedule = runner.schedule()
+            self.schedule["wall_s"] = time.perf_counter() - t0
 
     def _best_u(self, k: int) -> np.ndarray | None:
         mine = [e for e in self.evaluations if e["k"] == k]
