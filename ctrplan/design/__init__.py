@@ -9,9 +9,12 @@ they bind): nitinol's recoverable strain, nesting with a radial gap, length and 
 elastic stability along every planned path, and a collision-free start at the scene's entry.
 
 Parallel evaluation (:class:`DesignConfig` ``workers`` or ``ray_address``): a local process
-pool, or Ray through :mod:`ctrplan.planning.ray_pool` (the code path of ``plan-batch --ray``).
-Candidates of a generation are fixed before they are evaluated and results are collected in
-order, so the design does not depend on where or in which order evaluations ran.
+pool, or Ray through :mod:`ctrplan.planning.ray_pool` (the code path of ``plan-batch --ray``),
+started while the anatomy is read (:mod:`ctrplan.design.runner`). Candidates of a generation
+are fixed before they are evaluated; plans run beside the following generations' screens and
+are taken into account a fixed number of generations after they were chosen
+(:data:`ctrplan.design.search.PLAN_LAG`), so the design does not depend on where, when or in
+which order evaluations ran.
 
 Layering: design uses robot, shape, collision and planning; nothing imports design.
 ``ctrplan.design`` is also callable: ``ctrplan.design(scene, targets, ...)`` is
@@ -68,7 +71,8 @@ class DesignConfig:
         plan_budget : designs planned in full (None:
         max(4, min(24, budget // 6))).
     time_limit : wall-clock cap (s); ``time_cap_hit`` when it stopped the search.
-    workers : local worker processes (results do not depend on it).
+    workers : local worker processes (results do not depend on it; plans of one generation
+        run beside the screens of the next ones, :mod:`ctrplan.design.search`).
     ray_address : run the evaluations on Ray instead (the same path as ``plan-batch --ray``,
         :mod:`ctrplan.planning.ray_pool`): a cluster address, or ``"local"`` to start a Ray
         instance on this machine with every core; results do not depend on it either.

@@ -1,29 +1,38 @@
 """The design search: CMA-ES populations (the ``cma`` package), screens in batches, real plans
-only for promising designs.
+only for promising designs, pipelined over the workers.
 
 One covariance-matrix-adaptation evolution strategy per number of designed tubes searches the
 unit cube of :mod:`ctrplan.design.space` (bounds [0, 1]); a generation asks every strategy for
 its share of ``generation`` candidates (16 by default), screens them all at once (on the
-worker pool or Ray: the candidates are independent), plans the most promising of them (one job
-per design and target, in the same batch as the next generation's screens, so long plans
-overlap short screens on the workers), and tells each strategy the fitness of its candidates
-(:meth:`Search.fitness`: targets passing the screen, the goals' clearance, the screen's tip
-errors; an entry that collides or an infeasible design ranks last, graded by how far off it
-is). The plans decide which design is chosen and when the search stops. A strategy that stops (cma's termination criteria) restarts from the best
-design it found.
+worker pool or Ray: the candidates are independent), tells each strategy the fitness of its
+candidates (:meth:`Search.fitness`: targets passing the screen, the goals' clearance, the
+screen's tip errors; an entry that collides or an infeasible design ranks last, graded by how
+far off it is) and chooses the most promising to plan in full (one job per design and target).
+The plans decide which design is chosen and when the search stops; CMA-ES never sees them. A
+strategy that stops (cma's termination criteria) restarts from the best design it found.
+
+Scheduling (:mod:`ctrplan.design.runner`): because CMA-ES is told only the screens, the next
+generation need not wait for plans. The plan jobs chosen at the end of generation g are
+submitted at once and taken into account (cache, records, the choice of later designs, the
+stop rule) at the end of generation g + :data:`PLAN_LAG`, never earlier or later, whatever
+finished first; each generation waits for its own screens and for exactly the plans due then.
+Meanwhile the plans run beside the next generations' screens (screens go first to a free
+worker). When the search ends, the plans still in flight are taken in, in the order they were
+submitted, before the final plans.
 
 Determinism: ``cma`` draws from numpy's global generator; every call into it swaps in the
 strategy's own generator state (seeded from the design seed) and restores the caller's, so
 nothing else that runs in this process (planning seeds numpy too) changes the candidates. The
-candidates of each generation depend only on the seed and the results of earlier generations;
-the generation size does not depend on ``workers``; every evaluation is a pure function of its
-design and the seed (plans have count budgets). So the same seed gives the same design on any
-number of workers, on Ray, and on any machine load, unless the ``time_limit`` cap stopped the
-search (``time_cap_hit``).
+candidates of each generation depend only on the seed and on results taken in at fixed
+generations; the generation size does not depend on ``workers``; every evaluation is a pure
+function of its design and the seed (plans have count budgets). So the same seed gives the same
+design, and the same record of every design evaluated, on any number of workers, on Ray, and
+on any machine load, unless the ``time_limit`` cap stopped the search (``time_cap_hit``).
 
-Resuming: after every generation the results so far go to ``OUT/state.json`` (atomic); a rerun
-with the same scene, targets and settings replays the search and takes each design it has
-already evaluated from there, so Ctrl-C loses at most one generation.
+Resuming: after every generation the results taken in so far go to ``OUT/state.json``
+(atomic); a rerun with the same scene, targets and settings replays the search and takes each
+design it has already evaluated from there (at the same generations as before), so Ctrl-C
+loses at most one generation's screens and the plans still in flight (they are recomputed).
 """
 
 from __future__ import annotations
