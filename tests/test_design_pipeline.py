@@ -94,3 +94,31 @@ def test_plans_are_taken_in_at_fixed_generations_whatever_finishes_first(tmp_pat
     for e in chosen:      # chosen at the end of generation g, taken in at the end of g + PLAN_LAG
         assert e["planned_at"] == min(e["generation"] + PLAN_LAG, last), e["index"]
     assert not any(e["planned"] for e in one.evaluations if not e.get("chosen"))
+
+
+def _log(jobs, waits, caller=()):
+    """A schedule log: submit ``jobs`` [(priority, seconds)] in order, then wait for ``waits``."""
+    ev = [{"event": "submit", "ticket": t, "stage": "x", "priority": p} for t, (p, _) in enumerate(jobs)]
+    ev += [{"event": "caller", "s": s} for s in caller]
+    ev += [{"event": "wait", "ticket": t} for t in waits]
+    return {"events": ev, "seconds": {t: {"cpu_s": d, "load_cpu_s": 0.0} for t, (_, d) in enumerate(jobs)}}
+
+
+def test_schedule_simulation_by_hand():
+    """benchmarks/design_schedule.py against makespans worked out by hand."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from design_schedule import simulate
+
+    ten = _log([(1, 1.0)] * 10, range(10))
+    assert [simulate(ten, w) for w in (1, 3, 10)] == [10.0, 4.0, 1.0]      # ceil(10 / w) s
+    assert simulate(ten, 3, startup_s=0.5) == 4.5
+    # a worker that frees up takes the best priority queued: the 3 s plan first (it was alone
+    # when submitted), then the short screens before the second plan
+    mixed = _log([(1, 3.0), (0, 1.0), (0, 1.0), (1, 2.0)], [1, 2, 3])
+    assert simulate(mixed, 1) == 7.0 and simulate(mixed, 2) == 4.0
+    # the caller's own time runs beside the workers
+    assert simulate(_log([(0, 2.0)], [0], caller=[1.5]), 1) == 2.0
+    assert simulate(_log([(0, 2.0)], [0], caller=[3.0]), 1) == 3.0
