@@ -71,11 +71,11 @@ def machine() -> dict:
 # ----------------------------------------------------------------------------- scaling
 def _timed(folder: Path, cfg: DesignConfig, label: str, work: Path | None = None) -> tuple[dict, dict | None]:
     load_before = os.getloadavg()[0]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     r = design(folder, "a,b,c", cfg, progress=False)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     stages = {k: v for k, v in r.timings.items() if k != "total"}
-    row = {"label": label, "wall_s": wall, "evaluations": r.counts["evaluations"],
+    row = {"label": label, "wall_s": wall, "cpu_s": cpu, "evaluations": r.counts["evaluations"],
            "generations": r.counts.get("generations"), "planned": r.counts["planned"],
            "reached": r.reached, "stage_s": stages,
            "load_average_1min_before": load_before, "load_average_1min_after": os.getloadavg()[0]}
@@ -86,24 +86,22 @@ def _timed(folder: Path, cfg: DesignConfig, label: str, work: Path | None = None
     return row, (r.robot.to_dict() if r.robot is not None else None)
 
 
-def _startup_s(folder: Path, robot: dict) -> float:
-    """Seconds from submitting a first job to a fresh spawned worker to its start: the process,
-    the imports, the scene and its collision world (what each pool worker pays once)."""
+def _startup_s(folder: Path) -> float:
+    """CPU seconds a fresh spawned worker spends before its first job (the process, the
+    imports, the scene and its collision world): what each pool worker pays once."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
+    from design_schedule import startup_probe
+
     from ctrplan.design.evaluate import EvalSettings
-    from ctrplan.design.runner import _worker_init, timed_job
+    from ctrplan.design.runner import _worker_init
 
-    job = {"robot": robot, "scene": str(folder), "targets": [[0.0, 0.0, 10.0]],
-           "settings": EvalSettings().__dict__, "seed": 0, "stage": "screen", "todo": []}
     with ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"), initializer=_worker_init) as ex:
-        t0 = time.perf_counter()
-        _, secs = ex.submit(timed_job, job).result()
-        return time.perf_counter() - t0 - secs["job_s"]
+        return ex.submit(startup_probe, str(folder), EvalSettings().__dict__).result()
 
 
-def simulated(folder: Path, work: Path, workers: list[int], row_new: dict, robot: dict) -> dict:
+def simulated(folder: Path, work: Path, workers: list[int], row_new: dict) -> dict:
     """Predicted efficiencies from the jobs' measured seconds: the 1-worker run's own log (this
     schedule) and a 1-worker run with PLAN_LAG = 1 (the old synchronous schedule), each
     replayed on W simulated workers (design_schedule.py)."""
@@ -117,16 +115,19 @@ def simulated(folder: Path, work: Path, workers: list[int], row_new: dict, robot
         row_old, _ = _timed(folder, DesignConfig(workers=1), "1_lag1", work)
     finally:
         search.PLAN_LAG = lag
-    startup = _startup_s(folder, robot)
+    startup = _startup_s(folder)
     out = {"startup_s": startup, "plan_lag": lag}
     for name, row in ((f"lag{lag}", row_new), ("lag1_old", row_old)):
         sched = json.loads(Path(row["schedule_file"]).read_text())
-        serial = row["wall_s"] - row["runner_wall_s"]
+        # this process's CPU outside the jobs (anatomy, CMA-ES, outputs), so that a run on a
+        # shared machine still predicts an unloaded one
+        serial = row["cpu_s"] - sum(v["cpu_s"] + v["load_cpu_s"] for v in sched["seconds"].values())
         out[name] = {"measured_1_worker_s": row["wall_s"], "generations": row["generations"],
                      "evaluations": row["evaluations"], "planned": row["planned"],
                      "reached": row["reached"], "serial_s": serial,
                      "predicted": predict(sched, serial, workers, startup),
-                     "predicted_no_startup": predict(sched, serial, workers, 0.0)}
+                     "predicted_no_startup": predict(sched, serial, workers, 0.0),
+                     "predicted_startup_not_hidden": predict({**sched, "head_s": 0.0}, serial, workers, startup)}
     return out
 
 
@@ -134,7 +135,7 @@ def scaling(workers: list[int], use_ray: bool, seed: int, work: Path, simulate: 
     from tests.design_scenes import build
 
     folder = work / f"known_{seed}"
-    ks = build(seed, folder)
+    build(seed, folder)
     design(folder, "a", DesignConfig(budget=2, generation=2), progress=False)     # warm-up: field, numba
     cores = machine()["usable_cores"] or 1
     out: dict = {"anatomy_seed": seed, "machine": machine(), "runs": {}, "skipped": []}
@@ -156,7 +157,7 @@ def scaling(workers: list[int], use_ray: bool, seed: int, work: Path, simulate: 
             row["parallel_efficiency"] = t1 / (w * row["wall_s"])
     out["same_design_all_runs"] = len({json.dumps(r, sort_keys=True) for r in robots.values()}) == 1
     if simulate and "1" in out["runs"]:
-        out["simulated"] = simulated(folder, work, workers, out["runs"]["1"], ks.robot)
+        out["simulated"] = simulated(folder, work, workers, out["runs"]["1"])
     return out
 
 
@@ -269,7 +270,8 @@ def anatomies(count: int, first: int, work: Path) -> dict:
 def _print_simulated(sim: dict | None) -> None:
     if not sim:
         return
-    print(f"simulated from the jobs' seconds (worker start-up {sim['startup_s']:.1f} s each):")
+    print(f"simulated from the jobs' CPU seconds (worker start-up {sim['startup_s']:.1f} s each, "
+          "hidden while the anatomy is read):")
     for name in (f"lag{sim['plan_lag']}", "lag1_old"):
         row = sim[name]
         pred = ", ".join(f"{w}: {p['wall_s']:.1f} s eff {p['parallel_efficiency']:.2f}"

@@ -72,3 +72,15 @@ def predict(schedule: dict, serial_s: float, worker_counts: list[int], startup_s
         tw = t1 if w == 1 else serial_s + simulate(schedule, w, startup_s, first_load=False, clock=clock)
         out[str(w)] = {"wall_s": tw, "speedup": t1 / tw, "parallel_efficiency": t1 / (w * tw)}
     return out
+
+
+def startup_probe(scene_spec, settings: dict) -> float:
+    """In a fresh worker: load the scene as its first job would; returns the CPU seconds this
+    process has used since it started (interpreter, imports, scene: a worker's start-up, on a
+    core of its own)."""
+    import time
+
+    from ctrplan.design.runner import warm_worker
+
+    warm_worker(scene_spec, settings)
+    return time.process_time()
