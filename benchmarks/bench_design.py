@@ -41,6 +41,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from ctrplan.design import DesignConfig, design  # noqa: E402
 
@@ -68,20 +69,69 @@ def machine() -> dict:
 
 
 # ----------------------------------------------------------------------------- scaling
-def _timed(folder: Path, cfg: DesignConfig, label: str) -> tuple[dict, dict | None]:
+def _timed(folder: Path, cfg: DesignConfig, label: str, work: Path | None = None) -> tuple[dict, dict | None]:
     load_before = os.getloadavg()[0]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     r = design(folder, "a,b,c", cfg, progress=False)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     stages = {k: v for k, v in r.timings.items() if k != "total"}
-    row = {"label": label, "wall_s": wall, "evaluations": r.counts["evaluations"],
+    row = {"label": label, "wall_s": wall, "cpu_s": cpu, "evaluations": r.counts["evaluations"],
            "generations": r.counts.get("generations"), "planned": r.counts["planned"],
            "reached": r.reached, "stage_s": stages,
            "load_average_1min_before": load_before, "load_average_1min_after": os.getloadavg()[0]}
+    if work is not None and r.schedule:      # the job log, for the schedule simulation
+        row["schedule_file"] = str(work / f"schedule_{label}.json")
+        row["runner_wall_s"] = r.schedule["wall_s"]
+        Path(row["schedule_file"]).write_text(json.dumps(r.schedule) + "\n", encoding="utf-8")
     return row, (r.robot.to_dict() if r.robot is not None else None)
 
 
-def scaling(workers: list[int], use_ray: bool, seed: int, work: Path) -> dict:
+def _startup_s(folder: Path) -> float:
+    """CPU seconds a fresh spawned worker spends before its first job (the process, the
+    imports, the scene and its collision world): what each pool worker pays once."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    from design_schedule import startup_probe
+
+    from ctrplan.design.evaluate import EvalSettings
+    from ctrplan.design.runner import _worker_init
+
+    with ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"), initializer=_worker_init) as ex:
+        return ex.submit(startup_probe, str(folder), EvalSettings().__dict__).result()
+
+
+def simulated(folder: Path, work: Path, workers: list[int], row_new: dict) -> dict:
+    """Predicted efficiencies from the jobs' measured seconds: the 1-worker run's own log (this
+    schedule) and a 1-worker run with PLAN_LAG = 1 (the old synchronous schedule), each
+    replayed on W simulated workers (design_schedule.py)."""
+    from design_schedule import predict
+
+    import ctrplan.design.search as search
+
+    lag = search.PLAN_LAG
+    try:
+        search.PLAN_LAG = 1
+        row_old, _ = _timed(folder, DesignConfig(workers=1), "1_lag1", work)
+    finally:
+        search.PLAN_LAG = lag
+    startup = _startup_s(folder)
+    out = {"startup_s": startup, "plan_lag": lag}
+    for name, row in ((f"lag{lag}", row_new), ("lag1_old", row_old)):
+        sched = json.loads(Path(row["schedule_file"]).read_text())
+        # this process's CPU outside the jobs (anatomy, CMA-ES, outputs), so that a run on a
+        # shared machine still predicts an unloaded one
+        serial = row["cpu_s"] - sum(v["cpu_s"] + v["load_cpu_s"] for v in sched["seconds"].values())
+        out[name] = {"measured_1_worker_s": row["wall_s"], "generations": row["generations"],
+                     "evaluations": row["evaluations"], "planned": row["planned"],
+                     "reached": row["reached"], "serial_s": serial,
+                     "predicted": predict(sched, serial, workers, startup),
+                     "predicted_no_startup": predict(sched, serial, workers, 0.0),
+                     "predicted_startup_not_hidden": predict({**sched, "head_s": 0.0}, serial, workers, startup)}
+    return out
+
+
+def scaling(workers: list[int], use_ray: bool, seed: int, work: Path, simulate: bool = True) -> dict:
     from tests.design_scenes import build
 
     folder = work / f"known_{seed}"
@@ -94,7 +144,7 @@ def scaling(workers: list[int], use_ray: bool, seed: int, work: Path) -> dict:
         if w > cores:
             out["skipped"].append(f"{w} workers: only {cores} usable cores here")
             continue
-        row, robots[str(w)] = _timed(folder, DesignConfig(workers=w), str(w))
+        row, robots[str(w)] = _timed(folder, DesignConfig(workers=w), str(w), work)
         out["runs"][str(w)] = row
     if use_ray and importlib.util.find_spec("ray") is not None:
         row, robots["ray_local"] = _timed(folder, DesignConfig(ray_address="local"), "ray_local")
@@ -106,6 +156,8 @@ def scaling(workers: list[int], use_ray: bool, seed: int, work: Path) -> dict:
             row["speedup"] = t1 / row["wall_s"]
             row["parallel_efficiency"] = t1 / (w * row["wall_s"])
     out["same_design_all_runs"] = len({json.dumps(r, sort_keys=True) for r in robots.values()}) == 1
+    if simulate and "1" in out["runs"]:
+        out["simulated"] = simulated(folder, work, workers, out["runs"]["1"])
     return out
 
 
@@ -215,12 +267,27 @@ def anatomies(count: int, first: int, work: Path) -> dict:
             "rows": rows}
 
 
+def _print_simulated(sim: dict | None) -> None:
+    if not sim:
+        return
+    print(f"simulated from the jobs' CPU seconds (worker start-up {sim['startup_s']:.1f} s each, "
+          "hidden while the anatomy is read):")
+    for name in (f"lag{sim['plan_lag']}", "lag1_old"):
+        row = sim[name]
+        pred = ", ".join(f"{w}: {p['wall_s']:.1f} s eff {p['parallel_efficiency']:.2f}"
+                         for w, p in row["predicted"].items())
+        print(f"  {name}: {row['generations']} generations, {row['evaluations']} designs, "
+              f"{row['planned']} planned, measured 1 worker {row['measured_1_worker_s']:.1f} s; {pred}")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="part", required=True)
     s = sub.add_parser("scaling")
     s.add_argument("--workers", default="1,2,4,8")
     s.add_argument("--no-ray", action="store_true")
+    s.add_argument("--no-simulate", action="store_true",
+                   help="skip the schedule simulation (a second 1-worker run with the old schedule)")
     s.add_argument("--seed", type=int, default=2100, help="the anatomy's seed")
     s.add_argument("--work", default="/tmp/ctrplan_bench_design")
     s.add_argument("--out", default=str(RESULTS / "design_scaling.json"))
@@ -233,11 +300,13 @@ def main(argv: list[str] | None = None) -> int:
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     if args.part == "scaling":
-        res = scaling([int(w) for w in args.workers.split(",")], not args.no_ray, args.seed, work)
+        res = scaling([int(w) for w in args.workers.split(",")], not args.no_ray, args.seed, work,
+                      not args.no_simulate)
         for k, r in res["runs"].items():
             eff = f", efficiency {r['parallel_efficiency']:.2f}" if "parallel_efficiency" in r else ""
             print(f"{k}: {r['wall_s']:.1f} s, {r['evaluations']} designs, {r['reached']} reached{eff}")
         print(f"same design in every run: {res['same_design_all_runs']}; {res['machine']}")
+        _print_simulated(res.get("simulated"))
     else:
         res = anatomies(args.count, args.first, work)
         print(f"known-feasible: {res['feasible_ok']}/{res['feasible_total']} reach >= 2/3 with every plan "

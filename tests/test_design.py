@@ -19,6 +19,7 @@ Oracles that share no code with what they test:
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -178,6 +179,19 @@ def test_rerun_resumes_from_the_state_file_with_the_same_design(quick, tmp_path)
     assert again.counts["resumed"] >= result.counts["evaluations"] - 1
     again.robot.save(tmp_path / "r.yaml")
     assert (tmp_path / "r.yaml").read_bytes() == (out / "robot.yaml").read_bytes()
+
+
+def test_one_and_two_workers_give_the_same_design_and_records(quick, tmp_path):
+    """The pipelined search (plans absorbed PLAN_LAG generations after they are chosen) on a
+    pool of 2: the same robot.yaml bytes and the same record of every design evaluated."""
+    result, out = quick
+    two = design("design_bend", NAMES, replace(QUICK, workers=2), progress=False)
+    two.robot.save(tmp_path / "r.yaml")
+    assert (tmp_path / "r.yaml").read_bytes() == (out / "robot.yaml").read_bytes()
+    dump = __import__("json").dumps
+    assert dump(two.evaluations, sort_keys=True) == dump(result.evaluations, sort_keys=True)
+    # the lag is exercised: some plans were taken in generations after they were chosen
+    assert any(e.get("planned_at", -1) > e["generation"] for e in result.evaluations)
 
 
 QUICK_CLI = ["--tubes", "1", "--budget", "48", "--generation", "8", "--curvature", "0,0.06", "--curved-length", "10,100",

@@ -9,9 +9,12 @@ they bind): nitinol's recoverable strain, nesting with a radial gap, length and 
 elastic stability along every planned path, and a collision-free start at the scene's entry.
 
 Parallel evaluation (:class:`DesignConfig` ``workers`` or ``ray_address``): a local process
-pool, or Ray through :mod:`ctrplan.planning.ray_pool` (the code path of ``plan-batch --ray``).
-Candidates of a generation are fixed before they are evaluated and results are collected in
-order, so the design does not depend on where or in which order evaluations ran.
+pool, or Ray through :mod:`ctrplan.planning.ray_pool` (the code path of ``plan-batch --ray``),
+started while the anatomy is read (:mod:`ctrplan.design.runner`). Candidates of a generation
+are fixed before they are evaluated; plans run beside the following generations' screens and
+are taken into account a fixed number of generations after they were chosen
+(:data:`ctrplan.design.search.PLAN_LAG`), so the design does not depend on where, when or in
+which order evaluations ran.
 
 Layering: design uses robot, shape, collision and planning; nothing imports design.
 ``ctrplan.design`` is also callable: ``ctrplan.design(scene, targets, ...)`` is
@@ -68,7 +71,8 @@ class DesignConfig:
         plan_budget : designs planned in full (None:
         max(4, min(24, budget // 6))).
     time_limit : wall-clock cap (s); ``time_cap_hit`` when it stopped the search.
-    workers : local worker processes (results do not depend on it).
+    workers : local worker processes (results do not depend on it; plans of one generation
+        run beside the screens of the next ones, :mod:`ctrplan.design.search`).
     ray_address : run the evaluations on Ray instead (the same path as ``plan-batch --ray``,
         :mod:`ctrplan.planning.ray_pool`): a cluster address, or ``"local"`` to start a Ray
         instance on this machine with every core; results do not depend on it either.
@@ -167,6 +171,8 @@ class DesignResult:
     space derived from it (None with ``derive=False``); blocked : per target not reached, what
     blocks it (:func:`ctrplan.design.explain.explain`); closest : the closest design found (the
     best by the search's ranking; with ``robot`` None, the only design there is to show).
+    schedule : the jobs' submission and wait log with each job's seconds
+    (:meth:`ctrplan.design.runner.Runner.schedule`; the scaling benchmark replays it).
     """
 
     success: bool
@@ -187,6 +193,7 @@ class DesignResult:
     space: dict | None = None
     blocked: tuple[dict, ...] = ()
     closest: dict | None = None
+    schedule: dict | None = None
 
     @property
     def reached(self) -> int:
@@ -299,9 +306,8 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
         Unknown scene or target, a scene without a wall, infeasible bounds (named), a
         ``start_from`` robot beyond the strain limit.
     """
-    from ctrplan import progress as _progress
     from ctrplan.design.evaluate import EvalSettings
-    from ctrplan.design.search import STATE_FILE, Search
+    from ctrplan.design.runner import Runner
     from ctrplan.robot import load_robot
 
     cfg = config or DesignConfig()
@@ -320,16 +326,29 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
     stock = load_stock(cfg.stock)
     make_space(cfg.bounds, stock, fixed, cfg.tubes, source=src)      # bad bounds: before any work
     kbound = max([cfg.bounds.curvature[1]] + [abs(t.curvature) for t in fixed])
-    t_an = time.perf_counter()
-    anatomy, derived = read_anatomy(sc, names, pts, cfg, stock, kbound)
-    space = make_space(cfg.bounds, stock, fixed, cfg.tubes, source=src,
-                       derived=derived if cfg.derive else None)
-    t_an = time.perf_counter() - t_an
     settings = EvalSettings(screen_samples=cfg.screen_samples, tolerance_mm=cfg.tolerance_mm,
                             margin_mm=cfg.margin_mm, plan_time_s=cfg.plan_time_s,
                             plan_states=cfg.plan_states, stability_step_mm=cfg.stability_step_mm,
                             stability_step_rad=cfg.stability_step_rad, curvature_bound=float(kbound),
                             screen_tolerance_mm=cfg.tolerance_mm)
+    # the workers start (and load the scene) while this process reads the anatomy
+    with Runner(cfg.workers, cfg.ray_address, warm=(str(sc.path), settings.__dict__)) as runner:
+        t_an = time.perf_counter()
+        anatomy, derived = read_anatomy(sc, names, pts, cfg, stock, kbound)
+        space = make_space(cfg.bounds, stock, fixed, cfg.tubes, source=src,
+                           derived=derived if cfg.derive else None)
+        t_an = time.perf_counter() - t_an
+        search, final = _search(runner, sc, names, pts, cfg, settings, fixed, stock, anatomy, space,
+                                out, progress)
+    return _finish(search, space, sc, names, pts, cfg, final, fixed, stock, anatomy, t0, t_an)
+
+
+def _search(runner, sc, names, pts, cfg, settings, fixed, stock, anatomy, space, out, progress):
+    """The search (:class:`~ctrplan.design.search.Search`) on ``runner``'s workers, then the
+    final plans on the same workers; returns (search, final plans)."""
+    from ctrplan import progress as _progress
+    from ctrplan.design.search import STATE_FILE, Search
+
     plan_budget = cfg.plan_budget or max(4, min(24, cfg.budget // 6))
     state_path = Path(out) / STATE_FILE if out is not None else None
     if state_path is not None:
@@ -353,10 +372,10 @@ def design(scene, targets, config: DesignConfig | None = None, start_from: Robot
         final["s"] = time.perf_counter() - t
 
     try:
-        search.run(cfg.workers, cfg.ray_address, finish=finish)
+        search.run(finish=finish, runner=runner)
     finally:
         bar.close()
-    return _finish(search, space, sc, names, pts, cfg, final, fixed, stock, anatomy, t0, t_an)
+    return search, final
 
 
 def _final_plans(search, space, sc, names, pts, cfg, runner):
@@ -430,7 +449,8 @@ def _finish(search, space, sc, names, pts, cfg, final, fixed, stock, anatomy, t0
                         seed=cfg.seed, scene=str(sc.path), time_cap_hit=search.time_cap_hit, config=cfg,
                         anatomy=anatomy.to_json(),
                         space=None if space.derived is None else space.derived.to_json(stock),
-                        blocked=tuple(blocked), closest=_closest_json(search.closest()))
+                        blocked=tuple(blocked), closest=_closest_json(search.closest()),
+                        schedule=search.schedule)
 
 
 class _CallableModule(types.ModuleType):

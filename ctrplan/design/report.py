@@ -36,7 +36,7 @@ def design_json(result) -> dict:
                       "robot": e["robot"], "entry_ok": e["entry_ok"],
                       "entry_clearance_mm": e.get("entry_clearance_mm"),
                       "screen_passed": e["screen_passed"], "screen_errors_mm": e.get("screen_errors"),
-                      "planned": e["planned"], "reached": e["reached"],
+                      "planned": e["planned"], "planned_at": e.get("planned_at"), "reached": e["reached"],
                       "clearance_mm": e["clearance_mm"],
                       "clearance_estimate_mm": e.get("clearance_estimate_mm"),
                       "score": list(score_of(e)) if e["planned"] else None,

@@ -1,33 +1,43 @@
 """The design search: CMA-ES populations (the ``cma`` package), screens in batches, real plans
-only for promising designs.
+only for promising designs, pipelined over the workers.
 
 One covariance-matrix-adaptation evolution strategy per number of designed tubes searches the
 unit cube of :mod:`ctrplan.design.space` (bounds [0, 1]); a generation asks every strategy for
 its share of ``generation`` candidates (16 by default), screens them all at once (on the
-worker pool or Ray: the candidates are independent), plans the most promising of them (one job
-per design and target, in the same batch as the next generation's screens, so long plans
-overlap short screens on the workers), and tells each strategy the fitness of its candidates
-(:meth:`Search.fitness`: targets passing the screen, the goals' clearance, the screen's tip
-errors; an entry that collides or an infeasible design ranks last, graded by how far off it
-is). The plans decide which design is chosen and when the search stops. A strategy that stops (cma's termination criteria) restarts from the best
-design it found.
+worker pool or Ray: the candidates are independent), tells each strategy the fitness of its
+candidates (:meth:`Search.fitness`: targets passing the screen, the goals' clearance, the
+screen's tip errors; an entry that collides or an infeasible design ranks last, graded by how
+far off it is) and chooses the most promising to plan in full (one job per design and target).
+The plans decide which design is chosen and when the search stops; CMA-ES never sees them. A
+strategy that stops (cma's termination criteria) restarts from the best design it found.
+
+Scheduling (:mod:`ctrplan.design.runner`): because CMA-ES is told only the screens, the next
+generation need not wait for plans. The plan jobs chosen at the end of generation g are
+submitted at once and taken into account (cache, records, the choice of later designs, the
+stop rule) at the end of generation g + :data:`PLAN_LAG`, never earlier or later, whatever
+finished first; each generation waits for its own screens and for exactly the plans due then.
+Meanwhile the plans run beside the next generations' screens (screens go first to a free
+worker). When the search ends, the plans still in flight are taken in, in the order they were
+submitted, before the final plans.
 
 Determinism: ``cma`` draws from numpy's global generator; every call into it swaps in the
 strategy's own generator state (seeded from the design seed) and restores the caller's, so
 nothing else that runs in this process (planning seeds numpy too) changes the candidates. The
-candidates of each generation depend only on the seed and the results of earlier generations;
-the generation size does not depend on ``workers``; every evaluation is a pure function of its
-design and the seed (plans have count budgets). So the same seed gives the same design on any
-number of workers, on Ray, and on any machine load, unless the ``time_limit`` cap stopped the
-search (``time_cap_hit``).
+candidates of each generation depend only on the seed and on results taken in at fixed
+generations; the generation size does not depend on ``workers``; every evaluation is a pure
+function of its design and the seed (plans have count budgets). So the same seed gives the same
+design, and the same record of every design evaluated, on any number of workers, on Ray, and
+on any machine load, unless the ``time_limit`` cap stopped the search (``time_cap_hit``).
 
-Resuming: after every generation the results so far go to ``OUT/state.json`` (atomic); a rerun
-with the same scene, targets and settings replays the search and takes each design it has
-already evaluated from there, so Ctrl-C loses at most one generation.
+Resuming: after every generation the results taken in so far go to ``OUT/state.json``
+(atomic); a rerun with the same scene, targets and settings replays the search and takes each
+design it has already evaluated from there (at the same generations as before), so Ctrl-C
+loses at most one generation's screens and the plans still in flight (they are recomputed).
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -38,7 +48,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ctrplan.design.evaluate import EvalSettings, evaluate_job
+from ctrplan.design.evaluate import EvalSettings
+from ctrplan.design.runner import PLAN, SCREEN, Runner, timed_job
 from ctrplan.design.space import Decoded, Space, decode, simplicity
 from ctrplan.design.strategy import Strategy
 
@@ -48,81 +59,20 @@ STATE_FILE = "state.json"
 #: The smallest population of one CMA-ES (a generation smaller than this many per tube count
 #: is raised to it).
 MIN_POPSIZE = 4
+#: Generations between choosing designs to plan and taking their plans into account: the
+#: plans chosen at the end of generation g are submitted at once and absorbed at the end of
+#: generation g + PLAN_LAG, whatever finished first. 1 was the old synchronous schedule (each
+#: generation waited for the previous one's longest plan, ~1-3 s, while most workers idled);
+#: PLAN_LAG plans overlap PLAN_LAG - 1 further generations of screens, and the schedule
+#: simulation on the jobs' measured seconds (benchmarks/bench_design.py scaling) puts 3 at
+#: the knee: enough plan jobs in flight (3 generations x <= 6) for 8 workers, while the stop
+#: rule learns of a plan only 2 generations later than before (a few extra screens).
+PLAN_LAG = 3
 
 
 def design_key(robot_dict: dict) -> str:
     """A stable key of a robot's tube values."""
     return hashlib.sha1(json.dumps(robot_dict["tubes"], sort_keys=True).encode()).hexdigest()[:16]
-
-
-class Runner:
-    """Runs evaluation jobs in this process, on a spawned process pool (``workers > 1``) or on
-    Ray (``ray_address``: the same path as ``plan-batch --ray``,
-    :mod:`ctrplan.planning.ray_pool`); results always come back in the order of the jobs."""
-
-    def __init__(self, workers: int, ray_address: str | None = None):
-        from ctrplan.planning.planner import Planners
-
-        self.workers = int(workers)
-        self.ray_address = ray_address
-        self._ex = None
-        self._ray = None
-        #: the scenes of the jobs run in this process (the workers keep their own)
-        self._planners = Planners()
-
-    def __enter__(self) -> Runner:
-        if self.ray_address:
-            from ctrplan.planning.ray_pool import ray_session
-
-            # a local instance gets every core Ray detects (--workers and --ray exclude each other)
-            self._ray = ray_session(self.ray_address)
-            self._ray.__enter__()
-        elif self.workers > 1:
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor
-
-            # spawn, not fork: numba, torch and OMPL threads do not survive a fork reliably
-            self._ex = ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context("spawn"),
-                                           initializer=_worker_init)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self._ray is not None:
-            ray, self._ray = self._ray, None
-            ray.__exit__(*exc)      # shuts down a local instance: its workers end with it
-        if self._ex is not None:
-            if exc[0] is not None:
-                # Ctrl-C or an error: stop every worker now, not after its current design
-                # (the executor keeps its processes in a private dict; nothing public does this)
-                for proc in list(getattr(self._ex, "_processes", {}).values()):
-                    proc.terminate()
-            self._ex.shutdown(wait=exc[0] is None, cancel_futures=True)
-            self._ex = None
-
-    def map(self, jobs: list[dict]) -> list[dict]:
-        if not jobs:
-            return []
-        if self._ray is not None:
-            from ctrplan.planning.ray_pool import ray_map
-
-            return ray_map(evaluate_job, jobs)
-        if self._ex is None:
-            return [evaluate_job(j, self._planners) for j in jobs]
-        from ctrplan import interrupt
-
-        with interrupt.spawning():   # workers start on demand, SIGINT ignored (Ctrl-C: parent stops them)
-            results = self._ex.map(evaluate_job, jobs)
-        return list(results)
-
-
-def _worker_init() -> None:
-    import os
-
-    from ctrplan import interrupt
-
-    interrupt.ignore_in_child()   # Ctrl-C reaches the whole process group: the parent stops us
-    # one intra-op thread per worker (before torch is imported): the pool is the parallelism
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
 class Search:
@@ -157,6 +107,10 @@ class Search:
         self.timings = {"screen_entry": 0.0, "screen_sample": 0.0, "screen_ik": 0.0, "plans": 0.0,
                         "stability": 0.0}
         self.resumed = 0
+        #: the runner's log of the last :meth:`run` (:meth:`Runner.schedule`)
+        self.schedule: dict = {}
+        #: what runs a job (:func:`~ctrplan.design.runner.timed_job`; tests put a stand-in here)
+        self.job_fn = timed_job
         self._load_state()
 
     # ------------------------------------------------------------------ state file
@@ -337,6 +291,7 @@ class Search:
                 self.timings[k] = self.timings.get(k, 0.0) + v
         for e in chosen:
             self._apply_plans(e, self.cache[e["key"]]["plans"])
+            e["planned_at"] = self.generations - 1      # the generation whose end took them in
 
     @staticmethod
     def _apply_plans(e: dict, p: dict) -> None:
@@ -353,15 +308,32 @@ class Search:
             e["binding"].append("stability")
 
     # ------------------------------------------------------------------ main loop
-    def _generation(self, runner: Runner, cands: list, chosen: list[dict]) -> list[dict]:
-        """Screen the candidates and plan the designs chosen from the generation before, in one
-        batch (the plans overlap the screens on the workers); returns the candidates' records."""
+    def _screen(self, runner: Runner, cands: list) -> list[dict]:
+        """Screen the candidates (waits for their screens); returns their records."""
         evs, todo, sjobs = self._screen_jobs(cands)
-        pjobs, owners = self._plan_jobs(chosen)
-        res = runner.map(sjobs + pjobs)
-        self._absorb_screens(evs, todo, res[:len(sjobs)])
-        self._absorb_plans(chosen, pjobs, owners, res[len(sjobs):])
+        tickets = [runner.submit(j, SCREEN) for j in sjobs]
+        self._absorb_screens(evs, todo, [runner.result(t) for t in tickets])
         return evs
+
+    def _submit_plans(self, runner: Runner, chosen: list[dict], due: int) -> dict:
+        """Submit the plan jobs of the chosen designs now; absorbed at generation ``due``."""
+        jobs, owners = self._plan_jobs(chosen)
+        return {"due": due, "chosen": chosen, "jobs": jobs, "owners": owners,
+                "tickets": [runner.submit(j, PLAN) for j in jobs]}
+
+    def _absorb_batch(self, runner: Runner, batch: dict) -> None:
+        """Wait for one batch of plans (in submission order) and take it into account."""
+        results = [runner.result(t) for t in batch["tickets"]]
+        self._absorb_plans(batch["chosen"], batch["jobs"], batch["owners"], results)
+
+    def _tell(self, asked: list, evs: list[dict]) -> None:
+        i = 0
+        for st, cs in asked:
+            mine = evs[i:i + len(cs)]
+            i += len(cs)
+            if st is not None:
+                st.tell([np.array(e["u"]) for e in mine], [self.fitness(e) for e in mine],
+                        self._best_u(st.k))
 
     def _progress_key(self) -> tuple | None:
         """More targets reached, or more clearance up to the goal (simpler designs of the same
@@ -370,19 +342,25 @@ class Search:
                     for e in self.evaluations if e["planned"]), default=None)
 
     def run(self, workers: int = 1, ray_address: str | None = None,
-            finish: Callable[[Runner], None] | None = None) -> None:
+            finish: Callable[[Runner], None] | None = None, lag: int | None = None,
+            runner: Runner | None = None) -> None:
         """Search until the budget (a count) is used, the time cap hits, or every target is
-        reached and ``patience`` generations brought no progress. The designs chosen from a
-        generation are planned with the next one's screens; the fitness told to CMA-ES is the
-        screen's (:meth:`fitness`), plans decide the chosen design and when to stop.
-        ``finish(runner)`` runs on the same workers before they stop (the final plans)."""
+        reached and ``patience`` generations brought no progress. Each generation screens its
+        candidates (and waits for them), absorbs the plans due at its end, tells CMA-ES the
+        screen fitness (:meth:`fitness`) and submits the plans of the designs it chooses; those
+        are absorbed ``lag`` generations later (None: :data:`PLAN_LAG`), so plans run beside later
+        screens. At the end every plan in flight is absorbed in submission order.
+        ``finish(runner)`` runs on the same workers before they stop (the final plans).
+        ``runner``: an entered :class:`Runner` to use (else one for ``workers`` /
+        ``ray_address`` is started here and stopped at the end)."""
+        lag = PLAN_LAG if lag is None else int(lag)
         t0 = time.perf_counter()
-        stale = 0
-        best_score = None
-        T = len(self.targets)
+        stale, best_score, T = 0, None, len(self.targets)
         strategies = self._strategies() if self.space.k_max else []
-        chosen: list[dict] = []
-        with Runner(workers, ray_address) as runner:
+        inflight: list[dict] = []
+        own = runner is None
+        with (Runner(workers, ray_address, self.job_fn) if own else contextlib.nullcontext(runner)) as runner:
+            runner.start_log()
             while len(self.evaluations) < self.budget:
                 if time.perf_counter() - t0 > self.time_limit:
                     self.time_cap_hit = True
@@ -391,17 +369,13 @@ class Search:
                     asked = [(None, [(0, np.zeros(0))])]
                 else:
                     asked = [(st, [(st.k, x) for x in st.ask()]) for st in strategies]
-                evs = self._generation(runner, [c for _, cs in asked for c in cs], chosen)
+                evs = self._screen(runner, [c for _, cs in asked for c in cs])
                 self.evaluations.extend(evs)
                 self.generations += 1
-                i = 0
-                for st, cs in asked:
-                    mine = evs[i:i + len(cs)]
-                    i += len(cs)
-                    if st is not None:
-                        st.tell([np.array(e["u"]) for e in mine], [self.fitness(e) for e in mine],
-                                self._best_u(st.k))
-                chosen = self._choose(evs)
+                while inflight and inflight[0]["due"] <= self.generations:
+                    self._absorb_batch(runner, inflight.pop(0))
+                self._tell(asked, evs)
+                inflight.append(self._submit_plans(runner, self._choose(evs), self.generations + lag))
                 self._save_state()
                 if self.progress is not None:
                     self.progress(len(evs))
@@ -413,12 +387,13 @@ class Search:
                 if not self.space.k_max or (best_score is not None and best_score[0] == T
                                             and stale >= self.patience):
                     break
-            if chosen:                            # the last generation's choices
-                pjobs, owners = self._plan_jobs(chosen)
-                self._absorb_plans(chosen, pjobs, owners, runner.map(pjobs))
-                self._save_state()
+            for batch in inflight:                # the plans still in flight, in order
+                self._absorb_batch(runner, batch)
+            self._save_state()
             if finish is not None:
                 finish(runner)
+            self.schedule = runner.schedule()
+            self.schedule["wall_s"] = time.perf_counter() - t0
 
     def _best_u(self, k: int) -> np.ndarray | None:
         mine = [e for e in self.evaluations if e["k"] == k]

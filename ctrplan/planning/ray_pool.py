@@ -1,13 +1,14 @@
 """Ray for every parallel command: one way to start or join a cluster and to run tasks on it.
 
 ``plan-batch --ray ADDRESS`` (:func:`ctrplan.planning.batch.run_batch`) and ``design --ray
-ADDRESS`` (:class:`ctrplan.design.search.Runner`) both run their work here:
+ADDRESS`` (:class:`ctrplan.design.runner.Runner`) both run their work here:
 :func:`ray_session` connects to the cluster at ADDRESS, or with ``"local"`` starts a private
 Ray instance on this machine (shut down again on exit); :func:`ray_as_completed` submits one
 task per argument (one CPU each, ``OMP_NUM_THREADS=1`` in every worker: the tasks are the
-parallelism) and yields ``(index, result)`` as the tasks finish. Callers that need results in
-order (design) put them back in order by index, so the outcome never depends on which worker
-finished first.
+parallelism) and yields ``(index, result)`` as the tasks finish; plan-batch writes them as they
+come. Design submits its own tasks on the session (a job when a CPU is free, collected by
+ticket at fixed points of its search), so its outcome never depends on which worker finished
+first.
 
 Ray is optional (``pip install 'ctrplan[ray]'``); without it :func:`require_ray` raises
 :class:`~ctrplan.errors.InputError` (one line on the command line, exit 2).
@@ -103,11 +104,3 @@ def ray_as_completed(fn: Callable[[Any], Any], args: Sequence[Any]) -> Iterator[
             with contextlib.suppress(Exception):
                 ray.cancel(ref, force=True)
 
-
-def ray_map(fn: Callable[[Any], Any], args: Sequence[Any]) -> list[Any]:
-    """``[fn(a) for a in args]`` as Ray tasks (inside :func:`ray_session`), results in order."""
-    out: list[Any] = [None] * len(args)
-    with contextlib.closing(ray_as_completed(fn, args)) as it:
-        for i, res in it:
-            out[i] = res
-    return out
