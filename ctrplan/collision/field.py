@@ -364,6 +364,16 @@ def _walk_axis(ax, ay, az, vx, vy, vz, rk, lb, ub, side, bad_side, origin, h, bo
     return clear, depth, unsure, done
 
 
+@nb.njit(cache=True, _nrt=False)
+def _box_gap(ax, ay, az, bx, by, bz, box_lo, box_hi):
+    """Distance (mm) between the bounding box of segment a-b and the box box_lo..box_hi: a
+    lower bound of the distance from any point of the segment to anything in the box."""
+    dx = max(box_lo[0] - max(ax, bx), 0.0, min(ax, bx) - box_hi[0])
+    dy = max(box_lo[1] - max(ay, by), 0.0, min(ay, by) - box_hi[1])
+    dz = max(box_lo[2] - max(az, bz), 0.0, min(az, bz) - box_hi[2])
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
 @nb.njit(cache=True)
 def _capsule_bounds(a, b, r, active, lb, ub, side, bad_side, origin, h, box_lo, box_hi,
                     sample_mm, eps, trace, bit, clear_out, depth_out, unsure_out):
@@ -391,6 +401,15 @@ def _capsule_bounds(a, b, r, active, lb, ub, side, bad_side, origin, h, box_lo, 
             ax = a[bi, kk, 0]
             ay = a[bi, kk, 1]
             az = a[bi, kk, 2]
+            if trace:
+                # a capsule whose axis box is farther from the mesh's box than its radius
+                # (with the walk's least step to spare) is free of the mesh: no walk
+                gap = _box_gap(ax, ay, az, b[bi, kk, 0], b[bi, kk, 1], b[bi, kk, 2], box_lo,
+                               box_hi) - r[bi, kk] - eps
+                if gap >= min_step:
+                    if gap < clear:
+                        clear = gap
+                    continue
             clear, depth, unsure, done = _walk_axis(
                 ax, ay, az, b[bi, kk, 0] - ax, b[bi, kk, 1] - ay, b[bi, kk, 2] - az, r[bi, kk],
                 lb, ub, side, bad_side, origin, h, box_lo, box_hi, sample_mm, min_step, eps, trace,
