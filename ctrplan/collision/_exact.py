@@ -50,10 +50,15 @@ def seg_tri_d2(px, py, pz, qx, qy, qz, ax, ay, az, bx, by, bz, cx, cy, cz, above
     sp = nx * (px - ax) + ny * (py - ay) + nz * (pz - az)
     sq = nx * (qx - ax) + ny * (qy - ay) + nz * (qz - az)
     if (sp > 0.0 and sq > 0.0) or (sp < 0.0 and sq < 0.0):
+        # the plane is farther than ``above`` (by more than the normal's rounding can move
+        # it, in a triangle whose angles are not within 1e-6 of flat)
         n2 = nx * nx + ny * ny + nz * nz
-        s2 = min(sp * sp, sq * sq)
-        if s2 > above * n2 * (1.0 + 1e-9):     # the plane is farther than ``above``
-            return s2 / n2
+        e12 = (e1x * e1x + e1y * e1y + e1z * e1z) * (e2x * e2x + e2y * e2y + e2z * e2z)
+        if n2 > 1e-12 * e12:
+            s2 = min(sp * sp, sq * sq) / n2
+            lim = math.sqrt(above) + 1e-7
+            if s2 > lim * lim:
+                return s2
     elif sp != sq:
         t = sp / (sp - sq)
         xx, xy, xz = px + t * (qx - px), py + t * (qy - py), pz + t * (qz - pz)
