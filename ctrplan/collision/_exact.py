@@ -81,6 +81,18 @@ def _side(ux, uy, uz, vx, vy, vz, xx, xy, xz, nx, ny, nz):
     return nx * (ey * wz - ez * wy) + ny * (ez * wx - ex * wz) + nz * (ex * wy - ey * wx)
 
 
+@nb.njit(cache=True, _nrt=False, inline="always")
+def _far(px, py, pz, qx, qy, qz, ax, ay, az, bx, by, bz, cx, cy, cz, reach):
+    """Whether the triangle's ball about its centroid (radius: the farthest vertex) lies
+    farther than ``reach`` from segment p-q (the triangle then does too), with 1e-7 mm spare."""
+    mx, my, mz = (ax + bx + cx) / 3.0, (ay + by + cy) / 3.0, (az + bz + cz) / 3.0
+    rad2 = max((ax - mx) ** 2 + (ay - my) ** 2 + (az - mz) ** 2,
+               (bx - mx) ** 2 + (by - my) ** 2 + (bz - mz) ** 2,
+               (cx - mx) ** 2 + (cy - my) ** 2 + (cz - mz) ** 2)
+    lim = reach + math.sqrt(rad2) + 1e-7
+    return _seg_seg_d2(mx, my, mz, mx, my, mz, px, py, pz, qx, qy, qz) > lim * lim
+
+
 @nb.njit(cache=True, _nrt=False)
 def _pair_d2(px, py, pz, qx, qy, qz, reach, stop, V, F, start, tris, lox, loy, loz, c,
              nx, ny, nz, base, seen, tick):
@@ -123,6 +135,9 @@ def _pair_d2(px, py, pz, qx, qy, qz, reach, stop, V, F, start, tris, lox, loy, l
                             or max(V[a, 2], V[b, 2], V[cc, 2]) < zlo
                             or min(V[a, 2], V[b, 2], V[cc, 2]) > zhi):
                         continue
+                    if _far(px, py, pz, qx, qy, qz, V[a, 0], V[a, 1], V[a, 2], V[b, 0], V[b, 1],
+                            V[b, 2], V[cc, 0], V[cc, 1], V[cc, 2], reach):
+                        continue
                     d = seg_tri_d2(px, py, pz, qx, qy, qz, V[a, 0], V[a, 1], V[a, 2],
                                    V[b, 0], V[b, 1], V[b, 2], V[cc, 0], V[cc, 1], V[cc, 2],
                                    min(best, above))
@@ -147,7 +162,8 @@ def _decide(a, b, r, rows, unsure, bits, V, F, start, tris, lo, c, dims, base, t
         for j in range(lo.shape[0]):
             hit = False
             tied = False
-            for k in range(K):
+            for k2 in range(K):
+                k = K - 1 - k2          # tip first, where the walls are met first
                 if unsure[i, k] & bits[j] == 0:
                     continue
                 rk = r[i, k]

@@ -329,9 +329,9 @@ def _walk_axis(ax, ay, az, vx, vy, vz, rk, lb, ub, side, bad_side, origin, h, bo
             if q_slack >= min_step and (bad_side == 0 or q_sd != bad_side):
                 if q_slack < clear:
                     clear = q_slack
-                if pos >= seg:
-                    break
-                pos = min(pos + q_slack, seg)
+                if pos + q_slack >= seg:
+                    break       # the sample's free ball reaches the end of the axis
+                pos += q_slack
                 continue
         lo_b, up_b, sd = _bounds_at(lb, ub, side, origin, h, box_lo, box_hi, px, py, pz)
         d = rk - up_b
@@ -349,6 +349,10 @@ def _walk_axis(ax, ay, az, vx, vy, vz, rk, lb, ub, side, bad_side, origin, h, bo
                 step = delta
             else:
                 step = slack
+                if pos + slack >= seg:
+                    if slack < clear:
+                        clear = slack
+                    break       # the sample's free ball reaches the end of the axis
             if slack < clear:
                 clear = slack
         else:
@@ -397,7 +401,10 @@ def _capsule_bounds(a, b, r, active, lb, ub, side, bad_side, origin, h, box_lo, 
             continue
         clear = clear_out[bi]
         depth = depth_out[bi]
-        for kk in range(K):
+        for k2 in range(K):
+            # verdicts walk tip first: the distal capsules meet the walls first, and a proof
+            # of collision ends the configuration's walk
+            kk = K - 1 - k2 if trace else k2
             ax = a[bi, kk, 0]
             ay = a[bi, kk, 1]
             az = a[bi, kk, 2]
