@@ -138,20 +138,36 @@ def _oracle_distance(a, b, mesh):
     return d.reshape(n, t).min(axis=1)
 
 
-def test_stage_verdicts_against_brute_force_over_all_triangles():
-    """400 random capsules (some of zero length) near two meshes: the stage's verdict is the
-    brute-force one (the first mesh in order whose distance is below the radius) wherever the
-    distance is farther than TIE_MM from the radius, and UNSURE on exact ties."""
+@pytest.fixture(scope="module")
+def capsule_cases():
+    """Two meshes, 400 random capsules (some of zero length), the oracle's distance of each
+    to each mesh (400, 2), radii (15 % exactly at the first mesh's distance: ties)."""
     rng = np.random.default_rng(7)
     meshes = _meshes()
-    stage = ExactStage.from_meshes(meshes)
     n = 400
     a = rng.uniform([-9, -8, -8], [11, 8, 8], (n, 3))
     b = a + rng.normal(0.0, 3.0, (n, 3)) * (rng.random((n, 1)) > 0.15)
-    dist = np.stack([_oracle_distance(a, b, m) for m in meshes], axis=1)       # (n, 2)
+    dist = np.stack([_oracle_distance(a, b, m) for m in meshes], axis=1)
     r = rng.uniform(0.1, 2.0, n)
-    tie = rng.random(n) < 0.15                 # radius exactly at the first mesh's distance
+    tie = rng.random(n) < 0.15
     r[tie] = np.maximum(dist[tie, 0], 1e-3)
+    return meshes, a, b, dist, r, tie
+
+
+@pytest.mark.parametrize("balls", [True, False])
+def test_stage_verdicts_against_brute_force_over_all_triangles(balls, capsule_cases,
+                                                                 monkeypatch):
+    """400 random capsules (some of zero length) near two meshes: the stage's verdict is the
+    brute-force one (the first mesh in order whose distance is below the radius) wherever the
+    distance is farther than TIE_MM from the radius, and UNSURE on exact ties; with the
+    triangles' balls kept and computed on the way (the large meshes' path)."""
+    import ctrplan.collision._exact as exact
+
+    monkeypatch.setattr(exact, "BALLS_UP_TO", 10**9 if balls else 0)
+    meshes, a, b, dist, r, tie = capsule_cases
+    n = len(a)
+    stage = ExactStage.from_meshes(meshes)
+    assert (stage.meshes[0].S.shape[0] > 0) == balls
     got = stage.decide(a[:, None], b[:, None], r[:, None], np.arange(n),
                        np.full((n, 1), 3, dtype=np.uint64))
     hit = dist < r[:, None]

@@ -33,15 +33,16 @@ from ctrplan.collision._grid import _point_tri_d2, _seg_seg_d2
 #: largest disagreement of FCL with the exact distance measured on random near-contact
 #: capsules (1e-6 mm), and far above the rounding of the closed form (~1e-12 mm).
 TIE_MM = 1e-4
-#: verdicts of :meth:`ExactStage.decide`
-FREE, UNSURE = -1, -2
+#: verdicts of :meth:`ExactStage.decide` (HIT: of one mesh, in the kernels)
+FREE, UNSURE, HIT = -1, -2, 0
 
 
 @nb.njit(cache=True, _nrt=False)
 def seg_tri_d2(px, py, pz, qx, qy, qz, ax, ay, az, bx, by, bz, cx, cy, cz, above):
     """Squared distance between segment p-q and triangle abc (scalars, mm) where it is at
-    most ``above``; where it is larger, some value larger than ``above`` (the squared
-    distance to the triangle's plane when that already is: a lower bound)."""
+    most ``above``; where it is larger, some value larger than ``above`` (a lower bound when
+    one is found first: the squared distance to the triangle's plane, or to the half-space
+    beyond one of its edges, when that already is farther)."""
     e1x, e1y, e1z = bx - ax, by - ay, bz - az
     e2x, e2y, e2z = cx - ax, cy - ay, cz - az
     nx = e1y * e2z - e1z * e2y
@@ -49,16 +50,16 @@ def seg_tri_d2(px, py, pz, qx, qy, qz, ax, ay, az, bx, by, bz, cx, cy, cz, above
     nz = e1x * e2y - e1y * e2x
     sp = nx * (px - ax) + ny * (py - ay) + nz * (pz - az)
     sq = nx * (qx - ax) + ny * (qy - ay) + nz * (qz - az)
+    # separations by more than ``above`` count only in a triangle whose angles are not within
+    # 1e-6 of flat, with 1e-7 mm spare (the normal's rounding cannot move them that much)
+    n2 = nx * nx + ny * ny + nz * nz
+    e12 = (e1x * e1x + e1y * e1y + e1z * e1z) * (e2x * e2x + e2y * e2y + e2z * e2z)
+    sharp = n2 > 1e-12 * e12 and above < np.inf
+    lim = math.sqrt(above) + 1e-7 if sharp else 0.0
     if (sp > 0.0 and sq > 0.0) or (sp < 0.0 and sq < 0.0):
-        # the plane is farther than ``above`` (by more than the normal's rounding can move
-        # it, in a triangle whose angles are not within 1e-6 of flat)
-        n2 = nx * nx + ny * ny + nz * nz
-        e12 = (e1x * e1x + e1y * e1y + e1z * e1z) * (e2x * e2x + e2y * e2y + e2z * e2z)
-        if n2 > 1e-12 * e12:
-            s2 = min(sp * sp, sq * sq) / n2
-            lim = math.sqrt(above) + 1e-7
-            if s2 > lim * lim:
-                return s2
+        s2 = min(sp * sp, sq * sq)
+        if sharp and s2 > lim * lim * n2:
+            return s2 / n2                  # the plane is farther
     elif sp != sq:
         t = sp / (sp - sq)
         xx, xy, xz = px + t * (qx - px), py + t * (qy - py), pz + t * (qz - pz)
@@ -66,11 +67,30 @@ def seg_tri_d2(px, py, pz, qx, qy, qz, ax, ay, az, bx, by, bz, cx, cy, cz, above
                 and _side(bx, by, bz, cx, cy, cz, xx, xy, xz, nx, ny, nz) >= 0.0
                 and _side(cx, cy, cz, ax, ay, az, xx, xy, xz, nx, ny, nz) >= 0.0):
             return 0.0
+    if sharp:
+        # the segment beyond an edge's outer half-space boundary (in-plane normal n x edge)
+        lb = max(_beyond(ax, ay, az, bx, by, bz, px, py, pz, qx, qy, qz, nx, ny, nz, n2, lim),
+                 _beyond(bx, by, bz, cx, cy, cz, px, py, pz, qx, qy, qz, nx, ny, nz, n2, lim),
+                 _beyond(cx, cy, cz, ax, ay, az, px, py, pz, qx, qy, qz, nx, ny, nz, n2, lim))
+        if lb > 0.0:
+            return lb
     d = _point_tri_d2(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
     d = min(d, _point_tri_d2(qx, qy, qz, ax, ay, az, bx, by, bz, cx, cy, cz))
     d = min(d, _seg_seg_d2(px, py, pz, qx, qy, qz, ax, ay, az, bx, by, bz))
     d = min(d, _seg_seg_d2(px, py, pz, qx, qy, qz, bx, by, bz, cx, cy, cz))
     return min(d, _seg_seg_d2(px, py, pz, qx, qy, qz, cx, cy, cz, ax, ay, az))
+
+
+@nb.njit(cache=True, _nrt=False, inline="always")
+def _beyond(ux, uy, uz, vx, vy, vz, px, py, pz, qx, qy, qz, nx, ny, nz, n2, lim):
+    """Squared distance from segment p-q to the half-space on the triangle's side of edge
+    u -> v (normal n, |n|^2 = n2) when it is farther than ``lim``, else 0."""
+    w = max(_side(ux, uy, uz, vx, vy, vz, px, py, pz, nx, ny, nz),
+            _side(ux, uy, uz, vx, vy, vz, qx, qy, qz, nx, ny, nz))
+    if w >= 0.0:
+        return 0.0
+    scale = n2 * ((vx - ux) ** 2 + (vy - uy) ** 2 + (vz - uz) ** 2)
+    return w * w / scale if w * w > lim * lim * scale else 0.0
 
 
 @nb.njit(cache=True, _nrt=False, inline="always")
@@ -94,14 +114,14 @@ def _far(px, py, pz, qx, qy, qz, ax, ay, az, bx, by, bz, cx, cy, cz, reach):
 
 
 @nb.njit(cache=True, _nrt=False)
-def _pair_d2(px, py, pz, qx, qy, qz, reach, stop, V, F, start, tris, lox, loy, loz, c,
-             nx, ny, nz, base, seen, tick):
+def _pair_d2(px, py, pz, qx, qy, qz, reach, stop, V, F, S, start, tris, lox, loy, loz, c,
+             nx, ny, nz, seen, tick):
     """Least squared distance from segment p-q to the triangles of one mesh where it is at
     most ``reach`` squared (else a value above that: inf if no triangle can lie within
     ``reach``); returns early once below ``stop``. The mesh's grid: origin (lox, loy, loz),
-    cell c, (nx, ny, nz) cells from ``base`` in ``start``. ``seen`` (triangles) holds the
-    ``tick`` of the last call that measured each triangle (a triangle listed in several
-    cells is measured once)."""
+    cell c, (nx, ny, nz) cells in ``start``. S (T, 4): each triangle's ball (centre, radius)
+    or (0, 4) (then the balls are computed here). ``seen`` (T,) holds the ``tick`` of the
+    last call that measured each triangle (one listed in several cells is measured once)."""
     xlo, xhi = min(px, qx) - reach, max(px, qx) + reach
     ylo, yhi = min(py, qy) - reach, max(py, qy) + reach
     zlo, zhi = min(pz, qz) - reach, max(pz, qz) + reach
@@ -112,12 +132,13 @@ def _pair_d2(px, py, pz, qx, qy, qz, reach, stop, V, F, start, tris, lox, loy, l
     lim = (reach + half) * (reach + half)
     best = np.inf
     above = reach * reach
+    balls = S.shape[0] > 0
     for i in range(i0, i1 + 1):
         ccx = lox + (i + 0.5) * c
         for j in range(j0, j1 + 1):
             ccy = loy + (j + 0.5) * c
             for k in range(k0, k1 + 1):
-                cell = base + (i * ny + j) * nz + k
+                cell = (i * ny + j) * nz + k
                 if start[cell] == start[cell + 1]:
                     continue
                 ccz = loz + (k + 0.5) * c
@@ -128,15 +149,15 @@ def _pair_d2(px, py, pz, qx, qy, qz, reach, stop, V, F, start, tris, lox, loy, l
                     if seen[t] == tick:
                         continue
                     seen[t] = tick
+                    if balls:
+                        e = reach + S[t, 3]
+                        if _seg_seg_d2(S[t, 0], S[t, 1], S[t, 2], S[t, 0], S[t, 1], S[t, 2],
+                                       px, py, pz, qx, qy, qz) > e * e:
+                            continue
                     a, b, cc = F[t, 0], F[t, 1], F[t, 2]
-                    if (max(V[a, 0], V[b, 0], V[cc, 0]) < xlo or min(V[a, 0], V[b, 0], V[cc, 0]) > xhi
-                            or max(V[a, 1], V[b, 1], V[cc, 1]) < ylo
-                            or min(V[a, 1], V[b, 1], V[cc, 1]) > yhi
-                            or max(V[a, 2], V[b, 2], V[cc, 2]) < zlo
-                            or min(V[a, 2], V[b, 2], V[cc, 2]) > zhi):
-                        continue
-                    if _far(px, py, pz, qx, qy, qz, V[a, 0], V[a, 1], V[a, 2], V[b, 0], V[b, 1],
-                            V[b, 2], V[cc, 0], V[cc, 1], V[cc, 2], reach):
+                    if not balls and _far(px, py, pz, qx, qy, qz, V[a, 0], V[a, 1], V[a, 2],
+                                          V[b, 0], V[b, 1], V[b, 2], V[cc, 0], V[cc, 1],
+                                          V[cc, 2], reach):
                         continue
                     d = seg_tri_d2(px, py, pz, qx, qy, qz, V[a, 0], V[a, 1], V[a, 2],
                                    V[b, 0], V[b, 1], V[b, 2], V[cc, 0], V[cc, 1], V[cc, 2],
@@ -149,81 +170,74 @@ def _pair_d2(px, py, pz, qx, qy, qz, reach, stop, V, F, start, tris, lox, loy, l
 
 
 @nb.njit(cache=True, _nrt=False)
-def _decide(a, b, r, rows, unsure, bits, V, F, start, tris, lo, c, dims, base, tie, seen,
-            ticks, out):
-    """out[n] for configuration rows[n]: the first mesh j (in mesh order, as FCL's first hit)
-    one of whose unsure pairs (bit j of unsure[i, k]) touches, FREE if every unsure pair is
-    free, UNSURE where a pair of the first undecided mesh is a tie or not finite. ``seen``
-    and ``ticks[0]`` (the last tick used): see :func:`_pair_d2`."""
+def _decide_mesh(a, b, r, rows, unsure, bit, V, F, S, start, tris, lo, c, dims, tie, seen,
+                 ticks, out):
+    """out[n] for configuration rows[n] against one mesh: HIT if one of its pairs marked by
+    ``bit`` in unsure[i, k] touches the mesh, FREE if every such pair is free, UNSURE if
+    none touches and one is a tie or not finite. ``seen`` and ``ticks[0]`` (the last tick
+    used): see :func:`_pair_d2`."""
     K = r.shape[1]
     for n in range(rows.shape[0]):
         i = rows[n]
-        res = -1
-        for j in range(lo.shape[0]):
-            hit = False
-            tied = False
-            for k2 in range(K):
-                k = K - 1 - k2          # tip first, where the walls are met first
-                if unsure[i, k] & bits[j] == 0:
-                    continue
-                rk = r[i, k]
-                px, py, pz = a[i, k, 0], a[i, k, 1], a[i, k, 2]
-                qx, qy, qz = b[i, k, 0], b[i, k, 1], b[i, k, 2]
-                if not (math.isfinite(px + py + pz + qx + qy + qz) and math.isfinite(rk)):
-                    tied = True
-                    continue
-                reach = rk + tie
-                stop = (rk - tie) * (rk - tie) if rk > tie else -1.0
-                ticks[0] += 1
-                d2 = _pair_d2(px, py, pz, qx, qy, qz, reach, stop, V, F, start, tris,
-                              lo[j, 0], lo[j, 1], lo[j, 2], c[j], dims[j, 0], dims[j, 1],
-                              dims[j, 2], base[j], seen, ticks[0])
-                if d2 < stop:
-                    hit = True
-                    break
-                if d2 <= reach * reach:
-                    tied = True
-            if hit:
-                res = j
+        res = FREE
+        for k2 in range(K):
+            k = K - 1 - k2          # tip first, where the walls are met first
+            if unsure[i, k] & bit == 0:
+                continue
+            rk = r[i, k]
+            px, py, pz = a[i, k, 0], a[i, k, 1], a[i, k, 2]
+            qx, qy, qz = b[i, k, 0], b[i, k, 1], b[i, k, 2]
+            if not (math.isfinite(px + py + pz + qx + qy + qz) and math.isfinite(rk)):
+                res = UNSURE
+                continue
+            reach = rk + tie
+            stop = (rk - tie) * (rk - tie) if rk > tie else -1.0
+            ticks[0] += 1
+            d2 = _pair_d2(px, py, pz, qx, qy, qz, reach, stop, V, F, S, start, tris, lo[0],
+                          lo[1], lo[2], c, dims[0], dims[1], dims[2], seen, ticks[0])
+            if d2 < stop:
+                res = HIT
                 break
-            if tied:
-                res = -2
-                break
+            if d2 <= reach * reach:
+                res = UNSURE
         out[n] = res
 
 
+#: Meshes up to this many triangles keep each triangle's ball (32 bytes a triangle); larger
+#: ones (the grid backend's) compute them as they go.
+BALLS_UP_TO = 1_000_000
+
+
+class _Mesh:
+    """One mesh's arrays for the stage: its grid of triangle lists (shared, not copied), the
+    triangles' balls and the measured-triangle stamps."""
+
+    def __init__(self, grid):
+        self.g = grid
+        v, f = grid.v, grid.f
+        if len(f) <= BALLS_UP_TO:
+            tri = v[f]                                              # (T, 3, 3)
+            centre = tri.mean(axis=1)
+            rad = np.sqrt(((tri - centre[:, None]) ** 2).sum(axis=2).max(axis=1))
+            # rounding of the centre and radius: a micrometre's spare (the ball only skips)
+            self.S = np.ascontiguousarray(np.column_stack([centre, rad * (1 + 1e-9) + 1e-6]))
+        else:
+            self.S = np.zeros((0, 4))
+        self.seen = np.zeros(len(f), dtype=np.int64)
+        self.lo = np.asarray(grid.lo, dtype=np.float64)
+        self.dims = np.asarray(grid.dims, dtype=np.int64)
+
+
 class ExactStage:
-    """The second stage over a list of meshes (mm, scene frame): per-mesh grids of triangle
-    lists, concatenated (a single mesh's arrays are used as they are, no copy).
+    """The second stage over a list of meshes (mm, scene frame).
 
     grids : the meshes' :class:`ctrplan.collision._grid._MeshGrid` objects (reused from the
     grid backend where the world has one)."""
 
     def __init__(self, grids):
-        grids = list(grids)
-        if len(grids) > 64:
+        self.meshes = [_Mesh(g) for g in grids]
+        if len(self.meshes) > 64:
             raise ValueError("at most 64 meshes (one bit each in the prefilter's masks)")
-        self.M = len(grids)
-        if self.M == 1:
-            g = grids[0]
-            self.V, self.F, self.start, self.tris = g.v, g.f, g.start, g.tris
-            base = [0]
-        else:
-            nv = np.cumsum([0] + [len(g.v) for g in grids])
-            nf = np.cumsum([0] + [len(g.f) for g in grids])
-            nt = np.cumsum([0] + [len(g.tris) for g in grids])
-            base = np.cumsum([0] + [len(g.start) for g in grids])[:-1]
-            self.V = np.ascontiguousarray(np.concatenate([g.v for g in grids]))
-            self.F = np.ascontiguousarray(np.concatenate([g.f + nv[j] for j, g in enumerate(grids)]))
-            self.start = np.concatenate([g.start + nt[j] for j, g in enumerate(grids)])
-            self.tris = np.concatenate([(g.tris.astype(np.int64) + nf[j]).astype(g.tris.dtype)
-                                        for j, g in enumerate(grids)])
-        self.lo = np.ascontiguousarray(np.array([g.lo for g in grids], dtype=np.float64))
-        self.c = np.array([g.c for g in grids], dtype=np.float64)
-        self.dims = np.ascontiguousarray(np.array([g.dims for g in grids], dtype=np.int64))
-        self.base = np.asarray(base, dtype=np.int64)
-        self.bits = np.array([1 << j for j in range(self.M)], dtype=np.uint64)
-        self._seen = np.zeros(len(self.F), dtype=np.int64)
         self._ticks = np.zeros(1, dtype=np.int64)
 
     @classmethod
@@ -235,15 +249,22 @@ class ExactStage:
     def decide(self, a: np.ndarray, b: np.ndarray, r: np.ndarray, rows: np.ndarray,
                unsure: np.ndarray) -> np.ndarray:
         """(len(rows),) int: per configuration ``rows`` of the batch (a, b (B, K, 3) mm,
-        r (B, K) mm), the first mesh touched by a pair marked in ``unsure`` (B, K) uint64
-        (bit j: mesh j), FREE (-1) or UNSURE (-2, for FCL)."""
-        out = np.empty(len(rows), dtype=np.int64)
-        if len(rows):
-            _decide(np.ascontiguousarray(a, dtype=np.float64),
-                    np.ascontiguousarray(b, dtype=np.float64),
-                    np.ascontiguousarray(r, dtype=np.float64),
-                    np.ascontiguousarray(rows, dtype=np.int64),
-                    np.ascontiguousarray(unsure, dtype=np.uint64), self.bits, self.V, self.F,
-                    self.start, self.tris, self.lo, self.c, self.dims, self.base, TIE_MM,
-                    self._seen, self._ticks, out)
-        return out
+        r (B, K) mm), the first mesh (in mesh order, as FCL's first hit) touched by a pair
+        marked in ``unsure`` (B, K) uint64 (bit j: mesh j), FREE (-1) if none is, or UNSURE
+        (-2, for FCL) where a pair of the first mesh not proven free is a tie."""
+        a = np.ascontiguousarray(a, dtype=np.float64)
+        b = np.ascontiguousarray(b, dtype=np.float64)
+        r = np.ascontiguousarray(r, dtype=np.float64)
+        unsure = np.ascontiguousarray(unsure, dtype=np.uint64)
+        res = np.full(len(rows), FREE, dtype=np.int64)
+        for j, m in enumerate(self.meshes):
+            pending = np.flatnonzero(res == FREE)
+            if len(pending) == 0:
+                break
+            out = np.empty(len(pending), dtype=np.int64)
+            _decide_mesh(a, b, r, np.ascontiguousarray(rows[pending], dtype=np.int64), unsure,
+                         np.uint64(1 << j), m.g.v, m.g.f, m.S, m.g.start, m.g.tris, m.lo,
+                         float(m.g.c), m.dims, TIE_MM, m.seen, self._ticks, out)
+            res[pending[out == HIT]] = j
+            res[pending[out == UNSURE]] = UNSURE
+        return res
