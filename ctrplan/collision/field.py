@@ -26,7 +26,8 @@ sample); it provably touches it when ``ub(p) < r`` at some axis point. For a clo
 grid also stores which side (inside/outside) nodes far from the surface lie on; a capsule chain
 that starts inside a closed wall (or outside a closed obstacle) and has an axis point proven to
 lie outside it (inside the obstacle) must cross the surface, so it provably collides.
-Anything else goes to FCL.
+Anything else goes to the exact second stage (:mod:`ctrplan.collision._exact`) and, for its
+ties, to FCL.
 
 Fields are cached on disk, verified on load (:mod:`ctrplan.collision.field_cache`).
 """

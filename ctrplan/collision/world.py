@@ -3,7 +3,10 @@
 Verdicts are exact (capsule chains vs the wall and obstacle meshes): FCL's, or for meshes of
 millions of triangles those of a lean grid of triangle lists (:mod:`ctrplan.collision._grid`,
 ``exact=``). The prefilter (:mod:`ctrplan.collision.field`) only skips FCL where a distance bound proves the
-answer; everything it cannot prove goes to FCL, so the verdicts with and without it are equal.
+answer; the capsule-mesh pairs it cannot prove go to the exact second stage
+(:mod:`ctrplan.collision._exact`: segment-triangle distances to the triangles near each
+capsule), and only the ties that stage leaves (within ``TIE_MM`` of contact) go to FCL, so the
+verdicts with and without them are equal.
 
 Clearances (``clearance_mm``) are conservative: for a free configuration a lower bound of the
 distance from the capsule surfaces to the nearest mesh (within about ``h`` + ``sample_mm`` of
