@@ -15,6 +15,7 @@ import trimesh
 
 from ctrplan.collision._exact import FREE, TIE_MM, UNSURE, ExactStage, seg_tri_d2
 from ctrplan.collision._fcl import FclMeshes
+from ctrplan.collision.field import EPS_MM
 from ctrplan.collision.scene import load_scene
 from ctrplan.collision.world import CollisionWorld
 from ctrplan.shape.physics import PhysicsModel
@@ -246,5 +247,14 @@ def test_world_with_second_stage_equals_fcl_alone(name, seed1):
         assert world.last_fcl_calls <= 0.01 * len(shape)
         first = np.flatnonzero(exact.collides)
         assert world.first_collision(shape) == (int(first[0]) if len(first) else -1)
-        free = np.flatnonzero(~exact.collides)[:50]
-        assert world.first_collision(shape[free]) == -1
+        free = np.flatnonzero(~exact.collides)
+        assert world.first_collision(shape[free[:50]]) == -1
+        # a collision the field's bounds do not prove (clearance not below -EPS_MM), after
+        # 20 free states, before or after one they prove: FCL alone's first is index 20
+        soft = np.flatnonzero(exact.collides & (fast.clearance_mm >= -EPS_MM))
+        hard = np.flatnonzero(exact.collides & (fast.clearance_mm < -EPS_MM))
+        assert len(soft) > 0 and len(hard) > 0 and len(free) >= 20
+        for tail in ([soft[0], hard[0]], [hard[0], soft[0]]):
+            batch = shape[np.concatenate([free[:20], tail, free[20:40]])]
+            assert world.first_collision(batch) == 20
+            assert alone.first_collision(batch) == 20

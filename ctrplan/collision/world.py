@@ -287,7 +287,10 @@ class CollisionWorld:
         staged = np.full(B, UNSURE)
         if self.prefilter:
             _, depth, unsure = self._bounds(caps, ok, trace=True)
+            proven = np.flatnonzero(~ok | (depth > EPS_MM))
             rows = np.flatnonzero(ok & ~(depth > EPS_MM) & unsure.any(axis=1))
+            if len(proven):     # nothing after the first proven collision is needed
+                rows = rows[rows < proven[0]]
             if self.second_stage and len(rows):
                 staged[rows] = self.geometry.second_stage.decide(caps.a, caps.b, caps.radius,
                                                                  rows, unsure)
