@@ -186,6 +186,22 @@ def test_stage_verdicts_against_brute_force_over_all_triangles(balls, capsule_ca
     np.testing.assert_array_equal(only1[sure], np.where(hit[sure, 1], 1, FREE))
 
 
+def test_stage_far_and_non_finite_capsules():
+    """Capsules far outside the grids are free (no triangle is near), a long one through the
+    ball hits it, and non-finite ones or ones beyond FAR_MM are left to FCL (UNSURE)."""
+    from ctrplan.collision._exact import FAR_MM
+
+    stage = ExactStage.from_meshes(_meshes())
+    a = np.array([[500.0, 500.0, 500.0], [-1e5, 0.1, 0.2], [np.nan, 0, 0], [2 * FAR_MM, 0, 0],
+                  [0.0, 0.0, 0.0], [-3e5, -3e5, 9e5]])
+    b = np.array([[501.0, 500.0, 500.0], [1e5, 0.1, 0.2], [1.0, 0, 0], [2 * FAR_MM + 1, 0, 0],
+                  [0.0, 0.0, 3.0], [-3e5, -3e5, 9e5 + 2.0]])
+    r = np.array([1.0, 0.5, 1.0, 1.0, np.inf, 1.0])
+    got = stage.decide(a[:, None], b[:, None], r[:, None], np.arange(len(a)),
+                       np.full((len(a), 1), 3, dtype=np.uint64))
+    np.testing.assert_array_equal(got, [FREE, 0, UNSURE, UNSURE, UNSURE, FREE])
+
+
 def test_fcl_contact_band_is_inside_the_tie_band():
     """FCL's verdict equals the exact one (distance < radius) for capsules 0.1 TIE_MM from
     contact, at vertices, edges and faces of a triangle far from the origin: the band left to

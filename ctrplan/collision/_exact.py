@@ -16,8 +16,10 @@ Ericson, Real-Time Collision Detection, 5.1.5 and 5.1.9).
 Verdict of a pair: ``d < r - TIE_MM`` touches, ``d > r + TIE_MM`` is free, anything between
 is a tie that FCL decides (FCL's own convention at contact: it reports a collision up to a
 tolerance measured below 1e-6 mm, see tests/test_exact_stage.py). A capsule with a
-non-finite end or radius is never decided here. Collision checking never reports free when
-unsure: the stage only removes work from FCL, never a verdict from it.
+non-finite end or radius, or one beyond ``FAR_MM``, is never decided here. Collision
+checking never reports free when unsure: the stage only removes work from FCL, never a
+verdict from it. Not thread-safe (per-mesh stamps of the triangles measured), as the FCL
+models beside it.
 """
 
 from __future__ import annotations
@@ -33,6 +35,9 @@ from ctrplan.collision._grid import _point_tri_d2, _seg_seg_d2
 #: largest disagreement of FCL with the exact distance measured on random near-contact
 #: capsules (1e-6 mm), and far above the rounding of the closed form (~1e-12 mm).
 TIE_MM = 1e-4
+#: Capsules with a coordinate or radius this large (mm) or not finite are left to FCL (their
+#: products would lose the precision TIE_MM needs, or overflow).
+FAR_MM = 1e6
 #: verdicts of :meth:`ExactStage.decide` (HIT: of one mesh, in the kernels)
 FREE, UNSURE, HIT = -1, -2, 0
 
@@ -113,6 +118,13 @@ def _far(px, py, pz, qx, qy, qz, ax, ay, az, bx, by, bz, cx, cy, cz, reach):
     return _seg_seg_d2(mx, my, mz, mx, my, mz, px, py, pz, qx, qy, qz) > lim * lim
 
 
+@nb.njit(cache=True, _nrt=False, inline="always")
+def _cell(x, lo, c, n):
+    """floor((x - lo) / c), the cell of coordinate x on a grid of n cells from lo, clamped
+    into [-1, n] in floating point first (a far coordinate never overflows the integer)."""
+    return int(math.floor(min(max((x - lo) / c, -1.0), float(n))))
+
+
 @nb.njit(cache=True, _nrt=False)
 def _pair_d2(px, py, pz, qx, qy, qz, reach, stop, V, F, S, start, tris, lox, loy, loz, c,
              nx, ny, nz, seen, tick):
@@ -125,9 +137,9 @@ def _pair_d2(px, py, pz, qx, qy, qz, reach, stop, V, F, S, start, tris, lox, loy
     xlo, xhi = min(px, qx) - reach, max(px, qx) + reach
     ylo, yhi = min(py, qy) - reach, max(py, qy) + reach
     zlo, zhi = min(pz, qz) - reach, max(pz, qz) + reach
-    i0, i1 = max(int(math.floor((xlo - lox) / c)), 0), min(int(math.floor((xhi - lox) / c)), nx - 1)
-    j0, j1 = max(int(math.floor((ylo - loy) / c)), 0), min(int(math.floor((yhi - loy) / c)), ny - 1)
-    k0, k1 = max(int(math.floor((zlo - loz) / c)), 0), min(int(math.floor((zhi - loz) / c)), nz - 1)
+    i0, i1 = max(_cell(xlo, lox, c, nx), 0), min(_cell(xhi, lox, c, nx), nx - 1)
+    j0, j1 = max(_cell(ylo, loy, c, ny), 0), min(_cell(yhi, loy, c, ny), ny - 1)
+    k0, k1 = max(_cell(zlo, loz, c, nz), 0), min(_cell(zhi, loz, c, nz), nz - 1)
     half = 0.5 * c * math.sqrt(3.0)
     lim = (reach + half) * (reach + half)
     best = np.inf
@@ -174,8 +186,8 @@ def _decide_mesh(a, b, r, rows, unsure, bit, V, F, S, start, tris, lo, c, dims, 
                  ticks, out):
     """out[n] for configuration rows[n] against one mesh: HIT if one of its pairs marked by
     ``bit`` in unsure[i, k] touches the mesh, FREE if every such pair is free, UNSURE if
-    none touches and one is a tie or not finite. ``seen`` and ``ticks[0]`` (the last tick
-    used): see :func:`_pair_d2`."""
+    none touches and one is a tie, not finite or beyond FAR_MM. ``seen`` and ``ticks[0]``
+    (the last tick used): see :func:`_pair_d2`."""
     K = r.shape[1]
     for n in range(rows.shape[0]):
         i = rows[n]
@@ -187,8 +199,8 @@ def _decide_mesh(a, b, r, rows, unsure, bit, V, F, S, start, tris, lo, c, dims, 
             rk = r[i, k]
             px, py, pz = a[i, k, 0], a[i, k, 1], a[i, k, 2]
             qx, qy, qz = b[i, k, 0], b[i, k, 1], b[i, k, 2]
-            if not (math.isfinite(px + py + pz + qx + qy + qz) and math.isfinite(rk)):
-                res = UNSURE
+            if not (max(abs(px), abs(py), abs(pz), abs(qx), abs(qy), abs(qz), rk) < FAR_MM):
+                res = UNSURE        # not finite, or beyond what the closed form resolves
                 continue
             reach = rk + tie
             stop = (rk - tie) * (rk - tie) if rk > tie else -1.0
