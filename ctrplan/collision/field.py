@@ -430,23 +430,30 @@ def _capsule_bounds(a, b, r, active, lb, ub, side, bad_side, origin, h, box_lo, 
         depth_out[bi] = depth
 
 
+def rows_finite(a: np.ndarray, b: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(B,) bool: whether every end (a, b (B, K, 3)) and radius (r (B, K)) of a row is finite."""
+    return (np.isfinite(a).all(axis=(1, 2)) & np.isfinite(b).all(axis=(1, 2))
+            & np.isfinite(r).all(axis=1))
+
+
 def capsule_bounds(field: DistanceField, a: np.ndarray, b: np.ndarray, r: np.ndarray,
                    active: np.ndarray, clear: np.ndarray, depth: np.ndarray, sample_mm: float,
                    bad_side: int = 0, trace: bool = False, unsure: np.ndarray | None = None,
-                   bit: int = 1) -> None:
+                   bit: int = 1, finite: np.ndarray | None = None) -> None:
     """Update ``clear`` (B,), ``depth`` (B,) and ``unsure`` (B, K) uint64 bit masks in place
     for the ``active`` configurations (see :func:`_capsule_bounds`).
 
     a, b : (B, K, 3) capsule axis ends, mm, scene frame; r : (B, K) radii, mm. bad_side : the
-    side of a closed mesh whose points prove a collision.
+    side of a closed mesh whose points prove a collision. finite : (B,) bool, whether each
+    row's ends and radii are all finite, when the caller knows it (one check for many meshes).
     """
     if unsure is None:
         unsure = np.zeros(r.shape, dtype=np.uint64)
     # A capsule with a non-finite end or radius (a model that produced NaN) would walk its
     # segment for ever (no step reaches a NaN length): such a row is a proven collision
     # (depth +inf, clearance -inf), never free, and the walk skips it.
-    finite = (np.isfinite(a).all(axis=(1, 2)) & np.isfinite(b).all(axis=(1, 2))
-              & np.isfinite(r).all(axis=1))
+    if finite is None:
+        finite = rows_finite(a, b, r)
     if not finite.all():
         bad = np.asarray(active, dtype=bool) & ~finite
         clear[bad] = -np.inf

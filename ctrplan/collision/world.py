@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ctrplan.collision.capsules import Capsules, capsules_from_shape
-from ctrplan.collision.field import EPS_MM, FieldConfig, capsule_bounds
+from ctrplan.collision.field import EPS_MM, FieldConfig, capsule_bounds, rows_finite
 from ctrplan.collision.field_cache import field_for
 from ctrplan.collision.scene import Scene, load_scene
 from ctrplan.errors import InputError
@@ -388,10 +388,12 @@ class CollisionWorld:
         unsure = np.zeros(r.shape, dtype=np.uint64)
         self._contact_idx = np.full(B, -1)
         act = np.array(active, dtype=bool)
+        finite = rows_finite(a, b, r)       # once for every mesh
         for j, field in enumerate(self.fields):
             before = depth.copy()
             capsule_bounds(field, a, b, r, act, clear, depth, self.field_config.sample_mm,
-                           self._bad_side[j], trace=trace, unsure=unsure, bit=1 << j)
+                           self._bad_side[j], trace=trace, unsure=unsure, bit=1 << j,
+                           finite=finite)
             hit = (depth > EPS_MM) & (before <= EPS_MM)
             self._contact_idx[hit] = j
             act &= ~hit
