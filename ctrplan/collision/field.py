@@ -26,7 +26,8 @@ sample); it provably touches it when ``ub(p) < r`` at some axis point. For a clo
 grid also stores which side (inside/outside) nodes far from the surface lie on; a capsule chain
 that starts inside a closed wall (or outside a closed obstacle) and has an axis point proven to
 lie outside it (inside the obstacle) must cross the surface, so it provably collides.
-Anything else goes to FCL.
+Anything else goes to the exact second stage (:mod:`ctrplan.collision._exact`) and, for its
+ties, to FCL.
 
 Fields are cached on disk, verified on load (:mod:`ctrplan.collision.field_cache`).
 """
@@ -329,9 +330,9 @@ def _walk_axis(ax, ay, az, vx, vy, vz, rk, lb, ub, side, bad_side, origin, h, bo
             if q_slack >= min_step and (bad_side == 0 or q_sd != bad_side):
                 if q_slack < clear:
                     clear = q_slack
-                if pos >= seg:
-                    break
-                pos = min(pos + q_slack, seg)
+                if pos + q_slack >= seg:
+                    break       # the sample's free ball reaches the end of the axis
+                pos += q_slack
                 continue
         lo_b, up_b, sd = _bounds_at(lb, ub, side, origin, h, box_lo, box_hi, px, py, pz)
         d = rk - up_b
@@ -349,6 +350,10 @@ def _walk_axis(ax, ay, az, vx, vy, vz, rk, lb, ub, side, bad_side, origin, h, bo
                 step = delta
             else:
                 step = slack
+                if pos + slack >= seg:
+                    if slack < clear:
+                        clear = slack
+                    break       # the sample's free ball reaches the end of the axis
             if slack < clear:
                 clear = slack
         else:
@@ -362,6 +367,16 @@ def _walk_axis(ax, ay, az, vx, vy, vz, rk, lb, ub, side, bad_side, origin, h, bo
             break
         pos = min(pos + step, seg) if step > 0.0 else seg
     return clear, depth, unsure, done
+
+
+@nb.njit(cache=True, _nrt=False)
+def _box_gap(ax, ay, az, bx, by, bz, box_lo, box_hi):
+    """Distance (mm) between the bounding box of segment a-b and the box box_lo..box_hi: a
+    lower bound of the distance from any point of the segment to anything in the box."""
+    dx = max(box_lo[0] - max(ax, bx), 0.0, min(ax, bx) - box_hi[0])
+    dy = max(box_lo[1] - max(ay, by), 0.0, min(ay, by) - box_hi[1])
+    dz = max(box_lo[2] - max(az, bz), 0.0, min(az, bz) - box_hi[2])
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
 @nb.njit(cache=True)
@@ -387,10 +402,22 @@ def _capsule_bounds(a, b, r, active, lb, ub, side, bad_side, origin, h, box_lo, 
             continue
         clear = clear_out[bi]
         depth = depth_out[bi]
-        for kk in range(K):
+        for k2 in range(K):
+            # verdicts walk tip first: the distal capsules meet the walls first, and a proof
+            # of collision ends the configuration's walk
+            kk = K - 1 - k2 if trace else k2
             ax = a[bi, kk, 0]
             ay = a[bi, kk, 1]
             az = a[bi, kk, 2]
+            if trace:
+                # a capsule whose axis box is farther from the mesh's box than its radius
+                # (with the walk's least step to spare) is free of the mesh: no walk
+                gap = _box_gap(ax, ay, az, b[bi, kk, 0], b[bi, kk, 1], b[bi, kk, 2], box_lo,
+                               box_hi) - r[bi, kk] - eps
+                if gap >= min_step:
+                    if gap < clear:
+                        clear = gap
+                    continue
             clear, depth, unsure, done = _walk_axis(
                 ax, ay, az, b[bi, kk, 0] - ax, b[bi, kk, 1] - ay, b[bi, kk, 2] - az, r[bi, kk],
                 lb, ub, side, bad_side, origin, h, box_lo, box_hi, sample_mm, min_step, eps, trace,
@@ -403,23 +430,30 @@ def _capsule_bounds(a, b, r, active, lb, ub, side, bad_side, origin, h, box_lo, 
         depth_out[bi] = depth
 
 
+def rows_finite(a: np.ndarray, b: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(B,) bool: whether every end (a, b (B, K, 3)) and radius (r (B, K)) of a row is finite."""
+    return (np.isfinite(a).all(axis=(1, 2)) & np.isfinite(b).all(axis=(1, 2))
+            & np.isfinite(r).all(axis=1))
+
+
 def capsule_bounds(field: DistanceField, a: np.ndarray, b: np.ndarray, r: np.ndarray,
                    active: np.ndarray, clear: np.ndarray, depth: np.ndarray, sample_mm: float,
                    bad_side: int = 0, trace: bool = False, unsure: np.ndarray | None = None,
-                   bit: int = 1) -> None:
+                   bit: int = 1, finite: np.ndarray | None = None) -> None:
     """Update ``clear`` (B,), ``depth`` (B,) and ``unsure`` (B, K) uint64 bit masks in place
     for the ``active`` configurations (see :func:`_capsule_bounds`).
 
     a, b : (B, K, 3) capsule axis ends, mm, scene frame; r : (B, K) radii, mm. bad_side : the
-    side of a closed mesh whose points prove a collision.
+    side of a closed mesh whose points prove a collision. finite : (B,) bool, whether each
+    row's ends and radii are all finite, when the caller knows it (one check for many meshes).
     """
     if unsure is None:
         unsure = np.zeros(r.shape, dtype=np.uint64)
     # A capsule with a non-finite end or radius (a model that produced NaN) would walk its
     # segment for ever (no step reaches a NaN length): such a row is a proven collision
     # (depth +inf, clearance -inf), never free, and the walk skips it.
-    finite = (np.isfinite(a).all(axis=(1, 2)) & np.isfinite(b).all(axis=(1, 2))
-              & np.isfinite(r).all(axis=1))
+    if finite is None:
+        finite = rows_finite(a, b, r)
     if not finite.all():
         bad = np.asarray(active, dtype=bool) & ~finite
         clear[bad] = -np.inf

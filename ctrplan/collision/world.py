@@ -3,7 +3,10 @@
 Verdicts are exact (capsule chains vs the wall and obstacle meshes): FCL's, or for meshes of
 millions of triangles those of a lean grid of triangle lists (:mod:`ctrplan.collision._grid`,
 ``exact=``). The prefilter (:mod:`ctrplan.collision.field`) only skips FCL where a distance bound proves the
-answer; everything it cannot prove goes to FCL, so the verdicts with and without it are equal.
+answer; the capsule-mesh pairs it cannot prove go to the exact second stage
+(:mod:`ctrplan.collision._exact`: segment-triangle distances to the triangles near each
+capsule), and only the ties that stage leaves (within ``TIE_MM`` of contact) go to FCL, so the
+verdicts with and without them are equal.
 
 Clearances (``clearance_mm``) are conservative: for a free configuration a lower bound of the
 distance from the capsule surfaces to the nearest mesh (within about ``h`` + ``sample_mm`` of
@@ -19,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ctrplan.collision.capsules import Capsules, capsules_from_shape
-from ctrplan.collision.field import EPS_MM, FieldConfig, capsule_bounds
+from ctrplan.collision.field import EPS_MM, FieldConfig, capsule_bounds, rows_finite
 from ctrplan.collision.field_cache import field_for
 from ctrplan.collision.scene import Scene, load_scene
 from ctrplan.errors import InputError
@@ -39,13 +42,16 @@ class CollisionReport:
 
     collides : (B,) bool. clearance_mm : (B,) float, signed (see module docstring).
     contact : (B,) object array of str — the mesh hit, "model" for a failed shape, "" if free.
-    fcl_calls : configurations that went to exact FCL.
+    fcl_calls : configurations that went to exact FCL. stage_calls : configurations the
+    prefilter's bounds left undecided that went to the exact second stage
+    (:mod:`ctrplan.collision._exact`; only its ties go on to FCL).
     """
 
     collides: np.ndarray
     clearance_mm: np.ndarray
     contact: np.ndarray
     fcl_calls: int = 0
+    stage_calls: int = 0
 
     def __len__(self) -> int:
         return int(self.collides.shape[0])
@@ -88,6 +94,7 @@ class WorldGeometry:
 
             self.exact = GridMeshes([m.mesh for m in self.meshes])
         self._fields = None
+        self._second = None
         self.memo: dict = Bounded(256)
 
     def bad_sides(self, base: np.ndarray) -> list[int]:
@@ -103,6 +110,20 @@ class WorldGeometry:
             self.memo[key] = [(1 if inside_mesh(m, b)[0] else -1) if m.is_closed else 0
                               for m in self.meshes]
         return self.memo[key]
+
+    @property
+    def second_stage(self):
+        """The exact second stage (:class:`ctrplan.collision._exact.ExactStage`) over the
+        meshes: the grid backend's triangle lists where the world has them, else built once
+        (on first use)."""
+        if self._second is None:
+            from ctrplan.collision._exact import ExactStage
+
+            if self.backend == "grid":
+                self._second = ExactStage(self.exact.objects)
+            else:
+                self._second = ExactStage.from_meshes([m.mesh for m in self.meshes])
+        return self._second
 
     @property
     def fields(self):
@@ -139,6 +160,11 @@ class CollisionWorld:
         capsule by its own bound instead: :mod:`ctrplan.planning.motion`). 0 = states only.
     prefilter : bool
         Use the conservative distance-field prefilter (same verdicts, faster).
+    second_stage : bool
+        With the prefilter, measure the capsule-mesh pairs its bounds cannot decide against
+        the triangles near them (:mod:`ctrplan.collision._exact`: exact segment-triangle
+        distances) and send only the ties within ``TIE_MM`` of contact to FCL (same
+        verdicts, faster near walls). False: everything undecided goes to FCL.
     field_config : FieldConfig
         Distance-field parameters. cache : bool or folder for the field cache.
     geometry : WorldGeometry, optional
@@ -152,7 +178,8 @@ class CollisionWorld:
     def __init__(self, scene: Scene | str, margin_mm=0.0, prefilter: bool = True,
                  field_config: FieldConfig | None = None, cache=True,
                  curvature_per_mm: float = 0.0, padding: str = "auto", motion_mm: float = 0.0,
-                 geometry: WorldGeometry | None = None, exact: str = "auto"):
+                 geometry: WorldGeometry | None = None, exact: str = "auto",
+                 second_stage: bool = True):
         from ctrplan.collision.capsules import PADDINGS
         from ctrplan.shape.error_bounds import ErrorProfile
 
@@ -180,6 +207,7 @@ class CollisionWorld:
         self.motion_mm = float(motion_mm)
         self.names = np.array([m.name for m in meshes] + [""], dtype=object)
         self.prefilter = bool(prefilter)
+        self.second_stage = bool(second_stage)
         self.field_config = field_config or FieldConfig()
         if geometry is None or geometry.field_config != self.field_config or tuple(
                 m.mesh for m in geometry.meshes) != tuple(m.mesh for m in meshes) or (
@@ -191,6 +219,8 @@ class CollisionWorld:
         self._fcl = geometry.exact
         #: configurations sent to FCL by the last check/collides call (for benchmarks)
         self.last_fcl_calls = 0
+        #: configurations sent to the exact second stage by the last check/collides call
+        self.last_stage_calls = 0
         self.pose = np.asarray(self.scene.base_pose, dtype=float)
         self._bad_side = geometry.bad_sides(self.pose[:3, 3])
 
@@ -246,21 +276,31 @@ class CollisionWorld:
     def first_collision(self, shape: Shape) -> int:
         """Index of the first colliding configuration in batch order, -1 if none.
 
-        FCL runs in batch order only on configurations the prefilter cannot decide, and stops
-        at the first collision (edge validation).
+        FCL runs in batch order only on configurations neither the prefilter nor the second
+        stage can decide, and stops at the first collision (edge validation).
         """
+        from ctrplan.collision._exact import FREE, UNSURE
+
         B = len(shape)
         caps = self.capsules(shape)
         ok = np.asarray(shape.ok, dtype=bool)
+        staged = np.full(B, UNSURE)
         if self.prefilter:
             _, depth, unsure = self._bounds(caps, ok, trace=True)
+            proven = np.flatnonzero(~ok | (depth > EPS_MM))
+            rows = np.flatnonzero(ok & ~(depth > EPS_MM) & unsure.any(axis=1))
+            if len(proven):     # nothing after the first proven collision is needed
+                rows = rows[rows < proven[0]]
+            if self.second_stage and len(rows):
+                staged[rows] = self.geometry.second_stage.decide(caps.a, caps.b, caps.radius,
+                                                                 rows, unsure)
         else:
             depth, unsure = np.full(B, -np.inf), None
         for i in range(B):
-            if not ok[i] or depth[i] > EPS_MM:
+            if not ok[i] or depth[i] > EPS_MM or staged[i] >= 0:
                 return i
             pairs = None if unsure is None else unsure[i]
-            if pairs is not None and not pairs.any():
+            if pairs is not None and (not pairs.any() or staged[i] == FREE):
                 continue
             if self._fcl.first_hit(caps.a[i], caps.b[i], caps.radius[i], pairs) >= 0:
                 return i
@@ -348,10 +388,12 @@ class CollisionWorld:
         unsure = np.zeros(r.shape, dtype=np.uint64)
         self._contact_idx = np.full(B, -1)
         act = np.array(active, dtype=bool)
+        finite = rows_finite(a, b, r)       # once for every mesh
         for j, field in enumerate(self.fields):
             before = depth.copy()
             capsule_bounds(field, a, b, r, act, clear, depth, self.field_config.sample_mm,
-                           self._bad_side[j], trace=trace, unsure=unsure, bit=1 << j)
+                           self._bad_side[j], trace=trace, unsure=unsure, bit=1 << j,
+                           finite=finite)
             hit = (depth > EPS_MM) & (before <= EPS_MM)
             self._contact_idx[hit] = j
             act &= ~hit
@@ -367,10 +409,14 @@ class CollisionWorld:
         else:  # FCL verdicts only: no field needed
             clear, depth, contact_idx = np.zeros(B), np.zeros(B), np.full(B, -1)
         collides = np.zeros(B, dtype=bool)
+        staged = 0
         if use_field:
             decided_hit = depth > EPS_MM
             collides |= decided_hit
             todo = np.flatnonzero(ok & ~decided_hit & unsure.any(axis=1))
+            if self.second_stage and len(todo):
+                staged = len(todo)
+                todo = self._second_stage(caps, todo, unsure, collides, contact_idx)
         else:
             contact_idx = np.full(B, -1)
             todo = np.flatnonzero(ok)
@@ -388,8 +434,22 @@ class CollisionWorld:
                              np.maximum(clear, 0.0))
         clearance[~ok] = np.nan
         self.last_fcl_calls = len(todo)
+        self.last_stage_calls = staged
         return CollisionReport(collides=collides, clearance_mm=clearance, contact=contact,
-                               fcl_calls=len(todo))
+                               fcl_calls=len(todo), stage_calls=staged)
+
+    def _second_stage(self, caps: Capsules, rows: np.ndarray, unsure: np.ndarray,
+                      collides: np.ndarray, contact_idx: np.ndarray) -> np.ndarray:
+        """Decide the configurations ``rows`` with the exact second stage: sets ``collides``
+        and ``contact_idx`` (B,) of those it proves to touch; returns the rows it leaves to
+        FCL (ties within TIE_MM of contact)."""
+        from ctrplan.collision._exact import UNSURE
+
+        verdict = self.geometry.second_stage.decide(caps.a, caps.b, caps.radius, rows, unsure)
+        hit = verdict >= 0
+        collides[rows[hit]] = True
+        contact_idx[rows[hit]] = verdict[hit]
+        return rows[verdict == UNSURE]
 
 
 def world_for(scene: Scene, margin_mm=0.0, curvature_per_mm: float = 0.0) -> CollisionWorld:
