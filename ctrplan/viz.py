@@ -34,6 +34,59 @@ def scene_meshes(scene) -> list[ViewMesh]:
             for m in scene.meshes]
 
 
+#: A tip pose goal (:class:`GoalView`): its colour, the length (mm) of the approach arrow and of
+#: the cone drawn at the goal, the points on the cone's rim and the generator lines drawn.
+GOAL_COLOUR = "#16a085"
+GOAL_LENGTH_MM = 10.0
+CONE_RIM_POINTS = 48
+CONE_GENERATORS = 4
+
+
+@dataclass(frozen=True)
+class GoalView:
+    """A tip pose goal to draw (scene frame, mm): ``surface`` (3,) the target on the tissue,
+    ``point`` (3,) where the tip stops (``surface`` + standoff along the normal), ``direction``
+    (3,) unit, the way the tip must point (None: any), ``cone_deg`` the half-angle of the
+    allowed tip directions around it (None: no cone)."""
+
+    surface: np.ndarray
+    point: np.ndarray
+    direction: np.ndarray | None = None
+    cone_deg: float | None = None
+
+
+def goal_lines(goal: GoalView, length_mm: float = GOAL_LENGTH_MM,
+               rim: int = CONE_RIM_POINTS) -> dict[str, np.ndarray]:
+    """Polylines (name -> (k, 3) mm, scene frame; NaN rows split a polyline) that draw a tip
+    pose goal: ``standoff`` from the surface target to the standoff point, ``approach`` the
+    approach direction ending at the standoff point (``length_mm`` long), and ``cone`` the
+    cone of allowed tip directions: apex at the standoff point, opening back along the approach
+    (the way the robot arrives), its rim ``length_mm`` from the apex along the axis and
+    :data:`CONE_GENERATORS` lines from the apex to the rim."""
+    surface, point = np.asarray(goal.surface, dtype=float), np.asarray(goal.point, dtype=float)
+    out = {"standoff": np.stack([surface, point])}
+    if goal.direction is None:
+        return out
+    d = np.asarray(goal.direction, dtype=float)
+    d = d / np.linalg.norm(d)
+    out["approach"] = np.stack([point - length_mm * d, point])
+    if goal.cone_deg is None:
+        return out
+    # two unit vectors across the axis: the axis crossed with the world axis least along it
+    u = np.cross(d, np.eye(3)[int(np.argmin(np.abs(d)))])
+    u /= np.linalg.norm(u)
+    v = np.cross(d, u)
+    half = np.radians(min(float(goal.cone_deg), 89.0))   # a 90 deg cone is a plane: drawn at 89
+    centre, radius = point - length_mm * d, length_mm * np.tan(half)
+    phi = np.linspace(0.0, 2.0 * np.pi, rim + 1)
+    ring = centre + radius * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * v)
+    gaps = [np.full((1, 3), np.nan)]
+    spokes = [np.concatenate([[point, ring[k]], gaps[0]])
+              for k in range(0, rim, max(1, rim // CONE_GENERATORS))]
+    out["cone"] = np.concatenate([ring, *gaps, *spokes])
+    return out
+
+
 #: States drawn along a plan: in the HTML view and in the PNG.
 HTML_FRAMES = 12
 PNG_FRAMES = 8
@@ -73,16 +126,61 @@ def plan_html(
     title: str = "ctrplan",
     frames: int = HTML_FRAMES,
     animation: Animation | None = None,
+    goal: GoalView | None = None,
 ) -> None:
-    """Write an interactive, self-contained HTML view.
+    """Write an interactive, self-contained HTML view (:func:`plan_figure`)."""
+    from ctrplan.io import write_text_atomic
+
+    fig = plan_figure(meshes, backbones, tip_path, target, title, frames, animation, goal)
+    # include_plotlyjs=True embeds the whole library: the file works offline and loads no URL.
+    # auto_play=False: an animation starts with its play button (real time), not on load
+    html = fig.to_html(include_plotlyjs=True, full_html=True, config={"displaylogo": False},
+                       auto_play=False)
+    write_text_atomic(path, html)
+
+
+def _goal_traces(go, goal: GoalView) -> list:
+    """plotly traces of a tip pose goal (:func:`goal_lines`, the surface target and the
+    standoff point)."""
+    names = {"standoff": "standoff (surface target to tip goal)", "approach": "approach direction",
+             "cone": "approach cone"}
+    traces = [go.Scatter3d(x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2], mode="lines", name=names[key],
+                           line={"color": GOAL_COLOUR, "width": 6 if key == "approach" else 3,
+                                 "dash": "dash" if key == "standoff" else "solid"},
+                           connectgaps=False)
+              for key, xyz in goal_lines(goal).items()]
+    for where, name, symbol in ((goal.surface, "surface target", "x"),
+                                (goal.point, "standoff point (tip goal)", "circle")):
+        p = np.asarray(where, dtype=float)
+        traces.append(go.Scatter3d(x=[p[0]], y=[p[1]], z=[p[2]], mode="markers", name=name,
+                                   marker={"size": 5, "color": GOAL_COLOUR, "symbol": symbol}))
+    if goal.direction is not None:     # the arrow's head at the tip goal
+        d, p = np.asarray(goal.direction, dtype=float), np.asarray(goal.point, dtype=float)
+        traces.append(go.Cone(x=[p[0]], y=[p[1]], z=[p[2]], u=[d[0]], v=[d[1]], w=[d[2]],
+                              anchor="tip", sizemode="absolute", sizeref=2.0, showscale=False,
+                              colorscale=[[0, GOAL_COLOUR], [1, GOAL_COLOUR]],
+                              name="approach direction (head)", showlegend=False))
+    return traces
+
+
+def plan_figure(
+    meshes: Sequence[ViewMesh],
+    backbones: np.ndarray,
+    tip_path: np.ndarray | None = None,
+    target: np.ndarray | None = None,
+    title: str = "ctrplan",
+    frames: int = HTML_FRAMES,
+    animation: Animation | None = None,
+    goal: GoalView | None = None,
+):
+    """The interactive view as a plotly Figure.
 
     backbones : (K, m, 3) mm, scene frame — robot shapes along the path (a subset is drawn,
     the final one bold). tip_path : (K, 3) mm. target : (3,) mm. animation : the robot along
-    its trajectory, played in real time with a time slider (plotly frames).
+    its trajectory, played in real time with a time slider (plotly frames). goal : a tip pose
+    goal (approach direction, cone, surface target and standoff point; :func:`goal_lines`).
     """
     import plotly.graph_objects as go
-
-    from ctrplan.io import write_text_atomic
 
     traces = []
     for mesh in meshes:
@@ -114,6 +212,8 @@ def plan_html(
         traces.append(go.Scatter3d(x=[t[0]], y=[t[1]], z=[t[2]], mode="markers",
                                    marker={"size": 6, "color": TARGET_COLOUR, "symbol": "diamond"},
                                    name="target"))
+    if goal is not None:
+        traces.extend(_goal_traces(go, goal))
     fig = go.Figure(data=traces)
     fig.update_layout(
         title=title, scene={"aspectmode": "data", "xaxis_title": "x (mm)", "yaxis_title": "y (mm)",
@@ -122,11 +222,7 @@ def plan_html(
     )
     if animation is not None:
         _animate(fig, animation)
-    # include_plotlyjs=True embeds the whole library: the file works offline and loads no URL.
-    # auto_play=False: an animation starts with its play button (real time), not on load
-    html = fig.to_html(include_plotlyjs=True, full_html=True, config={"displaylogo": False},
-                       auto_play=False)
-    write_text_atomic(path, html)
+    return fig
 
 
 def _moving(go, b: np.ndarray, tip: np.ndarray, t: float) -> list:
@@ -209,15 +305,32 @@ def plan_png(
     title: str = "ctrplan",
     frames: int = PNG_FRAMES,
     crop_mm: float = 40.0,
+    goal: GoalView | None = None,
 ) -> None:
-    """Write a static PNG: anatomy near the robot (cropped), shapes along the path, target."""
+    """Write a static PNG (:func:`plan_png_figure`)."""
+    from ctrplan.io import save_figure
+
+    save_figure(plan_png_figure(meshes, backbones, tip_path, target, title, frames, crop_mm, goal),
+                path)
+
+
+def plan_png_figure(
+    meshes: Sequence[ViewMesh],
+    backbones: np.ndarray,
+    tip_path: np.ndarray | None = None,
+    target: np.ndarray | None = None,
+    title: str = "ctrplan",
+    frames: int = PNG_FRAMES,
+    crop_mm: float = 40.0,
+    goal: GoalView | None = None,
+):
+    """The static view as a matplotlib Figure: anatomy near the robot (cropped), shapes along
+    the path, target, and a tip pose goal (``goal``: :func:`goal_lines` and its points)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
-
-    from ctrplan.io import save_figure
 
     backbones = np.asarray(backbones, dtype=float)
     pts = backbones.reshape(-1, 3)
@@ -225,6 +338,9 @@ def plan_png(
         pts = np.vstack([pts, np.asarray(tip_path, dtype=float).reshape(-1, 3)])
     if target is not None:
         pts = np.vstack([pts, np.asarray(target, dtype=float).reshape(1, 3)])
+    lines = goal_lines(goal) if goal is not None else {}
+    for xyz in lines.values():
+        pts = np.vstack([pts, xyz[np.all(np.isfinite(xyz), axis=1)]])
     lo = pts.min(axis=0) - crop_mm
     hi = pts.max(axis=0) + crop_mm
     fig = plt.figure(figsize=(8, 7), dpi=110)
@@ -249,7 +365,22 @@ def plan_png(
     if target is not None:
         t = np.asarray(target).reshape(3)
         ax.scatter([t[0]], [t[1]], [t[2]], color=TARGET_COLOUR, s=60, marker="D", label="target")
+    if goal is not None:
+        _goal_artists(ax, goal, lines)
     cube_axes(ax, lo, hi)
     ax.set_title(title)
     ax.legend(loc="upper left")
-    save_figure(fig, path)
+    return fig
+
+
+def _goal_artists(ax, goal: GoalView, lines: dict[str, np.ndarray]) -> None:
+    """matplotlib artists of a tip pose goal: its polylines (labelled ``standoff``,
+    ``approach direction``, ``approach cone``) and the surface target and standoff point."""
+    labels = {"standoff": "standoff", "approach": "approach direction", "cone": "approach cone"}
+    for key, xyz in lines.items():
+        ax.plot(xyz[:, 0], xyz[:, 1], xyz[:, 2], color=GOAL_COLOUR, label=labels[key],
+                lw=2.5 if key == "approach" else 1.2, ls="--" if key == "standoff" else "-")
+    s, p = np.asarray(goal.surface, dtype=float), np.asarray(goal.point, dtype=float)
+    ax.scatter([s[0]], [s[1]], [s[2]], color=GOAL_COLOUR, s=40, marker="x", label="surface target")
+    ax.scatter([p[0]], [p[1]], [p[2]], color=GOAL_COLOUR, s=40, marker="o",
+               label="standoff point (tip goal)")

@@ -678,20 +678,36 @@ def test_fuzz_plan_json(files, data):
 
 # ---------------------------------------------------------------------- plan-batch inputs
 TARGETS_CSV = b"scene,name,x,y,z\nairway,a,1,2,3\nneuro,b,30,0,40\n"
+#: with tip pose goals (standoff, approach normal / a direction, cone) and a point row
+GOAL_TARGETS_CSV = (b"scene,name,x,y,z,standoff_mm,approach,cone_deg\nairway,a,1,2,3,2,normal,15\n"
+                    b"airway,b,1,2,3,,0 0 -1,\nairway,c,1,2,3,0.5,\"1,0,0\",30\nairway,d,1,2,3,,,\n")
 
 
 @FUZZ
-@given(data=st.one_of(mutated([TARGETS_CSV, b"x,y,z\n1,2,3\n"]),
-                      csv_structured(["scene", "name", "x", "y", "z"])),
+@given(data=st.one_of(mutated([TARGETS_CSV, b"x,y,z\n1,2,3\n", GOAL_TARGETS_CSV]),
+                      csv_structured(["scene", "name", "x", "y", "z"]),
+                      csv_structured(["scene", "name", "x", "y", "z", "standoff_mm", "approach",
+                                      "cone_deg"])),
        scenes=st.sampled_from([(), ("airway",)]))
 def test_fuzz_batch_targets(files, data, scenes):
-    """plan-batch targets CSV (`plan-batch --targets t.csv`): read_targets."""
-    from ctrplan.planning.batch import read_targets
+    """plan-batch targets CSV (`plan-batch --targets t.csv`, tip goal columns too): read_targets."""
+    from ctrplan.planning.batch import GOAL_FIELDS, Job, read_targets
+    from ctrplan.planning.tipgoal import MAX_STANDOFF_MM
 
     path = files.write("targets.csv", data)
     out = check_reader(lambda: read_targets(str(path), scenes), path)
     if out is not None:
         assert out and all(len(t[2]) == 3 and all(math.isfinite(v) for v in t[2]) for t in out)
+        for t in out:
+            if len(t) == 3:
+                continue
+            standoff, approach, cone = (t[3][k] for k in GOAL_FIELDS)
+            assert standoff is None or 0 <= standoff <= MAX_STANDOFF_MM
+            assert cone is None or (0 < cone <= 90 and approach is not None)
+            if approach not in (None, "normal"):
+                v = [float(x) for x in approach.split(",")]
+                assert len(v) == 3 and all(math.isfinite(x) for x in v) and any(v)
+            assert Job(t[0], t[1], t[2], **t[3]).has_tip_goal
 
 
 def _job():

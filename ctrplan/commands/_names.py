@@ -84,7 +84,7 @@ PLANNING: tuple[Name, ...] = (
     Name("--tolerance", "plan, plan-batch", "tolerance_mm", _PLAN, "tolerance_mm", "plan.json", "mm"),
     Name("--objective", "plan, plan-batch", "objective", _PLAN, "objective", "plan.json"),
     Name("--targets", "plan-batch", "targets", "ctrplan.planning.batch:read_targets", "", "plan.json",
-         "a CSV (x,y,z[,scene,name]) or examples"),
+         "a CSV (x,y,z[,scene,name][,standoff_mm,approach,cone_deg]) or examples"),
     Name("--scene", "plan-batch", "scenes", "ctrplan.planning.batch:read_targets", "scene",
          "plan.json", "the scenes whose targets are planned"),
     Name("--seeds", "plan-batch", "seeds", "ctrplan.planning.batch:make_jobs", "seed", "plan.json",
@@ -117,8 +117,22 @@ REACH: tuple[Name, ...] = (
     Name("--ik-seeds", "scene reach", "ik_seeds", _REACH, "", "reach.csv"),
 )
 
+_JOB = "ctrplan.planning.batch:Job"
+
+#: Tip pose goals in plan-batch's targets CSV (no flag: a column per row): the Job's fields,
+#: the job file's keys; the key here is the targets CSV's column
+TARGETS: tuple[Name, ...] = (
+    Name("", "plan-batch", "goal_standoff_mm", _JOB, "standoff_mm", "targets CSV",
+         "as plan --standoff (TipGoal's standoff_mm); in job files and jobs.csv standoff_mm is "
+         "the standoff achieved"),
+    Name("", "plan-batch", "goal_approach", _JOB, "approach", "targets CSV",
+         "as plan --approach: normal or a direction (X Y Z in the CSV, x,y,z in the Job)"),
+    Name("", "plan-batch", "goal_cone_deg", _JOB, "cone_deg", "targets CSV",
+         "as plan --cone, deg; job files: direction_error_deg is the angle achieved"),
+)
+
 #: every table of names (another file's rows go here too)
-TABLES: dict[str, tuple[Name, ...]] = {"planning": PLANNING, "reach": REACH}
+TABLES: dict[str, tuple[Name, ...]] = {"planning": PLANNING, "reach": REACH, "targets": TARGETS}
 
 #: Python argument -> command-line flag
 FLAGS: dict[str, str] = {n.argument: n.flag for rows in TABLES.values() for n in rows if n.flag}

@@ -330,75 +330,21 @@ def _default_cone() -> float:
 
 def parse_tip_goal_args(standoff, approach, cone) -> tuple:
     """``--standoff`` (mm >= 0 or None), ``--approach`` ("normal", (3,) floats or None) and
-    ``--cone`` (deg in (0, 90] or None), each checked (InputError naming the flag)."""
-    from ctrplan.planning.tipgoal import MAX_STANDOFF_MM
+    ``--cone`` (deg in (0, 90] or None), each checked (InputError naming the flag):
+    :func:`ctrplan.planning.tipgoal.parse_goal_values` (plan-batch's targets CSV uses it too)."""
+    from ctrplan.planning.tipgoal import parse_goal_values
 
-    s = None
-    if standoff is not None:
-        try:
-            s = strict_float(standoff)
-        except ValueError:
-            s = math.nan
-        if not (math.isfinite(s) and 0 <= s <= MAX_STANDOFF_MM):
-            raise InputError("--standoff", "", f"must be a distance in [0, {MAX_STANDOFF_MM:g}] mm, "
-                                               f"got {excerpt(standoff)}")
-    a = None
-    if approach is not None:
-        if str(approach).strip().lower() == "normal":
-            a = "normal"
-        else:
-            a = _numbers(approach, "--approach", 3)
-            if a is None or not math.hypot(*a) > 1e-12:
-                raise InputError("--approach", "", f"must be a non-zero direction X,Y,Z or "
-                                                   f"'normal', got {excerpt(approach)}")
-    c = None
-    if cone is not None:
-        try:
-            c = strict_float(cone)
-        except ValueError:
-            c = math.nan
-        if not (math.isfinite(c) and 0 < c <= 90):
-            raise InputError("--cone", "", f"must be a half-angle in (0, 90] degrees, got {excerpt(cone)}")
-        if a is None:
-            raise InputError("--cone", "", "needs --approach (the cone's axis)")
-    return s, a, c
-
-
-#: the farthest (mm) a --target is snapped onto the anatomy for --standoff / --approach normal
-MAX_SNAP_MM = 5.0
+    return parse_goal_values(standoff, approach, cone)
 
 
 def tip_goal(target, scene, standoff, approach, cone) -> tuple:
-    """The plan's goal from ``--target`` and the tip pose flags: the point itself when none is
-    given (a point goal, unchanged), else a :class:`~ctrplan.planning.tipgoal.TipGoal`. With
-    ``--standoff`` or ``--approach normal`` the target is snapped to the nearest wall or obstacle
-    point (with its normal into the lumen), at most :data:`MAX_SNAP_MM` away unless an explicit
-    ``--approach X,Y,Z`` lets a free target stand off along it. Returns (goal, plan.json's
-    ``snap_distance_mm``, ``snap_mesh``, ``target_given``)."""
-    from ctrplan.planning.tipgoal import TipGoal, snap_to_surface
+    """The plan's goal from ``--target`` and the tip pose flags
+    (:func:`ctrplan.planning.tipgoal.goal_for_target`, plan-batch's path too): the point when
+    none is given, else a TipGoal (snapped to the tissue for --standoff / --approach normal).
+    Returns (goal, plan.json's ``snap_distance_mm``, ``snap_mesh``, ``target_given``)."""
+    from ctrplan.planning.tipgoal import goal_for_target
 
-    if standoff is None and approach is None:
-        return target, {}
-    direction = None if approach in (None, "normal") else approach
-    snap = None
-    if standoff is not None or approach == "normal":
-        snap = snap_to_surface(scene, target)
-        if snap.distance_mm > MAX_SNAP_MM:
-            if approach == "normal" or direction is None:
-                raise InputError("--target", "", f"is {snap.distance_mm:.2f} mm from the nearest "
-                                 f"surface ({snap.mesh!r}), more than {MAX_SNAP_MM:g} mm: give a "
-                                 f"point on the tissue for --standoff / --approach normal, or "
-                                 f"--approach X,Y,Z to stand off a free target along it")
-            snap = None
-    if snap is None:
-        return TipGoal(target, direction=direction, cone_deg=cone,
-                       standoff_mm=standoff or 0.0), {}
-    if approach == "normal":
-        direction = -snap.normal
-    goal = TipGoal(snap.point, direction=direction, cone_deg=cone, standoff_mm=standoff or 0.0,
-                   normal=snap.normal)
-    return goal, {"snap_distance_mm": float(snap.distance_mm), "snap_mesh": snap.mesh,
-                  "target_given": [float(v) for v in target]}
+    return goal_for_target(target, scene, standoff, approach, cone)
 
 
 def one_thread() -> None:

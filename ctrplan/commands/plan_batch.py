@@ -17,7 +17,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "plan-batch", help="plan to many targets over many scenes (resumable, process pool or Ray)",
         description="Plan every target (x 'seeds') of a CSV (columns x,y,z in mm, scene frame, and "
-                    "optionally scene,name) or, with '--targets examples', every example target of "
+                    "optionally scene,name; and a tip pose goal per row: standoff_mm, approach "
+                    "('normal' or a direction 'X Y Z') and cone_deg, as plan's --standoff, "
+                    "--approach and --cone) or, with '--targets examples', every example target of "
                     "the shipped scenes. Writes OUT/jobs/<id>.json per job, OUT/jobs.csv and "
                     "OUT/summary.csv (success rate and planning-time median/p90 per scene). Jobs "
                     "whose JSON exists are skipped, so an interrupted batch resumes. Runs in a "

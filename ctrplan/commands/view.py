@@ -137,7 +137,7 @@ def _number(v) -> float | None:
 
 def plan_notes(plan: dict) -> str:
     """The labels a view's title carries: a tip beyond the tolerance, a goal moved off the
-    anatomy (``goal_shift_mm``), and what the planning model's margin is (a calibrated model's
+    anatomy (``goal_shift_mm``), a tip pose goal's direction error and standoff, and what the planning model's margin is (a calibrated model's
     measured bound, or an uncalibrated surrogate's ``surrogate_error``)."""
     out = ""
     tip, tol = _number(plan.get("tip_error_mm")), _number(plan.get("tolerance_mm"))
@@ -146,6 +146,12 @@ def plan_notes(plan: dict) -> str:
     shift = _number(plan.get("goal_shift_mm"))
     if shift:
         out += f"; goal moved {shift:.2f} mm off the anatomy"
+    err, cone = _number(plan.get("direction_error_deg")), _number(plan.get("cone_deg"))
+    if err is not None and cone is not None:
+        out += f"; tip {err:.1f} deg from the approach (cone {cone:g} deg)"
+    standoff = _number(plan.get("standoff_mm"))
+    if standoff is not None:
+        out += f", standoff {standoff:.2f} mm"
     margin = _number(plan.get("margin_mm")) or 0.0
     if plan.get("calibrated") is True:
         out += f"; calibrated model, margin {margin:.2f} mm"
@@ -153,6 +159,34 @@ def plan_notes(plan: dict) -> str:
         out += (f"; uncalibrated surrogate, margin {margin:.2f} mm"
                 + (" (its surrogate error)" if plan.get("margin_auto") is True else ""))
     return out
+
+
+#: the keys of plan.json's ``tip_goal`` (``TipGoal.record()``)
+TIP_GOAL_KEYS = ("position", "direction", "cone_deg", "standoff_mm", "normal")
+
+
+def plan_goal(plan: dict, source: str):
+    """A plan's tip pose goal to draw (:class:`~ctrplan.viz.GoalView`: the surface target, the
+    standoff point, the approach direction and the cone) from its ``tip_goal`` record, checked
+    as a TipGoal checks its fields (InputError naming the file and ``tip_goal``); None for a
+    plan to a point (``tip_goal`` absent or null)."""
+    from ctrplan import viz
+    from ctrplan.planning.tipgoal import TipGoal
+
+    record = plan.get("tip_goal")
+    if record is None:
+        return None
+    if not isinstance(record, dict) or not set(record) <= set(TIP_GOAL_KEYS) \
+            or "position" not in record:
+        raise InputError(source, "tip_goal", f"must be an object with position and optionally "
+                                             f"{', '.join(TIP_GOAL_KEYS[1:])}")
+    try:
+        goal = TipGoal(**{k: v for k, v in record.items() if v is not None or k == "position"})
+    except InputError as exc:      # (ArgumentError: the record's own field names)
+        raise InputError(source, f"tip_goal.{exc.source}", exc.message) from None
+    return viz.GoalView(surface=np.asarray(goal.position), point=goal.point(),
+                        direction=None if goal.direction is None else np.asarray(goal.direction),
+                        cone_deg=goal.cone_deg)
 
 
 def find_trajectory(plan: dict, source: str, given: str | None) -> Path | None:
@@ -235,6 +269,7 @@ def render_plan(plan: dict, out: Path, points: int = 40, source: str = "plan",
     status = plan.get("status", "")
     title = f"{robot.name} in {scene.name}: {status}".strip().rstrip(":") + plan_notes(plan)
     meshes = viz.scene_meshes(scene)
+    goal = plan_goal(plan, source)
     anim = None
     if frames is not None:           # backbones of the animation's frames only
         shape = model.shape(frames[1], points=points)
@@ -243,9 +278,10 @@ def render_plan(plan: dict, out: Path, points: int = 40, source: str = "plan",
         title += f"; trajectory {anim.duration_s:.2f} s"
     if html:
         viz.plan_html(out, meshes, backbones, tip_path, target, title=title, frames=len(drawn),
-                      animation=anim)
+                      animation=anim, goal=goal)
     else:
-        viz.plan_png(out, meshes, backbones, tip_path, target, title=title, frames=len(drawn))
+        viz.plan_png(out, meshes, backbones, tip_path, target, title=title, frames=len(drawn),
+                     goal=goal)
 
 
 def run(args: argparse.Namespace) -> int:

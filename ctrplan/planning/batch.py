@@ -37,6 +37,9 @@ log = logging.getLogger("ctrplan")
 
 #: ``--targets examples``: every example target of the shipped scenes.
 EXAMPLES = "examples"
+#: a Job's tip pose goal fields, in the order of the targets CSV's columns
+#: (:data:`ctrplan.planning.tipgoal.CSV_NAMES`: standoff_mm, approach, cone_deg)
+GOAL_FIELDS = ("goal_standoff_mm", "goal_approach", "goal_cone_deg")
 
 
 @dataclass(frozen=True)
@@ -54,10 +57,22 @@ class Job:
     tolerance_mm: float = 1.0
     margin: str = "auto"          # "auto" or a number of mm (as text)
     objective: str = "clearance"  # clearance, length or first
+    # a tip pose goal (the targets CSV's standoff_mm, approach, cone_deg; None: not given):
+    # mm >= 0; "normal" or "x,y,z" (scene frame); half-angle deg. All None: a point goal.
+    goal_standoff_mm: float | None = None
+    goal_approach: str | None = None
+    goal_cone_deg: float | None = None
+
+    @property
+    def has_tip_goal(self) -> bool:
+        return any(getattr(self, k) is not None for k in GOAL_FIELDS)
 
     @property
     def id(self) -> str:
-        spec = json.dumps(asdict(self), sort_keys=True)
+        # the goal is part of the key where given (a changed goal is a new job); a point goal
+        # hashes as before the goal fields existed, so earlier batches still resume
+        spec = json.dumps({k: v for k, v in asdict(self).items()
+                           if not (k in GOAL_FIELDS and v is None)}, sort_keys=True)
         digest = hashlib.sha1(spec.encode()).hexdigest()[:8]
         return f"{_safe(Path(self.scene).name)}__{_safe(self.target_name)}__s{self.seed}__{digest}"
 
@@ -88,19 +103,23 @@ def check_scene_spec(spec: str) -> str:
                                f"({', '.join(list_scenes()) or 'none found'})")
 
 
-def read_targets(targets: str, scenes: Sequence[str] = ()) -> list[tuple[str, str, tuple[float, float, float]]]:
-    """Targets as (scene, name, (x, y, z)).
+def read_targets(targets: str, scenes: Sequence[str] = ()) -> list[tuple]:
+    """Targets as (scene, name, (x, y, z)), with a fourth element for a row with a tip pose
+    goal: the Job's goal fields (:data:`GOAL_FIELDS`) as a dict.
 
     ``targets`` is a CSV with columns ``x,y,z`` (mm, scene frame) and optionally ``scene`` and
     ``name``, or ``"examples"`` for the example targets of the shipped scenes. ``scenes``
     restricts the examples / CSV rows to those scenes, and supplies the scene of CSV rows
-    without a ``scene`` column (each target then goes to every listed scene).
+    without a ``scene`` column (each target then goes to every listed scene). Optional columns
+    ``standoff_mm``, ``approach`` (``normal`` or a direction ``X Y Z``) and ``cone_deg`` give a
+    row a tip pose goal, as ``plan --standoff/--approach/--cone`` (:func:`_row_goal`); a row
+    leaving them empty plans to its point.
     """
     from ctrplan.collision.scene import list_scenes, load_scene
 
     for s in scenes:
         check_scene_spec(s)
-    out: list[tuple[str, str, tuple[float, float, float]]] = []
+    out: list[tuple] = []
     path = targets
     if path == EXAMPLES:
         for s in scenes or list_scenes():
@@ -131,6 +150,8 @@ def read_targets(targets: str, scenes: Sequence[str] = ()) -> list[tuple[str, st
             raise InputError(path, where, "x, y, z must be finite numbers (mm)")
         name = row[cols["name"]].strip() if "name" in cols and cols["name"] < len(row) else ""
         name = name or f"row{k + 2}"
+        goal = _row_goal(path, where, row, cols)
+        extra = () if goal is None else (goal,)
         if "scene" in cols:
             s = row[cols["scene"]].strip() if cols["scene"] < len(row) else ""
             if not s:
@@ -141,19 +162,40 @@ def read_targets(targets: str, scenes: Sequence[str] = ()) -> list[tuple[str, st
                 check_scene_spec(s)
             except InputError as exc:
                 raise InputError(path, f"{where}: scene", f"{s!r}: {exc.message}") from None
-            out.append((s, name, xyz))
+            out.append((s, name, xyz, *extra))
         else:
-            out.extend((s, name, xyz) for s in scenes)
+            out.extend((s, name, xyz, *extra) for s in scenes)
     if not out:
         raise InputError(path, "scene", "no rows for the scenes given with --scene")
     return out
 
 
-def make_jobs(targets: Iterable[tuple[str, str, tuple[float, float, float]]], seeds: Sequence[int] = (0,),
-              **settings: Any) -> list[Job]:
-    """One job per target and seed; ``settings`` are Job fields (robot, model, planner, ...)."""
-    return [Job(scene=s, target_name=name, target=tuple(xyz), seed=int(seed), **settings)
-            for s, name, xyz in targets for seed in seeds]
+def _row_goal(path: str, where: str, row: list[str], cols: dict[str, int]) -> dict | None:
+    """A targets CSV row's tip pose goal (the Job's :data:`GOAL_FIELDS`), or None when its
+    ``standoff_mm``, ``approach`` and ``cone_deg`` cells are absent or empty. Checked as
+    ``plan --standoff/--approach/--cone`` are
+    (:func:`~ctrplan.planning.tipgoal.parse_goal_values`); InputError naming the file, the row
+    and the column otherwise."""
+    from ctrplan.planning.tipgoal import CSV_NAMES, parse_goal_values
+
+    cells = [row[cols[c]].strip() if c in cols and cols[c] < len(row) else "" for c in CSV_NAMES]
+    if not any(cells):
+        return None
+    standoff, approach, cone = parse_goal_values(
+        *(c or None for c in cells), names=CSV_NAMES,
+        error=lambda column, message: InputError(path, f"{where}: {column}", message))
+    if approach is not None and approach != "normal":
+        approach = ",".join(repr(float(v)) for v in approach)
+    return dict(zip(GOAL_FIELDS, (standoff, approach, cone)))
+
+
+def make_jobs(targets: Iterable[tuple], seeds: Sequence[int] = (0,), **settings: Any) -> list[Job]:
+    """One job per target and seed. ``targets``: (scene, name, (x, y, z)) or, with a tip pose
+    goal, (scene, name, (x, y, z), {goal field: value}) as :func:`read_targets` gives them;
+    ``settings`` are Job fields (robot, model, planner, ...)."""
+    return [Job(scene=t[0], target_name=t[1], target=tuple(t[2]), seed=int(seed),
+                **(t[3] if len(t) > 3 and t[3] else {}), **settings)
+            for t in targets for seed in seeds]
 
 
 # ---------------------------------------------------------------------- one job
@@ -204,11 +246,26 @@ def run_job(job: Job | dict, planners=None) -> JobResult:
     try:
         config = PlannerConfig(margin_mm=margin, objective=job.objective)
         planner = planners.get(job.robot, job.scene, job.model, config)
-        result = planner.plan(job.target, seed=job.seed, planner=job.planner,
+        goal, snap = _job_goal(job, planner.scene)
+        result = planner.plan(goal, seed=job.seed, planner=job.planner,
                               time_limit=job.time_limit, tolerance_mm=job.tolerance_mm)
     except InputError as exc:
         return JobResult(job, PlanStatus.INPUT_ERROR, str(exc))
-    return JobResult(job, result.status, result.message, result.to_json())
+    return JobResult(job, result.status, result.message, {**result.to_json(), **snap})
+
+
+def _job_goal(job: Job, scene) -> tuple:
+    """The job's goal and plan.json's snap record: ``plan``'s path
+    (:func:`~ctrplan.planning.tipgoal.goal_for_target`: the point, or a TipGoal snapped to the
+    tissue for a standoff / approach normal), its values checked again (a Job made in Python
+    did not pass the CSV reader)."""
+    if not job.has_tip_goal:
+        return job.target, {}
+    from ctrplan.planning.tipgoal import CSV_NAMES, goal_for_target, parse_goal_values
+
+    values = parse_goal_values(job.goal_standoff_mm, job.goal_approach, job.goal_cone_deg,
+                               names=CSV_NAMES)
+    return goal_for_target(job.target, scene, *values, field="target", names=CSV_NAMES)
 
 
 def _run_job_json(job: dict) -> dict:
@@ -466,6 +523,14 @@ JOB_COLUMNS = ("job_id", "scene", "target_name", "x", "y", "z", "seed", "robot",
                "min_clearance_reference_mm", "margin_mm", "objective", "objective_value", "calibrated",
                "surrogate_error_mm", "goal_shift_mm", "start_rotated", "outside_measured_states",
                "message")
+#: jobs.csv's tip pose goal columns, after JOB_COLUMNS when a job of the batch has a tip goal:
+#: the goal asked (the targets CSV's standoff_mm, approach, cone_deg) and what the plan
+#: achieved (plan.json's standoff_mm, direction_error_deg, snap_distance_mm)
+GOAL_COLUMNS = (*GOAL_FIELDS, "standoff_mm", "direction_error_deg", "snap_distance_mm")
+
+
+def _has_tip_goal(r: dict) -> bool:
+    return any(r.get(k) is not None for k in GOAL_FIELDS)
 
 
 def summarize(results: Sequence[dict]) -> list[dict]:
@@ -501,7 +566,20 @@ def summarize(results: Sequence[dict]) -> list[dict]:
             "surrogate_jobs": sum(isinstance(r.get("surrogate_error"), dict) for r in rs),
             "outside_measured_states": _sum_counts(r.get("outside_measured_states") for r in rs),
         })
+        if any(_has_tip_goal(r) for r in results):
+            rows[-1].update(_goal_summary(rs))
     return rows
+
+
+def _goal_summary(rs: Sequence[dict]) -> dict:
+    """summary.csv's tip pose goal columns: the jobs with a tip goal, and the median and the
+    largest of their achieved direction errors (deg; "" when none has one)."""
+    goals = [r for r in rs if _has_tip_goal(r)]
+    err = [float(r["direction_error_deg"]) for r in goals
+           if isinstance(r.get("direction_error_deg"), (int, float))]
+    return {"tip_goal_jobs": len(goals),
+            "direction_error_deg_median": float(np.median(err)) if err else "",
+            "direction_error_deg_max": float(np.max(err)) if err else ""}
 
 
 def _sum_counts(counts) -> int | str:
@@ -514,6 +592,7 @@ def write_tables(out: Path, results: Sequence[dict], rows: Sequence[dict]) -> No
     """``jobs.csv`` (one row per job) and ``summary.csv`` (per scene) in ``out``."""
     from ctrplan.io import write_csv_atomic
 
+    columns = JOB_COLUMNS + (GOAL_COLUMNS if any(_has_tip_goal(r) for r in results) else ())
     job_rows = []
     for r in results:
         x, y, z = (list(r.get("target") or [None] * 3) + [None] * 3)[:3]
@@ -521,7 +600,7 @@ def write_tables(out: Path, results: Sequence[dict], rows: Sequence[dict]) -> No
         vals = {**r, "x": x, "y": y, "z": z, "success": int(bool(r.get("success"))),
                 # the surrogate's p99 (mm): what --margin auto pads an uncalibrated surrogate by
                 "surrogate_error_mm": sur.get("p99") if isinstance(sur, dict) else None}
-        job_rows.append(["" if vals.get(c) is None else vals.get(c) for c in JOB_COLUMNS])
-    write_csv_atomic(out / "jobs.csv", JOB_COLUMNS, job_rows)
+        job_rows.append(["" if vals.get(c) is None else vals.get(c) for c in columns])
+    write_csv_atomic(out / "jobs.csv", columns, job_rows)
     cols = list(rows[0].keys()) if rows else ["scene", "jobs", "success", "success_rate"]
     write_csv_atomic(out / "summary.csv", cols, [[r[c] for c in cols] for r in rows])

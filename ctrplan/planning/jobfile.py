@@ -22,7 +22,8 @@ from ctrplan.errors import InputError
 
 #: Fields that hold a number (mm, s) or null in a job file.
 NUMBER_FIELDS = ("planning_time_s", "tip_error_mm", "tip_error_physics_mm", "min_clearance_mm",
-                 "min_clearance_reference_mm", "margin_mm", "objective_value", "goal_shift_mm")
+                 "min_clearance_reference_mm", "margin_mm", "objective_value", "goal_shift_mm",
+                 "direction_error_deg", "standoff_mm", "snap_distance_mm")
 #: Fields that hold true/false when present.
 BOOL_FIELDS = ("min_clearance_exact", "min_clearance_reference_exact", "calibrated",
                "margin_auto", "time_cap_hit", "start_rotated")

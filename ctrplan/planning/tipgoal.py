@@ -283,3 +283,102 @@ def split_goal(target) -> tuple[np.ndarray, TipGoal | None]:
     if isinstance(target, TipGoal):
         return check_target(target.point()), target
     return check_target(target), None
+
+
+# ---------------------------------------------------------------------- goals from text
+#: the farthest (mm) a target is snapped onto the anatomy for a standoff / ``approach normal``
+MAX_SNAP_MM = 5.0
+#: how the three tip pose values are named in messages: ``plan``'s flags (the targets CSV of
+#: ``plan-batch`` names its columns instead: :data:`CSV_NAMES`)
+FLAG_NAMES = ("--standoff", "--approach", "--cone")
+#: the targets CSV columns of ``plan-batch`` holding the same three values
+CSV_NAMES = ("standoff_mm", "approach", "cone_deg")
+
+
+def _approach_value(text, name: str, error) -> str | list[float]:
+    """``normal`` or a non-zero direction X,Y,Z (commas and/or spaces)."""
+    import re
+
+    from ctrplan.io import excerpt, strict_float
+
+    if str(text).strip().lower() == "normal":
+        return "normal"
+    parts = [s for s in re.split(r"[,\s]+", str(text).strip()) if s]
+    try:
+        vals = [strict_float(s) for s in parts]
+    except ValueError:
+        vals = []
+    if len(vals) == 3 and not all(math.isfinite(v) for v in vals):
+        raise error(name, f"must be finite numbers, got {excerpt(str(text))}")
+    if len(vals) != 3 or not math.hypot(*vals) > 1e-12:
+        raise error(name, f"must be a non-zero direction X,Y,Z or 'normal', got {excerpt(text)}")
+    return vals
+
+
+def parse_goal_values(standoff, approach, cone, names=FLAG_NAMES, error=None) -> tuple:
+    """A tip pose goal's values as given in text (None: not given), each checked: standoff
+    (mm in [0, :data:`MAX_STANDOFF_MM`] or None), approach (``"normal"``, [3] floats or None)
+    and cone (deg in (0, 90] or None; only with an approach). ``names`` name the three values
+    in messages (``plan``'s flags, or the CSV columns); ``error(name, message)`` makes the
+    exception raised (default: ``InputError(name, "", message)``)."""
+    from ctrplan.errors import InputError
+    from ctrplan.io import excerpt, strict_float
+
+    error = error or (lambda name, message: InputError(name, "", message))
+    n_standoff, n_approach, n_cone = names
+    s = None
+    if standoff is not None:
+        try:
+            s = strict_float(standoff)
+        except ValueError:
+            s = math.nan
+        if not (math.isfinite(s) and 0 <= s <= MAX_STANDOFF_MM):
+            raise error(n_standoff, f"must be a distance in [0, {MAX_STANDOFF_MM:g}] mm, "
+                                    f"got {excerpt(standoff)}")
+    a = None if approach is None else _approach_value(approach, n_approach, error)
+    c = None
+    if cone is not None:
+        try:
+            c = strict_float(cone)
+        except ValueError:
+            c = math.nan
+        if not (math.isfinite(c) and 0 < c <= 90):
+            raise error(n_cone, f"must be a half-angle in (0, 90] degrees, got {excerpt(cone)}")
+        if a is None:
+            raise error(n_cone, f"needs {n_approach} (the cone's axis)")
+    return s, a, c
+
+
+def goal_for_target(target, scene, standoff, approach, cone, field: str = "--target",
+                    names=FLAG_NAMES) -> tuple:
+    """A plan's goal from a target point (3,) mm, scene frame, and checked tip pose values
+    (:func:`parse_goal_values`): the point itself when none is given (a point goal,
+    unchanged), else a :class:`TipGoal`. With a standoff or ``approach "normal"`` the target
+    is snapped to the nearest wall or obstacle point (with its normal into the lumen), at most
+    :data:`MAX_SNAP_MM` away unless an explicit direction lets a free target stand off along
+    it (InputError naming ``field`` otherwise). Returns (goal, plan.json's
+    ``snap_distance_mm``, ``snap_mesh`` and ``target_given``, or {} without a snap)."""
+    from ctrplan.errors import InputError
+
+    if standoff is None and approach is None:
+        return target, {}
+    direction = None if approach in (None, "normal") else approach
+    snap = None
+    if standoff is not None or approach == "normal":
+        snap = snap_to_surface(scene, target)
+        if snap.distance_mm > MAX_SNAP_MM:
+            if approach == "normal" or direction is None:
+                raise InputError(field, "", f"is {snap.distance_mm:.2f} mm from the nearest "
+                                 f"surface ({snap.mesh!r}), more than {MAX_SNAP_MM:g} mm: give a "
+                                 f"point on the tissue for {names[0]} / {names[1]} normal, or "
+                                 f"{names[1]} X,Y,Z to stand off a free target along it")
+            snap = None
+    if snap is None:
+        return TipGoal(target, direction=direction, cone_deg=cone,
+                       standoff_mm=standoff or 0.0), {}
+    if approach == "normal":
+        direction = -snap.normal
+    goal = TipGoal(snap.point, direction=direction, cone_deg=cone, standoff_mm=standoff or 0.0,
+                   normal=snap.normal)
+    return goal, {"snap_distance_mm": float(snap.distance_mm), "snap_mesh": snap.mesh,
+                  "target_given": [float(v) for v in target]}
