@@ -22,7 +22,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 from bench_real_robot import THRESHOLDS, default_reduced, run  # noqa: E402
 
-
 # one worker runs this file (`make test-stat` distributes by xdist group): its module fixtures
 # are computed once
 pytestmark = pytest.mark.xdist_group("real_robot")
