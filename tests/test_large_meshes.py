@@ -74,6 +74,21 @@ def test_grid_backend_agrees_with_fcl_on_random_capsules():
     assert 120 < hits < 540
 
 
+def test_grid_backend_never_calls_a_huge_or_non_finite_capsule_free():
+    """A capsule whose axis reaches an enormous coordinate still crosses the mesh near the
+    origin: the grid's cell range must not overflow (it did: int64 of 1e30 / cell came out
+    negative and the capsule was reported free). A non-finite capsule is unsure: touching."""
+    box = trimesh.creation.box(extents=(10.0, 10.0, 10.0))
+    g = GridMeshes([box])
+    a = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, -1e30], [np.nan, 0.0, 0.0]])
+    b = np.array([[0.0, 0.0, 1e30], [1e300, 0.0, 0.0], [0.0, 0.0, 1e30], [1.0, 0.0, 0.0]])
+    for k in range(len(a)):      # each axis crosses the box's wall at 5 mm (or is NaN)
+        assert g.first_hit(a[k:k + 1], b[k:k + 1], np.array([0.1])) == 0, k
+    # a short capsule in the middle of the box stays free (the clamp changes nothing there)
+    assert g.first_hit(np.array([[0.0, 0.0, -1.0]]), np.array([[0.0, 0.0, 1.0]]),
+                       np.array([0.1])) == -1
+
+
 def test_worlds_on_either_backend_give_the_same_verdicts(seed1):
     """seed1 configurations in the neuro scene (6 meshes): verdicts, contacts and exact
     clearances equal with exact="grid" and exact="fcl"."""

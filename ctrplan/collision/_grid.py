@@ -207,8 +207,14 @@ def _min_d2(v, f, lo, c, dims, start, tris, p, q, reach, stop_below):
     for d in range(3):
         m0 = min(p[d], q[d]) - reach
         m1 = max(p[d], q[d]) + reach
-        i0[d] = max(int(math.floor((m0 - lo[d]) / c)), 0)
-        i1[d] = min(int(math.floor((m1 - lo[d]) / c)), dims[d] - 1)
+        if not (math.isfinite(m0) and math.isfinite(m1)):
+            return 0.0          # unsure (a non-finite segment): touching, never "free"
+        # clamp in floating point before the integer conversion: a cell index of a huge
+        # coordinate overflows int64 (it came out negative and the capsule looked free)
+        x0 = min(max((m0 - lo[d]) / c, -1.0), float(dims[d]))
+        x1 = min(max((m1 - lo[d]) / c, -1.0), float(dims[d]))
+        i0[d] = max(int(math.floor(x0)), 0)
+        i1[d] = min(int(math.floor(x1)), dims[d] - 1)
         if i0[d] > i1[d]:
             return np.inf
     half = 0.5 * c * math.sqrt(3.0)
