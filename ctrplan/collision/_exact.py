@@ -29,7 +29,7 @@ import math
 import numba as nb
 import numpy as np
 
-from ctrplan.collision._grid import _point_tri_d2, _seg_seg_d2
+from ctrplan.collision._grid import _point_tri_d2, _seg_seg_d2, cell_of
 
 #: Half-width (mm) of the band around contact (|d - r| <= TIE_MM) left to FCL: 100x the
 #: largest disagreement of FCL with the exact distance measured on random near-contact
@@ -118,13 +118,6 @@ def _far(px, py, pz, qx, qy, qz, ax, ay, az, bx, by, bz, cx, cy, cz, reach):
     return _seg_seg_d2(mx, my, mz, mx, my, mz, px, py, pz, qx, qy, qz) > lim * lim
 
 
-@nb.njit(cache=True, _nrt=False, inline="always")
-def _cell(x, lo, c, n):
-    """floor((x - lo) / c), the cell of coordinate x on a grid of n cells from lo, clamped
-    into [-1, n] in floating point first (a far coordinate never overflows the integer)."""
-    return int(math.floor(min(max((x - lo) / c, -1.0), float(n))))
-
-
 @nb.njit(cache=True, _nrt=False)
 def _pair_d2(px, py, pz, qx, qy, qz, reach, stop, V, F, S, start, tris, lox, loy, loz, c,
              nx, ny, nz, seen, tick):
@@ -137,9 +130,9 @@ def _pair_d2(px, py, pz, qx, qy, qz, reach, stop, V, F, S, start, tris, lox, loy
     xlo, xhi = min(px, qx) - reach, max(px, qx) + reach
     ylo, yhi = min(py, qy) - reach, max(py, qy) + reach
     zlo, zhi = min(pz, qz) - reach, max(pz, qz) + reach
-    i0, i1 = max(_cell(xlo, lox, c, nx), 0), min(_cell(xhi, lox, c, nx), nx - 1)
-    j0, j1 = max(_cell(ylo, loy, c, ny), 0), min(_cell(yhi, loy, c, ny), ny - 1)
-    k0, k1 = max(_cell(zlo, loz, c, nz), 0), min(_cell(zhi, loz, c, nz), nz - 1)
+    i0, i1 = max(cell_of(xlo, lox, c, nx), 0), min(cell_of(xhi, lox, c, nx), nx - 1)
+    j0, j1 = max(cell_of(ylo, loy, c, ny), 0), min(cell_of(yhi, loy, c, ny), ny - 1)
+    k0, k1 = max(cell_of(zlo, loz, c, nz), 0), min(cell_of(zhi, loz, c, nz), nz - 1)
     half = 0.5 * c * math.sqrt(3.0)
     lim = (reach + half) * (reach + half)
     best = np.inf

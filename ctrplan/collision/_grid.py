@@ -197,6 +197,13 @@ def _build(v, f, lo, c, dims):
     return count, tris
 
 
+@nb.njit(cache=True, _nrt=False, inline="always")
+def cell_of(x, lo, c, n):
+    """floor((x - lo) / c), the cell of coordinate x on a grid of n cells from lo, clamped
+    into [-1, n] in floating point first (a far coordinate never overflows the integer)."""
+    return int(math.floor(min(max((x - lo) / c, -1.0), float(n))))
+
+
 @nb.njit(cache=True)
 def _min_d2(v, f, lo, c, dims, start, tris, p, q, reach, stop_below):
     """Least squared segment-triangle distance over the triangles in cells that can hold a
@@ -209,12 +216,10 @@ def _min_d2(v, f, lo, c, dims, start, tris, p, q, reach, stop_below):
         m1 = max(p[d], q[d]) + reach
         if not (math.isfinite(m0) and math.isfinite(m1)):
             return 0.0          # unsure (a non-finite segment): touching, never "free"
-        # clamp in floating point before the integer conversion: a cell index of a huge
-        # coordinate overflows int64 (it came out negative and the capsule looked free)
-        x0 = min(max((m0 - lo[d]) / c, -1.0), float(dims[d]))
-        x1 = min(max((m1 - lo[d]) / c, -1.0), float(dims[d]))
-        i0[d] = max(int(math.floor(x0)), 0)
-        i1[d] = min(int(math.floor(x1)), dims[d] - 1)
+        # clamped before the integer conversion (:func:`cell_of`): a huge coordinate's cell
+        # overflowed int64 to a negative index and the capsule looked free
+        i0[d] = max(cell_of(m0, lo[d], c, dims[d]), 0)
+        i1[d] = min(cell_of(m1, lo[d], c, dims[d]), dims[d] - 1)
         if i0[d] > i1[d]:
             return np.inf
     half = 0.5 * c * math.sqrt(3.0)
