@@ -322,31 +322,34 @@ def parse_goal_values(standoff, approach, cone, names=FLAG_NAMES, error=None) ->
     in messages (``plan``'s flags, or the CSV columns); ``error(name, message)`` makes the
     exception raised (default: ``InputError(name, "", message)``)."""
     from ctrplan.errors import InputError
-    from ctrplan.io import excerpt, strict_float
 
     error = error or (lambda name, message: InputError(name, "", message))
     n_standoff, n_approach, n_cone = names
-    s = None
-    if standoff is not None:
-        try:
-            s = strict_float(standoff)
-        except ValueError:
-            s = math.nan
-        if not (math.isfinite(s) and 0 <= s <= MAX_STANDOFF_MM):
-            raise error(n_standoff, f"must be a distance in [0, {MAX_STANDOFF_MM:g}] mm, "
-                                    f"got {excerpt(standoff)}")
+    s = None if standoff is None else _number_value(
+        standoff, lambda v: 0 <= v <= MAX_STANDOFF_MM, n_standoff,
+        f"a distance in [0, {MAX_STANDOFF_MM:g}] mm", error)
     a = None if approach is None else _approach_value(approach, n_approach, error)
     c = None
     if cone is not None:
-        try:
-            c = strict_float(cone)
-        except ValueError:
-            c = math.nan
-        if not (math.isfinite(c) and 0 < c <= 90):
-            raise error(n_cone, f"must be a half-angle in (0, 90] degrees, got {excerpt(cone)}")
+        c = _number_value(cone, lambda v: 0 < v <= 90, n_cone, "a half-angle in (0, 90] degrees",
+                          error)
         if a is None:
             raise error(n_cone, f"needs {n_approach} (the cone's axis)")
     return s, a, c
+
+
+def _number_value(text, ok, name: str, what: str, error) -> float:
+    """``text`` as a finite number for which ``ok`` holds, else ``error(name, "must be
+    <what>, got ...")``."""
+    from ctrplan.io import excerpt, strict_float
+
+    try:
+        v = strict_float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and ok(v)):
+        raise error(name, f"must be {what}, got {excerpt(text)}")
+    return v
 
 
 def goal_for_target(target, scene, standoff, approach, cone, field: str = "--target",
