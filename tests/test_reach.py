@@ -304,9 +304,16 @@ def _interrupt_once(args, cwd: Path, sig: int, points: Path, after: int) -> set[
     before = len(list(points.glob("p*.json"))) if points.exists() else 0
     p = _cli(*args, cwd=cwd)
     deadline = time.monotonic() + 240
-    while time.monotonic() < deadline and p.poll() is None:
-        if points.exists() and len(list(points.glob("p*.json"))) >= before + after:
-            break
+    def count() -> int:
+        return len(list(points.glob("p*.json"))) if points.exists() else 0
+
+    while time.monotonic() < deadline and p.poll() is None and count() < before + after:
+        time.sleep(0.05)
+    # the screen writes the points it rules out in one burst, just before the pool starts (a
+    # Ctrl-C while workers are spawned is lost: interrupt.spawning); a file after the burst
+    # comes from the pool, so the signal below lands while the pool plans
+    burst = count()
+    while time.monotonic() < deadline and p.poll() is None and count() <= burst:
         time.sleep(0.05)
     if p.poll() is not None:
         p.communicate()
