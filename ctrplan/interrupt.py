@@ -186,8 +186,8 @@ def _checked_import(*args, **kwargs):
     their optional parts inside ``except BaseException`` (trimesh does), which swallows the
     KeyboardInterrupt; the check when the import returns raises it again."""
     module = _import(*args, **kwargs)
-    if _signal and _defer == 0:
-        check()
+    if _signal and _defer == 0 and threading.current_thread() is threading.main_thread():
+        check()      # only the main thread stops the command (a pool's feeder thread imports too)
     return module
 
 
@@ -233,6 +233,10 @@ def ignore_in_child() -> None:
     parent (Linux ``PR_SET_PDEATHSIG``) so that no worker outlives a parent killed with SIGKILL."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    # a worker starts with SIGINT blocked (worker_context): a Ctrl-C pending since then was
+    # discarded by ignoring it above; unblock so that the worker's own children start plainly
+    if os.name == "posix":
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     # tqdm guards its bars with a multiprocessing RLock, a named semaphore registered with the
     # parent's resource tracker; a worker killed mid-job never unregisters it, and the tracker
     # then prints "leaked semaphore objects" after the command's last line. A worker's bars (all
@@ -317,19 +321,75 @@ def stop_executor(ex) -> None:
 
 @contextlib.contextmanager
 def spawning() -> Iterator[None]:
-    """Start worker processes in the body: SIGINT is ignored meanwhile, and an ignored signal
-    is the one disposition a child keeps across ``exec``, so a terminal's Ctrl-C (sent to the
-    whole process group) cannot reach a worker's interpreter while it starts up (it would print
-    a traceback) before its initializer ignores SIGINT for good (:func:`ignore_in_child`).
-    The parent stops its workers itself. A Ctrl-C in this short window (milliseconds) is lost."""
-    if threading.current_thread() is not threading.main_thread() or os.name != "posix":
+    """Create a worker pool or submit to one (which may start workers) in the body: a signal
+    that comes meanwhile is recorded and raised when the body ends, never inside the library's
+    process bookkeeping (a pool half-built by an exception would lose track of a started
+    worker). Pools must use :func:`worker_context`, whose workers start with SIGINT blocked."""
+    with deferred():
         yield
+
+
+def _start_blocked(start, tracker: bool) -> None:
+    """Run ``Process.start`` with SIGINT blocked in this thread. The signal mask is inherited
+    through fork and ``exec``, so the worker's interpreter starts with SIGINT blocked: a
+    terminal's Ctrl-C (sent to the whole process group) stays pending in it, and its
+    initializer (:func:`ignore_in_child`) discards it by ignoring SIGINT. Here the signal is
+    not lost: it is delivered when the mask is restored, or meanwhile to another thread
+    (Python's handler then runs in the main thread as usual). Ignoring SIGINT instead would
+    lose a Ctrl-C that comes while a worker starts (an ignored signal is discarded)."""
+    if os.name != "posix":
+        start()
         return
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if tracker:
+        # the resource tracker unblocks SIGINT (in this thread) after it first starts: start it
+        # before blocking, or a spawned worker would inherit an unblocked mask
+        from multiprocessing import resource_tracker
+
+        resource_tracker.ensure_running()
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
-        yield
+        start()
     finally:
-        signal.signal(signal.SIGINT, old)
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+if os.name == "posix":
+    from multiprocessing import context as _mpc
+
+    class _SpawnProcess(_mpc.SpawnProcess):
+        """A spawned worker that starts with SIGINT blocked (:func:`_start_blocked`)."""
+
+        def start(self) -> None:
+            _start_blocked(super().start, tracker=True)
+
+    class _ForkProcess(_mpc.ForkProcess):
+        """A forked worker that starts with SIGINT blocked (:func:`_start_blocked`)."""
+
+        def start(self) -> None:
+            _start_blocked(super().start, tracker=False)
+
+    class _SpawnContext(_mpc.SpawnContext):
+        Process = _SpawnProcess
+
+    class _ForkContext(_mpc.ForkContext):
+        Process = _ForkProcess
+
+
+def worker_context(method: str = "spawn"):
+    """A ``multiprocessing`` context (``"spawn"`` or ``"fork"``) for worker pools whose workers
+    cannot be hit by a Ctrl-C before their initializer calls :func:`ignore_in_child`, and
+    whose start never drops a Ctrl-C meant for this process (:func:`_start_blocked`). Use it as
+    ``ctx.Pool(...)`` or ``ProcessPoolExecutor(mp_context=ctx)``, and create the pool or submit
+    to it inside :func:`spawning`."""
+    import multiprocessing as mp
+
+    if os.name != "posix":
+        return mp.get_context(method)
+    if method == "spawn":
+        return _SpawnContext()
+    if method == "fork":
+        return _ForkContext()
+    raise ValueError(f"worker_context: unknown start method {method!r}")
 
 
 def reset() -> None:

@@ -9,6 +9,7 @@ matrix of random moments over every command is ``@pytest.mark.statistical``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -185,6 +186,75 @@ def test_a_swallowed_interrupt_is_raised_again_at_the_next_import():
         "    except KeyboardInterrupt:\n"
         "        print('raised', interrupt.exit_code())\n")
     assert r.stdout.split("\n")[:2] == ["swallowed", "raised 130"], (r.stdout, r.stderr)
+
+
+_SPAWN_SCRIPT = """
+import multiprocessing.process as mpp, os, signal, sys, time
+import numpy as np
+from ctrplan import interrupt
+
+_start, _sent = mpp.BaseProcess.start, []
+
+def start(self):
+    _start(self)
+    if not _sent:    # Ctrl-C, as a terminal sends it (to the whole group), as the first worker starts
+        _sent.append(1)
+        os.killpg(0, signal.SIGINT)
+
+mpp.BaseProcess.start = start
+
+def slow(x, planners=None):
+    time.sleep(30)
+    return x, 0.0
+
+class SlowModel:
+    name = "slow"
+    def shape(self, q, points=20):
+        time.sleep(30)
+
+if __name__ == "__main__":
+    with interrupt.guard():
+        try:
+            if sys.argv[1] == "pool":
+                from ctrplan.planning.batch import _run_pool
+                _run_pool([1, 2, 3], 2, print, fn=slow)
+            elif sys.argv[1] == "runner":
+                from ctrplan.design.runner import Runner
+                with Runner(2, fn=slow) as r:
+                    r.map([{"stage": "plan"}, {"stage": "plan"}, {"stage": "plan"}])
+            else:
+                from ctrplan.shape.dataset import simulate_shapes
+                simulate_shapes(SlowModel(), np.zeros((3, 4)), workers=2, chunk=1, progress=False)
+            print("finished", flush=True)
+        except KeyboardInterrupt:
+            print("interrupted", flush=True)
+            sys.exit(130)
+"""
+
+
+@pytest.mark.parametrize("site", ["pool", "runner", "executor"])
+def test_ctrl_c_while_workers_start_is_not_lost(tmp_path, site):
+    """A Ctrl-C that comes while a pool's workers are being started (sent to the whole process
+    group, as a terminal does, right after the first worker process exists) stops the command:
+    the workers start with SIGINT blocked, so none prints a traceback, and the parent does not
+    drop the signal (it used to ignore SIGINT while starting workers: plan-batch, reach, design
+    and train then ran to the end and exited 0). Sites: the plan-batch/reach pool, the design
+    search's runner, the training-data executor (fork)."""
+    script = tmp_path / "spawn_interrupt.py"
+    script.write_text(_SPAWN_SCRIPT)
+    t0 = time.monotonic()
+    proc = subprocess.Popen([sys.executable, str(script), site], cwd=tmp_path, env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=120)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+    out, err = out.decode(), err.decode()
+    assert proc.returncode == 130 and out.split() == ["interrupted"], (proc.returncode, out, err)
+    assert "Traceback" not in err and "Error" not in err, err
+    assert time.monotonic() - t0 < 25, "the jobs ran (30 s each): the Ctrl-C was not acted on"
+    assert survivors(proc.pid) == []
 
 
 @pytest.fixture(scope="module")

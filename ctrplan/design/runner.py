@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import heapq
+import sys
 import time
 from collections.abc import Callable
 
@@ -51,15 +52,6 @@ def warm_worker(scene_spec, settings: dict) -> None:
     """Load the scene and its collision world into this worker (what its first job would)."""
     context(scene_spec, EvalSettings(**settings))
 
-
-def _worker_init() -> None:
-    import os
-
-    from ctrplan import interrupt
-
-    interrupt.ignore_in_child()   # Ctrl-C reaches the whole process group: the parent stops us
-    # one intra-op thread per worker (before torch is imported): the pool is the parallelism
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
 class Runner:
@@ -110,18 +102,24 @@ class Runner:
                 task = self._ray.remote(num_cpus=1)(warm_worker)
                 self._warming = [task.remote(*self.warm) for _ in range(self._capacity)]
         elif self.workers > 1:
-            import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor
 
-            # spawn, not fork: numba, torch and OMPL threads do not survive a fork reliably
-            self._ex = ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context("spawn"),
-                                           initializer=_worker_init)
+            from ctrplan import interrupt
+            from ctrplan.planning.batch import _worker_init
+
+            # spawn, not fork: numba, torch and OMPL threads do not survive a fork reliably;
+            # workers start with SIGINT blocked (the parent stops them)
+            self._ex = ProcessPoolExecutor(max_workers=self.workers, initializer=_worker_init,
+                                           mp_context=interrupt.worker_context("spawn"))
             self._capacity = self.workers
             if self.warm is not None:
-                from ctrplan import interrupt
-
-                with interrupt.spawning():   # workers start on demand, SIGINT ignored (the parent stops them)
-                    self._warming = [self._ex.submit(warm_worker, *self.warm) for _ in range(self.workers)]
+                try:
+                    with interrupt.spawning():   # workers start on demand; a Ctrl-C is raised after
+                        self._warming = [self._ex.submit(warm_worker, *self.warm)
+                                         for _ in range(self.workers)]
+                except BaseException:
+                    self.__exit__(*sys.exc_info())
+                    raise
         self.start_log()
         return self
 
@@ -208,7 +206,7 @@ class Runner:
             else:
                 from ctrplan import interrupt
 
-                with interrupt.spawning():   # workers start on demand, SIGINT ignored (the parent stops them)
+                with interrupt.spawning():   # workers start on demand; a Ctrl-C is raised after
                     self._running[self._ex.submit(self.fn, job)] = t
 
     def _collect(self) -> None:

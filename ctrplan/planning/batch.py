@@ -480,23 +480,26 @@ def _run_pool(todo: Sequence[Any], workers: int, record, fn=None) -> None:
     from ctrplan import interrupt
 
     # spawn, not fork: torch, numba and OMPL threads do not survive a fork reliably. The
-    # workers start with SIGINT ignored (interrupt.spawning).
-    with interrupt.spawning():
-        pool = mp.get_context("spawn").Pool(processes=max(1, min(workers, len(todo))),
-                                            initializer=_worker_init)
+    # workers start with SIGINT blocked (interrupt.worker_context); a Ctrl-C while they start
+    # is raised once the pool exists, so that the clean-up below stops them.
+    pool = None
     finished = False
     try:
+        with interrupt.spawning():
+            pool = interrupt.worker_context("spawn").Pool(
+                processes=max(1, min(workers, len(todo))), initializer=_worker_init)
         args = [asdict(job) for job in todo] if fn is None else list(todo)
         for res in pool.imap_unordered(fn or _run_job_json, args):
             record(res)
             interrupt.check()
         finished = True
     finally:
-        if finished:
-            pool.close()
-        else:
-            pool.terminate()
-        pool.join()
+        if pool is not None:
+            if finished:
+                pool.close()
+            else:
+                pool.terminate()
+            pool.join()
 
 
 def _worker_init() -> None:

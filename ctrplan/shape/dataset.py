@@ -104,13 +104,15 @@ def simulate_shapes(model: Any, q: np.ndarray, points: int = 20, workers: int | 
                 pb.update(len(qc))
         else:
             # fork: workers inherit the compiled kernels and scripts need no __main__ guard
-            ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
             from ctrplan import interrupt
+
+            # workers start with SIGINT blocked (their initializer ignores it; we stop them)
+            ctx = interrupt.worker_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
 
             ex = ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=ctx,
                                      initializer=_init_worker, initargs=(model,))
             try:
-                with interrupt.spawning():    # the workers start in map(), SIGINT ignored
+                with interrupt.spawning():    # the workers start in map(); a Ctrl-C is raised after it
                     results = ex.map(_solve_chunk, tasks)
                 for k, res in results:
                     parts[k] = res
