@@ -273,3 +273,38 @@ class ExactStage:
             res[pending[out == HIT]] = j
             res[pending[out == UNSURE]] = UNSURE
         return res
+
+    def pair_distance(self, a: np.ndarray, b: np.ndarray, r: float, j: int,
+                      lower: float = 0.0, limit: float = np.inf) -> float:
+        """Distance (mm) from the capsule (axis a -> b (3,), radius r) to mesh j's triangles,
+        -1 where they overlap (FCL's convention), NaN where this cannot say (a non-finite end
+        or radius, or one beyond FAR_MM: ask FCL). Where the distance is at least ``limit``, it
+        may return a lower bound that is itself at least ``limit``. ``lower``: a known lower
+        bound of the distance (the field's), where the search for triangles starts.
+
+        The triangles within a reach of the axis are searched (:func:`_pair_d2`), the reach
+        doubled until one is found or it passes ``limit``: the least segment-triangle distance
+        found within the reach is the exact one (every nearer triangle lies within it too)."""
+        px, py, pz = (float(v) for v in a)
+        qx, qy, qz = (float(v) for v in b)
+        r = float(r)
+        if not (max(abs(px), abs(py), abs(pz), abs(qx), abs(qy), abs(qz), r) < FAR_MM):
+            return math.nan
+        m = self.meshes[j]
+        c = float(m.g.c)
+        extra = max(float(lower), 0.0) + 2.0 * c
+        while True:
+            last = extra >= limit
+            span = min(extra, limit)
+            reach = r + span
+            self._ticks[0] += 1
+            d2 = _pair_d2(px, py, pz, qx, qy, qz, reach, -1.0, m.g.v, m.g.f, m.S, m.g.start,
+                          m.g.tris, m.lo[0], m.lo[1], m.lo[2], c, m.dims[0], m.dims[1], m.dims[2],
+                          m.seen, self._ticks[0])
+            if d2 <= reach * reach:
+                d = math.sqrt(d2) - r
+                return d if d >= 0.0 else -1.0
+            if last:
+                return span          # farther than limit: a lower bound at least limit
+            extra *= 2.0
+

@@ -68,7 +68,7 @@ class PlannerConfig:
         skips FCL where its conservative bound proves a state free or colliding.
     reference : re-verify the final path with this model at margin 0: "physics" (default; a
         calibrated model is re-verified with itself), or None to skip.
-    clearance_pairs : FCL distance queries allowed for each reported minimum clearance.
+    clearance_pairs : capsule-mesh pair distances allowed for each reported minimum clearance.
     output_step_mm : the returned path is subdivided so states are at most this far apart
         (metric mm); 0 returns the simplified waypoints only.
     output_points : backbone points per returned backbone.

@@ -44,7 +44,7 @@ class PlanResult:
         (nan without a path); tip_error_physics_mm : the same with the physics model.
     min_clearance_mm : smallest distance (mm) from the tube (capsules of radius + sagitta
         bound, margin not included) to the anatomy over the verified states, planning model;
-        ``min_clearance_exact`` says whether it is FCL's exact minimum (True) or a lower bound
+        ``min_clearance_exact`` says whether it is the exact minimum (True) or a lower bound
         (False: the distance-query budget did not settle it). nan without a path.
     min_clearance_reference_mm, min_clearance_reference_exact : the same for the reference
         model (``reference_model``: physics, or the calibrated model) at margin 0.
@@ -64,7 +64,7 @@ class PlanResult:
     clearance_profile : (K,) mm, one per ``path`` state: the planning model's tube (capsules
         of radius + sagitta bound, margin not included) to the anatomy, estimated from the
         distance fields (the interpolated distance to the nearest surface sample; within about
-        the field's sample spacing of FCL's distance; ``min_clearance_mm`` is FCL's).
+        the field's sample spacing of the exact distance; ``min_clearance_mm`` is exact).
     calibrated : whether the planning model carries an error bound measured on a robot
         (``error_bound: measured``: ``diagnose`` output, a model trained with ``--real`` on
         measurements; :func:`~ctrplan.shape.error_bounds.is_calibrated`); if not, clearances

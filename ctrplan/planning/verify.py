@@ -5,7 +5,7 @@ The path is checked at ``resolution / verify_factor`` with exact verdicts on the
 is re-planned with a finer validator, :func:`repair`), then with the reference model at margin
 0; the optimised path is tried first and the simplified one last (:func:`verify_optimized`).
 :func:`output` subdivides the verified path for execution and measures it: tip errors, the
-clearances under both models (:func:`path_min_clearance`, FCL's exact minimum by branch and
+clearances under both models (:func:`path_min_clearance`, the exact minimum by branch and
 bound), the clearance profile, each state's branch and stability.
 """
 
@@ -247,12 +247,12 @@ def path_min_clearance(validator: BatchValidator, world, check, points: int | No
                        batch: int = 16, max_pairs: int = 300) -> tuple[float, bool, int]:
     """Smallest clearance (mm) over the verified states of a path, by branch and bound.
 
-    The world's conservative clearance of every state is a lower bound of its FCL distance.
+    The world's conservative clearance of every state is a lower bound of its exact distance.
     States are taken in order of increasing bound and measured exactly
     (:meth:`CollisionWorld.clearance_bounded`, itself a branch and bound over capsule-mesh
     pairs) until the smallest distance found is no larger than the next state's bound: then it
-    is the exact minimum. The work is capped at ``max_pairs`` FCL distance queries (about 2 ms
-    each; a count, not a time, so the same path always gives the same value); if that does not
+    is the exact minimum. The work is capped at ``max_pairs`` pair distances (a count, not a
+    time, so the same path always gives the same value); if that does not
     settle it, the result is a valid lower bound, at least 0 (the states passed the exact
     collision check). Returns (value, exact, states measured).
     """
