@@ -277,6 +277,37 @@ def test_field_clearance_estimate_is_near_fcl_distance():
     assert np.max(np.abs(estimate - exact)) <= h, np.c_[exact, estimate]
 
 
+def test_field_clearance_point_distance_is_the_trilinear_interpolation():
+    """The estimate's point distance is the trilinear interpolation of the field's stored
+    distances (oracle: scipy's RegularGridInterpolator on the same grid), inf outside every
+    grid and for non-finite points, the least over the meshes."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    from ctrplan.planning.optimize import FieldClearance
+
+    world = CollisionWorld(load_scene("neuro"))
+    fc = FieldClearance(world)
+    rng = np.random.default_rng(5)
+    want = None
+    pts = None
+    for origin, h, ub in fc.grids:
+        axes = [origin[i] + h * np.arange(ub.shape[i]) for i in range(3)]
+        span = np.array(ub.shape) * h
+        if pts is None:
+            pts = origin + rng.uniform(-0.1, 1.1, (5000, 3)) * span
+            pts[:3] = [np.nan, 0.0, 0.0]
+            want = np.full(len(pts), np.inf)
+        f = RegularGridInterpolator(axes, ub.astype(float), bounds_error=False, fill_value=np.inf)
+        inside = np.all((pts >= origin) & (pts < origin + h * (np.array(ub.shape) - 1)), axis=1)
+        want[inside] = np.minimum(want[inside], f(pts[inside]))
+    got = fc.point_distance(pts)
+    assert np.isinf(got[:3]).all()
+    np.testing.assert_array_equal(np.isinf(got), np.isinf(want))
+    fin = np.isfinite(want)
+    assert fin.sum() > 1000 and (~fin).sum() > 500
+    np.testing.assert_allclose(got[fin], want[fin], rtol=1e-9, atol=1e-9)
+
+
 def test_optimiser_stops_at_the_time_cap_with_the_input_path():
     from ctrplan.collision.capsules import curvature_bound
     from ctrplan.planning.optimize import optimize_path

@@ -39,6 +39,7 @@ import math
 import time
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 
 from ctrplan.planning.validator import (
@@ -109,6 +110,34 @@ class OptimizeResult:
     time_cap_hit: bool = False
 
 
+@nb.njit(cache=True)
+def _trilinear_min(p, origin, h, ub, out):
+    """out[i] = min(out[i], trilinear interpolation of ``ub`` (nx, ny, nz) at point p[i]) for
+    the points inside the grid's cells (origin (3,), spacing h); the others are left alone."""
+    nx, ny, nz = ub.shape
+    for i in range(p.shape[0]):
+        x = (p[i, 0] - origin[0]) / h
+        y = (p[i, 1] - origin[1]) / h
+        z = (p[i, 2] - origin[2]) / h
+        if not (x >= 0.0 and y >= 0.0 and z >= 0.0):     # NaN too
+            continue
+        fx, fy, fz = math.floor(x), math.floor(y), math.floor(z)
+        if fx >= nx - 1 or fy >= ny - 1 or fz >= nz - 1:
+            continue
+        ix, iy, iz = int(fx), int(fy), int(fz)
+        tx, ty, tz = x - fx, y - fy, z - fz
+        val = 0.0
+        for dx in range(2):
+            wx = tx if dx else 1.0 - tx
+            for dy in range(2):
+                wy = ty if dy else 1.0 - ty
+                for dz in range(2):
+                    wz = tz if dz else 1.0 - tz
+                    val += wx * wy * wz * ub[ix + dx, iy + dy, iz + dz]
+        if val < out[i]:
+            out[i] = val
+
+
 class FieldClearance:
     """Estimated clearance of capsule chains from a collision world's distance fields.
 
@@ -126,30 +155,10 @@ class FieldClearance:
 
     def point_distance(self, p: np.ndarray) -> np.ndarray:
         """(N,) estimated distance (mm) from points (N, 3), scene frame, to the nearest mesh."""
-        p = np.asarray(p, dtype=float)
+        p = np.ascontiguousarray(p, dtype=float)
         out = np.full(len(p), np.inf)
         for origin, h, ub in self.grids:
-            x = (p - origin) / h
-            i0 = np.floor(x).astype(np.int64)
-            shape = np.array(ub.shape)
-            inside = np.all((i0 >= 0) & (i0 < shape - 1), axis=1)
-            if not inside.any():
-                continue
-            i0, t = i0[inside], x[inside] - i0[inside]
-            flat = ub.reshape(-1)
-            sy, sz = shape[2], 1
-            sx = shape[1] * shape[2]
-            base = i0[:, 0] * sx + i0[:, 1] * sy + i0[:, 2] * sz
-            val = np.zeros(len(base))
-            for dx in (0, 1):
-                wx = t[:, 0] if dx else 1.0 - t[:, 0]
-                for dy in (0, 1):
-                    wy = t[:, 1] if dy else 1.0 - t[:, 1]
-                    for dz in (0, 1):
-                        wz = t[:, 2] if dz else 1.0 - t[:, 2]
-                        val += wx * wy * wz * flat[base + dx * sx + dy * sy + dz * sz]
-            sub = out[inside]
-            out[inside] = np.minimum(sub, val)
+            _trilinear_min(p, origin, h, ub, out)
         return out
 
     def capsule_clearance(self, shape) -> np.ndarray:
