@@ -51,7 +51,7 @@ def _pct(x: list[float], q: float) -> float:
     return float(np.percentile(x, q)) if x else float("nan")
 
 
-def run(quick: bool = False, recheck: bool = False) -> dict:
+def run(quick: bool = False, recheck: bool = False, models: tuple[str, ...] = MODELS) -> dict:
     # numba's pool through its API: NUMBA_NUM_THREADS set after numba is imported (as under
     # `ctrplan bench`) makes numba refuse every later compile in the process
     numba.set_num_threads(1)
@@ -62,7 +62,7 @@ def run(quick: bool = False, recheck: bool = False) -> dict:
     for scene_name in scenes:
         scene = load_scene(scene_name)
         targets = scene.targets[:2] if quick else scene.targets
-        for model in MODELS:
+        for model in models:
             t0 = time.perf_counter()
             planner = Planner(ROBOT, scene, model)
             planner.plan(targets[0].position, seed=99, planner=PLANNER, time_limit=TIME_LIMIT)
@@ -89,7 +89,7 @@ def run(quick: bool = False, recheck: bool = False) -> dict:
                         **{f"{s}_s": r.timings.get(s, 0.0) for s in STAGES},
                     })
     table = []
-    groups = [(s, m) for m in MODELS for s in scenes] + [("all", m) for m in MODELS]
+    groups = [(s, m) for m in models for s in scenes] + [("all", m) for m in models]
     for scene_name, model in groups:
         rs = [p for p in plans if p["model"] == model and scene_name in ("all", p["scene"])]
         if not rs:
@@ -123,6 +123,7 @@ def run(quick: bool = False, recheck: bool = False) -> dict:
             "physics_over_learned_median_cpu": by[("all", "physics")]["median_cpu_s"] / by[("all", "learned")]["median_cpu_s"],
         }
     return {"robot": ROBOT, "planner": PLANNER, "time_limit_s": TIME_LIMIT, "seeds": seeds,
+            "models": list(models), "recheck": bool(recheck),
             "scenes": scenes, "table": table, "ratios": ratio, "warmup_s": warmup, "plans": plans}
 
 
@@ -132,8 +133,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=None, help="write the results as JSON here")
     ap.add_argument("--recheck", action="store_true",
                     help="re-check every successful path independently (8x densified, physics, FCL)")
+    ap.add_argument("--models", default=",".join(MODELS),
+                    help=f"comma-separated planning models (default: {','.join(MODELS)})")
     args = ap.parse_args(argv)
-    res = run(quick=args.quick, recheck=args.recheck)
+    models = tuple(m.strip() for m in args.models.split(",") if m.strip())
+    bad = [m for m in models if m not in MODELS]
+    if bad or not models:
+        ap.error(f"--models: expected some of {', '.join(MODELS)}, got {args.models!r}")
+    res = run(quick=args.quick, recheck=args.recheck, models=models)
     for r in res["table"]:
         print(f"{r['scene']:>15} {r['model']:>8}: {r['plans']:4d} plans, success "
               f"{100 * r['success_rate']:5.1f}%, wall median {r['median_s']:.2f} s p90 {r['p90_s']:.2f} s, "
