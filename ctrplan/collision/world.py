@@ -314,9 +314,8 @@ class CollisionWorld:
         configurations give -1 (FCL's convention: no depth).
 
         Branch and bound over capsule-mesh pairs: with the prefilter on, each pair gets the
-        field's lower bound first and pairs are
-        measured in order of that bound until the smallest distance found is no larger than the
-        next bound (the exact minimum, usually after a few pairs instead of K x meshes). Where a
+        field's lower bound first and pairs are measured in order of that bound until the
+        smallest distance found is no larger than the next bound (the exact minimum, usually after a few pairs instead of K x meshes). Where a
         configuration's distance is at least ``below``, it may return a lower bound that is
         itself at least ``below`` (callers taking a minimum over many configurations pass the
         best value found so far)."""
@@ -326,8 +325,9 @@ class CollisionWorld:
                           max_pairs: int | None = None) -> tuple[np.ndarray, int]:
         """:meth:`clearance_exact` with a budget of ``max_pairs`` pair distances. A pair is
         measured by the second stage's closed-form segment-triangle distances
-        (:meth:`~ctrplan.collision._exact.ExactStage.pair_distance`, equal to FCL's within its
-        1e-5 mm tolerance, some 50x cheaper), by FCL where the stage is off
+        (:meth:`~ctrplan.collision._exact.ExactStage.pair_distance`, equal to FCL's distance
+        query within FCL's tolerance, and cheaper: no FCL object per query, the search starts
+        at the field's bound), by FCL where the stage is off
         (``second_stage=False``) or the capsule is not finite or far out. Returns
         (values (B,), pairs measured). Once the budget is spent, the remaining configurations
         get lower bounds (the field's) instead of exact values; every value is exact or a lower

@@ -53,7 +53,6 @@ def warm_worker(scene_spec, settings: dict) -> None:
     context(scene_spec, EvalSettings(**settings))
 
 
-
 class Runner:
     """Runs evaluation jobs in this process, on a spawned process pool (``workers > 1``) or on
     Ray (``ray_address``); see the module's docstring. ``fn(job, planners=None) -> (result,

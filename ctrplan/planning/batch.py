@@ -475,7 +475,6 @@ def _run_pool(todo: Sequence[Any], workers: int, record, fn=None) -> None:
     (``Pool.terminate``: a job in the middle of planning is not waited for) and joined, so no
     worker outlives the command; workers ignore Ctrl-C themselves and die with the parent if
     it is killed (:func:`ctrplan.interrupt.ignore_in_child`)."""
-
     from ctrplan import interrupt
 
     # spawn, not fork: torch, numba and OMPL threads do not survive a fork reliably. The
