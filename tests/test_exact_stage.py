@@ -200,6 +200,13 @@ def test_stage_far_and_non_finite_capsules():
     got = stage.decide(a[:, None], b[:, None], r[:, None], np.arange(len(a)),
                        np.full((len(a), 1), 3, dtype=np.uint64))
     np.testing.assert_array_equal(got, [FREE, 0, UNSURE, UNSURE, UNSURE, FREE])
+    # a NaN anywhere (not only where a max() over the coordinates would meet it first)
+    a = np.array([[0.0, 0.0, 0.0], [9.0, 0.0, 0.0], [20.0, 0.0, 0.0], [9.0, 0.0, 0.0]])
+    b = np.array([[np.nan, 0.0, 3.0], [9.0, np.nan, 0.0], [20.0, 0.0, np.nan], [9.0, 0.0, 0.0]])
+    r = np.array([1.0, 1.0, 1.0, np.nan])
+    got = stage.decide(a[:, None], b[:, None], r[:, None], np.arange(len(a)),
+                       np.full((len(a), 1), 3, dtype=np.uint64))
+    np.testing.assert_array_equal(got, [UNSURE] * 4)
 
 
 def test_fcl_contact_band_is_inside_the_tie_band():
@@ -304,9 +311,14 @@ def test_pair_distance_against_brute_force_over_all_triangles(capsule_cases):
         assert np.all(capped[far] >= limit) and np.all(capped[far] <= want[far] + 1e-9)
         near = sure & ~over & (want < limit)
         np.testing.assert_allclose(capped[near], want[near], atol=1e-9)
-    far_a = np.array([[np.nan, 0, 0], [3e6, 0, 0]])
-    for p in far_a:
-        assert np.isnan(stage.pair_distance(p, p + 1.0, 1.0, 0))
+    for p in np.array([[np.nan, 0, 0], [0, np.nan, 0], [0, 0, np.inf], [3e6, 0, 0]]):
+        assert np.isnan(stage.pair_distance(p, np.zeros(3), 1.0, 0))
+        assert np.isnan(stage.pair_distance(np.zeros(3), p, 1.0, 0))
+    assert np.isnan(stage.pair_distance(np.zeros(3), np.ones(3), np.nan, 0))
+    # far from the mesh (the search widens until it reaches it): the oracle's distance
+    p, q = np.array([400.0, -300.0, 250.0]), np.array([401.0, -300.0, 252.0])
+    want = _oracle_distance(p[None], q[None], meshes[0])[0] - 0.5
+    assert abs(stage.pair_distance(p, q, 0.5, 0) - want) < 1e-9
 
 
 @pytest.mark.parametrize("name", ["airway", "bronchial_tree"])

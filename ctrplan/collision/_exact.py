@@ -174,6 +174,14 @@ def _pair_d2(px, py, pz, qx, qy, qz, reach, stop, V, F, S, start, tris, lox, loy
     return best
 
 
+@nb.njit(cache=True, _nrt=False, inline="always")
+def _within_far(px, py, pz, qx, qy, qz, r):
+    """Whether every coordinate and the radius is finite and below FAR_MM in magnitude (each
+    compared on its own: a max() over them may pass a NaN by, as NaN compares false)."""
+    return (abs(px) < FAR_MM and abs(py) < FAR_MM and abs(pz) < FAR_MM and abs(qx) < FAR_MM
+            and abs(qy) < FAR_MM and abs(qz) < FAR_MM and abs(r) < FAR_MM)
+
+
 @nb.njit(cache=True, _nrt=False)
 def _decide_mesh(a, b, r, rows, unsure, bit, V, F, S, start, tris, lo, c, dims, tie, seen,
                  ticks, out):
@@ -192,7 +200,7 @@ def _decide_mesh(a, b, r, rows, unsure, bit, V, F, S, start, tris, lo, c, dims, 
             rk = r[i, k]
             px, py, pz = a[i, k, 0], a[i, k, 1], a[i, k, 2]
             qx, qy, qz = b[i, k, 0], b[i, k, 1], b[i, k, 2]
-            if not (max(abs(px), abs(py), abs(pz), abs(qx), abs(qy), abs(qz), rk) < FAR_MM):
+            if not _within_far(px, py, pz, qx, qy, qz, rk):
                 res = UNSURE        # not finite, or beyond what the closed form resolves
                 continue
             reach = rk + tie
@@ -229,6 +237,9 @@ class _Mesh:
         else:
             self.S = np.zeros((0, 4))
         self.seen = np.zeros(len(f), dtype=np.int64)
+        lo, hi = (v.min(axis=0), v.max(axis=0)) if len(v) else (np.zeros(3), np.zeros(3))
+        self.centre = tuple(float(x) for x in 0.5 * (lo + hi))
+        self.half_diag = 0.5 * float(np.linalg.norm(hi - lo))
         self.lo = np.asarray(grid.lo, dtype=np.float64)
         self.dims = np.asarray(grid.dims, dtype=np.int64)
 
@@ -288,13 +299,15 @@ class ExactStage:
         px, py, pz = (float(v) for v in a)
         qx, qy, qz = (float(v) for v in b)
         r = float(r)
-        if not (max(abs(px), abs(py), abs(pz), abs(qx), abs(qy), abs(qz), r) < FAR_MM):
+        if not _within_far(px, py, pz, qx, qy, qz, r):
             return math.nan
         m = self.meshes[j]
         c = float(m.g.c)
         extra = max(float(lower), 0.0) + 2.0 * c
+        # beyond this reach every triangle of the mesh is within it (the search cannot go on)
+        whole = math.dist((px, py, pz), m.centre) + m.half_diag + 2.0 * c
         while True:
-            last = extra >= limit
+            last = extra >= limit or extra >= whole
             span = min(extra, limit)
             reach = r + span
             self._ticks[0] += 1
@@ -305,6 +318,8 @@ class ExactStage:
                 d = math.sqrt(d2) - r
                 return d if d >= 0.0 else -1.0
             if last:
-                return span          # farther than limit: a lower bound at least limit
+                # farther than limit: a lower bound at least limit; else the whole mesh was
+                # searched and has no triangle
+                return span if span >= limit else math.inf
             extra *= 2.0
 
