@@ -74,6 +74,20 @@ def test_grid_backend_agrees_with_fcl_on_random_capsules():
     assert 120 < hits < 540
 
 
+def test_grid_backend_distance_far_from_a_small_mesh():
+    """A capsule hundreds of mm from a small mesh (farther than the mesh's diagonal plus the
+    capsule's length): the grid backend's widening search still reaches it, the distance FCL's
+    (it used to stop and report inf, a clearance above the truth)."""
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=5.0)
+    grid, fcl = GridMeshes([ball]), FclMeshes([ball])
+    for p, q in [([400.0, -300.0, 250.0], [401.0, -300.0, 252.0]),
+                 ([0.0, 0.0, 90.0], [0.0, 0.0, 90.0])]:
+        p, q = np.array(p), np.array(q)
+        got = grid.pair_distance(p, q, 0.5, 0)
+        want = fcl.pair_distance(p, q, 0.5, 0)
+        assert np.isfinite(got) and abs(got - want) <= 1e-3 + 3e-3 * want, (got, want)
+
+
 def test_grid_backend_never_calls_a_huge_or_non_finite_capsule_free():
     """A capsule whose axis reaches an enormous coordinate still crosses the mesh near the
     origin: the grid's cell range must not overflow (it did: int64 of 1e30 / cell came out

@@ -237,9 +237,6 @@ class _Mesh:
         else:
             self.S = np.zeros((0, 4))
         self.seen = np.zeros(len(f), dtype=np.int64)
-        lo, hi = (v.min(axis=0), v.max(axis=0)) if len(v) else (np.zeros(3), np.zeros(3))
-        self.centre = tuple(float(x) for x in 0.5 * (lo + hi))
-        self.half_diag = 0.5 * float(np.linalg.norm(hi - lo))
         self.lo = np.asarray(grid.lo, dtype=np.float64)
         self.dims = np.asarray(grid.dims, dtype=np.int64)
 
@@ -305,7 +302,7 @@ class ExactStage:
         c = float(m.g.c)
         extra = max(float(lower), 0.0) + 2.0 * c
         # beyond this reach every triangle of the mesh is within it (the search cannot go on)
-        whole = math.dist((px, py, pz), m.centre) + m.half_diag + 2.0 * c
+        whole = math.dist((px, py, pz), m.g.centre) + m.g.diag
         while True:
             last = extra >= limit or extra >= whole
             span = min(extra, limit)

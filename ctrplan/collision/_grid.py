@@ -264,6 +264,9 @@ class _MeshGrid:
         self.dims = np.maximum(np.ceil((ext + 2e-9) / c).astype(np.int64), 1)
         self.start, self.tris = _build(self.v, self.f, self.lo, self.c, self.dims)
         self.diag = float(np.linalg.norm(ext)) + c
+        #: the centre of the vertices' bounding box: every point of the mesh lies within
+        #: diag / 2 of it
+        self.centre = 0.5 * (lo + hi)
 
     def min_d2(self, p, q, reach, stop_below=-1.0):
         return _min_d2(self.v, self.f, self.lo, self.c, self.dims, self.start, self.tris,
@@ -272,9 +275,12 @@ class _MeshGrid:
     def distance(self, p, q) -> float:
         """Exact distance from segment p-q to the mesh (an expanding search)."""
         reach = self.c
+        # once the reach passes this, every triangle lies within it (from p, the centre, then
+        # half the diagonal): the search has seen them all
+        whole = float(np.linalg.norm(p - self.centre)) + self.diag
         while True:
             d2 = self.min_d2(p, q, reach)
-            if d2 <= reach * reach or reach > self.diag + np.linalg.norm(q - p):
+            if d2 <= reach * reach or reach > whole:
                 return math.sqrt(d2)
             reach *= 2.0
 
