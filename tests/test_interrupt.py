@@ -454,6 +454,6 @@ def test_interrupt_table_is_walked():
     text = (ROOT / "docs" / "bad-input.md").read_text(encoding="utf-8")
     block = text[text.index("<!-- branch intr -->"):text.index("<!-- end branch intr -->")]
     rows = re.findall(r"^\| ([a-z-]+) \|.*\| (test_[a-z0-9_]+) \|$", block, flags=re.M)
-    assert len(rows) == 8
+    assert len(rows) == 9
     for row, test in rows:
         assert callable(globals().get(test) or getattr(crash, test, None)), (row, test)
