@@ -301,17 +301,17 @@ def _interrupt_once(args, cwd: Path, sig: int, points: Path, after: int) -> set[
     import os
     import time
 
-    before = len(list(points.glob("p*.json"))) if points.exists() else 0
-    p = _cli(*args, cwd=cwd)
-    deadline = time.monotonic() + 240
     def count() -> int:
         return len(list(points.glob("p*.json"))) if points.exists() else 0
 
+    before = count()
+    p = _cli(*args, cwd=cwd)
+    deadline = time.monotonic() + 240
     while time.monotonic() < deadline and p.poll() is None and count() < before + after:
         time.sleep(0.05)
-    # the screen writes the points it rules out in one burst, just before the pool starts (a
-    # Ctrl-C while workers are spawned is lost: interrupt.spawning); a file after the burst
-    # comes from the pool, so the signal below lands while the pool plans
+    # the screen writes the points it rules out in one burst, just before the pool starts; a
+    # file after the burst comes from the pool, so the signal below lands while the pool plans
+    # (a Ctrl-C while workers start is tested in test_interrupt.py)
     burst = count()
     while time.monotonic() < deadline and p.poll() is None and count() <= burst:
         time.sleep(0.05)

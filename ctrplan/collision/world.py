@@ -315,8 +315,8 @@ class CollisionWorld:
 
         Branch and bound over capsule-mesh pairs: with the prefilter on, each pair gets the
         field's lower bound first and pairs are measured in order of that bound until the
-        smallest distance found is no larger than the next bound (the exact minimum, usually after a few pairs instead of K x meshes). Where a
-        configuration's distance is at least ``below``, it may return a lower bound that is
+        smallest distance found is no larger than the next bound (the exact minimum, usually
+        after a few pairs instead of K x meshes). Where a configuration's distance is at least ``below``, it may return a lower bound that is
         itself at least ``below`` (callers taking a minimum over many configurations pass the
         best value found so far)."""
         return self.clearance_bounded(shape, below)[0]

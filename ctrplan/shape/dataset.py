@@ -103,10 +103,10 @@ def simulate_shapes(model: Any, q: np.ndarray, points: int = 20, workers: int | 
                 parts[k] = (sh.points, sh.s, sh.radius, sh.ok)
                 pb.update(len(qc))
         else:
-            # fork: workers inherit the compiled kernels and scripts need no __main__ guard
             from ctrplan import interrupt
 
-            # workers start with SIGINT blocked (their initializer ignores it; we stop them)
+            # fork: workers inherit the compiled kernels and scripts need no __main__ guard;
+            # they start with SIGINT blocked (their initializer ignores it; we stop them)
             ctx = interrupt.worker_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
 
             ex = ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=ctx,
