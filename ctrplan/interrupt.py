@@ -301,22 +301,36 @@ def kill_descendants() -> None:
             os.kill(pid, signal.SIGKILL)
 
 
-def stop_executor(ex) -> None:
-    """Stop a ``concurrent.futures.ProcessPoolExecutor`` now: kill its workers (a task in
-    progress is not waited for), cancel what is queued, and reap them."""
-    procs = list((getattr(ex, "_processes", None) or {}).values())   # no public way to do this
+def _stop_workers(procs: list, shutdown) -> None:
+    """Kill the worker processes ``procs``, run the pool's ``shutdown()`` in a daemon thread
+    waited for a few seconds at most (it takes locks a killed worker, or an interruption in the
+    pool's own code, may have left held), and reap the workers."""
     for proc in procs:
         with contextlib.suppress(Exception):
             proc.kill()
-    # shutdown takes the executor's lock, which an interruption inside submit() may have left
-    # in an odd state: never wait for it more than a few seconds
-    t = threading.Thread(target=ex.shutdown, kwargs={"wait": False, "cancel_futures": True},
-                         daemon=True)
+    t = threading.Thread(target=shutdown, daemon=True)
     t.start()
     t.join(5)
     for proc in procs:
         with contextlib.suppress(Exception):
             proc.join(5)
+
+
+def stop_executor(ex) -> None:
+    """Stop a ``concurrent.futures.ProcessPoolExecutor`` now: kill its workers (a task in
+    progress is not waited for), cancel what is queued, and reap them. (Its shutdown takes the
+    executor's lock, which an interruption inside submit() may have left in an odd state.)"""
+    procs = list((getattr(ex, "_processes", None) or {}).values())   # no public way to do this
+    _stop_workers(procs, lambda: ex.shutdown(wait=False, cancel_futures=True))
+
+
+def stop_pool(pool) -> None:
+    """Stop a ``multiprocessing.Pool`` now: kill its workers (a job in progress is not waited
+    for) and reap them. ``Pool.terminate`` first takes the task queue's read lock, which an idle
+    worker holds while it waits for a task: a worker killed there (SIGTERM to the process group
+    kills the workers too) never releases it, and terminate, then join, would wait for ever
+    (the watchdog then killed the command: exit 137 instead of 143)."""
+    _stop_workers(list(getattr(pool, "_pool", None) or []), pool.terminate)   # no public way
 
 
 @contextlib.contextmanager

@@ -472,9 +472,9 @@ def _run_pool(todo: Sequence[Any], workers: int, record, fn=None) -> None:
     recording each result as it comes.
 
     On SIGINT / SIGTERM (KeyboardInterrupt here) or any error the workers are killed at once
-    (``Pool.terminate``: a job in the middle of planning is not waited for) and joined, so no
-    worker outlives the command; workers ignore Ctrl-C themselves and die with the parent if
-    it is killed (:func:`ctrplan.interrupt.ignore_in_child`)."""
+    (:func:`ctrplan.interrupt.stop_pool`: a job in the middle of planning is not waited for)
+    and joined, so no worker outlives the command; workers ignore Ctrl-C themselves and die
+    with the parent if it is killed (:func:`ctrplan.interrupt.ignore_in_child`)."""
     from ctrplan import interrupt
 
     # spawn, not fork: torch, numba and OMPL threads do not survive a fork reliably. The
@@ -495,9 +495,9 @@ def _run_pool(todo: Sequence[Any], workers: int, record, fn=None) -> None:
         if pool is not None:
             if finished:
                 pool.close()
+                pool.join()
             else:
-                pool.terminate()
-            pool.join()
+                interrupt.stop_pool(pool)
 
 
 def _worker_init() -> None:
