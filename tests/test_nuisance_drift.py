@@ -79,3 +79,38 @@ def test_a_constant_offset_is_not_a_drift(walk):
     robot, q, sw, t = walk
     r = np.tile([1.2, -0.9, 1.5], (ROWS, 1))
     assert not _screen(robot, q, sw, t, r, 0)["~drift"]
+
+
+def test_a_drift_is_claimed_when_test_blocks_cut_the_recording(walk):
+    """Held-out test blocks leave gaps in time. Here they take every other sixteenth of the
+    recording's second half, where spans of equal time put every fit + validation row of that
+    half in one parity: the drift was fitted on the first half only and extrapolated over the
+    second (the warm-up's slope carried on past its end) and was not claimed. The spans now
+    cut the fit + validation rows themselves, and only rows between fit rows are compared."""
+    from dataclasses import replace
+
+    robot, q, sw, t = walk
+    x = (t - t.min()) / np.ptp(t)
+    # a sensor warming up at a steady rate for 60 % of the recording, then settled
+    r = np.outer(3.0 * np.minimum(x, 0.6) / 0.6, [0.6, -0.48, 0.64])
+    r -= r.mean(0)
+    rng = np.random.default_rng(0)
+    tip_pred = np.stack([30.0 * np.cos(q[:, 0]), 30.0 * np.sin(q[:, 0]), 120.0 + 0.3 * q[:, 3]], axis=1)
+    data = MeasuredData(q=q, tip=tip_pred + r + NOISE * rng.standard_normal((ROWS, 3)), time=t, sweep=sw)
+    span = np.minimum(np.floor(x * 16), 15).astype(int)
+    test = (span >= 8) & (span % 2 == 0)
+    base = split_rows(data, 0.25, 0)
+    train = ~test
+    val = train & (np.arange(ROWS) % 4 == 0)
+    split = replace(base, fit=train & ~val, val=val, test=test, train=train, gap=None, heldout=None)
+    p = tip_pred[:, None, :]
+    out = screen(robot, None, data, split, p, p, {}, [], 0.05)
+    drift = next(o for o in out.tests if o["kind"] == "~drift")
+    assert drift["compared_on"] == "alternate spans of time"
+    assert drift["claimed"], drift["why"]
+    # the residual is a function of time the spline follows plus noise of known size: where
+    # it is interpolated, the drift leaves about the noise (mean |N(0, 0.1^2 I3)| = 0.16 mm)
+    # on both residuals; extrapolated over the second half it left 0.70 mm and 3.17 mm
+    noise = NOISE * np.sqrt(8 / np.pi)
+    assert drift["validation_mean_with_mm"] < 2 * noise, drift["why"]
+    assert drift["base_validation_mean_with_mm"] < 3 * noise, drift["why"]

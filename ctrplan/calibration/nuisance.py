@@ -82,10 +82,11 @@ RIDGE = 1e-2
 DRIFT_KNOTS = 10
 DRIFT_SMOOTH = 1e-2
 #: A drift is tested where a function of time can be: interpolated. The fit + validation rows
-#: are cut into ``DRIFT_BLOCKS`` equal spans of the recording time; the drift and the
-#: configuration features are both fitted on the even spans and compared on the odd ones (the
-#: validation sweeps, drawn at random, may lie at either end of the recording, where a drift
-#: would have to be extrapolated). Spans are long enough (half a sweep of a typical recording)
+#: are cut, in time order, into ``DRIFT_BLOCKS`` spans of equal row count; the drift and the
+#: configuration features are both fitted on the even spans and compared on the odd ones
+#: between the first and the last even-span row (the validation sweeps, drawn at random, may
+#: lie at either end of the recording, where a drift would have to be extrapolated; see
+#: :func:`_time_spans`). Spans are long enough (half a sweep of a typical recording)
 #: that the configuration moves within one: where spans were a few rows long, a function of
 #: time followed the robot's own slowly varying error along the trajectory as well as a
 #: configuration model did.
@@ -180,10 +181,27 @@ def _level_trend(data: MeasuredData) -> np.ndarray:
 
 
 def _time_spans(data: MeasuredData, train: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Fit + validation rows in even / odd spans of the recording time (``DRIFT_BLOCKS``)."""
-    span = np.minimum(np.floor(_time_fraction(data) * DRIFT_BLOCKS), DRIFT_BLOCKS - 1)
-    even = span.astype(int) % 2 == 0
-    return train & even, train & ~even
+    """Fit + validation rows in even / odd spans of the recording time (``DRIFT_BLOCKS``),
+    compared only where the drift is interpolated.
+
+    The spans cut the fit + validation rows in time order into equal counts: the held-out
+    test blocks leave gaps in time, and spans of equal *time* put whole stretches between two
+    test blocks in one parity (one seed: every fit row before 45 % of the recording, the
+    comparison rows after it, a drift extrapolated over half the recording and 2 mm worse
+    than none). Odd-span rows before the first or after the last even-span row (the last span
+    is odd) are not compared: there a function of time would be extrapolated."""
+    x = _time_fraction(data)
+    rows = np.flatnonzero(train)
+    fit, cmp_ = np.zeros(len(x), dtype=bool), np.zeros(len(x), dtype=bool)
+    if not len(rows):
+        return fit, cmp_
+    rows = rows[np.argsort(x[rows], kind="stable")]
+    span = (np.arange(len(rows)) * DRIFT_BLOCKS) // len(rows)
+    fit[rows[span % 2 == 0]] = True
+    odd = rows[span % 2 == 1]
+    lo, hi = x[fit].min(), x[fit].max()
+    cmp_[odd[(x[odd] > lo) & (x[odd] < hi)]] = True
+    return fit, cmp_
 
 
 def _where(kind: str, data: MeasuredData, fit_rows: np.ndarray, val: np.ndarray,
