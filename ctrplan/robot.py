@@ -169,8 +169,13 @@ class Robot:
         return 2 * self.n
 
     def array(self, name: str) -> np.ndarray:
-        """Per-tube property as an ``(n,)`` array (any Tube attribute or property)."""
-        return np.array([getattr(t, name) for t in self.tubes], dtype=float)
+        """Per-tube property as an ``(n,)`` array (any Tube attribute or property); a fresh
+        copy of the values read once (the robot is immutable; shape models ask per call)."""
+        cache = self.__dict__.setdefault("_arrays", {})
+        hit = cache.get(name)
+        if hit is None:
+            hit = cache[name] = np.array([getattr(t, name) for t in self.tubes], dtype=float)
+        return hit.copy()
 
     @property
     def lengths(self) -> np.ndarray:

@@ -206,3 +206,31 @@ def test_sampling_a_zero_volume_valid_set_raises_instead_of_looping():
     assert robot.is_valid(np.array([[0.0, 0.0, -50.0, -50.0]]))[0]
     with pytest.raises(InputError, match="sample"):
         robot.sample(3, seed=0)
+
+
+def test_radius_along_is_the_outermost_tube_present():
+    """radius_along (a compiled kernel) against a plain loop written here: at each arc length
+    the outer radius of the outermost tube whose distal end is not before it (the innermost
+    past the tip, and where an arc length is NaN), on configurations inside and outside the
+    joint limits; the robot's cached per-tube arrays come back as fresh copies."""
+    from ctrplan.shape.base import radius_along
+
+    rng = np.random.default_rng(3)
+    for name in ("seed1", "two_tube_nylon"):
+        robot = load_robot(name)
+        n = robot.n
+        q = np.c_[rng.uniform(-3, 3, (200, n)), rng.uniform(-120, 5, (200, n))]
+        s = rng.uniform(-5, 300, (200, 17))
+        s[0, 3] = np.nan
+        want = np.empty_like(s)
+        for b in range(len(q)):
+            for j in range(s.shape[1]):
+                k = 0
+                for i, tube in enumerate(robot.tubes):
+                    if s[b, j] <= q[b, n + i] + tube.length + 1e-9:
+                        k = i
+                want[b, j] = robot.tubes[k].od / 2.0
+        np.testing.assert_array_equal(radius_along(robot, q, s), want)
+        a = robot.array("od")
+        a[:] = -1.0
+        assert np.all(robot.array("od") > 0)

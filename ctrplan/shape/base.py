@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
+import numba as nb
 import numpy as np
 
 from ctrplan.robot import Robot
@@ -97,12 +98,26 @@ def radius_along(robot: Robot, q: np.ndarray, s: np.ndarray) -> np.ndarray:
     """
     q = np.atleast_2d(np.asarray(q, dtype=float))
     n = robot.n
-    ends = q[:, n:] + robot.lengths                       # (B, n)
-    od = robot.array("od")
-    present = s[:, :, None] <= ends[:, None, :] + 1e-9    # (B, m, n)
-    # index of the outermost tube present (tubes are ordered innermost first)
-    idx = np.where(present, np.arange(n)[None, None, :], 0).max(axis=2)
-    return od[idx] / 2.0
+    ends = np.ascontiguousarray(q[:, n:] + robot.lengths)          # (B, n)
+    s = np.ascontiguousarray(np.broadcast_to(np.asarray(s, dtype=float), (len(q),) + np.shape(s)[-1:]))
+    out = np.empty(s.shape)
+    _radius_along(ends, robot.array("od") / 2.0, s, out)
+    return out
+
+
+@nb.njit(cache=True)
+def _radius_along(ends, half_od, s, out):
+    """out[b, j] = half_od of the outermost tube present at s[b, j] (tubes innermost first: the
+    largest index i with s <= ends[b, i] + 1e-9; 0 where none is)."""
+    B, m = s.shape
+    n = ends.shape[1]
+    for b in range(B):
+        for j in range(m):
+            idx = 0
+            for i in range(n):
+                if s[b, j] <= ends[b, i] + 1e-9:
+                    idx = i
+            out[b, j] = half_od[idx]
 
 
 def check_q(robot: Robot, q: np.ndarray) -> np.ndarray:
