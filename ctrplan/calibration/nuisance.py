@@ -45,12 +45,24 @@ def screen(robot: Robot, prob: Problem, data: MeasuredData, split: Split, final_
         if not o["claimed"]:
             continue
         for e in list(named):
-            frac = _explained_by(robot, prob, data, current, e, o["features"], split.train)
-            if frac > FIELD_LIKE:
-                named.remove(e)
-                warnings.append(f"{e} is not named: {100 * frac:.0f} % of what it changes is "
-                                f"also {NUISANCES[o['kind']]}, which the data show is at work")
+            frac, change = _explained_by(robot, prob, data, current, e, o["features"],
+                                         split.train)
+            if not frac > FIELD_LIKE:
+                continue
+            level = o.get("anchored_level_mm")
+            if level is not None and _level_share(change, np.asarray(level)) < LEVEL_SHARE:
+                continue       # a constant offset far larger than the drift ever moved
+            named.remove(e)
+            warnings.append(f"{e} is not named: {100 * frac:.0f} % of what it changes is "
+                            f"also {NUISANCES[o['kind']]}, which the data show is at work")
     return Nuisances(outside, claimed, named, tuple(warnings))
+
+
+def _level_share(change: np.ndarray, level: np.ndarray) -> float:
+    """The share of an effect's mean change at the tips (3,) mm that a drift's anchored level
+    (3,) accounts for: its projection on the change over the change's square norm."""
+    cc = float(change @ change)
+    return float(change @ level) / cc if cc > 0 else 1.0
 
 
 #: Nuisances outside the effect vocabulary, tested only AFTER the robot model is fitted (so they
@@ -70,6 +82,15 @@ NUISANCES = {"~drift": "a drift of the sensor in time", "~field": "a distortion 
              "field (a smooth function of the measured position)"}
 DISTINGUISH = 0.9
 FIELD_LIKE = 0.8
+#: A drift's level is told from a constant offset by where the drift starts: a sensor drift is
+#: a change since the tracker was registered, taken as the start of the recording, so a
+#: claimed drift's *anchored level* is the mean of its fitted curve less its value at the first
+#: row (a drift that settles by 4 mm within the recording: about 4 mm; the per-sweep jitter of
+#: a joint's homing switch: about its own 0.2 mm). A named effect that is mostly a level and a
+#: trend is un-named only when the anchored level accounts for at least this share of its mean
+#: change at the tips (more than it leaves: the midpoint); a constant offset far larger than
+#: the drift ever moved (a joint offset of 1.5 mm beside a 0.2 mm homing jitter) stays named.
+LEVEL_SHARE = 0.5
 #: A nuisance must lower the mean tip error by at least this much (mm; 1 um, below any
 #: tracker's resolution) to be claimed: relative gains on a numerically zero residual (noiseless
 #: data the model already fits) are no evidence.
@@ -271,6 +292,10 @@ def _nuisances(robot, prob, data, final_pred, fit_rows, val, train, test, min_ga
         claimed = on_model or on_base
         corr = _ridge(F, r, train, sm)               # fitted on fit + validation rows
         left = r - corr
+        anchored = None
+        if sm:   # the drift's level if it started at zero at the first row (LEVEL_SHARE)
+            first = int(np.argmin(np.asarray(data.time, dtype=float)))
+            anchored = [float(v) for v in corr[train].mean(0) - corr[first]]
         why = (f"calibrated model's residual: {where} mean {e_model:.3f} mm -> {e_nuis:.3f} "
                f"mm with it, {e_conf:.3f} mm with configuration features instead; base model "
                f"after an affine map: {b_model:.3f} -> {b_nuis:.3f} mm, {b_conf:.3f} mm")
@@ -281,6 +306,7 @@ def _nuisances(robot, prob, data, final_pred, fit_rows, val, train, test, min_ga
                     "base_validation_mean_config_mm": b_conf,
                     "test_mean_with_mm": mean(left, test),
                     "test_max_with_mm": float(np.linalg.norm(left[test], axis=1).max()),
+                    "anchored_level_mm": anchored,
                     # what a named effect must not mostly be: a drift's level and trend, the
                     # nonlinear terms of a field
                     "features": _level_trend(data) if kind == "~drift" else F[:, 4:]})
@@ -290,16 +316,17 @@ def _nuisances(robot, prob, data, final_pred, fit_rows, val, train, test, min_ga
     return out
 
 
-def _explained_by(robot, prob, data, current, effect, F, rows) -> float:
-    """Fraction of what ``effect`` changes at the tips (sum of squares over ``rows``) that a
-    least-squares function of the nuisance features F reproduces."""
+def _explained_by(robot, prob, data, current, effect, F, rows) -> tuple[float, np.ndarray]:
+    """(fraction of what ``effect`` changes at the tips (sum of squares over ``rows``) that a
+    least-squares function of the nuisance features F reproduces, its mean change (3,) mm)."""
     without = {k: v for k, v in current.items() if k != effect}
     a, b = prob.predict_many([current, without])
     d = a[:, -1] - b[:, -1]
     d = np.where(np.isfinite(d), d, 0.0)
+    mean = d[rows].mean(0) if rows.any() else np.zeros(3)
     ss = float((d[rows] ** 2).sum())
     if ss <= 0:
-        return 0.0
+        return 0.0, mean
     coef, *_ = np.linalg.lstsq(F[rows], d[rows], rcond=None)
     left = d[rows] - F[rows] @ coef
-    return float(1.0 - (left ** 2).sum() / ss)
+    return float(1.0 - (left ** 2).sum() / ss), mean
