@@ -90,6 +90,8 @@ FIELD_LIKE = 0.8
 #: trend is un-named only when the anchored level accounts for at least this share of its mean
 #: change at the tips (more than it leaves: the midpoint); a constant offset far larger than
 #: the drift ever moved (a joint offset of 1.5 mm beside a 0.2 mm homing jitter) stays named.
+#: Where the first row is held out (a test block) the start is not observed and the level
+#: cannot be anchored: an effect that is mostly a level and a trend is then un-named.
 LEVEL_SHARE = 0.5
 #: A nuisance must lower the mean tip error by at least this much (mm; 1 um, below any
 #: tracker's resolution) to be claimed: relative gains on a numerically zero residual (noiseless
@@ -293,8 +295,11 @@ def _nuisances(robot, prob, data, final_pred, fit_rows, val, train, test, min_ga
         corr = _ridge(F, r, train, sm)               # fitted on fit + validation rows
         left = r - corr
         anchored = None
-        if sm:   # the drift's level if it started at zero at the first row (LEVEL_SHARE)
-            first = int(np.argmin(np.asarray(data.time, dtype=float)))
+        first = int(np.argmin(np.asarray(data.time, dtype=float)))
+        if sm and train[first]:
+            # the drift's level if it started at zero at the first row (LEVEL_SHARE); only
+            # where that row is a fit or validation row (a held-out first sweep leaves the
+            # start extrapolated: a settling drift's level is then underestimated)
             anchored = [float(v) for v in corr[train].mean(0) - corr[first]]
         why = (f"calibrated model's residual: {where} mean {e_model:.3f} mm -> {e_nuis:.3f} "
                f"mm with it, {e_conf:.3f} mm with configuration features instead; base model "
