@@ -38,7 +38,7 @@ ROBOT = "seed1"
 MODELS = ("learned", "physics")
 PLANNER = "rrtconnect"
 TIME_LIMIT = 5.0
-STAGES = ("ik", "planning", "simplification", "verification")
+STAGES = ("checks", "ik", "planning", "simplification", "optimization", "verification")
 
 
 def _robot():
