@@ -95,8 +95,10 @@ def test_a_drift_is_claimed_when_test_blocks_cut_the_recording(walk):
     r = np.outer(3.0 * np.minimum(x, 0.6) / 0.6, [0.6, -0.48, 0.64])
     r -= r.mean(0)
     rng = np.random.default_rng(0)
-    tip_pred = np.stack([30.0 * np.cos(q[:, 0]), 30.0 * np.sin(q[:, 0]), 120.0 + 0.3 * q[:, 3]], axis=1)
-    data = MeasuredData(q=q, tip=tip_pred + r + NOISE * rng.standard_normal((ROWS, 3)), time=t, sweep=sw)
+    tip_pred = np.stack([30.0 * np.cos(q[:, 0]), 30.0 * np.sin(q[:, 0]),
+                         120.0 + 0.3 * q[:, 3]], axis=1)
+    data = MeasuredData(q=q, tip=tip_pred + r + NOISE * rng.standard_normal((ROWS, 3)), time=t,
+                        sweep=sw)
     span = np.minimum(np.floor(x * 16), 15).astype(int)
     test = (span >= 8) & (span % 2 == 0)
     base = split_rows(data, 0.25, 0)

@@ -98,8 +98,10 @@ def radius_along(robot: Robot, q: np.ndarray, s: np.ndarray) -> np.ndarray:
     """
     q = np.atleast_2d(np.asarray(q, dtype=float))
     n = robot.n
-    ends = np.ascontiguousarray(q[:, n:] + robot.lengths)          # (B, n)
-    s = np.ascontiguousarray(np.broadcast_to(np.asarray(s, dtype=float), (len(q),) + np.shape(s)[-1:]))
+    s = np.atleast_2d(np.asarray(s, dtype=float))
+    rows = np.broadcast_shapes((len(q),), (len(s),))[0]             # (B, n) ends, (B, m) s
+    ends = np.ascontiguousarray(np.broadcast_to(q[:, n:] + robot.lengths, (rows, n)))
+    s = np.ascontiguousarray(np.broadcast_to(s, (rows, s.shape[1])))
     out = np.empty(s.shape)
     _radius_along(ends, robot.array("od") / 2.0, s, out)
     return out
