@@ -199,7 +199,7 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     rep = _report(inp, split, evd, sel, fit, nuis, verdict, base_pred, ev_after, settings,
                   learned)
     rep.confounded = conf
-    rep.warnings += describe_confounded(conf)
+    rep.warnings += describe_confounded(conf) + _bistable_warnings(fit, split.test)
     named_conf = [c for c in conf if set(c["effects"]) & set(rep.effects)]
     if named_conf:
         # the evidence singled one effect out by its fit; the conclusion says what it is
@@ -273,6 +273,20 @@ def _select_and_fit(prob: Problem, inp: Inputs, split: Split, evd: ev.Evidence,
         fit = final_fit(prob, split.train, split.test, sel.effects, sel.free, cfg.fit_iter,
                         base_pred)
     return sel, fit
+
+
+def _bistable_warnings(fit: FinalFit, test: np.ndarray) -> list[str]:
+    """The report's word on rows where the calibrated model has two stable equilibria."""
+    n = int(fit.bistable.sum())
+    if not n:
+        return []
+    return [f"the calibrated model has two stable equilibria at {n} measured row(s) "
+            f"({int((fit.bistable & test).sum())} of them test rows): the tubes can snap "
+            "between them there. Each such row is compared on the equilibrium nearer its "
+            f"measurement, the branch the robot was on ({int(fit.other_branch.sum())} row(s) "
+            "on the one the solve does not pick first); a plan starts on the robot's measured "
+            "branch and follows it (branch tracking): plan from these configurations with the "
+            "branch the robot is on (ctrplan.planning.stability.Start)"]
 
 
 def _apply_choice(rep: DiagnoseReport, choice: HeldoutChoice, fit: FinalFit) -> None:

@@ -23,12 +23,16 @@ __all__ = ["FinalFit", "final_fit", "Problem", "FitResult", "NONFINITE_MM"]
 class FinalFit:
     """The chosen model refitted on fit + validation rows: complete effects, the fitted
     parameters' sigma (NaN when the refit did not improve on the selected values), predicted
-    points (B, m, 3) and tip errors (B,) mm of every row."""
+    points (B, m, 3) and tip errors (B,) mm of every row; bistable (B,) the rows where the
+    model has two stable equilibria, other_branch (B,) those predicted on the one the solve
+    does not pick first (nearer the measurement: :class:`Problem`)."""
 
     effects: dict[str, dict[str, float]]
     sigma: dict[str, dict[str, float]]
     pred: np.ndarray
     err: np.ndarray
+    bistable: np.ndarray
+    other_branch: np.ndarray
 
 
 def final_fit(prob: Problem, train: np.ndarray, test: np.ndarray,
@@ -50,5 +54,9 @@ def final_fit(prob: Problem, train: np.ndarray, test: np.ndarray,
         else:
             sigma = {e: {k: math.nan for k in names} for e, names in free.items()}
         prob.evals += prob_all.evals
-    pred = prob.predict_many([effects])[0] if effects else base_pred
-    return FinalFit(effects, sigma, pred, prob.errors(pred))
+    none = np.zeros(len(base_pred), dtype=bool)
+    if not effects:
+        return FinalFit(effects, sigma, base_pred, prob.errors(base_pred), none, none)
+    pred = prob.predict_many([effects])[0]
+    return FinalFit(effects, sigma, pred, prob.errors(pred), prob.last_bistable.copy(),
+                    prob.last_other_branch.copy())

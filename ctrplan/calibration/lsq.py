@@ -7,6 +7,10 @@ training and held-out rows; the joint-space stage, friction's history included, 
 rows in order of motion); the finite-difference Jacobian stacks all perturbed parameter sets
 into one kernel call as well. Parameters that act only on the sensor side (``registration``)
 reuse the mechanics solve.
+
+Where the compliant model has two stable equilibria at a measured configuration (it probes for
+the second one), the row is predicted on the one nearer its measurement: the branch the robot
+was on (:meth:`Problem._on_measured_branch`).
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ctrplan.measured import MeasuredData
+from ctrplan.shape.branches import probing
 from ctrplan.shape.effects import EffectModel, Param, Prepared, effect_params, prepare, to_sensor
 from ctrplan.shape.physics import MechanicsParams
 
@@ -76,6 +81,12 @@ class Problem:
         self.tip = data.tip
         self.use = slice(None) if data.points is not None else slice(1, 2)
         self.evals = 0
+        #: (B,) bool: rows of the last prediction (of the last effect set in it) where the model
+        #: has two stable equilibria and the one nearer the measured tip was not the one the
+        #: solve picks (:meth:`_on_measured_branch`)
+        self.last_other_branch = np.zeros(len(data), dtype=bool)
+        #: (B,) bool: rows of the last prediction where the model has two stable equilibria
+        self.last_bistable = np.zeros(len(data), dtype=bool)
         #: smallest scale (mm per coordinate) of the robust soft-L1 loss; None: least squares
         self.robust: float | None = None
 
@@ -88,11 +99,13 @@ class Problem:
         preps = [prepare(self.robot, self.model.base, e, self.data.q, self.sweep) for e in effect_sets]
         if rows is not None and not np.all(rows):
             return self._predict_rows(effect_sets, preps, np.flatnonzero(rows))
-        return self._solve(effect_sets, preps, B)
+        return self._solve(effect_sets, preps, B, np.arange(B))
 
-    def _solve(self, effect_sets, preps, B: int) -> list[np.ndarray]:
-        """One kernel call for the prepared sets ``preps`` (rows B each): points in the sensor
-        frame per set."""
+    def _solve(self, effect_sets, preps, B: int, idx: np.ndarray) -> list[np.ndarray]:
+        """One kernel call for the prepared sets ``preps`` (rows B each, the data rows ``idx``):
+        points in the sensor frame per set. Where a set's compliant mechanics has two stable
+        equilibria (:attr:`ctrplan.shape.physics.SolveInfo.bistable`) the row's prediction is
+        the one nearer its measured tip (:meth:`_on_measured_branch`)."""
         # sets that differ only in sensor-side parameters share a solve
         keys: list[int] = []
         uniq: list[int] = []
@@ -116,14 +129,59 @@ class Problem:
             kink=np.concatenate([preps[u].params.kink for u in uniq]),
             **_loads_of([preps[u].params for u in uniq]),
         )
-        phys = self.model._compliant if tors else self.model._rigid
+        # the compliant model probes for a second stable equilibrium: a row's branch can only
+        # be told from its measurement where both are known (_on_measured_branch)
+        phys = probing(self.model)._compliant if tors else self.model._rigid
         pts = phys.solve(q, self.m, params).points
         self.evals += 1
+        alt = self._other_branch(phys, q, params) if tors else None
         out = []
         for i, e in enumerate(effect_sets):
             j = uniq.index(keys[i])
-            out.append(to_sensor(e, pts[j * B:(j + 1) * B]))
+            self.last_other_branch = np.zeros(len(self.data), dtype=bool)
+            self.last_bistable = np.zeros(len(self.data), dtype=bool)
+            p = to_sensor(e, pts[j * B:(j + 1) * B])
+            if alt is not None and alt[0][j * B:(j + 1) * B].any():
+                self.last_bistable[idx[alt[0][j * B:(j + 1) * B]]] = True
+                p = self._on_measured_branch(e, p, alt, slice(j * B, (j + 1) * B), idx)
+            out.append(p)
         return out
+
+    def _other_branch(self, phys, q: np.ndarray, params: MechanicsParams):
+        """(mask (R,), points (R, m, 3)) of the other stable equilibrium of the rows of the last
+        solve where the model found two; None where it found none."""
+        info = phys.last_info
+        bi = None if info is None else info.bistable
+        if bi is None or not bi.any():
+            return None
+        rows = np.flatnonzero(bi)
+        other = np.full((len(q), self.m, 3), np.nan)
+        sh = phys.solve(q[rows], self.m, _take(params, rows), uz_init=info.uz0_alt[rows])
+        other[rows] = np.where(sh.ok[:, None, None], sh.points, np.nan)
+        self.evals += 1
+        return np.isfinite(other).all(axis=(1, 2)), other
+
+    def _on_measured_branch(self, effects, pts: np.ndarray, alt, part: slice,
+                            idx: np.ndarray) -> np.ndarray:
+        """``pts`` (sensor frame) with each bistable row's prediction on the equilibrium nearer
+        its measured tip, and :attr:`last_other_branch` set for those rows.
+
+        Why: where the model has two stable equilibria the configuration alone does not say
+        which shape the tubes take; the robot's history does (it stays on its branch until the
+        branch ends). A plan starts from the robot's measured state and follows its branch
+        (branch tracking), so the model's error on a measured row is its error on the branch
+        the robot was measured on, identified here from the tip."""
+        has, other = alt[0][part], to_sensor(effects, alt[1][part])
+        tip = self.tip[idx]
+        d0 = np.linalg.norm(pts[:, -1] - tip, axis=1)
+        d1 = np.linalg.norm(other[:, -1] - tip, axis=1)
+        use = has & np.isfinite(d1) & (~np.isfinite(d0) | (d1 < d0))
+        if not use.any():
+            return pts
+        pts = pts.copy()
+        pts[use] = other[use]
+        self.last_other_branch[idx[use]] = True
+        return pts
 
     def _predict_rows(self, effect_sets, preps, idx: np.ndarray) -> list[np.ndarray]:
         """:meth:`predict_many` on the rows ``idx`` only (the joint-space stage ran on all)."""
@@ -131,7 +189,7 @@ class Problem:
         sub = [Prepared(q=p.q[idx], params=_take(p.params, idx), torsion=p.torsion)
                for p in preps]
         out = []
-        for pts in self._solve(effect_sets, sub, len(idx)):
+        for pts in self._solve(effect_sets, sub, len(idx), idx):
             full = np.full((B, self.m, 3), np.nan)
             full[idx] = pts
             out.append(full)

@@ -140,7 +140,7 @@ def settle(model, q: np.ndarray, uz0: np.ndarray, points: int,
     return solve(model, q, points, direction, uz_init=uz0, chain=np.ones(B, dtype=bool))
 
 
-def _probing(model):
+def probing(model):
     """``model`` with ``probe_bistable`` on (cached on the model object: freed with it)."""
     from ctrplan.objcache import owned
     from ctrplan.shape.effects import EffectModel
@@ -168,7 +168,7 @@ def stable_equilibria(model, q: np.ndarray,
     prove there is none."""
     from ctrplan.shape.effects import EffectModel, evaluate
 
-    pm = _probing(model)
+    pm = probing(model)
     q = np.atleast_2d(np.asarray(q, dtype=float))
     if isinstance(pm, EffectModel):
         evaluate(pm, q, 2, direction=direction)
