@@ -196,6 +196,9 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
         learned = _lr(robot, data.q, split.sweeps, data.tip, fit.pred[:, -1], split.train,
                       split.test, split.ordered, groups=split.units)
     settings = _settings(holdout, seed, max_remainder, cfg, inp, split, evd, sel, prob.evals)
+    settings["bistable_rows"] = {"rows": int(fit.bistable.sum()),
+                                 "test_rows": int((fit.bistable & split.test).sum()),
+                                 "on_other_branch": int(fit.other_branch.sum())}
     rep = _report(inp, split, evd, sel, fit, nuis, verdict, base_pred, ev_after, settings,
                   learned)
     rep.confounded = conf
