@@ -195,10 +195,8 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
 
         learned = _lr(robot, data.q, split.sweeps, data.tip, fit.pred[:, -1], split.train,
                       split.test, split.ordered, groups=split.units)
-    settings = _settings(holdout, seed, max_remainder, cfg, inp, split, evd, sel, prob.evals)
-    settings["bistable_rows"] = {"rows": int(fit.bistable.sum()),
-                                 "test_rows": int((fit.bistable & split.test).sum()),
-                                 "on_other_branch": int(fit.other_branch.sum())}
+    settings = _settings(holdout, seed, max_remainder, cfg, inp, split, evd, sel, prob.evals,
+                         fit)
     rep = _report(inp, split, evd, sel, fit, nuis, verdict, base_pred, ev_after, settings,
                   learned)
     rep.confounded = conf
@@ -317,7 +315,7 @@ def _apply_choice(rep: DiagnoseReport, choice: HeldoutChoice, fit: FinalFit) -> 
 
 
 def _settings(holdout: float, seed: int, max_remainder: float, cfg: SelectConfig, inp: Inputs,
-              split: Split, evd: ev.Evidence, sel: Selection, evals: int) -> dict:
+              split: Split, evd: ev.Evidence, sel: Selection, evals: int, fit: FinalFit) -> dict:
     """report.json ``settings`` (in the order the workflow has always written them)."""
     data = inp.data
     rs = evd.robust_scale
@@ -331,7 +329,10 @@ def _settings(holdout: float, seed: int, max_remainder: float, cfg: SelectConfig
             "train_rows": int(split.train.sum()), "shapes_measured": data.points is not None,
             "rows_in_order_of_motion": split.ordered,
             "robust_loss": {"loss": "soft_l1", "f_scale_mm": rs} if rs else None,
-            **sel.settings, "kernel_calls": evals, "noise_sd_mm": evd.noise_sd}
+            **sel.settings, "kernel_calls": evals, "noise_sd_mm": evd.noise_sd,
+            "bistable_rows": {"rows": int(fit.bistable.sum()),
+                              "test_rows": int((fit.bistable & split.test).sum()),
+                              "on_other_branch": int(fit.other_branch.sum())}}
 
 
 def _report(inp: Inputs, split: Split, evd: ev.Evidence, sel: Selection, fit: FinalFit,

@@ -92,16 +92,21 @@ class Problem:
 
     # -------------------------------------------------------------- predictions
     def predict_many(self, effect_sets: Sequence[Mapping[str, Mapping[str, float]]],
-                     rows: np.ndarray | None = None) -> list[np.ndarray]:
+                     rows: np.ndarray | None = None, probe: bool = True) -> list[np.ndarray]:
         """Predicted points (B, m, 3) for each complete effect set, one kernel call in all;
-        ``rows`` (B,) bool: solve only these rows (the others are NaN; default all)."""
+        ``rows`` (B,) bool: solve only these rows (the others are NaN; default all).
+        ``probe``: the compliant model also probes for a second stable equilibrium where the
+        first one found is stable (False inside a fit's iterations: the probe doubles the cost
+        of a solve, and the robust loss already bounds what a row on the other branch weighs;
+        every score and prediction of a fitted model probes)."""
         B = len(self.data)
         preps = [prepare(self.robot, self.model.base, e, self.data.q, self.sweep) for e in effect_sets]
         if rows is not None and not np.all(rows):
-            return self._predict_rows(effect_sets, preps, np.flatnonzero(rows))
-        return self._solve(effect_sets, preps, B, np.arange(B))
+            return self._predict_rows(effect_sets, preps, np.flatnonzero(rows), probe)
+        return self._solve(effect_sets, preps, B, np.arange(B), probe)
 
-    def _solve(self, effect_sets, preps, B: int, idx: np.ndarray) -> list[np.ndarray]:
+    def _solve(self, effect_sets, preps, B: int, idx: np.ndarray,
+               probe: bool = True) -> list[np.ndarray]:
         """One kernel call for the prepared sets ``preps`` (rows B each, the data rows ``idx``):
         points in the sensor frame per set. Where a set's compliant mechanics has two stable
         equilibria (:attr:`ctrplan.shape.physics.SolveInfo.bistable`) the row's prediction is
@@ -130,8 +135,12 @@ class Problem:
             **_loads_of([preps[u].params for u in uniq]),
         )
         # the compliant model probes for a second stable equilibrium: a row's branch can only
-        # be told from its measurement where both are known (_on_measured_branch)
-        phys = probing(self.model)._compliant if tors else self.model._rigid
+        # be told from its measurement where both are known (_on_measured_branch); without the
+        # probe, the second is known where the first one found was unstable
+        if tors:
+            phys = probing(self.model)._compliant if probe else self.model._compliant
+        else:
+            phys = self.model._rigid
         pts = phys.solve(q, self.m, params).points
         self.evals += 1
         alt = self._other_branch(phys, q, params) if tors else None
@@ -183,13 +192,14 @@ class Problem:
         self.last_other_branch[idx[use]] = True
         return pts
 
-    def _predict_rows(self, effect_sets, preps, idx: np.ndarray) -> list[np.ndarray]:
+    def _predict_rows(self, effect_sets, preps, idx: np.ndarray,
+                      probe: bool = True) -> list[np.ndarray]:
         """:meth:`predict_many` on the rows ``idx`` only (the joint-space stage ran on all)."""
         B = len(self.data)
         sub = [Prepared(q=p.q[idx], params=_take(p.params, idx), torsion=p.torsion)
                for p in preps]
         out = []
-        for pts in self._solve(effect_sets, sub, len(idx), idx):
+        for pts in self._solve(effect_sets, sub, len(idx), idx, probe):
             full = np.full((B, self.m, 3), np.nan)
             full[idx] = pts
             out.append(full)
@@ -273,7 +283,7 @@ class Problem:
             key = z.tobytes()
             if key not in cache:
                 cache.clear()
-                cache[key] = self.predict_many([effects_at(z)], self.rows)[0]
+                cache[key] = self.predict_many([effects_at(z)], self.rows, probe=False)[0]
             return self.residual(cache[key], self.train)
 
         def jac(z: np.ndarray) -> np.ndarray:
@@ -286,7 +296,7 @@ class Problem:
                 zi[i] += step
                 zs.append(zi)
                 steps.append(step)
-            preds = self.predict_many([effects_at(zi) for zi in zs], self.rows)
+            preds = self.predict_many([effects_at(zi) for zi in zs], self.rows, probe=False)
             J = np.empty((f0.size, len(z)))
             for i, p in enumerate(preds):
                 J[:, i] = (self.residual(p, self.train) - f0) / steps[i]
