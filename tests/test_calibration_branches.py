@@ -21,14 +21,14 @@ from tests.foreign import continuation as C
 ROBOT = "two_tube_nylon"
 
 
-def _tips(q: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+def _tips(q: np.ndarray) -> list[np.ndarray]:
     """Every configuration's stable equilibria's tips (foreign energy), mm."""
     out = []
     for row in q:
         eqs = C.equilibria(ROBOT, row)
         out.append(np.array([C.continue_path(ROBOT, row[None], uz0=e.uz0 + 1e-4, points=2).tips[0]
                              for e in eqs]))
-    return q, out
+    return out
 
 
 def test_each_row_is_predicted_on_the_branch_it_was_measured_on():
@@ -36,7 +36,7 @@ def test_each_row_is_predicted_on_the_branch_it_was_measured_on():
                   [np.pi - 0.25, 0.0, -60.0, -3.0],
                   [np.pi + 0.1, 0.0, -80.0, -5.0],
                   [0.4, 0.0, -60.0, 0.0]])            # the last: one stable equilibrium
-    q, tips = _tips(q)
+    tips = _tips(q)
     assert [len(t) for t in tips] == [2, 2, 2, 1]
     assert all(np.linalg.norm(t[0] - t[1]) > 20.0 for t in tips[:3])
     # each bistable configuration measured on both branches (in either order), the last once

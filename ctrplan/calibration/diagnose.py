@@ -200,7 +200,7 @@ def diagnose(robot: Robot | str, data: MeasuredData | str | os.PathLike, base: s
     rep = _report(inp, split, evd, sel, fit, nuis, verdict, base_pred, ev_after, settings,
                   learned)
     rep.confounded = conf
-    rep.warnings += describe_confounded(conf) + _bistable_warnings(fit, split.test)
+    rep.warnings += describe_confounded(conf) + _bistable_warnings(settings["bistable_rows"])
     named_conf = [c for c in conf if set(c["effects"]) & set(rep.effects)]
     if named_conf:
         # the evidence singled one effect out by its fit; the conclusion says what it is
@@ -276,15 +276,15 @@ def _select_and_fit(prob: Problem, inp: Inputs, split: Split, evd: ev.Evidence,
     return sel, fit
 
 
-def _bistable_warnings(fit: FinalFit, test: np.ndarray) -> list[str]:
-    """The report's word on rows where the calibrated model has two stable equilibria."""
-    n = int(fit.bistable.sum())
-    if not n:
+def _bistable_warnings(counts: dict) -> list[str]:
+    """The report's word on rows where the calibrated model has two stable equilibria
+    (``counts``: report.json ``settings.bistable_rows``)."""
+    if not counts["rows"]:
         return []
-    return [f"the calibrated model has two stable equilibria at {n} measured row(s) "
-            f"({int((fit.bistable & test).sum())} of them test rows): the tubes can snap "
+    return [f"the calibrated model has two stable equilibria at {counts['rows']} measured "
+            f"row(s) ({counts['test_rows']} of them test rows): the tubes can snap "
             "between them there. Each such row is compared on the equilibrium nearer its "
-            f"measurement, the branch the robot was on ({int(fit.other_branch.sum())} row(s) "
+            f"measurement, the branch the robot was on ({counts['on_other_branch']} row(s) "
             "on the one the solve does not pick first); a plan starts on the robot's measured "
             "branch and follows it (branch tracking): plan from these configurations with the "
             "branch the robot is on (ctrplan.planning.stability.Start)"]

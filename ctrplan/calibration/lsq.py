@@ -147,12 +147,13 @@ class Problem:
         out = []
         for i, e in enumerate(effect_sets):
             j = uniq.index(keys[i])
+            part = slice(j * B, (j + 1) * B)
             self.last_other_branch = np.zeros(len(self.data), dtype=bool)
             self.last_bistable = np.zeros(len(self.data), dtype=bool)
-            p = to_sensor(e, pts[j * B:(j + 1) * B])
-            if alt is not None and alt[0][j * B:(j + 1) * B].any():
-                self.last_bistable[idx[alt[0][j * B:(j + 1) * B]]] = True
-                p = self._on_measured_branch(e, p, alt, slice(j * B, (j + 1) * B), idx)
+            p = to_sensor(e, pts[part])
+            if alt is not None and alt[0][part].any():
+                self.last_bistable[idx[alt[0][part]]] = True
+                p = self._on_measured_branch(e, p, alt, part, idx)
             out.append(p)
         return out
 
